@@ -1,0 +1,1 @@
+"""Core math: numpy and scipy only, no I/O, no printing."""

@@ -1,0 +1,486 @@
+"""Reading ``sensor_msgs/Imu`` from every log format a user has.
+
+One reader per container, picked by :func:`open_log` from the path:
+
+==========================  ==============================================  ==================
+path                        container                                       message encoding
+==========================  ==============================================  ==================
+``*.mcap`` file             plain MCAP (``mcap`` library)                   ROS 2 CDR or ROS 1
+directory                   rosbag2, sqlite3 or mcap storage (``rosbags``)  ROS 2 CDR
+``*.db3`` file              rosbag2 sqlite3 storage file alone              ROS 2 CDR
+``*.bag`` file              ROS 1 bag (``rosbags``)                         ROS 1
+==========================  ==============================================  ==================
+
+Readers yield raw messages ``(topic, log_time_ns, data)`` in log-time order; decoding is a
+separate step (:class:`ImuDecoder`). :func:`read_imu` assembles per-topic :class:`ImuStream`
+objects timed by ``header.stamp`` (log time where the stamp is zero), sorted, with duplicate
+stamps removed; what was reordered, removed or replaced is counted in :class:`ReadStats`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imucal_cli.errors import LogError
+from imucal_cli.types import ImuStream
+
+IMU_MSGTYPE = "sensor_msgs/msg/Imu"
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+def normalize_msgtype(msgtype: str) -> str:
+    """``sensor_msgs/Imu`` (ROS 1) -> ``sensor_msgs/msg/Imu`` (ROS 2 form used throughout)."""
+    parts = msgtype.strip().split("/")
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    return msgtype.strip()
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """A topic as the container describes it."""
+
+    topic: str
+    msgtype: str  # as stored: sensor_msgs/msg/Imu (ROS 2) or sensor_msgs/Imu (ROS 1)
+    count: int
+    encoding: str  # "cdr" or "ros1"
+
+    @property
+    def is_imu(self) -> bool:
+        return normalize_msgtype(self.msgtype) == IMU_MSGTYPE
+
+
+class LogReader(ABC):
+    """A log opened for reading. Use as a context manager."""
+
+    format_name: str = ""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __enter__(self) -> LogReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release the file handles."""
+
+    @abstractmethod
+    def topics(self) -> dict[str, TopicInfo]:
+        """Every topic in the log."""
+
+    @abstractmethod
+    def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
+        """Yield ``(topic, log_time_ns, serialized message)`` in log-time order."""
+
+    def error(self, problem: str, topic: str | None = None) -> LogError:
+        return LogError(str(self.path), problem, topic)
+
+
+class McapLog(LogReader):
+    """A plain MCAP file, messages in ROS 2 CDR or ROS 1 encoding."""
+
+    format_name = "mcap"
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path)
+        from mcap.reader import make_reader
+
+        self._file = path.open("rb")
+        try:
+            if self._file.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                raise self.error("not an MCAP file (bad magic bytes)")
+            self._file.seek(0)
+            self._reader = make_reader(self._file)
+            self._summary = self._reader.get_summary()
+        except LogError:
+            self._file.close()
+            raise
+        except Exception as exc:  # the mcap library raises many types on corrupt input
+            self._file.close()
+            raise self.error(f"cannot read MCAP: {exc}") from None
+        if self._summary is None:
+            self._file.close()
+            raise self.error("MCAP file has no summary section (truncated or still being written)")
+
+    def close(self) -> None:
+        self._file.close()
+
+    def topics(self) -> dict[str, TopicInfo]:
+        assert self._summary is not None
+        counts = self._summary.statistics.channel_message_counts if self._summary.statistics else {}
+        result: dict[str, TopicInfo] = {}
+        for channel_id, channel in self._summary.channels.items():
+            schema = self._summary.schemas.get(channel.schema_id)
+            msgtype = schema.name if schema else ""
+            encoding = "ros1" if channel.message_encoding == "ros1" else channel.message_encoding
+            count = int(counts.get(channel_id, 0))
+            if channel.topic in result:  # several channels on one topic: add up
+                count += result[channel.topic].count
+            result[channel.topic] = TopicInfo(channel.topic, msgtype, count, encoding)
+        return result
+
+    def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
+        try:
+            for _schema, channel, message in self._reader.iter_messages(topics=list(topics)):
+                yield channel.topic, int(message.log_time), bytes(message.data)
+        except LogError:
+            raise
+        except Exception as exc:
+            raise self.error(f"cannot read MCAP messages: {exc}") from None
+
+
+class RosbagsLog(LogReader):
+    """A rosbag2 directory (sqlite3 or mcap storage) or a ROS 1 bag, through ``rosbags``."""
+
+    def __init__(self, path: Path, ros1: bool) -> None:
+        super().__init__(path)
+        self.ros1 = ros1
+        self.format_name = "rosbag1" if ros1 else "rosbag2"
+        try:
+            if ros1:
+                from rosbags.rosbag1 import Reader as Rosbag1Reader
+
+                self._reader: Any = Rosbag1Reader(path)
+            else:
+                from rosbags.rosbag2 import Reader as Rosbag2Reader
+
+                self._reader = Rosbag2Reader(path)
+            self._reader.open()
+        except Exception as exc:
+            raise self.error(f"cannot read {self.format_name}: {exc}") from None
+        if not ros1:
+            storage = getattr(self._reader, "storage", None)
+            identifier = type(storage).__name__.lower() if storage is not None else ""
+            if "mcap" in identifier:
+                self.format_name = "rosbag2-mcap"
+            elif "sqlite" in identifier:
+                self.format_name = "rosbag2-sqlite3"
+            else:
+                files = list(getattr(self._reader, "paths", []) or [])
+                if files:
+                    suffix = Path(str(files[0])).suffix
+                    self.format_name = "rosbag2-mcap" if suffix == ".mcap" else "rosbag2-sqlite3"
+
+    def close(self) -> None:
+        try:
+            self._reader.close()
+        except Exception:  # noqa: S110 - closing a broken reader must not mask the real error
+            pass
+
+    def topics(self) -> dict[str, TopicInfo]:
+        result: dict[str, TopicInfo] = {}
+        for conn in self._reader.connections:
+            if self.ros1:
+                encoding = "ros1"
+                msgtype = conn.msgtype.replace("/msg/", "/")
+            else:
+                encoding = getattr(conn.ext, "serialization_format", "cdr")
+                msgtype = conn.msgtype
+            count = int(conn.msgcount)
+            if conn.topic in result:
+                count += result[conn.topic].count
+            result[conn.topic] = TopicInfo(conn.topic, msgtype, count, encoding)
+        return result
+
+    def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
+        wanted = set(topics)
+        connections = [c for c in self._reader.connections if c.topic in wanted]
+        if not connections:
+            return
+        try:
+            for conn, timestamp, data in self._reader.messages(connections=connections):
+                yield conn.topic, int(timestamp), bytes(data)
+        except Exception as exc:
+            raise self.error(f"cannot read {self.format_name} messages: {exc}") from None
+
+
+def detect_format(path: Path) -> str:
+    """``mcap``, ``rosbag2`` or ``rosbag1`` from the path (and its first bytes)."""
+    if path.is_dir():
+        return "rosbag2"
+    suffix = path.suffix.lower()
+    if suffix == ".mcap":
+        return "mcap"
+    if suffix == ".bag":
+        return "rosbag1"
+    if suffix == ".db3":
+        return "rosbag2"
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(16)
+    except OSError as exc:
+        raise LogError(str(path), f"cannot open: {exc.strerror}") from None
+    if head.startswith(MCAP_MAGIC):
+        return "mcap"
+    if head.startswith(ROSBAG1_MAGIC):
+        return "rosbag1"
+    if head.startswith(SQLITE_MAGIC):
+        return "rosbag2"
+    raise LogError(
+        str(path), "unknown log format (expected .mcap, .bag, a rosbag2 directory or .db3)"
+    )
+
+
+def open_log(path: str | Path) -> LogReader:
+    """Open a log for reading, picking the reader from the path. Raises :class:`LogError`."""
+    path = Path(path)
+    if not path.exists():
+        raise LogError(str(path), "no such file or directory")
+    kind = detect_format(path)
+    if kind == "mcap":
+        return McapLog(path)
+    if kind == "rosbag1":
+        return RosbagsLog(path, ros1=True)
+    return RosbagsLog(path, ros1=False)
+
+
+# --------------------------------------------------------------------------- decoding
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    stamp_ns: int
+    frame_id: str
+    gyro: tuple[float, float, float]
+    accel: tuple[float, float, float]
+
+
+class ImuDecoder:
+    """Decode serialized ``sensor_msgs/Imu`` with the ``rosbags`` deserializers."""
+
+    def __init__(self) -> None:
+        from rosbags.typesys import Stores, get_typestore
+
+        self._ros2 = get_typestore(Stores.ROS2_HUMBLE)
+        self._ros1 = get_typestore(Stores.ROS1_NOETIC)
+
+    def decoder(self, encoding: str) -> Callable[[bytes], ImuSample]:
+        if encoding == "cdr":
+            deserialize = self._ros2.deserialize_cdr
+        elif encoding == "ros1":
+            deserialize = self._ros1.deserialize_ros1
+        else:
+            raise ValueError(f"unsupported message encoding {encoding!r}")
+
+        def decode(data: bytes) -> ImuSample:
+            msg = deserialize(data, IMU_MSGTYPE)
+            stamp = msg.header.stamp
+            w = msg.angular_velocity
+            a = msg.linear_acceleration
+            return ImuSample(
+                int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec),
+                msg.header.frame_id,
+                (w.x, w.y, w.z),
+                (a.x, a.y, a.z),
+            )
+
+        return decode
+
+
+@dataclass
+class ReadStats:
+    """What reading one topic found and did. Nothing is dropped without being counted here."""
+
+    messages: int = 0  # messages read from the log
+    zero_stamps: int = 0  # header.stamp was zero: log time used instead
+    backwards: int = 0  # stamp earlier than the previous message's (in log order): sorted
+    duplicates: int = 0  # stamp equal to an earlier one: removed (the first is kept)
+    decode_errors: int = 0  # messages that could not be deserialized: skipped
+    frame_ids: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "messages": self.messages,
+            "zero_stamps": self.zero_stamps,
+            "backwards": self.backwards,
+            "duplicates": self.duplicates,
+            "decode_errors": self.decode_errors,
+        }
+
+
+@dataclass(frozen=True)
+class ImuRead:
+    stream: ImuStream
+    stats: ReadStats
+    log_time_ns: np.ndarray  # log (receive) time of each kept sample, same order as the stream
+
+
+def _finish_topic(
+    stamps: list[int], log_times: list[int], gyro: list[Any], accel: list[Any], stats: ReadStats
+) -> ImuRead:
+    t_ns = np.asarray(stamps, dtype=np.int64)
+    log_ns = np.asarray(log_times, dtype=np.int64)
+    gyro_arr = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
+    accel_arr = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
+    stats.backwards = int(np.count_nonzero(np.diff(t_ns) < 0)) if len(t_ns) > 1 else 0
+    order = np.argsort(t_ns, kind="stable")
+    t_sorted = t_ns[order]
+    keep = np.ones(len(t_sorted), dtype=bool)
+    if len(t_sorted) > 1:
+        keep[1:] = np.diff(t_sorted) != 0
+    stats.duplicates = int(np.count_nonzero(~keep))
+    index = order[keep]
+    frame_id = stats.frame_ids[0] if stats.frame_ids else ""
+    stream = ImuStream(t_ns[index], gyro_arr[index], accel_arr[index], frame_id)
+    return ImuRead(stream, stats, log_ns[index])
+
+
+def read_imu(
+    path: str | Path,
+    topics: Iterable[str],
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, ImuRead]:
+    """Read ``sensor_msgs/Imu`` topics of a log into one :class:`ImuRead` per topic.
+
+    Raises
+    ------
+    LogError
+        The log cannot be read, a topic is missing (the message lists the IMU topics the
+        log has) or a topic is not ``sensor_msgs/Imu``.
+    """
+    wanted = list(dict.fromkeys(topics))
+    with open_log(path) as log:
+        available = log.topics()
+        for topic in wanted:
+            if topic not in available:
+                imu_topics = sorted(t for t, info in available.items() if info.is_imu)
+                listing = ", ".join(imu_topics) if imu_topics else "none"
+                raise log.error(f"topic not found; the log's IMU topics are: {listing}", topic)
+            info = available[topic]
+            if not info.is_imu:
+                raise log.error(f"has type {info.msgtype}, expected {IMU_MSGTYPE}", topic)
+        decoder = ImuDecoder()
+        decoders = {t: decoder.decoder(available[t].encoding) for t in wanted}
+        columns: dict[str, tuple[list[int], list[int], list[Any], list[Any]]] = {
+            t: ([], [], [], []) for t in wanted
+        }
+        stats = {t: ReadStats() for t in wanted}
+        count = 0
+        for topic, log_time_ns, data in log.iter_raw(wanted):
+            st = stats[topic]
+            st.messages += 1
+            try:
+                sample = decoders[topic](data)
+            except Exception:
+                st.decode_errors += 1
+                continue
+            stamps, log_times, gyro, accel = columns[topic]
+            stamp = sample.stamp_ns
+            if stamp == 0:
+                st.zero_stamps += 1
+                stamp = log_time_ns
+            if sample.frame_id not in st.frame_ids:
+                st.frame_ids.append(sample.frame_id)
+            stamps.append(stamp)
+            log_times.append(log_time_ns)
+            gyro.append(sample.gyro)
+            accel.append(sample.accel)
+            count += 1
+            if progress is not None and count % 10000 == 0:
+                progress(count)
+    return {t: _finish_topic(*columns[t], stats[t]) for t in wanted}
+
+
+# --------------------------------------------------------------------------- inspect
+
+
+@dataclass(frozen=True)
+class TopicTiming:
+    """Timing of one topic, as ``imucal inspect`` reports it (seconds since ``t0_ns``)."""
+
+    topic: str
+    msgtype: str
+    count: int
+    rate_hz: float
+    duration_s: float
+    gaps: list[tuple[float, float]]
+    backwards: int
+    duplicates: int
+    time_source: str  # "header.stamp" or "log_time"
+
+
+@dataclass(frozen=True)
+class LogSummary:
+    path: str
+    format_name: str
+    t0_ns: int
+    topics: list[TopicTiming]
+
+
+#: A gap is a step between consecutive stamps longer than this many median periods.
+GAP_MEDIAN_PERIODS = 5.0
+
+
+def _timing(
+    topic: str, msgtype: str, stamps_in_log_order: np.ndarray, t0_ns: int, time_source: str
+) -> TopicTiming:
+    n = len(stamps_in_log_order)
+    if n == 0:
+        return TopicTiming(topic, msgtype, 0, 0.0, 0.0, [], 0, 0, time_source)
+    backwards = int(np.count_nonzero(np.diff(stamps_in_log_order) < 0))
+    t_sorted = np.sort(stamps_in_log_order)
+    steps = np.diff(t_sorted)
+    duplicates = int(np.count_nonzero(steps == 0))
+    positive = steps[steps > 0]
+    median = float(np.median(positive)) if len(positive) else 0.0
+    rate = 1e9 / median if median > 0 else 0.0
+    gaps: list[tuple[float, float]] = []
+    if median > 0:
+        for i in np.flatnonzero(steps > GAP_MEDIAN_PERIODS * median):
+            gaps.append(
+                (float(t_sorted[i] - t0_ns) * 1e-9, float(t_sorted[i + 1] - t0_ns) * 1e-9)
+            )
+    duration = float(t_sorted[-1] - t_sorted[0]) * 1e-9
+    return TopicTiming(topic, msgtype, n, rate, duration, gaps, backwards, duplicates, time_source)
+
+
+def summarize_log(path: str | Path) -> LogSummary:
+    """Per topic: type, count, median rate, duration, gaps, backwards jumps, duplicates.
+
+    IMU topics are timed by ``header.stamp`` (log time where it is zero), others by log time.
+    """
+    path = Path(path)
+    with open_log(path) as log:
+        available = log.topics()
+        decoder = ImuDecoder()
+        decoders = {
+            t: decoder.decoder(info.encoding)
+            for t, info in available.items()
+            if info.is_imu and info.encoding in ("cdr", "ros1")
+        }
+        stamps: dict[str, list[int]] = {t: [] for t in available}
+        for topic, log_time_ns, data in log.iter_raw(list(available)):
+            stamp = log_time_ns
+            if topic in decoders:
+                try:
+                    stamp = decoders[topic](data).stamp_ns or log_time_ns
+                except Exception:
+                    continue
+            stamps[topic].append(stamp)
+        format_name = log.format_name
+    arrays = {t: np.asarray(s, dtype=np.int64) for t, s in stamps.items()}
+    firsts = [int(a.min()) for a in arrays.values() if len(a)]
+    t0_ns = min(firsts) if firsts else 0
+    timings = [
+        _timing(
+            topic,
+            available[topic].msgtype,
+            arrays[topic],
+            t0_ns,
+            "header.stamp" if topic in decoders else "log_time",
+        )
+        for topic in sorted(available)
+    ]
+    return LogSummary(str(path), format_name, t0_ns, timings)
