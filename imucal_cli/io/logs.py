@@ -162,16 +162,12 @@ class RosbagsLog(LogReader):
             raise self.error(f"cannot read {self.format_name}: {exc}") from None
         if not ros1:
             storage = getattr(self._reader, "storage", None)
-            identifier = type(storage).__name__.lower() if storage is not None else ""
-            if "mcap" in identifier:
+            backends = getattr(storage, "storages", None) or [storage]
+            name = type(backends[0]).__name__.lower()
+            if "mcap" in name:
                 self.format_name = "rosbag2-mcap"
-            elif "sqlite" in identifier:
+            elif "sqlite" in name:
                 self.format_name = "rosbag2-sqlite3"
-            else:
-                files = list(getattr(self._reader, "paths", []) or [])
-                if files:
-                    suffix = Path(str(files[0])).suffix
-                    self.format_name = "rosbag2-mcap" if suffix == ".mcap" else "rosbag2-sqlite3"
 
     def close(self) -> None:
         try:

@@ -1,0 +1,122 @@
+"""Readers: round trips through every writer, and the stamp bookkeeping."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imucal_cli.errors import LogError
+from imucal_cli.io.logs import open_log, read_imu, summarize_log
+from imucal_cli.io.writers import FORMATS, TopicData, write_imu_log
+from imucal_cli.types import ImuStream
+
+T0 = 1_700_000_000_000_000_000
+
+
+def log_name(tmp_path, fmt: str, stem: str = "log"):
+    if fmt.startswith("mcap"):
+        return tmp_path / f"{stem}.mcap"
+    if fmt == "rosbag1":
+        return tmp_path / f"{stem}.bag"
+    return tmp_path / stem
+
+
+def random_stream(rng, n: int, period_ns: int, frame: str, offset_ns: int = 0) -> ImuStream:
+    t = T0 + offset_ns + np.arange(n, dtype=np.int64) * period_ns
+    # full-precision doubles, including tiny and huge magnitudes: the round trip must be bit-exact
+    gyro = rng.normal(size=(n, 3)) * np.array([1e-9, 1.0, 1e3])
+    accel = rng.normal(size=(n, 3)) * 9.81
+    return ImuStream(t, gyro, accel, frame)
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_round_trip_is_bit_exact(tmp_path, fmt):
+    rng = np.random.default_rng(1)
+    base = random_stream(rng, 300, 10_000_000, "base_link")
+    lidar = random_stream(rng, 620, 5_000_000, "lidar_imu", offset_ns=1_234_567)
+    topics = {
+        "/gnss/imu": TopicData(base, base.t_ns + 2_000_000),
+        "/lidar/a/imu": TopicData(lidar, lidar.t_ns + 3_000_000),
+    }
+    path = write_imu_log(log_name(tmp_path, fmt), fmt, topics)
+    reads = read_imu(path, ["/gnss/imu", "/lidar/a/imu"])
+    for topic, data in topics.items():
+        got = reads[topic]
+        assert got.stream.t_ns.tobytes() == data.stream.t_ns.tobytes()
+        assert got.stream.gyro.tobytes() == data.stream.gyro.tobytes()
+        assert got.stream.accel.tobytes() == data.stream.accel.tobytes()
+        assert got.stream.frame_id == data.stream.frame_id
+        assert np.array_equal(got.log_time_ns, data.log_time_ns)
+        assert got.stats.messages == len(data.stream)
+        assert (got.stats.duplicates, got.stats.backwards, got.stats.zero_stamps) == (0, 0, 0)
+    with open_log(path) as log:
+        infos = log.topics()
+        assert {t: i.count for t, i in infos.items()} == {"/gnss/imu": 300, "/lidar/a/imu": 620}
+        assert all(i.is_imu for i in infos.values())
+        expected_format = {"mcap-ros1": "mcap"}.get(fmt, fmt)
+        assert log.format_name == expected_format
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_out_of_order_duplicate_and_zero_stamps_are_counted(tmp_path, fmt):
+    rng = np.random.default_rng(2)
+    s = random_stream(rng, 100, 10_000_000, "imu")
+    t = s.t_ns.copy()
+    t[[40, 41]] = t[[41, 40]]  # one swap: one backwards step in log order
+    t[70] = t[69]  # a duplicate stamp
+    t[90] = 0  # a zero stamp: log time is used
+    log_ns = s.t_ns + 1_000_000
+    path = write_imu_log(log_name(tmp_path, fmt), fmt, {"/imu": TopicData(ImuStream(t, s.gyro, s.accel, "imu"), log_ns)})
+    got = read_imu(path, ["/imu"])["/imu"]
+    assert got.stats.messages == 100
+    assert got.stats.zero_stamps == 1
+    assert got.stats.duplicates == 1
+    assert got.stats.backwards == 1
+    assert len(got.stream) == 99
+    assert np.all(np.diff(got.stream.t_ns) > 0)
+    assert log_ns[90] in got.stream.t_ns  # the zero stamp replaced by its log time
+    # sorted back into place: the swapped samples carry their own values
+    i40 = np.flatnonzero(got.stream.t_ns == s.t_ns[40])[0]
+    assert np.array_equal(got.stream.gyro[i40], s.gyro[41])
+    # of the duplicate pair, the first (in log order) is kept
+    i69 = np.flatnonzero(got.stream.t_ns == s.t_ns[69])[0]
+    assert np.array_equal(got.stream.gyro[i69], s.gyro[69])
+
+
+def test_inspect_reports_gaps_backwards_duplicates(tmp_path):
+    rng = np.random.default_rng(3)
+    s = random_stream(rng, 500, 10_000_000, "imu")
+    keep = np.ones(500, dtype=bool)
+    keep[200:260] = False  # a 0.61 s gap
+    t = s.t_ns.copy()
+    t[[10, 11]] = t[[11, 10]]
+    t[300] = t[299]
+    stream = ImuStream(t[keep], s.gyro[keep], s.accel[keep], "imu")
+    path = write_imu_log(tmp_path / "g.mcap", "mcap", {"/imu": TopicData(stream, s.t_ns[keep])})
+    summary = summarize_log(path)
+    (timing,) = summary.topics
+    assert summary.t0_ns == T0
+    assert timing.count == 440 and timing.backwards == 1 and timing.duplicates == 1
+    assert timing.rate_hz == pytest.approx(100.0)
+    assert len(timing.gaps) == 1
+    start, end = timing.gaps[0]
+    assert start == pytest.approx(1.99) and end == pytest.approx(2.60)
+
+
+def test_missing_path_and_unknown_format(tmp_path):
+    with pytest.raises(LogError, match="no such file"):
+        open_log(tmp_path / "nope.mcap")
+    junk = tmp_path / "junk.dat"
+    junk.write_bytes(b"hello world, not a log")
+    with pytest.raises(LogError, match="unknown log format") as info:
+        open_log(junk)
+    assert str(junk) in str(info.value)
+
+
+@pytest.mark.parametrize("suffix", [".mcap", ".bag"])
+def test_garbage_with_log_suffix_is_a_log_error(tmp_path, suffix):
+    path = tmp_path / f"garbage{suffix}"
+    path.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(LogError) as info:
+        read_imu(path, ["/imu"])
+    assert str(path) in str(info.value)
