@@ -92,7 +92,8 @@ def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
 def _stdout_console() -> Any:
     from rich.console import Console
 
-    return Console(highlight=False)
+    # Piped output is read by people too: do not squeeze tables into 80 columns.
+    return Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 
 
 @contextmanager
@@ -167,7 +168,8 @@ def _render_inspect(document: dict[str, Any]) -> None:
 
     table = Table(title=f"{document['log']} ({document['format']}), t0_ns = {document['t0_ns']}")
     for column in ("topic", "type", "count", "rate Hz", "duration s", "gaps", "backwards", "duplicates"):
-        table.add_column(column, justify="left" if column in ("topic", "type") else "right")
+        left = column in ("topic", "type")
+        table.add_column(column, justify="left" if left else "right", no_wrap=left)
     for topic, info in document["topics"].items():
         gaps = info["gaps"]
         gap_text = str(len(gaps)) if len(gaps) > 3 else ", ".join(f"{a:.2f}-{b:.2f}" for a, b in gaps) or "0"

@@ -136,6 +136,7 @@ def _urban(rng: np.random.Generator, duration: float) -> _Program:
     """Normal traffic: stops of 5-10 s at lights, 90-degree turns, lane changes (paper Seq-2)."""
     p = _Program(speed=0.0)
     p.hold(rng.uniform(6.0, 9.0))  # parked at the start: the first rest
+    block, stop_first = 0, True
     while p.t < duration:
         p.change_speed(rng.uniform(9.0, 13.0), accel=rng.uniform(1.0, 1.8))
         p.hold(rng.uniform(6.0, 18.0))
@@ -145,15 +146,17 @@ def _urban(rng: np.random.Generator, duration: float) -> _Program:
             p.curve(kappa, ramp=1.0, hold=0.5)
             p.curve(-kappa, ramp=1.0, hold=0.5)
             p.hold(rng.uniform(3.0, 8.0))
-        event = rng.uniform()
-        if event < 0.45:  # red light
+        # Alternate red lights and intersections (in random order within each pair), so
+        # every drive has both stops and 90-degree turns.
+        if block % 2 == 0:
+            stop_first = rng.uniform() < 0.5
+        block += 1
+        if (block % 2 == 1) == stop_first:  # red light
             p.change_speed(0.0, accel=rng.uniform(1.2, 2.2))
             p.hold(rng.uniform(5.0, 10.0))
-        elif event < 0.9:  # 90-degree turn at an intersection
+        else:  # 90-degree turn at an intersection
             p.change_speed(rng.uniform(3.5, 5.0), accel=rng.uniform(1.2, 2.0))
             p.turn(rng.choice([-1, 1]) * np.pi / 2, radius=rng.uniform(10.0, 16.0))
-        else:
-            p.hold(rng.uniform(4.0, 10.0))
     return p
 
 

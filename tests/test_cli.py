@@ -1,0 +1,140 @@
+"""The command line through Typer's CliRunner: outputs, formats, exit codes, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from imucal_cli.cli import app
+from imucal_cli.config import load_config
+from imucal_cli.io.logs import read_imu
+
+runner = CliRunner()
+
+OUT_NAMES = {
+    "mcap": "drive.mcap",
+    "mcap-ros1": "drive.mcap",
+    "rosbag2-sqlite3": "drive",
+    "rosbag2-mcap": "drive",
+    "rosbag1": "drive.bag",
+}
+
+
+def assert_bad_input(result, *needles):
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("fmt", sorted(OUT_NAMES))
+def test_simulate_then_inspect_every_format(tmp_path, fmt):
+    out = tmp_path / OUT_NAMES[fmt]
+    result = runner.invoke(
+        app, ["simulate", str(out), "--scenario", "parking", "--duration", "12", "--seed", "4", "--format", fmt, "--sensors", "3"]
+    )
+    assert result.exit_code == 0, result.output
+    truth = yaml.safe_load((tmp_path / "drive.truth.yaml").read_text())
+    config = load_config(tmp_path / "drive.config.yaml")
+    assert len(config.sensors) == 3 and set(truth["sensors"]) == {s.name for s in config.sensors}
+
+    result = runner.invoke(app, ["inspect", str(out), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    topics = report["topics"]
+    assert set(topics) == {config.base.topic} | {s.imu_topic for s in config.sensors}
+    reads = read_imu(out, list(topics))
+    for topic, info in topics.items():
+        assert info["count"] == len(reads[topic].stream)
+        assert info["rate_hz"] == pytest.approx(100.0, rel=1e-3)
+        assert info["duration_s"] == pytest.approx(12.0, abs=0.02)
+        assert info["backwards"] == 0 and info["duplicates"] == 0
+    assert report["t0_ns"] == min(int(r.stream.t_ns[0]) for r in reads.values())
+
+
+def test_inspect_writes_yaml_and_json(tmp_path, short_drive):
+    from imucal_cli.io.writers import write_imu_log
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    for name in ("report.yaml", "report.json"):
+        result = runner.invoke(app, ["inspect", str(log), "-o", str(tmp_path / name)])
+        assert result.exit_code == 0, result.output
+    from_yaml = yaml.safe_load((tmp_path / "report.yaml").read_text())
+    from_json = json.loads((tmp_path / "report.json").read_text())
+    assert from_yaml == from_json
+    assert from_yaml["topics"]["/gnss/imu"]["count"] == len(short_drive.base.stream)
+    result = runner.invoke(app, ["inspect", str(log)])
+    assert result.exit_code == 0 and "/gnss/imu" in result.stdout
+
+
+def test_inspect_bad_inputs(tmp_path, short_drive):
+    assert_bad_input(runner.invoke(app, ["inspect", str(tmp_path / "missing.mcap")]), "missing.mcap", "no such file")
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x89MCAP0\r\n" + b"\x00" * 64)
+    assert_bad_input(runner.invoke(app, ["inspect", str(junk)]), "junk.mcap")
+    from imucal_cli.io.writers import write_imu_log
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    result = runner.invoke(app, ["inspect", str(log), "-o", str(tmp_path / "nope" / "r.yaml")])
+    assert_bad_input(result, "does not exist")
+    result = runner.invoke(app, ["inspect", str(log), "-o", str(tmp_path / "r.txt")])
+    assert_bad_input(result, "r.txt")
+    assert not (tmp_path / "r.txt").exists()
+
+
+def test_truncated_mcap_is_a_clear_error(tmp_path, short_drive):
+    from imucal_cli.io.writers import write_imu_log
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log.read_bytes()[: log.stat().st_size // 2])
+    assert_bad_input(runner.invoke(app, ["inspect", str(cut)]), "cut.mcap")
+
+
+@pytest.mark.parametrize(
+    ("name", "args", "needle"),
+    [
+        ("x.bag", ["--format", "mcap"], ".mcap"),
+        ("x.mcap", ["--format", "rosbag2-sqlite3"], "rosbag2 directory"),
+        ("nodir/x.mcap", [], "does not exist"),
+    ],
+)
+def test_simulate_bad_output(tmp_path, name, args, needle):
+    result = runner.invoke(app, ["simulate", str(tmp_path / name), "--duration", "5", *args])
+    assert_bad_input(result, needle)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_usage_errors_exit_2(tmp_path):
+    result = runner.invoke(app, ["simulate", str(tmp_path / "x.mcap"), "--scenario", "moon"])
+    assert result.exit_code == 2
+    result = runner.invoke(app, ["simulate", str(tmp_path / "x.mcap"), "--sensors", "9"])
+    assert result.exit_code == 2
+
+
+def test_simulate_noise_free_and_offsets(tmp_path):
+    out = tmp_path / "ideal.mcap"
+    result = runner.invoke(
+        app,
+        ["simulate", str(out), "--scenario", "aggressive", "--duration", "6", "--noise-scale", "0",
+         "--time-offset-s", "0.03", "--time-offset-s", "-0.02"],
+    )
+    assert result.exit_code == 0, result.output
+    truth = yaml.safe_load((tmp_path / "ideal.truth.yaml").read_text())
+    offsets = [truth["sensors"][n]["time_offset_s"] for n in ("front_left_top", "front_right_top")]
+    assert offsets == [0.03, -0.02]
+    assert truth["noise_scale"] == 0.0
+    assert np.all(np.array(truth["sensors"]["front_left_top"]["gyro_bias_radps"]["mean"]) == 0.0)
+
+
+def test_version_and_help():
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and "imucal" in result.stdout
+    for command in ("inspect", "simulate", "check-config"):
+        assert runner.invoke(app, [command, "--help"]).exit_code == 0
