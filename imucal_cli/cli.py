@@ -10,7 +10,7 @@ import functools
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any, ParamSpec, TypeVar
 
@@ -39,14 +39,14 @@ PANEL_SIM = "Simulation"
 PANEL_CONFIG = "Configuration"
 
 
-class Scenario(str, Enum):
+class Scenario(StrEnum):
     aggressive = "aggressive"
     urban = "urban"
     highway = "highway"
     parking = "parking"
 
 
-class LogFormat(str, Enum):
+class LogFormat(StrEnum):
     mcap = "mcap"
     mcap_ros1 = "mcap-ros1"
     rosbag2_sqlite3 = "rosbag2-sqlite3"

@@ -83,9 +83,9 @@ def test_noise_free_sensor_accel_matches_differentiated_imu_position(ideal_drive
         T_base_imu = Transform.from_dict(truth["sensors"][name]["T_base_imu"])
         t = imu.true_time_s[50:-50:37]
 
-        def imu_world(times):
+        def imu_world(times, lever=T_base_imu.translation):
             s = ideal_drive.trajectory.state(times)
-            return s.p_world + s.R_world_base.apply(T_base_imu.translation)
+            return s.p_world + s.R_world_base.apply(lever)
 
         a_world = (imu_world(t + H) - 2 * imu_world(t) + imu_world(t - H)) / H**2
         R_world_imu = ideal_drive.trajectory.state(t).R_world_base * T_base_imu.rotation
