@@ -217,6 +217,222 @@ def check_config(
     typer.echo(dumps(load_config(config).to_dict(), as_json=as_json), nl=False)
 
 
+# --------------------------------------------------------------------------- calibration commands
+
+PANEL_CAL = "Calibration"
+ConfigOption = Annotated[Path, typer.Option("-c", "--config", help="Calibration config (YAML).")]
+OutOption = Annotated[Path | None, typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).")]
+JsonOption = Annotated[bool, typer.Option("--json", help="Print JSON instead of a summary.")]
+
+
+def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
+    """Load the config, then the base and sensor IMU streams of the log."""
+    from imucal_cli.config import load_config
+    from imucal_cli.io.logs import read_imu
+    from imucal_cli.pipeline import DriveStreams
+
+    config = load_config(config_path)
+    topics = [config.base.topic] + [s.imu_topic for s in config.sensors]
+    with _progress(f"reading {log}") as progress:
+        reads = read_imu(log, topics, progress=progress)
+    for topic, read in reads.items():
+        stats = read.stats
+        if len(read.stream) < 10:
+            raise InputError(f"{log} [{topic}]: too little data: {len(read.stream)} usable messages")
+        dropped = {k: v for k, v in stats.to_dict().items() if k != "messages" and v}
+        if dropped:
+            details = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dropped.items())
+            typer.echo(f"imucal: note: {log} [{topic}]: {stats.messages} messages; {details}", err=True)
+    t0_ns = min(int(r.stream.t_ns[0]) for r in reads.values())
+    streams = DriveStreams(
+        base=reads[config.base.topic].stream,
+        sensors={s.name: reads[s.imu_topic].stream for s in config.sensors},
+        t0_ns=t0_ns,
+    )
+    return config, streams
+
+
+def _fmt(values: Any, digits: int) -> str:
+    if values is None:
+        return "-"
+    return "[" + ", ".join(f"{v:.{digits}f}" for v in values) + "]"
+
+
+@app.command(rich_help_panel=PANEL_CAL)
+@handles_errors
+def biases(
+    log: Annotated[Path, typer.Argument(help=LOG_HELP)],
+    config: ConfigOption,
+    out: OutOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Per IMU: rest periods, accelerometer bias and noise, gyro bias track summary."""
+    from imucal_cli.pipeline import biases_document, run_biases
+
+    _check_output(out)
+    cfg, streams = _load_drive(log, config)
+    with _progress("estimating biases"):
+        document = biases_document(streams, cfg, run_biases(streams, cfg))
+
+    def render(doc: dict[str, Any]) -> None:
+        from rich.table import Table
+
+        table = Table(title=f"IMU biases: {log}")
+        for column in ("IMU", "rests", "rest s", "accel bias m/s^2", "gyro bias rad/s (final)", "final std rad/s"):
+            table.add_column(column)
+        for name, imu in doc["imus"].items():
+            rest_s = sum(b - a for a, b in imu["rest_periods"])
+            gyro = imu["gyro_bias_radps"]
+            table.add_row(
+                name, str(len(imu["rest_periods"])), f"{rest_s:.1f}", _fmt(imu["accel_bias_mps2"], 4),
+                _fmt(gyro["final"], 5), _fmt(gyro["final_std"], 5),
+            )
+        _stdout_console().print(table)
+
+    _emit(document, out, as_json, render)
+
+
+@app.command(rich_help_panel=PANEL_CAL)
+@handles_errors
+def segments(
+    log: Annotated[Path, typer.Argument(help=LOG_HELP)],
+    config: ConfigOption,
+    out: OutOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Per sensor: each window's Fisher-information min singular value, rotation std, selected or not."""
+    from imucal_cli.pipeline import run_segments, segments_document
+
+    _check_output(out)
+    cfg, streams = _load_drive(log, config)
+    with _progress("analysing windows"):
+        base, found = run_segments(streams, cfg)
+    document = segments_document(streams, cfg, base, found)
+
+    def render(doc: dict[str, Any]) -> None:
+        from rich.table import Table
+
+        for name, sensor in doc["sensors"].items():
+            table = Table(title=f"{name}: {sensor['selected']} of {sensor['total']} windows selected "
+                          f"(rotation std < {doc['max_rotation_std_deg']:g} deg)")
+            for column in ("start s", "end s", "min singular value", "rotation std deg", "selected", "translation observable x y z"):
+                table.add_column(column, justify="right")
+            for w in sensor["windows"]:
+                std = w["rotation_std_deg"]
+                table.add_row(
+                    f"{w['start_s']:.1f}", f"{w['end_s']:.1f}", f"{w['min_singular_value']:.4g}",
+                    "inf" if std is None else f"{std:.4f}", "yes" if w["selected"] else "no",
+                    " ".join("y" if v else "n" for v in w["translation_observable"]),
+                )
+            _stdout_console().print(table)
+
+    _emit(document, out, as_json, render)
+
+
+@app.command(rich_help_panel=PANEL_CAL)
+@handles_errors
+def calibrate(
+    log: Annotated[Path, typer.Argument(help=LOG_HELP)],
+    config: ConfigOption,
+    out: OutOption = None,
+    as_json: JsonOption = False,
+    require_observable: Annotated[
+        bool, typer.Option("--require-observable", help="Exit 1 unless every sensor is fully observable (status ok).")
+    ] = False,
+) -> None:
+    """The extrinsics of every sensor and every lidar pair."""
+    from imucal_cli.pipeline import calibration_document, run_calibrate
+
+    _check_output(out)
+    cfg, streams = _load_drive(log, config)
+    with _progress("calibrating"):
+        result = run_calibrate(streams, cfg)
+    document = calibration_document(result, str(log))
+
+    def render(doc: dict[str, Any]) -> None:
+        from rich.table import Table
+
+        table = Table(title=f"T_{doc['base_frame']}_lidar from {log}")
+        for column in ("sensor", "status", "xyz m", "rpy deg", "std xyz mm", "std rpy deg", "time offset ms", "windows"):
+            table.add_column(column)
+        for name, s in doc["sensors"].items():
+            T = s["T_base_lidar"]
+            std_t = None if s["translation_std_m"] is None else [v * 1000 for v in s["translation_std_m"]]
+            colour = {"ok": "green", "partial": "yellow"}.get(s["status"], "red")
+            table.add_row(
+                name, f"[{colour}]{s['status']}[/{colour}]", _fmt(T["translation"], 4), _fmt(T["rpy_deg"], 3),
+                _fmt(std_t, 2), _fmt(s["rotation_std_deg"], 4), f"{s['time_offset_s'] * 1000:.2f}",
+                f"{s['segments']['selected']}/{s['segments']['total']}",
+            )
+        console = _stdout_console()
+        console.print(table)
+        for pair, T in doc["pairs"].items():
+            console.print(f"{pair}: xyz {_fmt(T['translation'], 4)} m, rpy {_fmt(T['rpy_deg'], 3)} deg")
+
+    _emit(document, out, as_json, render)
+    if require_observable and not result.all_ok:
+        weak = [n for n, e in result.estimates.items() if e.status != "ok"]
+        typer.echo(f"imucal: not fully observable: {', '.join(weak)}", err=True)
+        raise typer.Exit(EXIT_CHECK_FAILED)
+
+
+def _transforms(path: Path, key: str) -> dict[str, Any]:
+    from imucal_cli.errors import ConfigError
+    from imucal_cli.io.reports import load_document
+    from imucal_cli.types import Transform
+
+    document = load_document(path)
+    if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict):
+        raise InputError(f"{path}: expected a mapping with 'sensors'")
+    out = {}
+    for name, sensor in document["sensors"].items():
+        if not isinstance(sensor, dict) or key not in sensor:
+            raise InputError(f"{path}: sensors.{name}.{key}: missing")
+        try:
+            out[str(name)] = Transform.from_dict(sensor[key], str(path), f"sensors.{name}.{key}")
+        except ConfigError as exc:
+            raise InputError(str(exc)) from None
+    return out
+
+
+@app.command(rich_help_panel=PANEL_CAL)
+@handles_errors
+def evaluate(
+    estimate: Annotated[Path, typer.Argument(help="Output of imucal calibrate (YAML/JSON).")],
+    truth: Annotated[Path, typer.Argument(help="Truth file: sensors.NAME.T_base_lidar.")],
+    max_rotation_deg: Annotated[float | None, typer.Option(help="Fail (exit 1) above this rotation error.", min=0.0)] = None,
+    max_translation_m: Annotated[float | None, typer.Option(help="Fail (exit 1) above this translation error.", min=0.0)] = None,
+    out: OutOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Rotation and translation errors of every sensor and pair against ground truth."""
+    from imucal_cli.pipeline import evaluate_document
+
+    _check_output(out)
+    estimates = _transforms(estimate, "T_base_lidar")
+    truths = _transforms(truth, "T_base_lidar")
+    if not set(estimates) & set(truths):
+        raise InputError(f"{estimate}: no sensor in common with {truth}")
+    document = evaluate_document(estimates, truths, max_rotation_deg, max_translation_m)
+
+    def render(doc: dict[str, Any]) -> None:
+        from rich.table import Table
+
+        table = Table(title=f"{estimate} vs {truth}")
+        for column in ("sensor / pair", "rotation error deg", "translation error m", "eq. 20 m"):
+            table.add_column(column)
+        for name, row in {**doc["sensors"], **doc["pairs"]}.items():
+            table.add_row(name, f"{row['rotation_error_deg']:.4f}", f"{row['translation_error_m']:.4f}",
+                          f"{row['translation_error_eq20_m']:.4f}")
+        console = _stdout_console()
+        console.print(table)
+        console.print("[green]pass[/green]" if doc["pass"] else "[red]fail[/red]")
+
+    _emit(document, out, as_json, render)
+    if not document["pass"]:
+        raise typer.Exit(EXIT_CHECK_FAILED)
+
+
 # --------------------------------------------------------------------------- simulate
 
 

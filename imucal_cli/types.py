@@ -16,6 +16,9 @@ from scipy.spatial.transform import Rotation
 
 from imucal_cli.errors import ConfigError
 
+#: Standard gravity (m/s^2).
+GRAVITY_MPS2 = 9.80665
+
 #: Largest allowed deviation of an input quaternion's norm from 1.
 QUATERNION_NORM_TOLERANCE = 1e-3
 #: Largest allowed angle between ``rotation`` and ``rpy_deg`` when both are given (rad).

@@ -14,19 +14,11 @@ import numpy as np
 from scipy.interpolate import BSpline, make_interp_spline
 from scipy.spatial.transform import Rotation
 
-#: Standard gravity (m/s^2); the world frame W is ENU-like: z up, gravity along -z.
-GRAVITY_MPS2 = 9.80665
+
+from imucal_cli.types import GRAVITY_MPS2
+
+#: The world frame W is ENU-like: z up, gravity along -z.
 GRAVITY_W = np.array([0.0, 0.0, -GRAVITY_MPS2])
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """``[v]x`` for one 3-vector or a stack of them ((N,3) -> (N,3,3))."""
-    v = np.asarray(v, dtype=np.float64)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
 
 
 @dataclass(frozen=True)

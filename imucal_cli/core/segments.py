@@ -1,0 +1,118 @@
+"""Observability of each motion window (paper eqs. 18-19, and the design matrix of eq. 12).
+
+Rotation: the residual ``R^T w_B - w_I`` of eq. 10 changes with a small rotation ``d`` as
+``[u]x d`` (``u = R^T w_B``), so one window's Fisher information is
+``I = sum_i J_i^T J_i / s^2`` with ``J_i = -[u_i]x``, 3x3 (eq. 18 in a well-posed form). The
+window's constant gyro bias is a nuisance: its Schur complement replaces ``u_i`` by
+``u_i - mean(u)``. The singular values of ``I`` (eq. 19) give the Cramer-Rao bound of the
+worst-determined rotation axis, ``1 / sqrt(sigma_min)``, and a window is selected when that
+bound is below ``max_rotation_std_deg``. Rotation by ``R`` does not change singular values, so
+the information is computed from the base gyro.
+
+Translation: eq. 12's design matrix ``A_i = [w_B]x^2 + [dw_B]x`` with the window's accelerometer
+bias as nuisance gives ``I_t = sum (A_i - mean A)^T (A_i - mean A) / s_a^2``; an axis is
+constrained by the window when its bound ``sqrt((I_t^-1)_jj)`` is below a third of the search
+box (:data:`OBSERVABLE_FRACTION_OF_BOUND`), i.e. the data, not the box, decides it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from imucal_cli.core.so3 import skew
+
+#: A translation axis counts as observed when its standard deviation is below this fraction of
+#: the search half-width ``translation_bound_m``.
+OBSERVABLE_FRACTION_OF_BOUND = 1.0 / 3.0
+
+
+@dataclass(frozen=True)
+class WindowInfo:
+    """One window's observability."""
+
+    start_s: float  # grid time of the first sample (s, base clock, relative to the grid origin)
+    end_s: float
+    index: np.ndarray  # grid sample indices in the window
+    min_singular_value: float  # of the rotation Fisher information, rad^-2
+    rotation_std_deg: float  # CRLB std of the worst rotation axis
+    selected: bool
+    translation_std_m: np.ndarray  # (3,) CRLB std per axis from this window alone (inf: none)
+    translation_observable: np.ndarray  # (3,) bool
+    valid: bool  # False when the window holds a gap in either stream
+
+
+def window_slices(n: int, rate_hz: float, window_s: float) -> list[np.ndarray]:
+    """Consecutive windows of ``window_s`` over ``n`` grid samples; a last partial window is
+    kept when it holds at least half a window."""
+    per = max(2, int(round(window_s * rate_hz)))
+    out = []
+    for start in range(0, n, per):
+        stop = min(n, start + per)
+        if stop - start >= per // 2:
+            out.append(np.arange(start, stop))
+    return out
+
+
+def rotation_information(w_base: np.ndarray, gyro_noise_std: float) -> np.ndarray:
+    """3x3 Fisher information of a rotation from gyro pairs, bias marginalised (eq. 18)."""
+    centered = w_base - w_base.mean(axis=0)
+    J = -skew(centered)
+    return np.einsum("nji,njk->ik", J, J) / gyro_noise_std**2
+
+
+def translation_information(A: np.ndarray, accel_noise_std: float) -> np.ndarray:
+    """3x3 Fisher information of the lever arm from eq. 12's rows ``A_i`` (N, 3, 3), bias
+    marginalised."""
+    centered = A - A.mean(axis=0)
+    return np.einsum("nji,njk->ik", centered, centered) / accel_noise_std**2
+
+
+def _std_from_information(info: np.ndarray) -> np.ndarray:
+    s = np.linalg.svd(info, compute_uv=False)
+    if s[-1] <= s[0] * 1e-12 or s[-1] <= 0:
+        return np.full(3, np.inf)
+    return np.sqrt(np.diag(np.linalg.inv(info)))
+
+
+def analyse_windows(
+    grid_s: np.ndarray,
+    rate_hz: float,
+    w_base: np.ndarray,
+    A: np.ndarray,
+    valid: np.ndarray,
+    window_s: float,
+    gyro_noise_std: float,
+    accel_noise_std: float,
+    max_rotation_std_deg: float,
+    translation_bound_m: float,
+) -> list[WindowInfo]:
+    """Observability of every window (see the module docstring).
+
+    ``gyro_noise_std`` and ``accel_noise_std`` are the white-noise standard deviations of one
+    grid sample of the residuals (rad/s, m/s^2); ``valid`` marks grid samples with data on both
+    sides (no gap).
+    """
+    out = []
+    for index in window_slices(len(grid_s), rate_hz, window_s):
+        ok = bool(np.all(valid[index]))
+        info = rotation_information(w_base[index], gyro_noise_std)
+        s = np.linalg.svd(info, compute_uv=False)
+        sigma_min = float(max(s[-1], 0.0))
+        std_deg = float(np.degrees(1.0 / np.sqrt(sigma_min))) if sigma_min > 0 else float("inf")
+        t_std = _std_from_information(translation_information(A[index], accel_noise_std))
+        out.append(
+            WindowInfo(
+                start_s=float(grid_s[index[0]]),
+                end_s=float(grid_s[index[-1]] + 1.0 / rate_hz),
+                index=index,
+                min_singular_value=sigma_min,
+                rotation_std_deg=std_deg,
+                selected=ok and std_deg < max_rotation_std_deg,
+                translation_std_m=t_std,
+                translation_observable=t_std < OBSERVABLE_FRACTION_OF_BOUND * translation_bound_m,
+                valid=ok,
+            )
+        )
+    return out

@@ -1,0 +1,266 @@
+"""Glue of the core stages behind ``biases``, ``segments``, ``calibrate`` and ``evaluate``.
+
+No I/O: functions take streams and a config, return results, and build the SPEC's documents
+(plain dicts) from them. The CLI reads the logs and writes the documents.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from itertools import combinations
+from typing import Any
+
+import numpy as np
+
+from imucal_cli import __version__
+from imucal_cli.config import Config, SensorConfig
+from imucal_cli.core.biases import BiasReport, estimate_biases
+from imucal_cli.core.calibrate import (
+    BaseSignals,
+    CalibrationOptions,
+    SensorEstimate,
+    SensorWindows,
+    calibrate_sensor,
+    common_grid,
+    prepare_base,
+    sensor_windows,
+)
+from imucal_cli.core.so3 import rotation_angle_deg
+from imucal_cli.errors import ImucalError
+from imucal_cli.types import ImuStream, Transform
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class DriveStreams:
+    """The IMU streams of one log: the base and one per configured sensor (by name)."""
+
+    base: ImuStream
+    sensors: Mapping[str, ImuStream]
+    t0_ns: int  # first stamp of the log's IMU messages: the origin of report times
+
+    def seconds(self, t_ns: int) -> float:
+        return (t_ns - self.t0_ns) * 1e-9
+
+
+def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
+    return CalibrationOptions(
+        resample_hz=config.calibration.resample_hz,
+        max_time_offset_s=config.calibration.max_time_offset_s,
+        window_s=config.segments.window_s,
+        max_rotation_std_deg=config.segments.max_rotation_std_deg,
+        translation_bound_m=sensor.translation_bound_m,
+        gyro_bias_walk=np.radians(config.gyro_bias.process_noise_dps),
+        gyro_bias_prior_std=np.radians(config.gyro_bias.initial_std_dps),
+    )
+
+
+def _prepare(streams: DriveStreams, config: Config) -> BaseSignals:
+    rate = config.calibration.resample_hz
+    margin = config.calibration.max_time_offset_s + 0.5
+    t_ref_ns, grid = common_grid([streams.base, *streams.sensors.values()], rate, margin)
+    min_samples = int(2 * config.segments.window_s * rate / 2)
+    if len(grid) < max(min_samples, 20):
+        raise ImucalError(
+            f"too little data: the IMUs overlap for {len(grid) / rate:.1f} s; "
+            f"at least one window of {config.segments.window_s:g} s is needed"
+        )
+    return prepare_base(streams.base, t_ref_ns, grid, rate, CalibrationOptions().lowpass_hz)
+
+
+# --------------------------------------------------------------------------- biases
+
+
+def run_biases(streams: DriveStreams, config: Config) -> dict[str, BiasReport]:
+    """Per IMU (``base`` first, then each sensor): rests, accelerometer and gyro biases."""
+    out: dict[str, BiasReport] = {}
+    for name, stream in [("base", streams.base), *streams.sensors.items()]:
+        out[name] = estimate_biases(
+            stream,
+            config.rest.accel_tolerance_mps2,
+            config.rest.gyro_tolerance_radps,
+            config.rest.min_duration_s,
+            np.radians(config.gyro_bias.process_noise_dps),
+            np.radians(config.gyro_bias.initial_std_dps),
+        )
+    return out
+
+
+def biases_document(streams: DriveStreams, config: Config, reports: Mapping[str, BiasReport]) -> dict[str, Any]:
+    topics = {"base": config.base.topic} | {s.name: s.imu_topic for s in config.sensors}
+    imus: dict[str, Any] = {}
+    for name, report in reports.items():
+        stream = streams.base if name == "base" else streams.sensors[name]
+        offset = streams.seconds(int(stream.t_ns[0]))
+        imus[name] = {
+            "topic": topics[name],
+            "rest_periods": [[offset + r.start_s, offset + r.end_s] for r in report.rest_periods],
+            "accel_bias_mps2": report.accel_bias,
+            "accel_noise_std_mps2": report.accel_noise_std,
+            "gyro_bias_radps": {
+                "initial": report.gyro_bias_initial,
+                "final": report.gyro_bias_final,
+                "track_std": report.gyro_bias_track_std,
+                "final_std": report.gyro_bias_final_std,
+            },
+        }
+    return {"imucal_version": __version__, "t0_ns": streams.t0_ns, "imus": imus}
+
+
+# --------------------------------------------------------------------------- segments
+
+
+def run_segments(streams: DriveStreams, config: Config) -> tuple[BaseSignals, dict[str, SensorWindows]]:
+    base = _prepare(streams, config)
+    return base, {
+        s.name: sensor_windows(base, streams.sensors[s.name], options_for(config, s)) for s in config.sensors
+    }
+
+
+def segments_document(
+    streams: DriveStreams, config: Config, base: BaseSignals, found: Mapping[str, SensorWindows]
+) -> dict[str, Any]:
+    offset = streams.seconds(base.t_ref_ns)
+    sensors: dict[str, Any] = {}
+    for name, sw in found.items():
+        sensors[name] = {
+            "total": len(sw.windows),
+            "selected": sum(w.selected for w in sw.windows),
+            "time_offset_s": sw.time_offset_s,
+            "windows": [
+                {
+                    "start_s": offset + w.start_s,
+                    "end_s": offset + w.end_s,
+                    "min_singular_value": w.min_singular_value,
+                    "rotation_std_deg": w.rotation_std_deg if np.isfinite(w.rotation_std_deg) else None,
+                    "selected": w.selected,
+                    "translation_observable": w.translation_observable,
+                    "translation_std_m": [v if np.isfinite(v) else None for v in w.translation_std_m],
+                    **({} if w.valid else {"gap": True}),
+                }
+                for w in sw.windows
+            ],
+        }
+    return {
+        "imucal_version": __version__,
+        "t0_ns": streams.t0_ns,
+        "window_s": config.segments.window_s,
+        "max_rotation_std_deg": config.segments.max_rotation_std_deg,
+        "sensors": sensors,
+    }
+
+
+# --------------------------------------------------------------------------- calibrate
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    base_signals: BaseSignals
+    estimates: dict[str, SensorEstimate]
+    config: Config
+
+    def T_base_lidar(self, name: str) -> Transform:
+        return self.estimates[name].T_base_imu * self.config.sensor(name).T_imu_lidar
+
+    @property
+    def all_ok(self) -> bool:
+        return all(e.status == "ok" for e in self.estimates.values())
+
+
+def run_calibrate(streams: DriveStreams, config: Config, progress: Progress | None = None) -> CalibrationResult:
+    base = _prepare(streams, config)
+    estimates: dict[str, SensorEstimate] = {}
+    for sensor in config.sensors:
+        if progress:
+            progress(sensor.name)
+        estimates[sensor.name] = calibrate_sensor(
+            base, streams.sensors[sensor.name], sensor.prior_T_base_imu, options_for(config, sensor)
+        )
+    return CalibrationResult(base, estimates, config)
+
+
+def _std_list(values: np.ndarray | None) -> list[float] | None:
+    return None if values is None else [float(v) for v in values]
+
+
+def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
+    config = result.config
+    sensors: dict[str, Any] = {}
+    for sensor in config.sensors:
+        est = result.estimates[sensor.name]
+        cov = est.lidar_covariance(sensor.T_imu_lidar)
+        sensors[sensor.name] = {
+            "status": est.status,
+            "imu_topic": sensor.imu_topic,
+            "lidar_frame": sensor.lidar_frame,
+            "T_base_imu": est.T_base_imu.to_dict(),
+            "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
+            "rotation_std_deg": _std_list(None if cov is None else np.degrees(np.sqrt(np.diag(cov)[:3]))),
+            "translation_std_m": _std_list(None if cov is None else np.sqrt(np.diag(cov)[3:])),
+            "translation_observable": [bool(v) for v in est.translation_observable],
+            "time_offset_s": est.time_offset_s,
+            "time_offset_std_s": est.time_offset_std_s,
+            "gyro_bias_radps": est.gyro_bias,
+            "accel_bias_mps2": est.accel_bias,
+            "segments": {"total": len(est.windows), "selected": sum(w.selected for w in est.windows)},
+            "residual_rms": {"gyro_radps": est.residual_rms_gyro, "accel_mps2": est.residual_rms_accel},
+        }
+    names = sorted(s.name for s in config.sensors)
+    pairs = {
+        f"{a}/{b}": (result.T_base_lidar(a).inverse() * result.T_base_lidar(b)).to_dict()
+        for a, b in combinations(names, 2)
+    }
+    return {
+        "imucal_version": __version__,
+        "log": log,
+        "base_frame": config.base.frame,
+        "sensors": sensors,
+        "pairs": pairs,
+    }
+
+
+# --------------------------------------------------------------------------- evaluate
+
+
+def transform_errors(estimate: Transform, truth: Transform) -> dict[str, Any]:
+    """Rotation error (paper eq. 21), translation error norm and eq. 20 (norm / 3)."""
+    delta = estimate.translation - truth.translation
+    norm = float(np.linalg.norm(delta))
+    return {
+        "rotation_error_deg": rotation_angle_deg(estimate.rotation, truth.rotation),
+        "translation_error_m": norm,
+        "translation_error_eq20_m": norm / 3.0,
+        "translation_error_xyz_m": [float(v) for v in delta],
+    }
+
+
+def evaluate_document(
+    estimates: Mapping[str, Transform],
+    truths: Mapping[str, Transform],
+    max_rotation_deg: float | None,
+    max_translation_m: float | None,
+) -> dict[str, Any]:
+    """Every sensor present in both, and every pair ``T_a_b = T_base_a^-1 T_base_b``."""
+    names = sorted(set(estimates) & set(truths))
+    sensors = {n: transform_errors(estimates[n], truths[n]) for n in names}
+    pairs = {}
+    for a, b in combinations(names, 2):
+        errors = transform_errors(
+            estimates[a].inverse() * estimates[b], truths[a].inverse() * truths[b]
+        )
+        del errors["translation_error_xyz_m"]
+        pairs[f"{a}/{b}"] = errors
+    rows = list(sensors.values()) + list(pairs.values())
+    passed = bool(names)
+    if max_rotation_deg is not None:
+        passed &= all(r["rotation_error_deg"] <= max_rotation_deg for r in rows)
+    if max_translation_m is not None:
+        passed &= all(r["translation_error_m"] <= max_translation_m for r in rows)
+    return {
+        "sensors": sensors,
+        "pairs": pairs,
+        "thresholds": {"max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m},
+        "pass": passed,
+    }
