@@ -44,6 +44,7 @@ class Scenario(StrEnum):
     urban = "urban"
     highway = "highway"
     parking = "parking"
+    stationary = "stationary"
 
 
 class LogFormat(StrEnum):

@@ -6,7 +6,8 @@
   accelerometer's gravity direction.
 - Rest detection (eq. 5): ``|R_WI^T g - f| <= accel_tolerance`` plus ``|w| <= gyro_tolerance``,
   held for at least ``min_duration_s`` (on a 0.1 s moving average, so single noisy samples do not
-  break a rest).
+  break a rest). Bias statistics use each rest without its first and last
+  :data:`REST_EDGE_S` seconds, where the vehicle is settling or creeping off.
 - Accelerometer bias and noise at each rest (eq. 6). At one rest pose only the gravity-parallel
   component of the bias separates from tilt (the tilt absorbs the rest), so the bias reported
   here is that component; ``calibrate`` gives the full vector relative to the base IMU.
@@ -23,6 +24,10 @@ import numpy as np
 
 from imucal_cli.core.signals import white_noise_std
 from imucal_cli.types import GRAVITY_MPS2, ImuStream
+
+
+#: Seconds dropped at each end of a rest before averaging (settling, creeping off).
+REST_EDGE_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -43,7 +48,7 @@ class BiasReport:
     rest_periods: list[RestPeriod]
     accel_bias: np.ndarray  # (3,) from the last rest (eq. 6 keeps it until the next one)
     accel_noise_std: np.ndarray  # (3,)
-    gyro_bias_initial: np.ndarray  # (3,)
+    gyro_bias_initial: np.ndarray  # (3,) eq. 7: the mean of the first rest (zero without one)
     gyro_bias_final: np.ndarray  # (3,)
     gyro_bias_track_std: np.ndarray  # (3,) spread of the tracked bias over the log
     gyro_bias_final_std: np.ndarray  # (3,) sqrt(diag P) at the end
@@ -168,9 +173,13 @@ def estimate_biases(
     mask, gravity_dir = detect_rest(t_s, gyro, accel, accel_tolerance, gyro_tolerance, min_duration_s)
     rests: list[RestPeriod] = []
     for a, b in _runs(mask):
-        up = gravity_dir[a:b].mean(axis=0)
+        inner = (t_s[a:b] >= t_s[a] + REST_EDGE_S) & (t_s[a:b] <= t_s[b - 1] - REST_EDGE_S)
+        if np.count_nonzero(inner) < 10:
+            inner[:] = True
+        mask[a:b] = inner
+        up = gravity_dir[a:b][inner].mean(axis=0)
         up /= np.linalg.norm(up)
-        f = accel[a:b]
+        f = accel[a:b][inner]
         parallel = float(np.mean(f @ up)) - GRAVITY_MPS2  # eq. 6, along gravity
         rests.append(
             RestPeriod(
@@ -180,7 +189,7 @@ def estimate_biases(
                 end_s=float(t_s[b - 1]),
                 accel_bias=parallel * up,
                 accel_noise_std=np.std(f, axis=0),
-                gyro_mean=np.mean(gyro[a:b], axis=0),
+                gyro_mean=np.mean(gyro[a:b][inner], axis=0),
             )
         )
 
@@ -188,6 +197,7 @@ def estimate_biases(
     measurement_var = np.maximum(noise**2, 1e-12)
     n = len(t_s)
     x = rests[0].gyro_mean.copy() if rests else np.zeros(3)  # eq. 7
+    x_initial = x.copy()
     P = np.full(3, initial_std**2)
     track = np.empty((n, 3))
     track_std = np.empty((n, 3))
@@ -206,7 +216,7 @@ def estimate_biases(
         rest_periods=rests,
         accel_bias=last.accel_bias if last else np.zeros(3),
         accel_noise_std=last.accel_noise_std if last else white_noise_std(accel),
-        gyro_bias_initial=track[0].copy(),
+        gyro_bias_initial=x_initial,
         gyro_bias_final=track[-1].copy(),
         gyro_bias_track_std=np.std(track, axis=0),
         gyro_bias_final_std=track_std[-1].copy(),

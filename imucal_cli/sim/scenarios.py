@@ -30,10 +30,17 @@ SCENARIOS: dict[str, float] = {
     "urban": 283.0,
     "highway": 120.0,
     "parking": 120.0,
+    "stationary": 60.0,
 }
 #: Road roughness per scenario (scales the bump amplitudes): a test track, city streets, a
 #: smooth motorway, a depot yard.
-ROAD_ROUGHNESS: dict[str, float] = {"aggressive": 1.0, "urban": 1.0, "highway": 0.3, "parking": 0.6}
+ROAD_ROUGHNESS: dict[str, float] = {
+    "aggressive": 1.0,
+    "urban": 1.0,
+    "highway": 0.3,
+    "parking": 0.6,
+    "stationary": 0.0,
+}
 
 GRID_HZ = 50.0  # driver-program sampling before spline interpolation
 
@@ -184,18 +191,27 @@ def _parking(rng: np.random.Generator, duration: float) -> _Program:
     return p
 
 
+def _stationary(rng: np.random.Generator, duration: float) -> _Program:
+    """Parked the whole time (an end-of-line check that forgot to drive): nothing observable."""
+    p = _Program(speed=0.0)
+    p.hold(duration)
+    return p
+
+
 _PROGRAMS: dict[str, Callable[[np.random.Generator, float], _Program]] = {
     "aggressive": _aggressive,
     "urban": _urban,
     "highway": _highway,
     "parking": _parking,
+    "stationary": _stationary,
 }
 
 
 def _bumps(
     rng: np.random.Generator, t: np.ndarray, band_hz: tuple[float, float], count: int = 6
 ) -> np.ndarray:
-    """A band-limited random signal (sum of sinusoids), unit RMS."""
+    """A band-limited random signal (sum of sinusoids) of ``t`` (time, or distance with the band
+    in cycles per metre), unit RMS."""
     freqs = rng.uniform(band_hz[0], band_hz[1], count)
     phases = rng.uniform(0.0, 2.0 * np.pi, count)
     amps = rng.uniform(0.5, 1.0, count)
@@ -241,8 +257,10 @@ def make_scenario(
     heading0 = rng.uniform(-np.pi, np.pi)
     yaw = heading0 + cumulative_trapezoid(yaw_rate, t, initial=0.0)
 
-    # Road grade: slow random variation; elevation follows the distance travelled.
-    grade = dyn.max_grade * np.tanh(_bumps(rng, t, (0.005, 0.02), count=3) * 0.7)
+    # Road grade: a function of the distance travelled (hills every 100-500 m), so a vehicle
+    # standing still does not pitch.
+    distance = cumulative_trapezoid(np.abs(speed), t, initial=0.0)
+    grade = dyn.max_grade * np.tanh(_bumps(rng, distance, (1.0 / 500.0, 1.0 / 100.0), count=3) * 0.7)
     distance_rate = speed
     x = cumulative_trapezoid(distance_rate * np.cos(yaw), t, initial=0.0)
     y = cumulative_trapezoid(distance_rate * np.sin(yaw), t, initial=0.0)
