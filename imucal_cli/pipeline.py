@@ -115,7 +115,8 @@ def biases_document(streams: DriveStreams, config: Config, reports: Mapping[str,
 def run_segments(streams: DriveStreams, config: Config) -> tuple[BaseSignals, dict[str, SensorWindows]]:
     base = _prepare(streams, config)
     return base, {
-        s.name: sensor_windows(base, streams.sensors[s.name], options_for(config, s)) for s in config.sensors
+        s.name: sensor_windows(base, streams.sensors[s.name], s.prior_T_base_imu.translation, options_for(config, s))
+        for s in config.sensors
     }
 
 

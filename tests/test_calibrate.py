@@ -147,3 +147,28 @@ def test_rotation_error_is_safe_near_0_and_180(angle):
     a = Rotation.from_euler("xyz", [10, 20, 30], degrees=True)
     b = a * Rotation.from_rotvec(np.radians(angle) * axis)
     assert rotation_angle_deg(a, b) == pytest.approx(angle, abs=1e-9)
+
+
+def test_planar_motion_leaves_height_unobservable():
+    """A rigid body turning only about z on a flat, smooth yard: [w]x^2 and [dw]x have no z
+    column, so the lever arm's height is not observable: status partial, z kept at the prior."""
+    from imucal_cli.sim.scenarios import VehicleDynamics
+
+    flat = VehicleDynamics(
+        roll_per_lateral_accel=0.0, pitch_per_longitudinal_accel=0.0, bump_roll_rad=0.0,
+        bump_pitch_rad=0.0, bump_heave_m=0.0, max_grade=0.0,
+    )
+    drive = simulate_drive(DriveOptions(scenario="parking", seed=3, dynamics=flat))
+    result = calibrate(drive)
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    for sensor in config.sensors:
+        estimate = result.estimates[sensor.name]
+        assert estimate.status == "partial"
+        assert estimate.translation_observable.tolist() == [True, True, False]
+        assert estimate.T_base_imu.translation[2] == sensor.prior_T_base_imu.translation[2]
+        # the reported z std is the search box's, and the true height is inside it
+        mount = next(m for m in drive.mounts if m.name == sensor.name)
+        assert estimate.translation_std_m[2] == pytest.approx(sensor.translation_bound_m / np.sqrt(3))
+        assert abs(estimate.T_base_imu.translation[2] - mount.T_base_imu.translation[2]) < sensor.translation_bound_m
+        # x and y are still found
+        assert np.all(np.abs(estimate.T_base_imu.translation[:2] - mount.T_base_imu.translation[:2]) < 4 * estimate.translation_std_m[:2])

@@ -273,7 +273,9 @@ class SensorWindows:
     sigma_accel: float  # ... of the accelerometer residual (m/s^2)
 
 
-def sensor_windows(base: BaseSignals, sensor: ImuStream, options: CalibrationOptions) -> SensorWindows:
+def sensor_windows(
+    base: BaseSignals, sensor: ImuStream, lever_arm: np.ndarray, options: CalibrationOptions
+) -> SensorWindows:
     """Clock offset from ``|w|`` and the observability of every window (eqs. 18-19)."""
     if len(sensor) < 10:
         raise TooLittleData(f"the sensor IMU has {len(sensor)} samples")
@@ -291,7 +293,7 @@ def sensor_windows(base: BaseSignals, sensor: ImuStream, options: CalibrationOpt
         )
     valid = base.valid & spline.valid(grid + tau)
     windows = analyse_windows(
-        grid, base.rate_hz, base.w, base.A, valid, options.window_s, sigma_gyro, sigma_accel,
+        grid, base.rate_hz, base.w, base.f, base.A, lever_arm, valid, options.window_s, sigma_gyro, sigma_accel,
         options.max_rotation_std_deg, options.translation_bound_m,
     )
     return SensorWindows(spline, tau, windows, sigma_gyro, sigma_accel)
@@ -306,7 +308,7 @@ def calibrate_sensor(
     """Estimate ``T_base_imu``, the clock offset and the relative biases of one sensor IMU."""
     grid = base.grid_s
     lp = base.lowpass
-    found = sensor_windows(base, sensor, options)
+    found = sensor_windows(base, sensor, prior_T_base_imu.translation, options)
     spline, tau, windows = found.spline, found.time_offset_s, found.windows
     sigma_gyro, sigma_accel = found.sigma_gyro, found.sigma_accel
 

@@ -4,10 +4,13 @@ Rotation: the residual ``R^T w_B - w_I`` of eq. 10 changes with a small rotation
 ``[u]x d`` (``u = R^T w_B``), so one window's Fisher information is
 ``I = sum_i J_i^T J_i / s^2`` with ``J_i = -[u_i]x``, 3x3 (eq. 18 in a well-posed form). The
 window's constant gyro bias is a nuisance: its Schur complement replaces ``u_i`` by
-``u_i - mean(u)``. The singular values of ``I`` (eq. 19) give the Cramer-Rao bound of the
-worst-determined rotation axis, ``1 / sqrt(sigma_min)``, and a window is selected when that
-bound is below ``max_rotation_std_deg``. Rotation by ``R`` does not change singular values, so
-the information is computed from the base gyro.
+``u_i - mean(u)``. The accelerometer equation (eq. 11) adds the same form in the specific force
+predicted at the IMU, ``v_i = f_B + A_i t`` (the lever arm at its prior), with its own bias
+marginalised: that is how gravity and the vehicle's accelerations fix the axis that turning
+about one axis leaves free in eq. 10. The singular values of ``I`` (eq. 19) give the
+Cramer-Rao bound of the worst-determined rotation axis, ``1 / sqrt(sigma_min)``, and a window
+is selected when that bound is below ``max_rotation_std_deg``. Rotation by ``R`` does not
+change singular values, so the information is computed in the base frame.
 
 Translation: eq. 12's design matrix ``A_i = [w_B]x^2 + [dw_B]x`` with the window's accelerometer
 bias as nuisance gives ``I_t = sum (A_i - mean A)^T (A_i - mean A) / s_a^2``; an axis is
@@ -55,11 +58,12 @@ def window_slices(n: int, rate_hz: float, window_s: float) -> list[np.ndarray]:
     return out
 
 
-def rotation_information(w_base: np.ndarray, gyro_noise_std: float) -> np.ndarray:
-    """3x3 Fisher information of a rotation from gyro pairs, bias marginalised (eq. 18)."""
-    centered = w_base - w_base.mean(axis=0)
+def rotation_information(vectors: np.ndarray, noise_std: float) -> np.ndarray:
+    """3x3 Fisher information of a rotation from vector pairs (N, 3) with white noise of
+    ``noise_std`` per component, a constant bias marginalised (eq. 18)."""
+    centered = vectors - vectors.mean(axis=0)
     J = -skew(centered)
-    return np.einsum("nji,njk->ik", J, J) / gyro_noise_std**2
+    return np.einsum("nji,njk->ik", J, J) / noise_std**2
 
 
 def translation_information(A: np.ndarray, accel_noise_std: float) -> np.ndarray:
@@ -80,7 +84,9 @@ def analyse_windows(
     grid_s: np.ndarray,
     rate_hz: float,
     w_base: np.ndarray,
+    f_base: np.ndarray,
     A: np.ndarray,
+    lever_arm: np.ndarray,
     valid: np.ndarray,
     window_s: float,
     gyro_noise_std: float,
@@ -91,13 +97,14 @@ def analyse_windows(
     """Observability of every window (see the module docstring).
 
     ``gyro_noise_std`` and ``accel_noise_std`` are the white-noise standard deviations of one
-    grid sample of the residuals (rad/s, m/s^2); ``valid`` marks grid samples with data on both
-    sides (no gap).
+    grid sample of the residuals (rad/s, m/s^2); ``lever_arm`` is ``t_base_imu`` (its prior);
+    ``valid`` marks grid samples with data on both sides (no gap).
     """
     out = []
     for index in window_slices(len(grid_s), rate_hz, window_s):
         ok = bool(np.all(valid[index]))
-        info = rotation_information(w_base[index], gyro_noise_std)
+        v = f_base[index] + np.einsum("nij,j->ni", A[index], lever_arm)
+        info = rotation_information(w_base[index], gyro_noise_std) + rotation_information(v, accel_noise_std)
         s = np.linalg.svd(info, compute_uv=False)
         sigma_min = float(max(s[-1], 0.0))
         std_deg = float(np.degrees(1.0 / np.sqrt(sigma_min))) if sigma_min > 0 else float("inf")

@@ -12,7 +12,7 @@ from imucal_cli.config import CalibrationConfig, GyroBiasConfig, RestConfig, Seg
 from imucal_cli.io.writers import TopicData
 from imucal_cli.sim.imu import MEMS_LIDAR, TACTICAL_BASE, ImuErrorModel, SimulatedImu, simulate_imu
 from imucal_cli.sim.rig import DEFAULT_MOUNTS, LidarMount, cad_prior
-from imucal_cli.sim.scenarios import SCENARIOS, make_scenario
+from imucal_cli.sim.scenarios import SCENARIOS, VehicleDynamics, make_scenario
 from imucal_cli.sim.trajectory import Trajectory
 from imucal_cli.types import Transform
 
@@ -36,6 +36,7 @@ class DriveOptions:
     lidar_model: ImuErrorModel = MEMS_LIDAR
     lidar_rate_hz: float | None = None  # None: the model's rate
     mounts: tuple[LidarMount, ...] = field(default=DEFAULT_MOUNTS)
+    dynamics: VehicleDynamics | None = None  # None: a bus/truck on its suspension
     t0_ns: int = DEFAULT_T0_NS
 
 
@@ -134,7 +135,7 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
     if o.time_offsets_s is not None and len(o.time_offsets_s) not in (1, len(mounts)):
         raise ValueError(f"give 1 or {len(mounts)} time offsets, got {len(o.time_offsets_s)}")
 
-    trajectory = make_scenario(o.scenario, o.duration_s, seed=o.seed)
+    trajectory = make_scenario(o.scenario, o.duration_s, seed=o.seed, dynamics=o.dynamics)
     rng = np.random.default_rng([o.seed, 7919])
     base = simulate_imu(trajectory, Transform.identity(), o.base_model.scaled(o.noise_scale), rng, o.t0_ns, BASE_FRAME)
 
