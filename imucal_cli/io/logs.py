@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.errors import LogError
+from imucal_cli.io.fastimu import RawBatch, Ros1Bag, decode_imu, mcap_batches, sqlite_batches
 from imucal_cli.types import ImuStream
 
 IMU_MSGTYPE = "sensor_msgs/msg/Imu"
@@ -87,6 +88,10 @@ class LogReader(ABC):
     def error(self, problem: str, topic: str | None = None) -> LogError:
         return LogError(str(self.path), problem, topic)
 
+    def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
+        """Bulk raw batches from the container's indexes, or None where there is no fast path."""
+        return None
+
 
 class McapLog(LogReader):
     """A plain MCAP file, messages in ROS 2 CDR or ROS 1 encoding."""
@@ -130,6 +135,9 @@ class McapLog(LogReader):
                 count += result[channel.topic].count
             result[channel.topic] = TopicInfo(channel.topic, msgtype, count, encoding)
         return result
+
+    def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
+        return mcap_batches(self.path, topics)
 
     def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
         try:
@@ -189,6 +197,40 @@ class RosbagsLog(LogReader):
                 count += result[conn.topic].count
             result[conn.topic] = TopicInfo(conn.topic, msgtype, count, encoding)
         return result
+
+    def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
+        topics = list(topics)
+        if self.ros1:
+            handle = self.path.open("rb")
+            try:
+                bag = Ros1Bag(handle)
+            except Exception:
+                handle.close()
+                return None
+
+            def ros1() -> Iterator[RawBatch]:
+                try:
+                    yield from bag.batches(topics)
+                finally:
+                    handle.close()
+
+            return ros1()
+        storage = getattr(self._reader, "storage", None)
+        metadata = getattr(storage, "metadata", None)
+        if metadata is not None and getattr(metadata, "compression_format", None):
+            return None
+        backends = getattr(storage, "storages", None) or [storage]
+        paths = [Path(b.path) for b in backends if getattr(b, "path", None) is not None]
+        if not paths:
+            return None
+        if self.format_name == "rosbag2-sqlite3":
+            return sqlite_batches(paths, topics)
+        if self.format_name == "rosbag2-mcap":
+            parts = [mcap_batches(p, topics) for p in paths]
+            if any(part is None for part in parts):
+                return None
+            return (batch for part in parts for batch in part)  # type: ignore[union-attr]
+        return None
 
     def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
         wanted = set(topics)
@@ -333,12 +375,68 @@ def _finish_topic(
     return ImuRead(stream, stats, log_ns[index])
 
 
+class _TopicColumns:
+    """Decoded samples of one topic, appended batch by batch."""
+
+    def __init__(self) -> None:
+        self.stamps: list[np.ndarray] = []
+        self.log_times: list[np.ndarray] = []
+        self.gyro: list[np.ndarray] = []
+        self.accel: list[np.ndarray] = []
+        self.stats = ReadStats()
+
+    def add(self, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray, frame_ids: list[str]) -> None:
+        zero = stamps == 0
+        if zero.any():
+            self.stats.zero_stamps += int(np.count_nonzero(zero))
+            stamps = np.where(zero, log_times, stamps)
+        for name in frame_ids:
+            if name not in self.stats.frame_ids:
+                self.stats.frame_ids.append(name)
+        self.stamps.append(stamps)
+        self.log_times.append(log_times)
+        self.gyro.append(gyro)
+        self.accel.append(accel)
+
+    def finish(self) -> ImuRead:
+        def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+            return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
+
+        log_times = cat(self.log_times, (0,), np.int64)
+        order = np.argsort(log_times, kind="stable")  # log order, for the backwards count
+        return _finish_topic(
+            cat(self.stamps, (0,), np.int64)[order],
+            log_times[order],
+            cat(self.gyro, (0, 3), np.float64)[order],
+            cat(self.accel, (0, 3), np.float64)[order],
+            self.stats,
+        )
+
+
+def _check_topics(log: LogReader, wanted: list[str]) -> dict[str, TopicInfo]:
+    available = log.topics()
+    for topic in wanted:
+        if topic not in available:
+            imu_topics = sorted(t for t, info in available.items() if info.is_imu)
+            listing = ", ".join(imu_topics) if imu_topics else "none"
+            raise log.error(f"topic not found; the log's IMU topics are: {listing}", topic)
+        info = available[topic]
+        if not info.is_imu:
+            raise log.error(f"has type {info.msgtype}, expected {IMU_MSGTYPE}", topic)
+    return available
+
+
 def read_imu(
     path: str | Path,
     topics: Iterable[str],
     progress: Callable[[int], None] | None = None,
+    fast: bool = True,
 ) -> dict[str, ImuRead]:
     """Read ``sensor_msgs/Imu`` topics of a log into one :class:`ImuRead` per topic.
+
+    With ``fast`` (the default) messages are decoded in bulk from the container's indexes
+    (:mod:`imucal_cli.io.fastimu`), bit-exact with the generic path, which is used for what the
+    fast path does not recognise and with ``fast=False``.
 
     Raises
     ------
@@ -348,45 +446,53 @@ def read_imu(
     """
     wanted = list(dict.fromkeys(topics))
     with open_log(path) as log:
-        available = log.topics()
-        for topic in wanted:
-            if topic not in available:
-                imu_topics = sorted(t for t, info in available.items() if info.is_imu)
-                listing = ", ".join(imu_topics) if imu_topics else "none"
-                raise log.error(f"topic not found; the log's IMU topics are: {listing}", topic)
-            info = available[topic]
-            if not info.is_imu:
-                raise log.error(f"has type {info.msgtype}, expected {IMU_MSGTYPE}", topic)
+        available = _check_topics(log, wanted)
         decoder = ImuDecoder()
         decoders = {t: decoder.decoder(available[t].encoding) for t in wanted}
-        columns: dict[str, tuple[list[int], list[int], list[Any], list[Any]]] = {
-            t: ([], [], [], []) for t in wanted
-        }
-        stats = {t: ReadStats() for t in wanted}
+        columns = {t: _TopicColumns() for t in wanted}
+        batches = log.fast_batches(wanted) if fast else None
         count = 0
-        for topic, log_time_ns, data in log.iter_raw(wanted):
-            st = stats[topic]
-            st.messages += 1
+        if batches is not None:
             try:
-                sample = decoders[topic](data)
-            except Exception:
-                st.decode_errors += 1
-                continue
-            stamps, log_times, gyro, accel = columns[topic]
-            stamp = sample.stamp_ns
-            if stamp == 0:
-                st.zero_stamps += 1
-                stamp = log_time_ns
-            if sample.frame_id not in st.frame_ids:
-                st.frame_ids.append(sample.frame_id)
-            stamps.append(stamp)
-            log_times.append(log_time_ns)
-            gyro.append(sample.gyro)
-            accel.append(sample.accel)
-            count += 1
-            if progress is not None and count % 10000 == 0:
-                progress(count)
-    return {t: _finish_topic(*columns[t], stats[t]) for t in wanted}
+                for batch in batches:
+                    col = columns[batch.topic]
+                    col.stats.messages += len(batch.starts)
+                    decoded = decode_imu(batch)
+                    col.add(decoded.stamp_ns, decoded.log_time_ns, decoded.gyro, decoded.accel, decoded.frame_ids)
+                    for i in decoded.undecoded:  # what the layout check did not recognise
+                        start, length = int(batch.starts[i]), int(batch.lengths[i])
+                        _decode_one(col, decoders[batch.topic], bytes(batch.buffer[start : start + length]), int(batch.log_time_ns[i]))
+                    count += len(batch.starts)
+                    if progress is not None:
+                        progress(count)
+            except LogError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a damaged container: say so, naming the file
+                raise log.error(f"cannot read messages: {exc}") from None
+        else:
+            for topic, log_time_ns, data in log.iter_raw(wanted):
+                col = columns[topic]
+                col.stats.messages += 1
+                _decode_one(col, decoders[topic], data, log_time_ns)
+                count += 1
+                if progress is not None and count % 10000 == 0:
+                    progress(count)
+    return {t: columns[t].finish() for t in wanted}
+
+
+def _decode_one(col: _TopicColumns, decode: Callable[[bytes], ImuSample], data: bytes, log_time_ns: int) -> None:
+    try:
+        sample = decode(data)
+    except Exception:  # noqa: BLE001 - counted, never silently kept
+        col.stats.decode_errors += 1
+        return
+    col.add(
+        np.array([sample.stamp_ns], dtype=np.int64),
+        np.array([log_time_ns], dtype=np.int64),
+        np.array([sample.gyro], dtype=np.float64),
+        np.array([sample.accel], dtype=np.float64),
+        [sample.frame_id],
+    )
 
 
 # --------------------------------------------------------------------------- inspect

@@ -1,7 +1,8 @@
 """Writing ``sensor_msgs/Imu`` logs in every format imucal reads (for the simulator and tests).
 
-Serialisation is done by ``rosbags`` (CDR and ROS 1), containers by the ``mcap`` writer (plain
-MCAP) and the ``rosbags`` writers (rosbag2 sqlite3/mcap, ROS 1 bag).
+Messages are serialised in bulk (:mod:`imucal_cli.io.bulkwrite`, byte-identical with the
+``rosbags`` serialisers), containers are written by the ``mcap`` writer (plain MCAP) and the
+``rosbags`` writers (rosbag2 sqlite3/mcap, ROS 1 bag).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.errors import InputError
+from imucal_cli.io.bulkwrite import serialize_cdr, serialize_ros1
 from imucal_cli.io.logs import IMU_MSGTYPE
 from imucal_cli.types import ImuStream
 
@@ -44,68 +46,33 @@ def _messages(topics: Mapping[str, TopicData]) -> Iterator[tuple[int, str, int]]
     return heapq.merge(*(one(t, d) for t, d in topics.items()))
 
 
-class _ImuSerializer:
-    def __init__(self, ros1: bool) -> None:
-        from rosbags.typesys import Stores, get_typestore
+def _msgdef(ros1: bool) -> tuple[str, object]:
+    """The message definition text and the rosbags typestore for the encoding."""
+    from rosbags.typesys import Stores, get_typestore
 
-        self.ros1 = ros1
-        self.typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-        t = self.typestore.types
-        self._Imu = t[IMU_MSGTYPE]
-        self._Header = t["std_msgs/msg/Header"]
-        self._Time = t["builtin_interfaces/msg/Time"]
-        self._Quaternion = t["geometry_msgs/msg/Quaternion"]
-        self._Vector3 = t["geometry_msgs/msg/Vector3"]
-        # REP-145: orientation not provided -> orientation_covariance[0] = -1.
-        self._orientation_cov = np.zeros(9)
-        self._orientation_cov[0] = -1.0
-        self._zero_cov = np.zeros(9)
-        self._seq = 0
+    typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    text, _ = typestore.generate_msgdef(IMU_MSGTYPE, ros_version=1 if ros1 else 2)
+    return text, typestore
 
-    def message(self, stream: ImuStream, i: int) -> Any:
-        stamp = int(stream.t_ns[i])
-        sec, nanosec = divmod(stamp, 1_000_000_000)
-        header_args: dict[str, Any] = {
-            "stamp": self._Time(sec=sec, nanosec=nanosec),
-            "frame_id": stream.frame_id,
-        }
-        if self.ros1:
-            header_args["seq"] = self._seq
-            self._seq += 1
-        g = stream.gyro[i]
-        a = stream.accel[i]
-        return self._Imu(
-            header=self._Header(**header_args),
-            orientation=self._Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
-            orientation_covariance=self._orientation_cov,
-            angular_velocity=self._Vector3(x=float(g[0]), y=float(g[1]), z=float(g[2])),
-            angular_velocity_covariance=self._zero_cov,
-            linear_acceleration=self._Vector3(x=float(a[0]), y=float(a[1]), z=float(a[2])),
-            linear_acceleration_covariance=self._zero_cov,
-        )
 
-    def serialize(self, stream: ImuStream, i: int) -> bytes:
-        msg = self.message(stream, i)
-        if self.ros1:
-            return bytes(self.typestore.serialize_ros1(msg, IMU_MSGTYPE))
-        return bytes(self.typestore.serialize_cdr(msg, IMU_MSGTYPE))
-
-    def msgdef(self) -> str:
-        text, _ = self.typestore.generate_msgdef(IMU_MSGTYPE, ros_version=1 if self.ros1 else 2)
-        return text
+def _serialized(topics: Mapping[str, TopicData], ros1: bool) -> dict[str, np.ndarray]:
+    """Every message of every topic, serialised in bulk: (n, size) uint8 per topic."""
+    serialize = serialize_ros1 if ros1 else serialize_cdr
+    return {topic: serialize(data.stream) for topic, data in topics.items()}
 
 
 def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool) -> None:
     from mcap.writer import CompressionType, Writer
 
-    serializer = _ImuSerializer(ros1)
+    msgdef, _ = _msgdef(ros1)
+    blobs = _serialized(topics, ros1)
     with path.open("wb") as handle:
         writer = Writer(handle, compression=CompressionType.ZSTD)
         writer.start(profile="ros1" if ros1 else "ros2", library="imucal")
         schema_id = writer.register_schema(
             name="sensor_msgs/Imu" if ros1 else IMU_MSGTYPE,
             encoding="ros1msg" if ros1 else "ros2msg",
-            data=serializer.msgdef().encode(),
+            data=msgdef.encode(),
         )
         channels = {
             topic: writer.register_channel(
@@ -115,11 +82,10 @@ def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool) -> None
         }
         sequence = dict.fromkeys(topics, 0)
         for log_ns, topic, i in _messages(topics):
-            stream = topics[topic].stream
             writer.add_message(
                 channel_id=channels[topic],
                 log_time=log_ns,
-                data=serializer.serialize(stream, i),
+                data=blobs[topic][i].tobytes(),
                 publish_time=log_ns,
                 sequence=sequence[topic],
             )
@@ -131,16 +97,17 @@ def _write_rosbag2(path: Path, topics: Mapping[str, TopicData], storage: str) ->
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    serializer = _ImuSerializer(ros1=False)
+    _, typestore = _msgdef(ros1=False)
+    blobs = _serialized(topics, ros1=False)
     writer = Writer(path, version=9, storage_plugin=plugin)
     writer.open()
     try:
         connections = {
-            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=serializer.typestore)
+            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore)  # type: ignore[arg-type]
             for topic in topics
         }
         for log_ns, topic, i in _messages(topics):
-            writer.write(connections[topic], log_ns, serializer.serialize(topics[topic].stream, i))
+            writer.write(connections[topic], log_ns, blobs[topic][i].tobytes())
     finally:
         writer.close()
 
@@ -148,17 +115,18 @@ def _write_rosbag2(path: Path, topics: Mapping[str, TopicData], storage: str) ->
 def _write_rosbag1(path: Path, topics: Mapping[str, TopicData]) -> None:
     from rosbags.rosbag1 import Writer
 
-    serializer = _ImuSerializer(ros1=True)
+    _, typestore = _msgdef(ros1=True)
+    blobs = _serialized(topics, ros1=True)
     writer = Writer(path)
     writer.set_compression(Writer.CompressionFormat.LZ4)
     writer.open()
     try:
         connections = {
-            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=serializer.typestore)
+            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore)  # type: ignore[arg-type]
             for topic in topics
         }
         for log_ns, topic, i in _messages(topics):
-            writer.write(connections[topic], log_ns, serializer.serialize(topics[topic].stream, i))
+            writer.write(connections[topic], log_ns, blobs[topic][i].tobytes())
     finally:
         writer.close()
 

@@ -1,0 +1,140 @@
+"""The vectorised decode path: bit-exact with the rosbags deserializer, on every container."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import DATA
+from rosbags.typesys import Stores, get_typestore
+
+from imucal_cli.io.fastimu import RawBatch, decode_imu
+from imucal_cli.io.logs import open_log, read_imu
+from imucal_cli.io.writers import FORMATS, TopicData, write_imu_log
+from imucal_cli.types import ImuStream
+
+IMU = "sensor_msgs/msg/Imu"
+
+
+def _messages(store, ros1: bool, rng, count: int):
+    t = store.types
+    out = []
+    for i in range(count):
+        frame = "f" * int(rng.integers(0, 20))  # every padding case of CDR
+        header = {"stamp": t["builtin_interfaces/msg/Time"](sec=int(rng.integers(0, 2**31 - 1)), nanosec=int(rng.integers(0, 10**9))), "frame_id": frame}
+        if ros1:
+            header["seq"] = i
+        v = rng.normal(size=6) * 10.0 ** rng.integers(-12, 6, size=6)
+        vec = t["geometry_msgs/msg/Vector3"]
+        msg = t[IMU](
+            header=t["std_msgs/msg/Header"](**header),
+            orientation=t["geometry_msgs/msg/Quaternion"](x=0.1, y=0.2, z=0.3, w=0.9),
+            orientation_covariance=rng.normal(size=9),
+            angular_velocity=vec(x=v[0], y=v[1], z=v[2]),
+            angular_velocity_covariance=rng.normal(size=9),
+            linear_acceleration=vec(x=v[3], y=v[4], z=v[5]),
+            linear_acceleration_covariance=rng.normal(size=9),
+        )
+        out.append(msg)
+    return out
+
+
+@pytest.mark.parametrize("ros1", [False, True])
+def test_decode_matches_rosbags_for_every_frame_id_length(ros1):
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    rng = np.random.default_rng(5)
+    messages = _messages(store, ros1, rng, 200)
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+    deserialize = store.deserialize_ros1 if ros1 else store.deserialize_cdr
+    blobs = [bytes(serialize(m, IMU)) for m in messages]
+    lengths = np.array([len(b) for b in blobs], dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    batch = RawBatch("/imu", "ros1" if ros1 else "cdr", np.frombuffer(b"".join(blobs), np.uint8), starts, lengths, np.arange(200, dtype=np.int64))
+    decoded = decode_imu(batch)
+    assert len(decoded.undecoded) == 0
+    for i, blob in enumerate(blobs):
+        ref = deserialize(blob, IMU)
+        assert decoded.stamp_ns[i] == ref.header.stamp.sec * 10**9 + ref.header.stamp.nanosec
+        w, a = ref.angular_velocity, ref.linear_acceleration
+        assert decoded.gyro[i].tobytes() == np.array([w.x, w.y, w.z]).tobytes()
+        assert decoded.accel[i].tobytes() == np.array([a.x, a.y, a.z]).tobytes()
+    assert set(decoded.frame_ids) == {m.header.frame_id for m in messages}
+
+
+def test_unrecognised_layouts_are_left_to_the_generic_decoder():
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    (msg,) = _messages(store, False, np.random.default_rng(1), 1)
+    little = bytes(store.serialize_cdr(msg, IMU))
+    big = bytes(store.serialize_cdr(msg, IMU, little_endian=False))
+    blobs = [little, big, little[:40]]
+    lengths = np.array([len(b) for b in blobs])
+    batch = RawBatch("/imu", "cdr", np.frombuffer(b"".join(blobs), np.uint8), np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths, np.arange(3))
+    decoded = decode_imu(batch)
+    assert decoded.undecoded.tolist() == [1, 2] and len(decoded.stamp_ns) == 1
+
+
+def _sample_streams(rng):
+    t0 = 1_700_000_000_000_000_000
+    base = ImuStream(t0 + np.arange(500) * 10_000_000, rng.normal(size=(500, 3)), rng.normal(size=(500, 3)), "base_link")
+    lidar = ImuStream(t0 + 3_000_000 + np.arange(900) * 5_000_000, rng.normal(size=(900, 3)), rng.normal(size=(900, 3)), "front_left_top_imu")
+    return {"/gnss/imu": TopicData(base, base.t_ns + 1_000_000), "/lidar/imu": TopicData(lidar, lidar.t_ns + 2_000_000)}
+
+
+def _same(a, b):
+    for topic in a:
+        x, y = a[topic], b[topic]
+        assert x.stream.t_ns.tobytes() == y.stream.t_ns.tobytes()
+        assert x.stream.gyro.tobytes() == y.stream.gyro.tobytes()
+        assert x.stream.accel.tobytes() == y.stream.accel.tobytes()
+        assert x.stream.frame_id == y.stream.frame_id
+        assert x.log_time_ns.tobytes() == y.log_time_ns.tobytes()
+        assert x.stats.to_dict() == y.stats.to_dict()
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_fast_path_is_used_and_equals_the_generic_path(tmp_path, fmt):
+    topics = _sample_streams(np.random.default_rng(2))
+    out = tmp_path / ("log.mcap" if fmt.startswith("mcap") else "log.bag" if fmt == "rosbag1" else "log")
+    path = write_imu_log(out, fmt, topics)
+    with open_log(path) as log:
+        assert log.fast_batches(list(topics)) is not None
+    fast, slow = read_imu(path, list(topics)), read_imu(path, list(topics), fast=False)
+    _same(fast, slow)
+    assert fast["/lidar/imu"].stream.gyro.tobytes() == topics["/lidar/imu"].stream.gyro.tobytes()
+
+
+@pytest.mark.parametrize("name", ["ros1_rosbag.bag", "ros1_mcap_ros1_writer.mcap", "ros2_mcap_ros2_writer.mcap", "rosbag2_converted_sqlite3"])
+def test_fast_path_on_logs_from_other_tools(name):
+    with open_log(DATA / name) as log:
+        assert log.fast_batches(["/imu/data"]) is not None
+    _same(read_imu(DATA / name, ["/imu/data"]), read_imu(DATA / name, ["/imu/data"], fast=False))
+
+
+@pytest.mark.parametrize("frame_id", ["", "a", "base_link", "front_left_top_imu", "seven77"])
+def test_bulk_serialisation_is_byte_identical_with_rosbags(frame_id):
+    from imucal_cli.io.bulkwrite import serialize_cdr, serialize_ros1
+
+    rng = np.random.default_rng(len(frame_id))
+    stream = ImuStream(1_700_000_000_123_456_789 + np.arange(20) * 10_000_000, rng.normal(size=(20, 3)), rng.normal(size=(20, 3)), frame_id)
+    for ros1, bulk in ((False, serialize_cdr(stream)), (True, serialize_ros1(stream))):
+        store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+        t = store.types
+        for i in range(20):
+            sec, nsec = divmod(int(stream.t_ns[i]), 10**9)
+            header = {"stamp": t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), "frame_id": frame_id}
+            if ros1:
+                header["seq"] = i
+            cov = np.zeros(9)
+            cov_o = cov.copy()
+            cov_o[0] = -1.0
+            vec = t["geometry_msgs/msg/Vector3"]
+            msg = t[IMU](
+                header=t["std_msgs/msg/Header"](**header),
+                orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=cov_o,
+                angular_velocity=vec(*stream.gyro[i]),
+                angular_velocity_covariance=cov,
+                linear_acceleration=vec(*stream.accel[i]),
+                linear_acceleration_covariance=cov,
+            )
+            expected = bytes(store.serialize_ros1(msg, IMU) if ros1 else store.serialize_cdr(msg, IMU))
+            assert bulk[i].tobytes() == expected
