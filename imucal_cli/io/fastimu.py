@@ -27,6 +27,8 @@ import numpy as np
 _TAIL = 8 * (4 + 9 + 3 + 9 + 3 + 9)
 _GYRO_AFTER_FRAME = 8 * (4 + 9)
 _ACCEL_AFTER_FRAME = 8 * (4 + 9 + 3 + 9)
+#: How many messages of a batch have their frame id read (evenly spread, the first included).
+FRAME_ID_SAMPLES = 64
 
 
 @dataclass(frozen=True)
@@ -53,9 +55,14 @@ class DecodedBatch:
 
 
 def _gather(buffer: np.ndarray, positions: np.ndarray, nbytes: int, dtype: str) -> np.ndarray:
-    """Bytes ``positions[i] .. positions[i] + nbytes`` of every message, viewed as ``dtype``."""
-    index = positions[:, None] + np.arange(nbytes, dtype=np.int64)[None, :]
-    return np.ascontiguousarray(buffer[index]).view(dtype)
+    """Bytes ``positions[i] .. positions[i] + nbytes`` of every message, viewed as ``dtype``:
+    an (n, nbytes / itemsize) array.
+
+    The buffer is seen as overlapping ``nbytes``-long records, one starting at every byte (a
+    strided view, no copy), so each field costs one index per message, not one per byte.
+    """
+    records = np.ndarray(shape=(len(buffer) - nbytes + 1,), dtype=f"V{nbytes}", buffer=buffer, strides=(1,))
+    return records[positions].view(dtype).reshape(len(positions), -1)
 
 
 def decode_imu(batch: RawBatch) -> DecodedBatch:
@@ -70,9 +77,9 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     n = len(starts)
     ok = lengths >= 16
     if batch.encoding == "cdr":
-        head = _gather(buf, starts[ok], 2, "u1").reshape(-1, 2) if ok.any() else np.zeros((0, 2), np.uint8)
         little = np.zeros(n, dtype=bool)
-        little[ok] = (head[:, 0] == 0) & (head[:, 1] == 1)
+        if ok.any():
+            little[ok] = _gather(buf, starts[ok], 2, "<u2").ravel() == 0x0100  # bytes 00 01: CDR_LE
         ok &= little
         body = starts + 4
         frame_len = np.zeros(n, dtype=np.int64)
@@ -99,18 +106,24 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     accel = np.zeros((len(index), 3))
     frame_ids: list[str] = []
     if len(index):
-        sec = _gather(buf, stamp_at[index], 4, sec_dtype).ravel().astype(np.int64)
-        nsec = _gather(buf, stamp_at[index] + 4, 4, "<u4").ravel().astype(np.int64)
-        stamp = sec * 1_000_000_000 + nsec
-        gyro = _gather(buf, floats_abs[index] + _GYRO_AFTER_FRAME, 24, "<f8").reshape(-1, 3)
-        accel = _gather(buf, floats_abs[index] + _ACCEL_AFTER_FRAME, 24, "<f8").reshape(-1, 3)
-        for length in np.unique(frame_chars[index]):
-            group = index[frame_chars[index] == length]
+        stamp_dtype = np.dtype([("sec", sec_dtype), ("nsec", "<u4")])
+        both = _gather(buf, stamp_at[index], 8, stamp_dtype).ravel()
+        stamp = both["sec"].astype(np.int64) * 1_000_000_000 + both["nsec"].astype(np.int64)
+        gyro = _gather(buf, floats_abs[index] + _GYRO_AFTER_FRAME, 24, "<f8")
+        accel = _gather(buf, floats_abs[index] + _ACCEL_AFTER_FRAME, 24, "<f8")
+        lengths_used = frame_chars[index]
+        groups = [lengths_used[0]] if lengths_used.min() == lengths_used.max() else np.unique(lengths_used)
+        for length in groups:
+            group = index if len(groups) == 1 else index[lengths_used == length]
             if length == 0:
-                names = np.zeros((len(group), 0), dtype=np.uint8)
+                rows = [np.zeros(0, dtype=np.uint8)]
             else:
-                names = _gather(buf, frame_start[group], int(length), "u1").reshape(len(group), -1)
-            for row in np.unique(names, axis=0):
+                # frame ids are metadata, not measurements: an even sample of the messages is read
+                sample = group[:: max(1, len(group) // FRAME_ID_SAMPLES)]
+                names = _gather(buf, frame_start[sample], int(length), "u1").reshape(len(sample), -1)
+                # one frame id per topic is the rule: check it cheaply, sort only otherwise
+                rows = [names[0]] if np.all(names == names[0]) else list(np.unique(names, axis=0))
+            for row in rows:
                 try:
                     name = bytes(row).decode("utf-8")
                 except UnicodeDecodeError:
@@ -198,32 +211,46 @@ class McapChunks:
             out[channel] = entries.reshape(-1, 2)
         return out
 
-    def batches(self, wanted: dict[int, tuple[str, str]]) -> Iterator[RawBatch]:
-        """Raw batches of the wanted channels (channel id -> (topic, encoding)), chunk by chunk."""
+    def batches(self, wanted: dict[int, tuple[str, str]], group_bytes: int = 8 << 20) -> Iterator[RawBatch]:
+        """Raw batches of the wanted channels (channel id -> (topic, encoding)).
+
+        Consecutive chunks are decoded together, up to ``group_bytes`` of records, so that the
+        per-call cost of the vectorised decoder is spread over many messages.
+        """
         assert self.summary is not None
         ids = set(wanted)
         chunks = sorted(self.summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset))
+        pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
+        size = 0
         for ci in chunks:
             if not ids & set(ci.message_index_offsets):
                 continue
             positions = self.message_positions(ci, ids)
             if not any(len(p) for p in positions.values()):
                 continue
-            records = np.frombuffer(self.read_chunk(ci), dtype=np.uint8)
-            for channel, entries in positions.items():
-                if not len(entries):
-                    continue
-                offset = entries[:, 1].astype(np.int64)
-                record_len = _gather(records, offset + 1, 8, "<u8").ravel().astype(np.int64)
-                topic, encoding = wanted[channel]
-                yield RawBatch(
-                    topic,
-                    encoding,
-                    records,
-                    offset + _MCAP_MESSAGE_HEADER,
-                    record_len - (_MCAP_MESSAGE_HEADER - 9),
-                    entries[:, 0].astype(np.int64),
-                )
+            records = self.read_chunk(ci)
+            pending.append((records, positions))
+            size += len(records)
+            if size >= group_bytes:
+                yield from self._group(pending, wanted)
+                pending, size = [], 0
+        if pending:
+            yield from self._group(pending, wanted)
+
+    @staticmethod
+    def _group(pending: list[tuple[bytes, dict[int, np.ndarray]]], wanted: dict[int, tuple[str, str]]) -> Iterator[RawBatch]:
+        buffer = np.frombuffer(b"".join(records for records, _ in pending), dtype=np.uint8)
+        base = np.cumsum([0] + [len(records) for records, _ in pending[:-1]])
+        for channel, (topic, encoding) in wanted.items():
+            parts = [(e, b) for (_, positions), b in zip(pending, base, strict=True) if len(e := positions.get(channel, ()))]
+            if not parts:
+                continue
+            offset = np.concatenate([e[:, 1].astype(np.int64) + b for e, b in parts])
+            log_ns = np.concatenate([e[:, 0].astype(np.int64) for e, _ in parts])
+            record_len = _gather(buffer, offset + 1, 8, "<u8").ravel().astype(np.int64)
+            yield RawBatch(
+                topic, encoding, buffer, offset + _MCAP_MESSAGE_HEADER, record_len - (_MCAP_MESSAGE_HEADER - 9), log_ns
+            )
 
 
 def mcap_batches(path: Path, topics: Iterable[str]) -> Iterator[RawBatch] | None:
@@ -269,17 +296,17 @@ def sqlite_batches(db_paths: list[Path], topics: Iterable[str], batch_rows: int 
                 continue
             marks = ",".join("?" * len(ids))
             cursor = connection.execute(
-                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) ORDER BY timestamp",  # noqa: S608
+                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks})",  # noqa: S608
                 list(ids),
             )
             while True:
                 chunk = cursor.fetchmany(batch_rows)
                 if not chunk:
                     break
-                topic_ids = np.fromiter((r[0] for r in chunk), dtype=np.int64, count=len(chunk))
-                times = np.fromiter((r[1] for r in chunk), dtype=np.int64, count=len(chunk))
-                blobs = [r[2] for r in chunk]
-                lengths = np.fromiter((len(b) for b in blobs), dtype=np.int64, count=len(chunk))
+                id_column, time_column, blobs = zip(*chunk, strict=True)
+                topic_ids = np.array(id_column, dtype=np.int64)
+                times = np.array(time_column, dtype=np.int64)
+                lengths = np.fromiter(map(len, blobs), dtype=np.int64, count=len(chunk))
                 buffer = np.frombuffer(b"".join(blobs), dtype=np.uint8)
                 starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
                 for tid, name in ids.items():

@@ -362,7 +362,11 @@ def _finish_topic(
     log_ns = np.asarray(log_times, dtype=np.int64)
     gyro_arr = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
     accel_arr = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
-    stats.backwards = int(np.count_nonzero(np.diff(t_ns) < 0)) if len(t_ns) > 1 else 0
+    steps = np.diff(t_ns)
+    stats.backwards = int(np.count_nonzero(steps < 0))
+    if len(t_ns) < 2 or np.all(steps > 0):  # the usual case: already sorted, no duplicates
+        frame_id = stats.frame_ids[0] if stats.frame_ids else ""
+        return ImuRead(ImuStream(t_ns, gyro_arr, accel_arr, frame_id), stats, log_ns)
     order = np.argsort(t_ns, kind="stable")
     t_sorted = t_ns[order]
     keep = np.ones(len(t_sorted), dtype=bool)
@@ -403,14 +407,12 @@ class _TopicColumns:
             return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
 
         log_times = cat(self.log_times, (0,), np.int64)
-        order = np.argsort(log_times, kind="stable")  # log order, for the backwards count
-        return _finish_topic(
-            cat(self.stamps, (0,), np.int64)[order],
-            log_times[order],
-            cat(self.gyro, (0, 3), np.float64)[order],
-            cat(self.accel, (0, 3), np.float64)[order],
-            self.stats,
-        )
+        stamps = cat(self.stamps, (0,), np.int64)
+        gyro, accel = cat(self.gyro, (0, 3), np.float64), cat(self.accel, (0, 3), np.float64)
+        if len(log_times) > 1 and np.any(np.diff(log_times) < 0):  # log order, for the backwards count
+            order = np.argsort(log_times, kind="stable")
+            stamps, log_times, gyro, accel = stamps[order], log_times[order], gyro[order], accel[order]
+        return _finish_topic(stamps, log_times, gyro, accel, self.stats)
 
 
 def _check_topics(log: LogReader, wanted: list[str]) -> dict[str, TopicInfo]:

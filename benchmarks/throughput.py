@@ -1,0 +1,156 @@
+"""Throughput and memory on long logs; prints a markdown table.
+
+Builds (once, cached in ``benchmarks/.cache``) logs of a rig with one base IMU at 100 Hz and four
+lidar IMUs at 200 Hz (900 messages/s) driving in town, in MCAP (zstd chunks), rosbag2 sqlite3
+and ROS 1 (lz4 chunks), and measures per format and length, side by side in one run:
+
+- floor: read the container and decompress it, decoding nothing (MCAP and ROS 1: every chunk;
+  sqlite3: every row's timestamp and blob);
+- decode: ``read_imu`` with the fast path, all IMU topics to arrays (messages/s, x floor);
+- naive: the generic path (container reader + rosbags' per-message deserialiser);
+- calibrate: ``imucal calibrate`` end to end in a fresh process, wall time and peak RSS.
+
+Run: ``python benchmarks/throughput.py [--lengths 15m 1h 4h] [--formats mcap rosbag2-sqlite3
+rosbag1] [--naive-max-minutes 60]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+CACHE = HERE / ".cache"
+LENGTHS = {"15m": 900.0, "1h": 3600.0, "4h": 14400.0}
+SUFFIX = {"mcap": ".mcap", "rosbag2-sqlite3": "", "rosbag1": ".bag"}
+
+
+def build(length: str, fmt: str) -> tuple[Path, Path]:
+    """The cached log and its config (made with the simulator's writer)."""
+    from imucal_cli.io.reports import write_document
+    from imucal_cli.io.writers import write_imu_log
+    from imucal_cli.sim import DriveOptions, simulate_drive
+
+    CACHE.mkdir(exist_ok=True)
+    stem = CACHE / f"town_{length}_{fmt}"
+    log = stem.with_name(stem.name + SUFFIX[fmt])
+    config = stem.with_name(stem.name + ".config.yaml")
+    if log.exists() and config.exists():
+        return log, config
+    start = time.perf_counter()
+    drive = simulate_drive(
+        DriveOptions(scenario="urban", duration_s=LENGTHS[length], seed=1, sensors=4, lidar_rate_hz=200.0)
+    )
+    write_imu_log(log, fmt, drive.topics())
+    write_document(config, drive.config_document())
+    write_document(stem.with_name(stem.name + ".truth.yaml"), drive.truth_document())
+    print(f"built {log.name} in {time.perf_counter() - start:.0f} s", file=sys.stderr)
+    return log, config
+
+
+def floor(log: Path, fmt: str) -> float:
+    """Seconds to read and decompress the storage, decoding nothing."""
+    from imucal_cli.io.fastimu import McapChunks, Ros1Bag
+
+    start = time.perf_counter()
+    if fmt == "mcap":
+        with log.open("rb") as handle:
+            chunks = McapChunks(handle)
+            assert chunks.summary is not None
+            for ci in chunks.summary.chunk_indexes:
+                chunks.read_chunk(ci)
+    elif fmt == "rosbag2-sqlite3":
+        for db in sorted(log.glob("*.db3")):
+            connection = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+            cursor = connection.execute("SELECT timestamp, data FROM messages")
+            while cursor.fetchmany(65536):
+                pass
+            connection.close()
+    else:
+        import lz4.frame
+
+        with log.open("rb") as handle:
+            bag = Ros1Bag(handle)
+            from imucal_cli.io.fastimu import _ros1_header
+
+            for pos in bag.chunk_positions:
+                handle.seek(pos)
+                head = handle.read(4096)
+                fields, p = _ros1_header(head, 0)
+                (size,) = np.frombuffer(head[p : p + 4], "<u4")
+                handle.seek(pos + p + 4)
+                data = handle.read(int(size))
+                if fields["compression"] == b"lz4":
+                    lz4.frame.decompress(data)
+    return time.perf_counter() - start
+
+
+def decode(log: Path, topics: list[str], fast: bool) -> tuple[float, int]:
+    from imucal_cli.io.logs import read_imu
+
+    start = time.perf_counter()
+    reads = read_imu(log, topics, fast=fast)
+    return time.perf_counter() - start, sum(r.stats.messages for r in reads.values())
+
+
+def calibrate(log: Path, config: Path) -> tuple[float, float]:
+    """Wall seconds and peak RSS (MB) of ``imucal calibrate`` in a fresh process."""
+    out = CACHE / "estimate.json"
+    start = time.perf_counter()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(config), "-o", str(out)],
+        stdout=subprocess.DEVNULL,
+    )
+    _, status, usage = os.wait4(process.pid, 0)
+    wall = time.perf_counter() - start
+    if status != 0:
+        raise RuntimeError(f"imucal calibrate failed on {log}")
+    return wall, usage.ru_maxrss / 1024.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--lengths", nargs="+", default=["15m", "1h", "4h"], choices=list(LENGTHS))
+    parser.add_argument("--formats", nargs="+", default=list(SUFFIX), choices=list(SUFFIX))
+    parser.add_argument("--four-hour-formats", nargs="+", default=["mcap"], choices=list(SUFFIX))
+    parser.add_argument("--naive-max-minutes", type=float, default=60.0)
+    args = parser.parse_args()
+    from imucal_cli.config import load_config
+
+    rows = []
+    for length in args.lengths:
+        for fmt in args.formats:
+            if length == "4h" and fmt not in args.four_hour_formats:
+                continue
+            log, config_path = build(length, fmt)
+            config = load_config(config_path)
+            topics = [config.base.topic] + [s.imu_topic for s in config.sensors]
+            t_floor = floor(log, fmt)
+            t_fast, count = decode(log, topics, fast=True)
+            t_naive = None
+            if LENGTHS[length] / 60.0 <= args.naive_max_minutes:
+                t_naive, _ = decode(log, topics, fast=False)
+            wall, rss = calibrate(log, config_path)
+            size = sum(p.stat().st_size for p in ([log] if log.is_file() else log.iterdir()))
+            rows.append((length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss))
+            print(f"measured {length} {fmt}", file=sys.stderr)
+
+    print("| length | format | messages | size MB | floor s | decode s | decode / floor | decode msg/s | naive s | naive / decode | calibrate s | calibrate / floor | peak RSS MB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss in rows:
+        naive = f"{t_naive:.1f} | {t_naive / t_fast:.0f}x" if t_naive is not None else "- | -"
+        print(
+            f"| {length} | {fmt} | {count:,} | {size / 1e6:.0f} | {t_floor:.2f} | {t_fast:.2f} | {t_fast / t_floor:.2f} | "
+            f"{count / t_fast / 1e6:.2f} M | {naive} | {wall:.1f} | {wall / t_floor:.1f} | {rss:.0f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
