@@ -355,6 +355,7 @@ class Ros1Bag:
         pos = 0
         self.topics: dict[int, str] = {}
         self.types: dict[int, str] = {}
+        self.counts: dict[int, int] = {}
         self.chunk_positions: list[int] = []
         while pos < len(index):
             fields, pos = _ros1_header(index, pos)
@@ -367,8 +368,11 @@ class Ros1Bag:
                 self.topics[conn] = fields["topic"].decode()
                 inner, _ = _ros1_header(struct.pack("<I", len(data)) + data, 0)
                 self.types[conn] = inner.get("type", b"").decode()
-            elif op == 0x06:  # chunk info
+            elif op == 0x06:  # chunk info: position, then (connection, count) pairs
                 self.chunk_positions.append(struct.unpack("<Q", fields["chunk_pos"])[0])
+                pairs = np.frombuffer(data, dtype="<u4").reshape(-1, 2)
+                for conn, count in pairs.tolist():
+                    self.counts[conn] = self.counts.get(conn, 0) + count
 
     def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}

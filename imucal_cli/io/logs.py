@@ -244,6 +244,94 @@ class RosbagsLog(LogReader):
             raise self.error(f"cannot read {self.format_name} messages: {exc}") from None
 
 
+class _LazyFallback(LogReader):
+    """A reader with its own fast index, that opens the generic ``rosbags`` reader only when a
+    message has to be read one at a time."""
+
+    def __init__(self, path: Path, ros1: bool) -> None:
+        super().__init__(path)
+        self._ros1 = ros1
+        self._generic: RosbagsLog | None = None
+
+    def _fallback(self) -> RosbagsLog:
+        if self._generic is None:
+            self._generic = RosbagsLog(self.path, ros1=self._ros1)
+        return self._generic
+
+    def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
+        return self._fallback().iter_raw(topics)
+
+    def close(self) -> None:
+        if self._generic is not None:
+            self._generic.close()
+
+
+class Ros1Log(_LazyFallback):
+    """An indexed ROS 1 bag read through its own index (:class:`Ros1Bag`)."""
+
+    format_name = "rosbag1"
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path, ros1=True)
+        self._handle = path.open("rb")
+        try:
+            self._bag = Ros1Bag(self._handle)
+        except Exception:
+            self._handle.close()
+            raise
+
+    def topics(self) -> dict[str, TopicInfo]:
+        out: dict[str, TopicInfo] = {}
+        for conn, topic in self._bag.topics.items():
+            count = self._bag.counts.get(conn, 0) + (out[topic].count if topic in out else 0)
+            out[topic] = TopicInfo(topic, self._bag.types.get(conn, ""), count, "ros1")
+        return out
+
+    def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
+        return self._bag.batches(list(topics))
+
+    def close(self) -> None:
+        super().close()
+        self._handle.close()
+
+
+class Rosbag2Log(_LazyFallback):
+    """An uncompressed rosbag2 directory read through its ``metadata.yaml`` and storage files."""
+
+    def __init__(self, path: Path) -> None:
+        import yaml
+
+        super().__init__(path, ros1=False)
+        info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        if info.get("compression_format") or info.get("compression_mode"):
+            raise ValueError("compressed rosbag2")
+        storage = info["storage_identifier"]
+        if storage not in ("sqlite3", "mcap"):
+            raise ValueError(f"storage {storage}")
+        self.format_name = f"rosbag2-{storage}"
+        self.files = [path / Path(p).name for p in info["relative_file_paths"]]
+        if not self.files or not all(f.is_file() for f in self.files):
+            raise ValueError("storage files missing")
+        self._topics: dict[str, TopicInfo] = {}
+        for entry in info["topics_with_message_count"]:
+            meta = entry["topic_metadata"]
+            topic = meta["name"]
+            count = int(entry["message_count"]) + (self._topics[topic].count if topic in self._topics else 0)
+            self._topics[topic] = TopicInfo(topic, meta["type"], count, meta["serialization_format"])
+
+    def topics(self) -> dict[str, TopicInfo]:
+        return dict(self._topics)
+
+    def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
+        topics = list(topics)
+        if self.format_name == "rosbag2-sqlite3":
+            return sqlite_batches(self.files, topics)
+        parts = [mcap_batches(f, topics) for f in self.files]
+        if any(part is None for part in parts):
+            return None
+        return (batch for part in parts for batch in part)  # type: ignore[union-attr]
+
+
 def detect_format(path: Path) -> str:
     """``mcap``, ``rosbag2`` or ``rosbag1`` from the path (and its first bytes)."""
     if path.is_dir():
@@ -280,7 +368,15 @@ def open_log(path: str | Path) -> LogReader:
     if kind == "mcap":
         return McapLog(path)
     if kind == "rosbag1":
-        return RosbagsLog(path, ros1=True)
+        try:
+            return Ros1Log(path)
+        except Exception:  # unindexed or damaged: the generic reader says what is wrong
+            return RosbagsLog(path, ros1=True)
+    if path.is_dir():
+        try:
+            return Rosbag2Log(path)
+        except Exception:  # compressed, or metadata the generic reader must judge
+            pass
     return RosbagsLog(path, ros1=False)
 
 
