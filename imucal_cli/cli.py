@@ -253,6 +253,47 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     return config, streams
 
 
+def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
+    """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
+    nothing solved yet). Returns the config, the calibrator and the log's first IMU stamp."""
+    from imucal_cli.config import load_config
+    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.pipeline import make_calibrator
+
+    config = load_config(config_path)
+    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    calibrator = make_calibrator(config)
+    reader = ImuBatches(log, names)
+    t0_ns: int | None = None
+    count = 0
+    with _progress(f"reading {log}") as progress:
+        for topic, stamps, _log_times, gyro, accel in reader:
+            if len(stamps):
+                first = int(stamps.min())
+                t0_ns = first if t0_ns is None else min(t0_ns, first)
+            calibrator.add(names[topic], stamps, gyro, accel)
+            count += len(stamps)
+            progress(count)
+    for topic, stats in reader.stats.items():
+        usable = stats.messages - stats.decode_errors
+        if usable < 10:
+            raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages")
+    if calibrator.t_ref_ns is None or t0_ns is None:
+        raise InputError(f"{log}: too little data: an IMU topic has no messages")
+    try:
+        calibrator.process(final=True)
+    except ImucalError as exc:
+        raise InputError(f"{log}: {exc}") from None
+    for topic, stats in reader.stats.items():
+        counts = stats.to_dict()
+        counts["duplicates"] = calibrator.duplicates(names[topic])
+        dropped = {k: v for k, v in counts.items() if k != "messages" and v}
+        if dropped:
+            details = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dropped.items())
+            typer.echo(f"imucal: note: {log} [{topic}]: {stats.messages} messages; {details}", err=True)
+    return config, calibrator, t0_ns
+
+
 def _fmt(values: Any, digits: int) -> str:
     if values is None:
         return "-"
@@ -302,13 +343,11 @@ def segments(
     as_json: JsonOption = False,
 ) -> None:
     """Per sensor: each window's Fisher-information min singular value, rotation std, selected or not."""
-    from imucal_cli.pipeline import run_segments, segments_document
+    from imucal_cli.pipeline import segments_document
 
     _check_output(out)
-    cfg, streams = _load_drive(log, config)
-    with _progress("analysing windows"):
-        base, found = run_segments(streams, cfg)
-    document = segments_document(streams, cfg, base, found)
+    cfg, calibrator, t0_ns = _stream_log(log, config)
+    document = segments_document(t0_ns, cfg, calibrator)
 
     def render(doc: dict[str, Any]) -> None:
         from rich.table import Table
@@ -342,12 +381,12 @@ def calibrate(
     ] = False,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
-    from imucal_cli.pipeline import calibration_document, run_calibrate
+    from imucal_cli.pipeline import CalibrationResult, calibration_document
 
     _check_output(out)
-    cfg, streams = _load_drive(log, config)
+    cfg, calibrator, _ = _stream_log(log, config)
     with _progress("calibrating"):
-        result = run_calibrate(streams, cfg)
+        result = CalibrationResult(calibrator.estimates(), cfg)
     document = calibration_document(result, str(log))
 
     def render(doc: dict[str, Any]) -> None:

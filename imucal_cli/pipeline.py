@@ -6,7 +6,7 @@ No I/O: functions take streams and a config, return results, and build the SPEC'
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from itertools import combinations
 from typing import Any
@@ -16,21 +16,11 @@ import numpy as np
 from imucal_cli import __version__
 from imucal_cli.config import Config, SensorConfig
 from imucal_cli.core.biases import BiasReport, estimate_biases
-from imucal_cli.core.calibrate import (
-    BaseSignals,
-    CalibrationOptions,
-    SensorEstimate,
-    SensorWindows,
-    calibrate_sensor,
-    common_grid,
-    prepare_base,
-    sensor_windows,
-)
+from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
 from imucal_cli.core.so3 import rotation_angle_deg
+from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
 from imucal_cli.errors import ImucalError
 from imucal_cli.types import ImuStream, Transform
-
-Progress = Callable[[str], None]
 
 
 @dataclass(frozen=True)
@@ -57,17 +47,28 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
     )
 
 
-def _prepare(streams: DriveStreams, config: Config) -> BaseSignals:
-    rate = config.calibration.resample_hz
-    margin = config.calibration.max_time_offset_s + 0.5
-    t_ref_ns, grid = common_grid([streams.base, *streams.sensors.values()], rate, margin)
-    min_samples = int(2 * config.segments.window_s * rate / 2)
-    if len(grid) < max(min_samples, 20):
-        raise ImucalError(
-            f"too little data: the IMUs overlap for {len(grid) / rate:.1f} s; "
-            f"at least one window of {config.segments.window_s:g} s is needed"
-        )
-    return prepare_base(streams.base, t_ref_ns, grid, rate, CalibrationOptions().lowpass_hz)
+def make_calibrator(config: Config) -> StreamingCalibrator:
+    """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names."""
+    return StreamingCalibrator(
+        [SensorSetup(s.name, s.prior_T_base_imu, options_for(config, s)) for s in config.sensors],
+        base_name="base",
+    )
+
+
+def feed(calibrator: StreamingCalibrator, streams: DriveStreams, block_s: float = 10.0) -> None:
+    """Feed in-memory streams to a calibrator in time order, ``block_s`` at a time."""
+    all_streams = {"base": streams.base, **streams.sensors}
+    start = min(int(s.t_ns[0]) for s in all_streams.values())
+    end = max(int(s.t_ns[-1]) for s in all_streams.values())
+    step = int(block_s * 1e9)
+    cursors = dict.fromkeys(all_streams, 0)
+    for edge in range(start + step, end + 2 * step, step):
+        for name, stream in all_streams.items():
+            stop = int(np.searchsorted(stream.t_ns, edge, side="left"))
+            a = cursors[name]
+            if stop > a:
+                calibrator.add(name, stream.t_ns[a:stop], stream.gyro[a:stop], stream.accel[a:stop])
+                cursors[name] = stop
 
 
 # --------------------------------------------------------------------------- biases
@@ -112,24 +113,26 @@ def biases_document(streams: DriveStreams, config: Config, reports: Mapping[str,
 # --------------------------------------------------------------------------- segments
 
 
-def run_segments(streams: DriveStreams, config: Config) -> tuple[BaseSignals, dict[str, SensorWindows]]:
-    base = _prepare(streams, config)
-    return base, {
-        s.name: sensor_windows(base, streams.sensors[s.name], s.prior_T_base_imu.translation, options_for(config, s))
-        for s in config.sensors
-    }
+def run_segments(streams: DriveStreams, config: Config) -> StreamingCalibrator:
+    """Reduce every window of the drive (clock offsets, observability); no estimate is solved."""
+    calibrator = make_calibrator(config)
+    feed(calibrator, streams)
+    if calibrator.t_ref_ns is None:
+        raise ImucalError("too little data: an IMU has no samples")
+    calibrator.process(final=True)
+    return calibrator
 
 
-def segments_document(
-    streams: DriveStreams, config: Config, base: BaseSignals, found: Mapping[str, SensorWindows]
-) -> dict[str, Any]:
-    offset = streams.seconds(base.t_ref_ns)
+def segments_document(t0_ns: int, config: Config, calibrator: StreamingCalibrator) -> dict[str, Any]:
+    assert calibrator.t_ref_ns is not None
+    offset = (calibrator.t_ref_ns - t0_ns) * 1e-9
     sensors: dict[str, Any] = {}
-    for name, sw in found.items():
-        sensors[name] = {
-            "total": len(sw.windows),
-            "selected": sum(w.selected for w in sw.windows),
-            "time_offset_s": sw.time_offset_s,
+    for sensor in config.sensors:
+        windows = calibrator.window_infos(sensor.name)
+        sensors[sensor.name] = {
+            "total": len(windows),
+            "selected": sum(w.selected for w in windows),
+            "time_offset_s": calibrator.tau0.get(sensor.name, 0.0),
             "windows": [
                 {
                     "start_s": offset + w.start_s,
@@ -141,12 +144,12 @@ def segments_document(
                     "translation_std_m": [v if np.isfinite(v) else None for v in w.translation_std_m],
                     **({} if w.valid else {"gap": True}),
                 }
-                for w in sw.windows
+                for w in windows
             ],
         }
     return {
         "imucal_version": __version__,
-        "t0_ns": streams.t0_ns,
+        "t0_ns": t0_ns,
         "window_s": config.segments.window_s,
         "max_rotation_std_deg": config.segments.max_rotation_std_deg,
         "sensors": sensors,
@@ -158,7 +161,6 @@ def segments_document(
 
 @dataclass(frozen=True)
 class CalibrationResult:
-    base_signals: BaseSignals
     estimates: dict[str, SensorEstimate]
     config: Config
 
@@ -170,16 +172,11 @@ class CalibrationResult:
         return all(e.status == "ok" for e in self.estimates.values())
 
 
-def run_calibrate(streams: DriveStreams, config: Config, progress: Progress | None = None) -> CalibrationResult:
-    base = _prepare(streams, config)
-    estimates: dict[str, SensorEstimate] = {}
-    for sensor in config.sensors:
-        if progress:
-            progress(sensor.name)
-        estimates[sensor.name] = calibrate_sensor(
-            base, streams.sensors[sensor.name], sensor.prior_T_base_imu, options_for(config, sensor)
-        )
-    return CalibrationResult(base, estimates, config)
+def run_calibrate(streams: DriveStreams, config: Config) -> CalibrationResult:
+    """Calibrate every sensor from in-memory streams."""
+    calibrator = make_calibrator(config)
+    feed(calibrator, streams)
+    return CalibrationResult(calibrator.finish(), config)
 
 
 def _std_list(values: np.ndarray | None) -> list[float] | None:

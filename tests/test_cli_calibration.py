@@ -121,8 +121,12 @@ def test_segments_report(tmp_path):
     assert doc["window_s"] == 10.0
     for sensor in doc["sensors"].values():
         assert sensor["total"] == 8 and sensor["selected"] == sum(w["selected"] for w in sensor["windows"])
-        for w in sensor["windows"]:
-            assert w["end_s"] - w["start_s"] == pytest.approx(10.0, abs=0.6)
+        for k, w in enumerate(sensor["windows"]):
+            length = w["end_s"] - w["start_s"]
+            if k < len(sensor["windows"]) - 1:  # whole windows, then a last one of at least half
+                assert length == pytest.approx(10.0, abs=1e-6)
+            else:
+                assert 5.0 <= length <= 10.0 + 1e-6
             assert w["selected"] == (w["rotation_std_deg"] < doc["max_rotation_std_deg"])
             # CRLB std is 1/sqrt(sigma_min) (eq. 19)
             assert w["rotation_std_deg"] == pytest.approx(np.degrees(1 / np.sqrt(w["min_singular_value"])))

@@ -25,7 +25,6 @@ import numpy as np
 from imucal_cli.core.signals import white_noise_std
 from imucal_cli.types import GRAVITY_MPS2, ImuStream
 
-
 #: Seconds dropped at each end of a rest before averaging (settling, creeping off).
 REST_EDGE_S = 1.0
 

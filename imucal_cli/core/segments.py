@@ -80,6 +80,45 @@ def _std_from_information(info: np.ndarray) -> np.ndarray:
     return np.sqrt(np.diag(np.linalg.inv(info)))
 
 
+def window_info(
+    start_s: float,
+    end_s: float,
+    index: np.ndarray,
+    w_base: np.ndarray,
+    f_base: np.ndarray,
+    A: np.ndarray,
+    lever_arm: np.ndarray,
+    valid: bool,
+    gyro_noise_std: float,
+    accel_noise_std: float,
+    max_rotation_std_deg: float,
+    translation_bound_m: float,
+) -> WindowInfo:
+    """Observability of one window from its low-passed base signals (see the module docstring).
+
+    ``gyro_noise_std`` and ``accel_noise_std`` are the white-noise standard deviations of one
+    grid sample of the residuals (rad/s, m/s^2); ``lever_arm`` is ``t_base_imu`` (its prior);
+    ``valid`` is False when the window holds a gap in either stream.
+    """
+    v = f_base + np.einsum("nij,j->ni", A, lever_arm)
+    info = rotation_information(w_base, gyro_noise_std) + rotation_information(v, accel_noise_std)
+    s = np.linalg.svd(info, compute_uv=False)
+    sigma_min = float(max(s[-1], 0.0))
+    std_deg = float(np.degrees(1.0 / np.sqrt(sigma_min))) if sigma_min > 0 else float("inf")
+    t_std = _std_from_information(translation_information(A, accel_noise_std))
+    return WindowInfo(
+        start_s=start_s,
+        end_s=end_s,
+        index=index,
+        min_singular_value=sigma_min,
+        rotation_std_deg=std_deg,
+        selected=valid and std_deg < max_rotation_std_deg,
+        translation_std_m=t_std,
+        translation_observable=t_std < OBSERVABLE_FRACTION_OF_BOUND * translation_bound_m,
+        valid=valid,
+    )
+
+
 def analyse_windows(
     grid_s: np.ndarray,
     rate_hz: float,
@@ -94,32 +133,12 @@ def analyse_windows(
     max_rotation_std_deg: float,
     translation_bound_m: float,
 ) -> list[WindowInfo]:
-    """Observability of every window (see the module docstring).
-
-    ``gyro_noise_std`` and ``accel_noise_std`` are the white-noise standard deviations of one
-    grid sample of the residuals (rad/s, m/s^2); ``lever_arm`` is ``t_base_imu`` (its prior);
-    ``valid`` marks grid samples with data on both sides (no gap).
-    """
-    out = []
-    for index in window_slices(len(grid_s), rate_hz, window_s):
-        ok = bool(np.all(valid[index]))
-        v = f_base[index] + np.einsum("nij,j->ni", A[index], lever_arm)
-        info = rotation_information(w_base[index], gyro_noise_std) + rotation_information(v, accel_noise_std)
-        s = np.linalg.svd(info, compute_uv=False)
-        sigma_min = float(max(s[-1], 0.0))
-        std_deg = float(np.degrees(1.0 / np.sqrt(sigma_min))) if sigma_min > 0 else float("inf")
-        t_std = _std_from_information(translation_information(A[index], accel_noise_std))
-        out.append(
-            WindowInfo(
-                start_s=float(grid_s[index[0]]),
-                end_s=float(grid_s[index[-1]] + 1.0 / rate_hz),
-                index=index,
-                min_singular_value=sigma_min,
-                rotation_std_deg=std_deg,
-                selected=ok and std_deg < max_rotation_std_deg,
-                translation_std_m=t_std,
-                translation_observable=t_std < OBSERVABLE_FRACTION_OF_BOUND * translation_bound_m,
-                valid=ok,
-            )
+    """:func:`window_info` for every window of a grid."""
+    return [
+        window_info(
+            float(grid_s[index[0]]), float(grid_s[index[-1]] + 1.0 / rate_hz), index,
+            w_base[index], f_base[index], A[index], lever_arm, bool(np.all(valid[index])),
+            gyro_noise_std, accel_noise_std, max_rotation_std_deg, translation_bound_m,
         )
-    return out
+        for index in window_slices(len(grid_s), rate_hz, window_s)
+    ]

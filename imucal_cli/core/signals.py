@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import signal
-from scipy.interpolate import make_interp_spline
 
 from imucal_cli.errors import ImucalError
 
@@ -57,19 +56,6 @@ class Lowpass:
         impulse[n // 2] = 1.0
         h = signal.sosfiltfilt(self.sos, impulse)
         return float(np.sum(h**2))
-
-
-def resample(
-    t_s: np.ndarray, values: np.ndarray, grid_s: np.ndarray, derivative: bool = False
-) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-    """Interpolate samples ``values`` (N, ...) at times ``t_s`` onto ``grid_s`` (cubic spline).
-
-    With ``derivative`` also returns the spline's exact time derivative on the grid.
-    """
-    spline = make_interp_spline(t_s, values, k=3)
-    if derivative:
-        return spline(grid_s), spline(grid_s, nu=1)
-    return spline(grid_s)
 
 
 def white_noise_std(x: np.ndarray) -> np.ndarray:

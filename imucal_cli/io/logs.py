@@ -485,14 +485,7 @@ class _TopicColumns:
         self.accel: list[np.ndarray] = []
         self.stats = ReadStats()
 
-    def add(self, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray, frame_ids: list[str]) -> None:
-        zero = stamps == 0
-        if zero.any():
-            self.stats.zero_stamps += int(np.count_nonzero(zero))
-            stamps = np.where(zero, log_times, stamps)
-        for name in frame_ids:
-            if name not in self.stats.frame_ids:
-                self.stats.frame_ids.append(name)
+    def add(self, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         self.stamps.append(stamps)
         self.log_times.append(log_times)
         self.gyro.append(gyro)
@@ -524,6 +517,96 @@ def _check_topics(log: LogReader, wanted: list[str]) -> dict[str, TopicInfo]:
     return available
 
 
+class ImuBatches:
+    """Decoded ``sensor_msgs/Imu`` batches of a log, in the container's order, without holding
+    the whole log: ``(topic, stamp_ns, log_time_ns, gyro, accel)`` per batch (stamps that are
+    zero replaced by the log time). What was read is counted in :attr:`stats`."""
+
+    def __init__(self, path: str | Path, topics: Iterable[str], fast: bool = True) -> None:
+        self.path = Path(path)
+        self.topics = list(dict.fromkeys(topics))
+        self.fast = fast
+        self.stats = {t: ReadStats() for t in self.topics}
+        self._last_stamp: dict[str, int] = {}
+
+    def _count(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, frame_ids: list[str]) -> np.ndarray:
+        st = self.stats[topic]
+        zero = stamps == 0
+        if zero.any():
+            st.zero_stamps += int(np.count_nonzero(zero))
+            stamps = np.where(zero, log_times, stamps)
+        if len(stamps):
+            previous = self._last_stamp.get(topic)
+            steps = np.diff(stamps if previous is None else np.concatenate([[previous], stamps]))
+            st.backwards += int(np.count_nonzero(steps < 0))
+            self._last_stamp[topic] = int(stamps[-1])
+        for name in frame_ids:
+            if name not in st.frame_ids:
+                st.frame_ids.append(name)
+        return stamps
+
+    def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        with open_log(self.path) as log:
+            available = _check_topics(log, self.topics)
+            decoder = ImuDecoder()
+            decoders = {t: decoder.decoder(available[t].encoding) for t in self.topics}
+            batches = log.fast_batches(self.topics) if self.fast else None
+            if batches is not None:
+                try:
+                    for batch in batches:
+                        self.stats[batch.topic].messages += len(batch.starts)
+                        decoded = decode_imu(batch)
+                        parts = [(decoded.stamp_ns, decoded.log_time_ns, decoded.gyro, decoded.accel, decoded.frame_ids)]
+                        for i in decoded.undecoded:  # what the layout check did not recognise
+                            start, length = int(batch.starts[i]), int(batch.lengths[i])
+                            one = self._decode_one(batch.topic, decoders[batch.topic], bytes(batch.buffer[start : start + length]), int(batch.log_time_ns[i]))
+                            if one is not None:
+                                parts.append(one)
+                        for stamps, log_times, gyro, accel, frames in parts:
+                            yield batch.topic, self._count(batch.topic, stamps, log_times, frames), log_times, gyro, accel
+                except LogError:
+                    raise
+                except Exception as exc:  # noqa: BLE001 - a damaged container: say so, naming the file
+                    raise log.error(f"cannot read messages: {exc}") from None
+                return
+            pending: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]]] = {t: [] for t in self.topics}
+            count = 0
+            for topic, log_time_ns, data in log.iter_raw(self.topics):
+                self.stats[topic].messages += 1
+                one = self._decode_one(topic, decoders[topic], data, log_time_ns)
+                if one is not None:
+                    pending[topic].append(one)
+                count += 1
+                if count % 4096 == 0:
+                    yield from self._flush(pending)
+            yield from self._flush(pending)
+
+    def _flush(self, pending: dict[str, list]) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        for topic, items in pending.items():
+            if not items:
+                continue
+            stamps = np.concatenate([i[0] for i in items])
+            log_times = np.concatenate([i[1] for i in items])
+            frames = [f for i in items for f in i[4]]
+            stamps = self._count(topic, stamps, log_times, list(dict.fromkeys(frames)))
+            yield topic, stamps, log_times, np.concatenate([i[2] for i in items]), np.concatenate([i[3] for i in items])
+            items.clear()
+
+    def _decode_one(self, topic: str, decode: Callable[[bytes], ImuSample], data: bytes, log_time_ns: int):  # noqa: ANN202
+        try:
+            sample = decode(data)
+        except Exception:  # noqa: BLE001 - counted, never silently kept
+            self.stats[topic].decode_errors += 1
+            return None
+        return (
+            np.array([sample.stamp_ns], dtype=np.int64),
+            np.array([log_time_ns], dtype=np.int64),
+            np.array([sample.gyro], dtype=np.float64),
+            np.array([sample.accel], dtype=np.float64),
+            [sample.frame_id],
+        )
+
+
 def read_imu(
     path: str | Path,
     topics: Iterable[str],
@@ -542,55 +625,21 @@ def read_imu(
         The log cannot be read, a topic is missing (the message lists the IMU topics the
         log has) or a topic is not ``sensor_msgs/Imu``.
     """
-    wanted = list(dict.fromkeys(topics))
-    with open_log(path) as log:
-        available = _check_topics(log, wanted)
-        decoder = ImuDecoder()
-        decoders = {t: decoder.decoder(available[t].encoding) for t in wanted}
-        columns = {t: _TopicColumns() for t in wanted}
-        batches = log.fast_batches(wanted) if fast else None
-        count = 0
-        if batches is not None:
-            try:
-                for batch in batches:
-                    col = columns[batch.topic]
-                    col.stats.messages += len(batch.starts)
-                    decoded = decode_imu(batch)
-                    col.add(decoded.stamp_ns, decoded.log_time_ns, decoded.gyro, decoded.accel, decoded.frame_ids)
-                    for i in decoded.undecoded:  # what the layout check did not recognise
-                        start, length = int(batch.starts[i]), int(batch.lengths[i])
-                        _decode_one(col, decoders[batch.topic], bytes(batch.buffer[start : start + length]), int(batch.log_time_ns[i]))
-                    count += len(batch.starts)
-                    if progress is not None:
-                        progress(count)
-            except LogError:
-                raise
-            except Exception as exc:  # noqa: BLE001 - a damaged container: say so, naming the file
-                raise log.error(f"cannot read messages: {exc}") from None
-        else:
-            for topic, log_time_ns, data in log.iter_raw(wanted):
-                col = columns[topic]
-                col.stats.messages += 1
-                _decode_one(col, decoders[topic], data, log_time_ns)
-                count += 1
-                if progress is not None and count % 10000 == 0:
-                    progress(count)
-    return {t: columns[t].finish() for t in wanted}
-
-
-def _decode_one(col: _TopicColumns, decode: Callable[[bytes], ImuSample], data: bytes, log_time_ns: int) -> None:
-    try:
-        sample = decode(data)
-    except Exception:  # noqa: BLE001 - counted, never silently kept
-        col.stats.decode_errors += 1
-        return
-    col.add(
-        np.array([sample.stamp_ns], dtype=np.int64),
-        np.array([log_time_ns], dtype=np.int64),
-        np.array([sample.gyro], dtype=np.float64),
-        np.array([sample.accel], dtype=np.float64),
-        [sample.frame_id],
-    )
+    reader = ImuBatches(path, topics, fast=fast)
+    columns = {t: _TopicColumns() for t in reader.topics}
+    count = 0
+    for topic, stamps, log_times, gyro, accel in reader:
+        columns[topic].add(stamps, log_times, gyro, accel)
+        count += len(stamps)
+        if progress is not None:
+            progress(count)
+    out = {}
+    for topic in reader.topics:
+        stats = reader.stats[topic]
+        stats.backwards = 0  # recounted in log order by finish()
+        columns[topic].stats = stats
+        out[topic] = columns[topic].finish()
+    return out
 
 
 # --------------------------------------------------------------------------- inspect

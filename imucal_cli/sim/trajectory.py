@@ -14,7 +14,6 @@ import numpy as np
 from scipy.interpolate import BSpline, make_interp_spline
 from scipy.spatial.transform import Rotation
 
-
 from imucal_cli.types import GRAVITY_MPS2
 
 #: The world frame W is ENU-like: z up, gravity along -z.

@@ -1,0 +1,340 @@
+"""Streaming calibration: memory flat in the log's length, an estimate after every window.
+
+IMU samples are fed as they are read (:meth:`StreamingCalibrator.add`). Every window of
+``window_s`` that all IMUs cover is conditioned once (cubic-spline resampling onto the grid and
+the common zero-phase low-pass of :mod:`imucal_cli.core.signals`, computed on the window plus
+:data:`PAD_S` of padding on each side, which reproduces a whole-log filter to round-off), its
+observability is analysed (eqs. 18-19), and it is reduced to *sufficient statistics*: the second
+moments ``S = sum x x^T`` of the data vectors
+
+- gyro (eq. 10): ``x_g = [w_I, w_B, dw_B, 1, u]``
+- accelerometer (eq. 11): ``x_a = [f_I, f_B, df_B, vec A, vec dA, 1, u]``
+
+with ``A = [w_B]x^2 + [dw_B]x`` (eq. 12) and ``u`` the time within the window (0..1). Every
+residual of the model is linear in ``x`` with coefficients that depend on the parameters:
+
+- ``r_g = w_I(t + tau0) - R^T (w_B - dtau dw_B) - b_g(t)``
+- ``r_a = f_I(t + tau0) - R^T (f_B - dtau df_B + (A - dtau dA) t_BI) - b_a(t)``
+
+(``r = C(params) x``; the clock offset is ``tau0 + dtau``, ``tau0`` from the cross-correlation of
+``|w|`` over the first minute), so each window's cost ``tr(C S C^T)`` and its Gauss-Newton
+derivatives are exact for any rotation, lever arm and bias. The raw samples are dropped once a
+window is reduced; what is kept per window and sensor is two small matrices. The joint estimate
+(:func:`solve`) is the one of :mod:`imucal_cli.core.calibrate`: relative biases piecewise linear
+with a knot per window, eliminated by a sparse Schur complement, the lever arm inside its box
+(eq. 16) by ``scipy.optimize.lsq_linear``, covariance from the Fisher information scaled by the
+residual variance.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.interpolate import make_interp_spline
+
+from imucal_cli.core.calibrate import (
+    GAP_PERIODS,
+    CalibrationOptions,
+    SensorEstimate,
+    WindowMoments,
+    solve,
+    unobservable,
+)
+from imucal_cli.core.segments import WindowInfo, window_info
+from imucal_cli.core.signals import Lowpass, TooLittleData, white_noise_std
+from imucal_cli.core.so3 import skew, skew_squared
+from imucal_cli.core.timing import estimate_time_offset
+from imucal_cli.types import Transform
+
+#: Padding on each side of a window for the spline and the low-pass (s). The filter's impulse
+#: response has decayed by far more than double precision within it.
+PAD_S = 2.0
+#: Seconds of data used to find each sensor's clock offset before windows are reduced.
+BOOT_S = 60.0
+#: Longest wait for enough motion to find the clock offset (s).
+MAX_BOOT_S = 600.0
+#: Stamps may arrive this much out of order (s): windows wait for it.
+REORDER_S = 0.5
+
+
+
+@dataclass(frozen=True)
+class SensorSetup:
+    name: str
+    prior_T_base_imu: Transform
+    options: CalibrationOptions
+
+
+@dataclass
+class _Buffer:
+    """Raw samples of one IMU still needed (stamps in ns)."""
+
+    t_ns: list[np.ndarray] = field(default_factory=list)
+    gyro: list[np.ndarray] = field(default_factory=list)
+    accel: list[np.ndarray] = field(default_factory=list)
+    first_ns: int | None = None
+    last_ns: int | None = None
+    duplicates: int = 0
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if len(self.t_ns) > 1:
+            self.t_ns = [np.concatenate(self.t_ns)]
+            self.gyro = [np.concatenate(self.gyro)]
+            self.accel = [np.concatenate(self.accel)]
+        if not self.t_ns:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+        return self.t_ns[0], self.gyro[0], self.accel[0]
+
+    def cleaned(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sorted, duplicates removed (and counted), kept so for the next call."""
+        t, g, a = self.arrays()
+        t, g, a, removed = _clean(t, g, a)
+        self.t_ns, self.gyro, self.accel = [t], [g], [a]
+        self.duplicates += removed
+        return t, g, a
+
+    def drop_before(self, t_min_ns: int) -> None:
+        t, g, a = self.arrays()
+        keep = t >= t_min_ns
+        if not keep.all():
+            self.t_ns, self.gyro, self.accel = [t[keep]], [g[keep]], [a[keep]]
+
+
+def _clean(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Sorted by time, duplicate stamps removed (the first kept); returns the count removed."""
+    order = np.argsort(t, kind="stable")
+    t, gyro, accel = t[order], gyro[order], accel[order]
+    keep = np.ones(len(t), dtype=bool)
+    keep[1:] = np.diff(t) > 0
+    return t[keep], gyro[keep], accel[keep], int(np.count_nonzero(~keep))
+
+
+class _Spline:
+    """Cubic interpolating splines of one IMU segment, with an anti-alias filter above the grid."""
+
+    def __init__(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, grid_rate: float) -> None:
+        period = float(np.median(np.diff(t)))
+        rate = 1.0 / period
+        if rate > 1.5 * grid_rate:
+            anti_alias = Lowpass(0.4 * grid_rate, rate)
+            gyro, accel = anti_alias(gyro), anti_alias(accel)
+        self.t = t
+        self.period = period
+        self.gyro = make_interp_spline(t, gyro, k=3)
+        self.accel = make_interp_spline(t, accel, k=3)
+
+    def valid(self, query: np.ndarray) -> bool:
+        j = np.clip(np.searchsorted(self.t, query), 1, len(self.t) - 1)
+        inside = (query >= self.t[0]) & (query <= self.t[-1])
+        return bool(np.all(inside & (self.t[j] - self.t[j - 1] <= GAP_PERIODS * self.period)))
+
+
+def _noise_density(gyro: np.ndarray, accel: np.ndarray, rate: float) -> tuple[float, float]:
+    g = float(np.sqrt(np.mean(white_noise_std(gyro) ** 2)) / np.sqrt(rate))
+    a = float(np.sqrt(np.mean(white_noise_std(accel) ** 2)) / np.sqrt(rate))
+    return g, a
+
+
+def _vec(A: np.ndarray) -> np.ndarray:
+    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9), ``A t = (t^T x I) vec A``."""
+    return A.transpose(0, 2, 1).reshape(len(A), 9)
+
+
+class StreamingCalibrator:
+    """Feed IMU samples as they are read; ask for the estimate at any time.
+
+    >>> cal = StreamingCalibrator(sensors, base_name="base")        # doctest: +SKIP
+    >>> for imu, t_ns, gyro, accel in batches:                      # doctest: +SKIP
+    ...     cal.add(imu, t_ns, gyro, accel)
+    >>> estimates = cal.finish()                                    # doctest: +SKIP
+    """
+
+    def __init__(self, sensors: Sequence[SensorSetup], base_name: str = "base") -> None:
+        if not sensors:
+            raise ValueError("no sensors")
+        self.sensors = {s.name: s for s in sensors}
+        self.base_name = base_name
+        opts = sensors[0].options
+        self.rate = opts.resample_hz
+        self.window_s = opts.window_s
+        self.max_offset = max(s.options.max_time_offset_s for s in sensors)
+        self.lowpass = Lowpass(opts.lowpass_hz, self.rate)
+        self.buffers = {base_name: _Buffer(), **{name: _Buffer() for name in self.sensors}}
+        self.t_ref_ns: int | None = None
+        self.next_window = 0
+        self.windows: dict[str, list[WindowMoments]] = {name: [] for name in self.sensors}
+        self.tau0: dict[str, float] = {}
+        self.noise: dict[str, tuple[float, float]] = {}
+        self.sigma: dict[str, tuple[float, float]] = {}
+        self.finished = False
+
+    # ---------------------------------------------------------------- input
+
+    def add(self, imu: str, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> int:
+        """Append samples of one IMU (``base_name`` or a sensor name); returns the number of
+        windows reduced as a result."""
+        if len(t_ns) == 0:
+            return 0
+        buffer = self.buffers[imu]
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        buffer.first_ns = int(t_ns.min()) if buffer.first_ns is None else min(buffer.first_ns, int(t_ns.min()))
+        buffer.last_ns = int(t_ns.max()) if buffer.last_ns is None else max(buffer.last_ns, int(t_ns.max()))
+        buffer.t_ns.append(t_ns)
+        buffer.gyro.append(np.asarray(gyro, dtype=np.float64).reshape(-1, 3))
+        buffer.accel.append(np.asarray(accel, dtype=np.float64).reshape(-1, 3))
+        if self.t_ref_ns is None and all(b.first_ns is not None for b in self.buffers.values()):
+            self.t_ref_ns = max(int(b.first_ns) for b in self.buffers.values())  # type: ignore[arg-type]
+        return self.process()
+
+    def _seconds(self, t_ns: np.ndarray) -> np.ndarray:
+        assert self.t_ref_ns is not None
+        return (t_ns - self.t_ref_ns).astype(np.float64) * 1e-9
+
+    # ---------------------------------------------------------------- windows
+
+    @property
+    def _grid_start(self) -> float:
+        """Seconds from ``t_ref_ns`` where the first window starts."""
+        return PAD_S + self.max_offset
+
+    def _covered_until(self) -> float:
+        """Seconds from the origin every IMU has data up to."""
+        assert self.t_ref_ns is not None
+        return min((int(b.last_ns) - self.t_ref_ns) * 1e-9 for b in self.buffers.values())  # type: ignore[arg-type]
+
+    def _boot(self, final: bool) -> bool:
+        """Estimate each sensor's clock offset and noise once enough data is buffered."""
+        if self.tau0:
+            return True
+        covered = self._covered_until() if self.t_ref_ns is not None else 0.0
+        if not final and covered < self._grid_start + BOOT_S + PAD_S:
+            return False
+        end = covered - PAD_S - self.max_offset
+        grid = np.arange(self._grid_start, end, 1.0 / self.rate)
+        if len(grid) < 10:
+            if final:
+                raise TooLittleData(f"the IMUs overlap for {max(covered, 0.0):.1f} s only")
+            return False
+        t_b, g_b, a_b = self.buffers[self.base_name].cleaned()
+        base = _Spline(self._seconds(t_b), g_b, a_b, self.rate)
+        speed_base = np.linalg.norm(self.lowpass(base.gyro(grid)), axis=1)
+        candidates: dict[str, tuple[float, float]] = {}
+        for name, setup in self.sensors.items():
+            t_s, g_s, a_s = self.buffers[name].cleaned()
+            sensor = _Spline(self._seconds(t_s), g_s, a_s, self.rate)
+            tau, peak = 0.0, 1.0
+            if setup.options.max_time_offset_s > 0:
+                speed = np.linalg.norm(self.lowpass(sensor.gyro(grid)), axis=1)
+                tau, peak = estimate_time_offset(grid, speed_base, speed, setup.options.max_time_offset_s)
+            candidates[name] = (tau, peak)
+            self.noise[name] = _noise_density(g_s, a_s, 1.0 / sensor.period)
+        weak = min(peak for _, peak in candidates.values()) < 0.5
+        if weak and not final and covered < MAX_BOOT_S:
+            return False  # not enough motion yet to trust the offset
+        self.noise[self.base_name] = _noise_density(g_b, a_b, 1.0 / base.period)
+        gb, ab = self.noise[self.base_name]
+        for name, (tau, _) in candidates.items():
+            self.tau0[name] = tau
+            gs, as_ = self.noise[name]
+            self.sigma[name] = (float(np.sqrt((gs**2 + gb**2) * self.rate)), float(np.sqrt((as_**2 + ab**2) * self.rate)))
+        return True
+
+    def process(self, final: bool = False) -> int:
+        """Reduce every window all IMUs now cover; returns how many."""
+        if self.t_ref_ns is None or not self._boot(final):
+            return 0
+        count = 0
+        covered = self._covered_until()
+        while True:
+            start = self._grid_start + self.next_window * self.window_s
+            end = start + self.window_s
+            need = end + PAD_S + self.max_offset + (0.0 if final else REORDER_S)
+            if covered < need:
+                if not final:
+                    break
+                end = min(end, covered - self.max_offset - 1.0 / self.rate)
+                if end - start < self.window_s / 2:
+                    break
+            self._reduce(self.next_window, start, end)
+            self.next_window += 1
+            count += 1
+            keep_from = start + self.window_s - PAD_S - self.max_offset - 1.0
+            assert self.t_ref_ns is not None
+            for buffer in self.buffers.values():
+                buffer.drop_before(self.t_ref_ns + int(keep_from * 1e9))
+        return count
+
+    def _reduce(self, number: int, start: float, end: float) -> None:
+        lp = self.lowpass
+        n_pad = int(round(PAD_S * self.rate))
+        n_win = int(round((end - start) * self.rate))
+        last = self._covered_until() - self.max_offset - 2.0 / self.rate  # never extrapolate
+        n_after = int(np.clip(np.floor((last - end) * self.rate), 0, n_pad))
+        grid = start + np.arange(-n_pad, n_win + n_after) / self.rate
+        inner = slice(n_pad, n_pad + n_win)
+        t_b, g_b, a_b = self.buffers[self.base_name].cleaned()
+        t_b = self._seconds(t_b)
+        pick = (t_b >= grid[0] - 1.0) & (t_b <= grid[-1] + 1.0)
+        base = _Spline(t_b[pick], g_b[pick], a_b[pick], self.rate)
+        w_raw, dw_raw, ddw_raw = base.gyro(grid), base.gyro(grid, 1), base.gyro(grid, 2)
+        f_raw, df_raw = base.accel(grid), base.accel(grid, 1)
+        w, dw, ddw, f, df = (lp(x)[inner] for x in (w_raw, dw_raw, ddw_raw, f_raw, df_raw))
+        centripetal = lp(skew_squared(w_raw).reshape(-1, 9)).reshape(-1, 3, 3)[inner]
+        Sw, Sdw = skew(w_raw), skew(dw_raw)
+        d_centripetal = lp((Sdw @ Sw + Sw @ Sdw).reshape(-1, 9)).reshape(-1, 3, 3)[inner]
+        A = centripetal + skew(dw)
+        A_dot = d_centripetal + skew(ddw)
+        t_grid = grid[inner]
+        u = (t_grid - start) / self.window_s
+        ones = np.ones((n_win, 1))
+        base_valid = base.valid(t_grid)
+        for name, setup in self.sensors.items():
+            t_s, g_s, a_s = self.buffers[name].cleaned()
+            t_s = self._seconds(t_s)
+            tau = self.tau0[name]
+            pick = (t_s >= grid[0] + tau - 1.0) & (t_s <= grid[-1] + tau + 1.0)
+            sensor = _Spline(t_s[pick], g_s[pick], a_s[pick], self.rate)
+            w_I = lp(sensor.gyro(grid + tau))[inner]
+            f_I = lp(sensor.accel(grid + tau))[inner]
+            sigma_gyro, sigma_accel = self.sigma[name]
+            opts = setup.options
+            info = window_info(
+                start, end, np.arange(n_win), w, f, A, setup.prior_T_base_imu.translation,
+                base_valid and sensor.valid(t_grid + tau), sigma_gyro, sigma_accel,
+                opts.max_rotation_std_deg, opts.translation_bound_m,
+            )
+            x_g = np.hstack([w_I, w, dw, ones, u[:, None]])
+            x_a = np.hstack([f_I, f, df, _vec(A), _vec(A_dot), ones, u[:, None]])
+            self.windows[name].append(WindowMoments(number, info, x_g.T @ x_g, x_a.T @ x_a, n_win))
+
+    # ---------------------------------------------------------------- output
+
+    def finish(self) -> dict[str, SensorEstimate]:
+        """Reduce what is left and return the final estimates."""
+        if self.t_ref_ns is None:
+            raise TooLittleData("no samples from " + ", ".join(n for n, b in self.buffers.items() if b.first_ns is None))
+        self.process(final=True)
+        self.finished = True
+        return self.estimates()
+
+    def estimates(self) -> dict[str, SensorEstimate]:
+        """The estimate from the windows reduced so far (every sensor)."""
+        out = {}
+        for name, setup in self.sensors.items():
+            windows = self.windows[name]
+            tau0 = self.tau0.get(name, 0.0)
+            if not any(w.info.selected for w in windows):
+                out[name] = unobservable(setup.prior_T_base_imu, [w.info for w in windows], tau0)
+                continue
+            out[name] = solve(windows, setup.prior_T_base_imu, setup.options, tau0, self.sigma[name], self.lowpass)
+        return out
+
+    def window_infos(self, name: str) -> list[WindowInfo]:
+        return [w.info for w in self.windows[name]]
+
+    def duplicates(self, imu: str) -> int:
+        return self.buffers[imu].duplicates
+
+
