@@ -119,6 +119,59 @@ def window_info(
     )
 
 
+def window_info_from_moments(
+    start_s: float,
+    end_s: float,
+    samples: int,
+    S_gyro: np.ndarray,
+    S_accel: np.ndarray,
+    lever_arm: np.ndarray,
+    valid: bool,
+    gyro_noise_std: float,
+    accel_noise_std: float,
+    max_rotation_std_deg: float,
+    translation_bound_m: float,
+) -> WindowInfo:
+    """:func:`window_info` from a window's second moments (the layout of
+    :mod:`imucal_cli.core.streaming`): ``sum [v_c]x^T [v_c]x = tr(C) I - C`` for the centred
+    covariance ``C`` of the vectors, and ``sum (A - mean A)^T (A - mean A)`` from the moments of
+    ``vec A``; no pass over the samples."""
+    n = float(samples)
+
+    def centred(S: np.ndarray, P: np.ndarray, one: int) -> np.ndarray:
+        mean = P @ S[:, one] / n
+        return P @ S @ P.T - n * np.outer(mean, mean)
+
+    def rotation_info(C: np.ndarray, std: float) -> np.ndarray:
+        return (np.trace(C) * np.eye(3) - C) / std**2
+
+    P_w = np.zeros((3, S_gyro.shape[0]))
+    P_w[:, 3:6] = np.eye(3)
+    P_v = np.zeros((3, S_accel.shape[0]))
+    P_v[:, 3:6] = np.eye(3)
+    P_v[:, 9:18] = np.hstack([lever_arm[0] * np.eye(3), lever_arm[1] * np.eye(3), lever_arm[2] * np.eye(3)])
+    info = rotation_info(centred(S_gyro, P_w, 9), gyro_noise_std) + rotation_info(centred(S_accel, P_v, 27), accel_noise_std)
+    sv = np.linalg.svd(info, compute_uv=False)
+    sigma_min = float(max(sv[-1], 0.0))
+    std_deg = float(np.degrees(1.0 / np.sqrt(sigma_min))) if sigma_min > 0 else float("inf")
+    P_A = np.zeros((9, S_accel.shape[0]))
+    P_A[:, 9:18] = np.eye(9)
+    C_A = centred(S_accel, P_A, 27)  # 9x9 over vec A = [A e0; A e1; A e2]
+    t_info = np.array([[np.trace(C_A[3 * j : 3 * j + 3, 3 * k : 3 * k + 3]) for k in range(3)] for j in range(3)])
+    t_std = _std_from_information(t_info / accel_noise_std**2)
+    return WindowInfo(
+        start_s=start_s,
+        end_s=end_s,
+        index=np.zeros(0, dtype=np.int64),
+        min_singular_value=sigma_min,
+        rotation_std_deg=std_deg,
+        selected=valid and std_deg < max_rotation_std_deg,
+        translation_std_m=t_std,
+        translation_observable=t_std < OBSERVABLE_FRACTION_OF_BOUND * translation_bound_m,
+        valid=valid,
+    )
+
+
 def analyse_windows(
     grid_s: np.ndarray,
     rate_hz: float,

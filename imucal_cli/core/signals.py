@@ -12,7 +12,7 @@ bias even on noise-free data.)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import signal
@@ -36,13 +36,14 @@ class Lowpass:
     cutoff_hz: float
     rate_hz: float
     order: int = LOWPASS_ORDER
+    sos: np.ndarray = field(init=False, repr=False, compare=False)
 
-    @property
-    def sos(self) -> np.ndarray:
-        return signal.butter(self.order, self.cutoff_hz, fs=self.rate_hz, output="sos")
+    def __post_init__(self) -> None:
+        sos = signal.butter(self.order, self.cutoff_hz, fs=self.rate_hz, output="sos")
+        object.__setattr__(self, "sos", sos)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        """Filter along axis 0."""
+        """Filter along axis 0 (any trailing shape)."""
         x = np.asarray(x, dtype=np.float64)
         padlen = min(3 * 2 * self.order * 3, len(x) - 1)
         return signal.sosfiltfilt(self.sos, x, axis=0, padlen=max(padlen, 0))

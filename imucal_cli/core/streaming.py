@@ -42,7 +42,7 @@ from imucal_cli.core.calibrate import (
     solve,
     unobservable,
 )
-from imucal_cli.core.segments import WindowInfo, window_info
+from imucal_cli.core.segments import WindowInfo, window_info_from_moments
 from imucal_cli.core.signals import Lowpass, TooLittleData, white_noise_std
 from imucal_cli.core.so3 import skew, skew_squared
 from imucal_cli.core.timing import estimate_time_offset
@@ -57,6 +57,8 @@ BOOT_S = 60.0
 MAX_BOOT_S = 600.0
 #: Stamps may arrive this much out of order (s): windows wait for it.
 REORDER_S = 0.5
+#: Windows conditioned together (one spline and one filter pass per IMU and block).
+BLOCK_WINDOWS = 6
 
 
 
@@ -104,6 +106,8 @@ class _Buffer:
 
 def _clean(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Sorted by time, duplicate stamps removed (the first kept); returns the count removed."""
+    if len(t) < 2 or np.all(t[1:] > t[:-1]):
+        return t, gyro, accel, 0
     order = np.argsort(t, kind="stable")
     t, gyro, accel = t[order], gyro[order], accel[order]
     keep = np.ones(len(t), dtype=bool)
@@ -112,18 +116,25 @@ def _clean(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarr
 
 
 class _Spline:
-    """Cubic interpolating splines of one IMU segment, with an anti-alias filter above the grid."""
+    """A cubic interpolating spline of one IMU segment, gyro and accelerometer together
+    (columns 0-2 and 3-5), with an anti-alias filter where the IMU runs well above the grid."""
 
     def __init__(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, grid_rate: float) -> None:
         period = float(np.median(np.diff(t)))
         rate = 1.0 / period
+        both = np.hstack([gyro, accel])
         if rate > 1.5 * grid_rate:
-            anti_alias = Lowpass(0.4 * grid_rate, rate)
-            gyro, accel = anti_alias(gyro), anti_alias(accel)
+            both = Lowpass(0.4 * grid_rate, rate)(both)
         self.t = t
         self.period = period
-        self.gyro = make_interp_spline(t, gyro, k=3)
-        self.accel = make_interp_spline(t, accel, k=3)
+        self.spline = make_interp_spline(t, both, k=3)
+
+    def gyro(self, query: np.ndarray, nu: int = 0) -> np.ndarray:
+        return self.spline(query, nu=nu)[:, 0:3]
+
+    def __call__(self, query: np.ndarray, nu: int = 0) -> np.ndarray:
+        """(n, 6): gyro and accelerometer (or their ``nu``-th derivatives)."""
+        return self.spline(query, nu=nu)
 
     def valid(self, query: np.ndarray) -> bool:
         j = np.clip(np.searchsorted(self.t, query), 1, len(self.t) - 1)
@@ -145,13 +156,19 @@ def _vec(A: np.ndarray) -> np.ndarray:
 class StreamingCalibrator:
     """Feed IMU samples as they are read; ask for the estimate at any time.
 
+    Windows are reduced ``block_windows`` at a time (faster in batch); a live system that wants
+    an estimate after every window passes ``block_windows=1``. Memory holds the raw samples of
+    about one block plus two small matrices per window and sensor.
+
     >>> cal = StreamingCalibrator(sensors, base_name="base")        # doctest: +SKIP
     >>> for imu, t_ns, gyro, accel in batches:                      # doctest: +SKIP
     ...     cal.add(imu, t_ns, gyro, accel)
     >>> estimates = cal.finish()                                    # doctest: +SKIP
     """
 
-    def __init__(self, sensors: Sequence[SensorSetup], base_name: str = "base") -> None:
+    def __init__(
+        self, sensors: Sequence[SensorSetup], base_name: str = "base", block_windows: int = BLOCK_WINDOWS
+    ) -> None:
         if not sensors:
             raise ValueError("no sensors")
         self.sensors = {s.name: s for s in sensors}
@@ -169,6 +186,7 @@ class StreamingCalibrator:
         self.noise: dict[str, tuple[float, float]] = {}
         self.sigma: dict[str, tuple[float, float]] = {}
         self.finished = False
+        self.block_windows = max(1, int(block_windows))
 
     # ---------------------------------------------------------------- input
 
@@ -242,72 +260,97 @@ class StreamingCalibrator:
         return True
 
     def process(self, final: bool = False) -> int:
-        """Reduce every window all IMUs now cover; returns how many."""
+        """Reduce every window all IMUs now cover, ``block_windows`` at a time (one spline and
+        one filter pass per IMU and block); returns how many."""
         if self.t_ref_ns is None or not self._boot(final):
             return 0
         count = 0
         covered = self._covered_until()
         while True:
-            start = self._grid_start + self.next_window * self.window_s
-            end = start + self.window_s
-            need = end + PAD_S + self.max_offset + (0.0 if final else REORDER_S)
-            if covered < need:
-                if not final:
+            spans: list[tuple[int, float, float]] = []
+            partial = False
+            while len(spans) < self.block_windows:
+                number = self.next_window + len(spans)
+                start = self._grid_start + number * self.window_s
+                end = start + self.window_s
+                need = end + PAD_S + self.max_offset + (0.0 if final else REORDER_S)
+                if covered < need:
+                    if final:
+                        end = min(end, covered - self.max_offset - 1.0 / self.rate)
+                        if end - start >= self.window_s / 2:
+                            spans.append((number, start, end))
+                            partial = end < start + self.window_s
                     break
-                end = min(end, covered - self.max_offset - 1.0 / self.rate)
-                if end - start < self.window_s / 2:
-                    break
-            self._reduce(self.next_window, start, end)
-            self.next_window += 1
-            count += 1
-            keep_from = start + self.window_s - PAD_S - self.max_offset - 1.0
+                spans.append((number, start, end))
+            if not spans or (not final and len(spans) < self.block_windows):
+                break  # wait for a whole block
+            self._reduce(spans)
+            self.next_window += len(spans)
+            count += len(spans)
+            keep_from = spans[-1][1] + self.window_s - PAD_S - self.max_offset - 1.0
             assert self.t_ref_ns is not None
             for buffer in self.buffers.values():
                 buffer.drop_before(self.t_ref_ns + int(keep_from * 1e9))
+            if partial or len(spans) < self.block_windows:
+                break
         return count
 
-    def _reduce(self, number: int, start: float, end: float) -> None:
+    def _reduce(self, spans: list[tuple[int, float, float]]) -> None:
+        """Condition a block of consecutive windows once and reduce each to its moments."""
         lp = self.lowpass
+        block_start, block_end = spans[0][1], spans[-1][2]
         n_pad = int(round(PAD_S * self.rate))
-        n_win = int(round((end - start) * self.rate))
+        n_block = int(round((block_end - block_start) * self.rate))
         last = self._covered_until() - self.max_offset - 2.0 / self.rate  # never extrapolate
-        n_after = int(np.clip(np.floor((last - end) * self.rate), 0, n_pad))
-        grid = start + np.arange(-n_pad, n_win + n_after) / self.rate
-        inner = slice(n_pad, n_pad + n_win)
+        n_after = int(np.clip(np.floor((last - block_end) * self.rate), 0, n_pad))
+        grid = block_start + np.arange(-n_pad, n_block + n_after) / self.rate
+        margin = 3.0 / self.rate
         t_b, g_b, a_b = self.buffers[self.base_name].cleaned()
         t_b = self._seconds(t_b)
-        pick = (t_b >= grid[0] - 1.0) & (t_b <= grid[-1] + 1.0)
+        pick = (t_b >= grid[0] - margin - 0.1) & (t_b <= grid[-1] + margin + 0.1)
         base = _Spline(t_b[pick], g_b[pick], a_b[pick], self.rate)
-        w_raw, dw_raw, ddw_raw = base.gyro(grid), base.gyro(grid, 1), base.gyro(grid, 2)
-        f_raw, df_raw = base.accel(grid), base.accel(grid, 1)
-        w, dw, ddw, f, df = (lp(x)[inner] for x in (w_raw, dw_raw, ddw_raw, f_raw, df_raw))
-        centripetal = lp(skew_squared(w_raw).reshape(-1, 9)).reshape(-1, 3, 3)[inner]
+        values, first, second = base(grid), base(grid, 1), base(grid, 2)
+        w_raw, dw_raw, ddw_raw = values[:, 0:3], first[:, 0:3], second[:, 0:3]
         Sw, Sdw = skew(w_raw), skew(dw_raw)
-        d_centripetal = lp((Sdw @ Sw + Sw @ Sdw).reshape(-1, 9)).reshape(-1, 3, 3)[inner]
-        A = centripetal + skew(dw)
-        A_dot = d_centripetal + skew(ddw)
-        t_grid = grid[inner]
-        u = (t_grid - start) / self.window_s
-        ones = np.ones((n_win, 1))
-        base_valid = base.valid(t_grid)
-        for name, setup in self.sensors.items():
+        sensors = {}
+        columns = [values, first, ddw_raw, skew_squared(w_raw).reshape(-1, 9), (Sdw @ Sw + Sw @ Sdw).reshape(-1, 9)]
+        for name in self.sensors:
             t_s, g_s, a_s = self.buffers[name].cleaned()
             t_s = self._seconds(t_s)
             tau = self.tau0[name]
-            pick = (t_s >= grid[0] + tau - 1.0) & (t_s <= grid[-1] + tau + 1.0)
-            sensor = _Spline(t_s[pick], g_s[pick], a_s[pick], self.rate)
-            w_I = lp(sensor.gyro(grid + tau))[inner]
-            f_I = lp(sensor.accel(grid + tau))[inner]
-            sigma_gyro, sigma_accel = self.sigma[name]
-            opts = setup.options
-            info = window_info(
-                start, end, np.arange(n_win), w, f, A, setup.prior_T_base_imu.translation,
-                base_valid and sensor.valid(t_grid + tau), sigma_gyro, sigma_accel,
-                opts.max_rotation_std_deg, opts.translation_bound_m,
-            )
-            x_g = np.hstack([w_I, w, dw, ones, u[:, None]])
-            x_a = np.hstack([f_I, f, df, _vec(A), _vec(A_dot), ones, u[:, None]])
-            self.windows[name].append(WindowMoments(number, info, x_g.T @ x_g, x_a.T @ x_a, n_win))
+            pick = (t_s >= grid[0] + tau - margin - 0.1) & (t_s <= grid[-1] + tau + margin + 0.1)
+            sensors[name] = _Spline(t_s[pick], g_s[pick], a_s[pick], self.rate)
+            columns.append(sensors[name](grid + tau))
+        # one zero-phase low-pass for every term of every equation (linear filters commute)
+        filtered = lp(np.hstack(columns))
+        for number, start, end in spans:
+            i0 = n_pad + int(round((start - block_start) * self.rate))
+            n_win = int(round((end - start) * self.rate))
+            window = filtered[i0 : i0 + n_win]
+            w, f, dw, df, ddw = (window[:, k : k + 3] for k in (0, 3, 6, 9, 12))
+            A = window[:, 15:24].reshape(-1, 3, 3) + skew(dw)
+            A_dot = window[:, 24:33].reshape(-1, 3, 3) + skew(ddw)
+            t_grid = grid[i0 : i0 + n_win]
+            u = (t_grid - start) / self.window_s
+            ones = np.ones((n_win, 1))
+            base_valid = base.valid(t_grid)
+            x_base_g = np.hstack([w, dw])
+            x_base_a = np.hstack([f, df, _vec(A), _vec(A_dot), ones, u[:, None]])
+            for k, (name, setup) in enumerate(self.sensors.items()):
+                tau = self.tau0[name]
+                w_I = window[:, 33 + 6 * k : 36 + 6 * k]
+                f_I = window[:, 36 + 6 * k : 39 + 6 * k]
+                sigma_gyro, sigma_accel = self.sigma[name]
+                opts = setup.options
+                x_g = np.hstack([w_I, x_base_g, ones, u[:, None]])
+                x_a = np.hstack([f_I, x_base_a])
+                S_g, S_a = x_g.T @ x_g, x_a.T @ x_a
+                info = window_info_from_moments(
+                    start, end, n_win, S_g, S_a, setup.prior_T_base_imu.translation,
+                    base_valid and sensors[name].valid(t_grid + tau), sigma_gyro, sigma_accel,
+                    opts.max_rotation_std_deg, opts.translation_bound_m,
+                )
+                self.windows[name].append(WindowMoments(number, info, S_g, S_a, n_win))
 
     # ---------------------------------------------------------------- output
 

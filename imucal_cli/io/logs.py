@@ -517,6 +517,22 @@ def _check_topics(log: LogReader, wanted: list[str]) -> dict[str, TopicInfo]:
     return available
 
 
+class _LazyDecoders:
+    """Generic per-message decoders, made (rosbags typestores are slow to build) on first use."""
+
+    def __init__(self, encodings: dict[str, str]) -> None:
+        self.encodings = encodings
+        self._made: dict[str, Callable[[bytes], ImuSample]] = {}
+        self._decoder: ImuDecoder | None = None
+
+    def __getitem__(self, topic: str) -> Callable[[bytes], ImuSample]:
+        if topic not in self._made:
+            if self._decoder is None:
+                self._decoder = ImuDecoder()
+            self._made[topic] = self._decoder.decoder(self.encodings[topic])
+        return self._made[topic]
+
+
 class ImuBatches:
     """Decoded ``sensor_msgs/Imu`` batches of a log, in the container's order, without holding
     the whole log: ``(topic, stamp_ns, log_time_ns, gyro, accel)`` per batch (stamps that are
@@ -548,8 +564,7 @@ class ImuBatches:
     def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         with open_log(self.path) as log:
             available = _check_topics(log, self.topics)
-            decoder = ImuDecoder()
-            decoders = {t: decoder.decoder(available[t].encoding) for t in self.topics}
+            decoders = _LazyDecoders({t: available[t].encoding for t in self.topics})
             batches = log.fast_batches(self.topics) if self.fast else None
             if batches is not None:
                 try:
