@@ -180,7 +180,7 @@ def test_planar_motion_leaves_height_unobservable():
 
 def test_window_information_from_moments_equals_the_sample_sums():
     """Segments reduced to moments report the same Fisher information as the sample sums."""
-    from imucal_cli.core.segments import window_info, window_info_from_moments
+    from imucal_cli.core.segments import window_info, window_info_from_moments, window_infos_from_moments
     from imucal_cli.core.streaming import _vec
 
     rng = np.random.default_rng(0)
@@ -192,5 +192,10 @@ def test_window_information_from_moments_equals_the_sample_sums():
     x_a = np.hstack([rng.normal(size=(n, 3)), f, rng.normal(size=(n, 3)), _vec(A), _vec(rng.normal(size=(n, 3, 3))), ones, u])
     a = window_info(0.0, 10.0, np.arange(n), w, f, A, lever, True, 0.01, 0.02, 1.0, 0.3)
     b = window_info_from_moments(0.0, 10.0, n, x_g.T @ x_g, x_a.T @ x_a, lever, True, 0.01, 0.02, 1.0, 0.3)
-    assert b.min_singular_value == pytest.approx(a.min_singular_value, rel=1e-10)
-    np.testing.assert_allclose(b.translation_std_m, a.translation_std_m, rtol=1e-10)
+    (c,) = window_infos_from_moments(
+        [(0.0, 10.0, True)], np.array([n]), (x_g.T @ x_g)[None], (x_a.T @ x_a)[None], lever, 0.01, 0.02, 1.0, 0.3
+    )
+    for other in (b, c):
+        assert other.min_singular_value == pytest.approx(a.min_singular_value, rel=1e-9)
+        np.testing.assert_allclose(other.translation_std_m, a.translation_std_m, rtol=1e-9)
+        assert other.selected == a.selected

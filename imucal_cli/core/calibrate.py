@@ -151,10 +151,13 @@ class WindowMoments:
     """One window reduced to what the estimator needs."""
 
     number: int
-    info: WindowInfo
+    start_s: float
+    end_s: float
+    valid: bool  # no gap in either stream
     S_gyro: np.ndarray  # (11, 11)
     S_accel: np.ndarray  # (29, 29)
     samples: int
+    info: WindowInfo | None = None  # observability, filled in (in bulk) when first needed
 
 
 # --------------------------------------------------------------------------- the estimator
@@ -264,7 +267,7 @@ def solve(
     lowpass: Lowpass,
 ) -> SensorEstimate:
     """Joint Gauss-Newton estimate from the selected windows' moments (see module docstring)."""
-    used = [w for w in windows if w.info.selected]
+    used = [w for w in windows if w.info is not None and w.info.selected]
     numbers = np.array([w.number for w in used])
     n_knots = int(max(w.number for w in windows)) + 2
     S_g = np.stack([w.S_gyro for w in used])
@@ -403,7 +406,7 @@ def solve(
         bias_knots_s=np.arange(n_knots) * options.window_s,
         gyro_bias_knots=knots[:, 0:3].copy(),
         accel_bias_knots=knots[:, 3:6].copy(),
-        windows=[w.info for w in windows],
+        windows=[w.info for w in windows if w.info is not None],
         residual_rms_gyro=float(np.sqrt(max(cost_g.sum(), 0.0) / n_total)),
         residual_rms_accel=float(np.sqrt(max(cost_a.sum(), 0.0) / n_total)),
         iterations=iterations,

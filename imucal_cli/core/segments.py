@@ -172,6 +172,61 @@ def window_info_from_moments(
     )
 
 
+def window_infos_from_moments(
+    spans: list[tuple[float, float, bool]],
+    samples: np.ndarray,
+    S_gyro: np.ndarray,
+    S_accel: np.ndarray,
+    lever_arm: np.ndarray,
+    gyro_noise_std: float,
+    accel_noise_std: float,
+    max_rotation_std_deg: float,
+    translation_bound_m: float,
+) -> list[WindowInfo]:
+    """:func:`window_info_from_moments` for K windows at once: ``spans`` (start, end, valid),
+    ``samples`` (K,), ``S_gyro`` (K, 11, 11), ``S_accel`` (K, 29, 29)."""
+    n = samples.astype(np.float64)[:, None, None]
+
+    def centred(S: np.ndarray, P: np.ndarray, one: int) -> np.ndarray:
+        mean = np.einsum("ij,kj->ki", P, S[:, :, one])[:, :, None] / n
+        return np.einsum("ij,kjl,ml->kim", P, S, P) - n * mean @ mean.transpose(0, 2, 1)
+
+    def rotation_info(C: np.ndarray, std: float) -> np.ndarray:
+        trace = np.trace(C, axis1=1, axis2=2)[:, None, None]
+        return (trace * np.eye(3) - C) / std**2
+
+    P_w = np.zeros((3, S_gyro.shape[1]))
+    P_w[:, 3:6] = np.eye(3)
+    P_v = np.zeros((3, S_accel.shape[1]))
+    P_v[:, 3:6] = np.eye(3)
+    P_v[:, 9:18] = np.hstack([lever_arm[0] * np.eye(3), lever_arm[1] * np.eye(3), lever_arm[2] * np.eye(3)])
+    info = rotation_info(centred(S_gyro, P_w, 9), gyro_noise_std) + rotation_info(centred(S_accel, P_v, 27), accel_noise_std)
+    sigma_min = np.clip(np.linalg.eigvalsh(info)[:, 0], 0.0, None)
+    with np.errstate(divide="ignore"):
+        std_deg = np.where(sigma_min > 0, np.degrees(1.0 / np.sqrt(sigma_min)), np.inf)
+    P_A = np.zeros((9, S_accel.shape[1]))
+    P_A[:, 9:18] = np.eye(9)
+    C_A = centred(S_accel, P_A, 27).reshape(-1, 3, 3, 3, 3)  # blocks (j, k) of vec A
+    t_info = np.einsum("kjala->kjl", C_A) / accel_noise_std**2  # trace of each 3x3 block
+    out = []
+    for k, (start, end, valid) in enumerate(spans):
+        t_std = _std_from_information(t_info[k])
+        out.append(
+            WindowInfo(
+                start_s=start,
+                end_s=end,
+                index=np.zeros(0, dtype=np.int64),
+                min_singular_value=float(sigma_min[k]),
+                rotation_std_deg=float(std_deg[k]),
+                selected=bool(valid and std_deg[k] < max_rotation_std_deg),
+                translation_std_m=t_std,
+                translation_observable=t_std < OBSERVABLE_FRACTION_OF_BOUND * translation_bound_m,
+                valid=bool(valid),
+            )
+        )
+    return out
+
+
 def analyse_windows(
     grid_s: np.ndarray,
     rate_hz: float,

@@ -35,14 +35,16 @@ import numpy as np
 from scipy.interpolate import make_interp_spline
 
 from imucal_cli.core.calibrate import (
+    ACCEL_DIM,
     GAP_PERIODS,
+    GYRO_DIM,
     CalibrationOptions,
     SensorEstimate,
     WindowMoments,
     solve,
     unobservable,
 )
-from imucal_cli.core.segments import WindowInfo, window_info_from_moments
+from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
 from imucal_cli.core.signals import Lowpass, TooLittleData, white_noise_std
 from imucal_cli.core.so3 import skew, skew_squared
 from imucal_cli.core.timing import estimate_time_offset
@@ -333,24 +335,46 @@ class StreamingCalibrator:
             t_grid = grid[i0 : i0 + n_win]
             u = (t_grid - start) / self.window_s
             ones = np.ones((n_win, 1))
-            base_valid = base.valid(t_grid)
-            x_base_g = np.hstack([w, dw])
-            x_base_a = np.hstack([f, df, _vec(A), _vec(A_dot), ones, u[:, None]])
-            for k, (name, setup) in enumerate(self.sensors.items()):
-                tau = self.tau0[name]
+            # moments: the base's block once, then each sensor's rows against it
+            X_g = np.hstack([w, dw, ones, u[:, None]])  # x_g = [w_I, X_g]
+            X_a = np.hstack([f, df, _vec(A), _vec(A_dot), ones, u[:, None]])  # x_a = [f_I, X_a]
+            XX_g, XX_a = X_g.T @ X_g, X_a.T @ X_a
+            valid_base = base.valid(t_grid)
+            for k, name in enumerate(self.sensors):
                 w_I = window[:, 33 + 6 * k : 36 + 6 * k]
                 f_I = window[:, 36 + 6 * k : 39 + 6 * k]
-                sigma_gyro, sigma_accel = self.sigma[name]
-                opts = setup.options
-                x_g = np.hstack([w_I, x_base_g, ones, u[:, None]])
-                x_a = np.hstack([f_I, x_base_a])
-                S_g, S_a = x_g.T @ x_g, x_a.T @ x_a
-                info = window_info_from_moments(
-                    start, end, n_win, S_g, S_a, setup.prior_T_base_imu.translation,
-                    base_valid and sensors[name].valid(t_grid + tau), sigma_gyro, sigma_accel,
-                    opts.max_rotation_std_deg, opts.translation_bound_m,
-                )
-                self.windows[name].append(WindowMoments(number, info, S_g, S_a, n_win))
+                S_g = np.empty((GYRO_DIM, GYRO_DIM))
+                S_g[0:3, 0:3] = w_I.T @ w_I
+                S_g[0:3, 3:] = w_I.T @ X_g
+                S_g[3:, 0:3] = S_g[0:3, 3:].T
+                S_g[3:, 3:] = XX_g
+                S_a = np.empty((ACCEL_DIM, ACCEL_DIM))
+                S_a[0:3, 0:3] = f_I.T @ f_I
+                S_a[0:3, 3:] = f_I.T @ X_a
+                S_a[3:, 0:3] = S_a[0:3, 3:].T
+                S_a[3:, 3:] = XX_a
+                valid = valid_base and sensors[name].valid(t_grid + self.tau0[name])
+                self.windows[name].append(WindowMoments(number, start, end, valid, S_g, S_a, n_win))
+
+    def _ensure_infos(self, name: str) -> list[WindowMoments]:
+        """Fill in the observability of windows that lack it (all at once)."""
+        windows = self.windows[name]
+        missing = [w for w in windows if w.info is None]
+        if missing:
+            setup = self.sensors[name]
+            sigma_gyro, sigma_accel = self.sigma[name]
+            opts = setup.options
+            infos = window_infos_from_moments(
+                [(w.start_s, w.end_s, w.valid) for w in missing],
+                np.array([w.samples for w in missing]),
+                np.stack([w.S_gyro for w in missing]),
+                np.stack([w.S_accel for w in missing]),
+                setup.prior_T_base_imu.translation,
+                sigma_gyro, sigma_accel, opts.max_rotation_std_deg, opts.translation_bound_m,
+            )
+            for window, info in zip(missing, infos, strict=True):
+                window.info = info
+        return windows
 
     # ---------------------------------------------------------------- output
 
@@ -366,16 +390,16 @@ class StreamingCalibrator:
         """The estimate from the windows reduced so far (every sensor)."""
         out = {}
         for name, setup in self.sensors.items():
-            windows = self.windows[name]
+            windows = self._ensure_infos(name)
             tau0 = self.tau0.get(name, 0.0)
-            if not any(w.info.selected for w in windows):
-                out[name] = unobservable(setup.prior_T_base_imu, [w.info for w in windows], tau0)
+            if not any(w.info is not None and w.info.selected for w in windows):
+                out[name] = unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0)
                 continue
             out[name] = solve(windows, setup.prior_T_base_imu, setup.options, tau0, self.sigma[name], self.lowpass)
         return out
 
     def window_infos(self, name: str) -> list[WindowInfo]:
-        return [w.info for w in self.windows[name]]
+        return [w.info for w in self._ensure_infos(name) if w.info is not None]
 
     def duplicates(self, imu: str) -> int:
         return self.buffers[imu].duplicates
