@@ -146,18 +146,58 @@ ACCEL_DIM = 29
 RESOLUTION = 1e-7
 
 
+@dataclass(frozen=True)
+class BaseMoments:
+    """The base IMU's block of a window's moments, shared by every sensor (upper triangles)."""
+
+    packed_gyro: np.ndarray  # of the (8, 8) block of x_g's base part [w_B, dw_B, 1, u]
+    packed_accel: np.ndarray  # of the (26, 26) block of x_a's base part
+
+
 @dataclass
 class WindowMoments:
-    """One window reduced to what the estimator needs."""
+    """One window reduced to what the estimator needs: the second moments ``S = sum x x^T``,
+    held as the base's block (shared between sensors) and the sensor's own three rows."""
 
     number: int
     start_s: float
     end_s: float
     valid: bool  # no gap in either stream
-    S_gyro: np.ndarray  # (11, 11)
-    S_accel: np.ndarray  # (29, 29)
+    base: BaseMoments
+    rows_gyro: np.ndarray  # (3, 11): w_I^T x_g
+    rows_accel: np.ndarray  # (3, 29): f_I^T x_a
     samples: int
     info: WindowInfo | None = None  # observability, filled in (in bulk) when first needed
+
+    @property
+    def S_gyro(self) -> np.ndarray:
+        return _assemble(self.rows_gyro, self.base.packed_gyro, GYRO_DIM)
+
+    @property
+    def S_accel(self) -> np.ndarray:
+        return _assemble(self.rows_accel, self.base.packed_accel, ACCEL_DIM)
+
+
+def base_moments(X_gyro: np.ndarray, X_accel: np.ndarray) -> BaseMoments:
+    """The base block from the base part of the data vectors (n, 8) and (n, 26)."""
+    G, A = X_gyro.T @ X_gyro, X_accel.T @ X_accel
+    return BaseMoments(G[np.triu_indices(GYRO_DIM - 3)], A[np.triu_indices(ACCEL_DIM - 3)])
+
+
+def _assemble(rows: np.ndarray, packed: np.ndarray, dim: int) -> np.ndarray:
+    full = np.empty((dim, dim))
+    upper = np.triu_indices(dim - 3)
+    block = np.empty((dim - 3, dim - 3))
+    block[upper] = packed
+    block[upper[1], upper[0]] = packed
+    full[3:, 3:] = block
+    full[0:3, :] = rows
+    full[:, 0:3] = rows.T
+    return full
+
+
+#: Windows whose normal equations are formed together (bounds the estimator's scratch memory).
+SOLVE_CHUNK = 128
 
 
 # --------------------------------------------------------------------------- the estimator
@@ -270,8 +310,9 @@ def solve(
     used = [w for w in windows if w.info is not None and w.info.selected]
     numbers = np.array([w.number for w in used])
     n_knots = int(max(w.number for w in windows)) + 2
-    S_g = np.stack([w.S_gyro for w in used])
-    S_a = np.stack([w.S_accel for w in used])
+    S_g = np.stack([w.S_gyro for w in used])  # (K, 11, 11): small
+    S_a_chunks = [np.stack([w.S_accel for w in used[a : a + SOLVE_CHUNK]]) for a in range(0, len(used), SOLVE_CHUNK)]
+    trace_f = sum(float(np.trace(S[:, 0:3, 0:3].sum(axis=0))) for S in S_a_chunks)
     samples = sum(w.samples for w in used)
     gain = lowpass.white_noise_gain()
 
@@ -293,7 +334,7 @@ def solve(
     # A cost from moments is a difference of large sums: below RESOLUTION times the signal's RMS
     # the residual is round-off, not noise (noise-free data).
     floor_g = (RESOLUTION**2) * np.trace(S_g[:, 0:3, 0:3].sum(axis=0)) / (3 * samples)
-    floor_a = (RESOLUTION**2) * np.trace(S_a[:, 0:3, 0:3].sum(axis=0)) / (3 * samples)
+    floor_a = (RESOLUTION**2) * trace_f / (3 * samples)
     free_global = np.ones(7, dtype=bool)
     if options.max_time_offset_s <= 0:
         free_global[6] = False
@@ -310,7 +351,11 @@ def solve(
         Cg = _C_gyro(Rt, dtau, bj[:, 0:3], bk[:, 0:3])
         Ca = _C_accel(Rt, t, dtau, bj[:, 3:6], bk[:, 3:6])
         Hg, gg, cost_g = _normal_equations(_derivatives_gyro(Cg, Rt), S_g, Cg)
-        Ha, ga, cost_a = _normal_equations(_derivatives_accel(Ca, Rt, t, dtau), S_a, Ca)
+        parts = []
+        for a, S_a in zip(range(0, len(used), SOLVE_CHUNK), S_a_chunks, strict=True):
+            chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 13, 3, 29) in slices
+            parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a, Ca[chunk]))
+        Ha, ga, cost_a = (np.concatenate([p[i] for p in parts]) for i in range(3))
         if iterations > 1:  # residual variance from the fit, above what the moments resolve
             scale_g = float(np.sqrt(max(cost_g.sum() / (3 * samples), floor_g)))
             scale_a = float(np.sqrt(max(cost_a.sum() / (3 * samples), floor_a)))

@@ -37,25 +37,12 @@ class WindowInfo:
 
     start_s: float  # grid time of the first sample (s, base clock, relative to the grid origin)
     end_s: float
-    index: np.ndarray  # grid sample indices in the window
     min_singular_value: float  # of the rotation Fisher information, rad^-2
     rotation_std_deg: float  # CRLB std of the worst rotation axis
     selected: bool
     translation_std_m: np.ndarray  # (3,) CRLB std per axis from this window alone (inf: none)
     translation_observable: np.ndarray  # (3,) bool
     valid: bool  # False when the window holds a gap in either stream
-
-
-def window_slices(n: int, rate_hz: float, window_s: float) -> list[np.ndarray]:
-    """Consecutive windows of ``window_s`` over ``n`` grid samples; a last partial window is
-    kept when it holds at least half a window."""
-    per = max(2, int(round(window_s * rate_hz)))
-    out = []
-    for start in range(0, n, per):
-        stop = min(n, start + per)
-        if stop - start >= per // 2:
-            out.append(np.arange(start, stop))
-    return out
 
 
 def rotation_information(vectors: np.ndarray, noise_std: float) -> np.ndarray:
@@ -83,7 +70,6 @@ def _std_from_information(info: np.ndarray) -> np.ndarray:
 def window_info(
     start_s: float,
     end_s: float,
-    index: np.ndarray,
     w_base: np.ndarray,
     f_base: np.ndarray,
     A: np.ndarray,
@@ -94,7 +80,8 @@ def window_info(
     max_rotation_std_deg: float,
     translation_bound_m: float,
 ) -> WindowInfo:
-    """Observability of one window from its low-passed base signals (see the module docstring).
+    """Observability of one window from its low-passed base signals (see the module docstring);
+    the sums over samples that :func:`window_infos_from_moments` takes from the moments.
 
     ``gyro_noise_std`` and ``accel_noise_std`` are the white-noise standard deviations of one
     grid sample of the residuals (rad/s, m/s^2); ``lever_arm`` is ``t_base_imu`` (its prior);
@@ -109,60 +96,6 @@ def window_info(
     return WindowInfo(
         start_s=start_s,
         end_s=end_s,
-        index=index,
-        min_singular_value=sigma_min,
-        rotation_std_deg=std_deg,
-        selected=valid and std_deg < max_rotation_std_deg,
-        translation_std_m=t_std,
-        translation_observable=t_std < OBSERVABLE_FRACTION_OF_BOUND * translation_bound_m,
-        valid=valid,
-    )
-
-
-def window_info_from_moments(
-    start_s: float,
-    end_s: float,
-    samples: int,
-    S_gyro: np.ndarray,
-    S_accel: np.ndarray,
-    lever_arm: np.ndarray,
-    valid: bool,
-    gyro_noise_std: float,
-    accel_noise_std: float,
-    max_rotation_std_deg: float,
-    translation_bound_m: float,
-) -> WindowInfo:
-    """:func:`window_info` from a window's second moments (the layout of
-    :mod:`imucal_cli.core.streaming`): ``sum [v_c]x^T [v_c]x = tr(C) I - C`` for the centred
-    covariance ``C`` of the vectors, and ``sum (A - mean A)^T (A - mean A)`` from the moments of
-    ``vec A``; no pass over the samples."""
-    n = float(samples)
-
-    def centred(S: np.ndarray, P: np.ndarray, one: int) -> np.ndarray:
-        mean = P @ S[:, one] / n
-        return P @ S @ P.T - n * np.outer(mean, mean)
-
-    def rotation_info(C: np.ndarray, std: float) -> np.ndarray:
-        return (np.trace(C) * np.eye(3) - C) / std**2
-
-    P_w = np.zeros((3, S_gyro.shape[0]))
-    P_w[:, 3:6] = np.eye(3)
-    P_v = np.zeros((3, S_accel.shape[0]))
-    P_v[:, 3:6] = np.eye(3)
-    P_v[:, 9:18] = np.hstack([lever_arm[0] * np.eye(3), lever_arm[1] * np.eye(3), lever_arm[2] * np.eye(3)])
-    info = rotation_info(centred(S_gyro, P_w, 9), gyro_noise_std) + rotation_info(centred(S_accel, P_v, 27), accel_noise_std)
-    sv = np.linalg.svd(info, compute_uv=False)
-    sigma_min = float(max(sv[-1], 0.0))
-    std_deg = float(np.degrees(1.0 / np.sqrt(sigma_min))) if sigma_min > 0 else float("inf")
-    P_A = np.zeros((9, S_accel.shape[0]))
-    P_A[:, 9:18] = np.eye(9)
-    C_A = centred(S_accel, P_A, 27)  # 9x9 over vec A = [A e0; A e1; A e2]
-    t_info = np.array([[np.trace(C_A[3 * j : 3 * j + 3, 3 * k : 3 * k + 3]) for k in range(3)] for j in range(3)])
-    t_std = _std_from_information(t_info / accel_noise_std**2)
-    return WindowInfo(
-        start_s=start_s,
-        end_s=end_s,
-        index=np.zeros(0, dtype=np.int64),
         min_singular_value=sigma_min,
         rotation_std_deg=std_deg,
         selected=valid and std_deg < max_rotation_std_deg,
@@ -215,7 +148,6 @@ def window_infos_from_moments(
             WindowInfo(
                 start_s=start,
                 end_s=end,
-                index=np.zeros(0, dtype=np.int64),
                 min_singular_value=float(sigma_min[k]),
                 rotation_std_deg=float(std_deg[k]),
                 selected=bool(valid and std_deg[k] < max_rotation_std_deg),
@@ -225,28 +157,3 @@ def window_infos_from_moments(
             )
         )
     return out
-
-
-def analyse_windows(
-    grid_s: np.ndarray,
-    rate_hz: float,
-    w_base: np.ndarray,
-    f_base: np.ndarray,
-    A: np.ndarray,
-    lever_arm: np.ndarray,
-    valid: np.ndarray,
-    window_s: float,
-    gyro_noise_std: float,
-    accel_noise_std: float,
-    max_rotation_std_deg: float,
-    translation_bound_m: float,
-) -> list[WindowInfo]:
-    """:func:`window_info` for every window of a grid."""
-    return [
-        window_info(
-            float(grid_s[index[0]]), float(grid_s[index[-1]] + 1.0 / rate_hz), index,
-            w_base[index], f_base[index], A[index], lever_arm, bool(np.all(valid[index])),
-            gyro_noise_std, accel_noise_std, max_rotation_std_deg, translation_bound_m,
-        )
-        for index in window_slices(len(grid_s), rate_hz, window_s)
-    ]

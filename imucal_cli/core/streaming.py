@@ -35,12 +35,11 @@ import numpy as np
 from scipy.interpolate import make_interp_spline
 
 from imucal_cli.core.calibrate import (
-    ACCEL_DIM,
     GAP_PERIODS,
-    GYRO_DIM,
     CalibrationOptions,
     SensorEstimate,
     WindowMoments,
+    base_moments,
     solve,
     unobservable,
 )
@@ -61,6 +60,8 @@ MAX_BOOT_S = 600.0
 REORDER_S = 0.5
 #: Windows conditioned together (one spline and one filter pass per IMU and block).
 BLOCK_WINDOWS = 6
+#: Windows whose observability is computed together (bounds scratch memory).
+INFO_CHUNK = 128
 
 
 
@@ -338,41 +339,34 @@ class StreamingCalibrator:
             # moments: the base's block once, then each sensor's rows against it
             X_g = np.hstack([w, dw, ones, u[:, None]])  # x_g = [w_I, X_g]
             X_a = np.hstack([f, df, _vec(A), _vec(A_dot), ones, u[:, None]])  # x_a = [f_I, X_a]
-            XX_g, XX_a = X_g.T @ X_g, X_a.T @ X_a
+            shared = base_moments(X_g, X_a)
             valid_base = base.valid(t_grid)
             for k, name in enumerate(self.sensors):
                 w_I = window[:, 33 + 6 * k : 36 + 6 * k]
                 f_I = window[:, 36 + 6 * k : 39 + 6 * k]
-                S_g = np.empty((GYRO_DIM, GYRO_DIM))
-                S_g[0:3, 0:3] = w_I.T @ w_I
-                S_g[0:3, 3:] = w_I.T @ X_g
-                S_g[3:, 0:3] = S_g[0:3, 3:].T
-                S_g[3:, 3:] = XX_g
-                S_a = np.empty((ACCEL_DIM, ACCEL_DIM))
-                S_a[0:3, 0:3] = f_I.T @ f_I
-                S_a[0:3, 3:] = f_I.T @ X_a
-                S_a[3:, 0:3] = S_a[0:3, 3:].T
-                S_a[3:, 3:] = XX_a
+                rows_g = np.hstack([w_I.T @ w_I, w_I.T @ X_g])
+                rows_a = np.hstack([f_I.T @ f_I, f_I.T @ X_a])
                 valid = valid_base and sensors[name].valid(t_grid + self.tau0[name])
-                self.windows[name].append(WindowMoments(number, start, end, valid, S_g, S_a, n_win))
+                self.windows[name].append(WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win))
 
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
         """Fill in the observability of windows that lack it (all at once)."""
         windows = self.windows[name]
         missing = [w for w in windows if w.info is None]
-        if missing:
-            setup = self.sensors[name]
-            sigma_gyro, sigma_accel = self.sigma[name]
-            opts = setup.options
+        setup = self.sensors[name]
+        sigma_gyro, sigma_accel = self.sigma.get(name, (1.0, 1.0))
+        opts = setup.options
+        for a in range(0, len(missing), INFO_CHUNK):
+            part = missing[a : a + INFO_CHUNK]
             infos = window_infos_from_moments(
-                [(w.start_s, w.end_s, w.valid) for w in missing],
-                np.array([w.samples for w in missing]),
-                np.stack([w.S_gyro for w in missing]),
-                np.stack([w.S_accel for w in missing]),
+                [(w.start_s, w.end_s, w.valid) for w in part],
+                np.array([w.samples for w in part]),
+                np.stack([w.S_gyro for w in part]),
+                np.stack([w.S_accel for w in part]),
                 setup.prior_T_base_imu.translation,
                 sigma_gyro, sigma_accel, opts.max_rotation_std_deg, opts.translation_bound_m,
             )
-            for window, info in zip(missing, infos, strict=True):
+            for window, info in zip(part, infos, strict=True):
                 window.info = info
         return windows
 
