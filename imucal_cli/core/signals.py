@@ -71,21 +71,23 @@ class Lowpass:
         n = len(x)
         if n < 2:
             return x.copy()
+        shape = x.shape
+        columns = np.ascontiguousarray(x.reshape(n, -1).T)  # time along the last, contiguous axis
         pad = min(self.pad, n - 1)
-        head = 2.0 * x[0] - x[pad:0:-1]
-        tail = 2.0 * x[-1] - x[-2 : -pad - 2 : -1]
-        extended = np.concatenate([head, x, tail])
-        m = len(extended)
+        head = 2.0 * columns[:, :1] - columns[:, pad:0:-1]
+        tail = 2.0 * columns[:, -1:] - columns[:, -2 : -pad - 2 : -1]
+        extended = np.concatenate([head, columns, tail], axis=1)
+        m = extended.shape[1]
         # The line through both ends passes the filter unchanged; without it the periodic FFT
         # sees no jump where the ends meet.
-        ramp = np.linspace(0.0, 1.0, m).reshape((-1,) + (1,) * (x.ndim - 1))
-        line = extended[0] + (extended[-1] - extended[0]) * ramp
+        line = extended[:, :1] + (extended[:, -1:] - extended[:, :1]) * np.linspace(0.0, 1.0, m)
         size = _fast_length(m + pad)
         freq = np.fft.rfftfreq(size, d=1.0 / self.rate_hz)
         gain = 1.0 / (1.0 + (freq / self.cutoff_hz) ** (2 * self.order))
-        spectrum = np.fft.rfft(extended - line, n=size, axis=0)
-        spectrum *= gain.reshape((-1,) + (1,) * (x.ndim - 1))
-        return (np.fft.irfft(spectrum, n=size, axis=0)[:m] + line)[pad : pad + n]
+        spectrum = np.fft.rfft(extended - line, n=size, axis=1)
+        spectrum *= gain
+        filtered = np.fft.irfft(spectrum, n=size, axis=1)[:, :m] + line
+        return np.ascontiguousarray(filtered[:, pad : pad + n].T).reshape(shape)
 
     def white_noise_gain(self) -> float:
         """Variance of the filtered output of unit white noise: ``sum h^2`` of the zero-phase
