@@ -12,6 +12,7 @@ import shutil
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -92,42 +93,34 @@ def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool) -> None
         writer.finish()
 
 
-def _write_rosbag2(path: Path, topics: Mapping[str, TopicData], storage: str) -> None:
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    _, typestore = _msgdef(ros1=False)
-    blobs = _serialized(topics, ros1=False)
-    writer = Writer(path, version=9, storage_plugin=plugin)
+def _fill_rosbags_writer(writer: Any, topics: Mapping[str, TopicData], ros1: bool) -> None:
+    """Open a rosbags writer, add one connection per topic, write every message, close."""
+    _, typestore = _msgdef(ros1)
+    blobs = _serialized(topics, ros1)
     writer.open()
     try:
         connections = {
-            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore)  # type: ignore[arg-type]
-            for topic in topics
+            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore) for topic in topics
         }
         for log_ns, topic, i in _messages(topics):
             writer.write(connections[topic], log_ns, blobs[topic][i].tobytes())
     finally:
         writer.close()
+
+
+def _write_rosbag2(path: Path, topics: Mapping[str, TopicData], storage: str) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    _fill_rosbags_writer(Writer(path, version=9, storage_plugin=plugin), topics, ros1=False)
 
 
 def _write_rosbag1(path: Path, topics: Mapping[str, TopicData]) -> None:
     from rosbags.rosbag1 import Writer
 
-    _, typestore = _msgdef(ros1=True)
-    blobs = _serialized(topics, ros1=True)
     writer = Writer(path)
     writer.set_compression(Writer.CompressionFormat.LZ4)
-    writer.open()
-    try:
-        connections = {
-            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore)  # type: ignore[arg-type]
-            for topic in topics
-        }
-        for log_ns, topic, i in _messages(topics):
-            writer.write(connections[topic], log_ns, blobs[topic][i].tobytes())
-    finally:
-        writer.close()
+    _fill_rosbags_writer(writer, topics, ros1=True)
 
 
 def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData]) -> Path:
