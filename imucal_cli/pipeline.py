@@ -19,7 +19,6 @@ from imucal_cli.core.biases import BiasReport, estimate_biases
 from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
-from imucal_cli.errors import ImucalError
 from imucal_cli.types import ImuStream, Transform
 
 
@@ -111,16 +110,6 @@ def biases_document(streams: DriveStreams, config: Config, reports: Mapping[str,
 
 
 # --------------------------------------------------------------------------- segments
-
-
-def run_segments(streams: DriveStreams, config: Config) -> StreamingCalibrator:
-    """Reduce every window of the drive (clock offsets, observability); no estimate is solved."""
-    calibrator = make_calibrator(config)
-    feed(calibrator, streams)
-    if calibrator.t_ref_ns is None:
-        raise ImucalError("too little data: an IMU has no samples")
-    calibrator.process(final=True)
-    return calibrator
 
 
 def segments_document(t0_ns: int, config: Config, calibrator: StreamingCalibrator) -> dict[str, Any]:
