@@ -146,3 +146,12 @@ def test_biases_report():
             true_initial = np.array(truth["sensors"][name]["gyro_bias_radps"]["initial"])
             # the first rest's mean: noise 2.6e-3 rad/s per sample over > 500 samples
             assert np.all(np.abs(np.array(imu["gyro_bias_radps"]["initial"]) - true_initial) < 5e-4)
+
+
+def test_calibrate_too_short_log_is_a_clear_error(tmp_path):
+    out = tmp_path / "short.mcap"
+    assert runner.invoke(app, ["simulate", str(out), "--scenario", "aggressive", "--duration", "3"]).exit_code == 0
+    result = runner.invoke(app, ["calibrate", str(out), "-c", str(tmp_path / "short.config.yaml"), "-o", str(tmp_path / "e.yaml")])
+    assert result.exit_code == 2
+    assert "short.mcap" in result.stderr and "too little data" in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "e.yaml").exists()

@@ -236,7 +236,10 @@ class StreamingCalibrator:
         grid = np.arange(self._grid_start, end, 1.0 / self.rate)
         if len(grid) < 10:
             if final:
-                raise TooLittleData(f"the IMUs overlap for {max(covered, 0.0):.1f} s only")
+                raise TooLittleData(
+                    f"too little data: the IMUs overlap for {max(covered, 0.0):.1f} s; calibration "
+                    f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window"
+                )
             return False
         t_b, g_b, a_b = self.buffers[self.base_name].cleaned()
         base = _Spline(self._seconds(t_b), g_b, a_b, self.rate)
@@ -375,7 +378,7 @@ class StreamingCalibrator:
     def finish(self) -> dict[str, SensorEstimate]:
         """Reduce what is left and return the final estimates."""
         if self.t_ref_ns is None:
-            raise TooLittleData("no samples from " + ", ".join(n for n, b in self.buffers.items() if b.first_ns is None))
+            raise TooLittleData("too little data: no samples from " + ", ".join(n for n, b in self.buffers.items() if b.first_ns is None))
         self.process(final=True)
         self.finished = True
         return self.estimates()
