@@ -27,6 +27,10 @@ import numpy as np
 _TAIL = 8 * (4 + 9 + 3 + 9 + 3 + 9)
 _GYRO_AFTER_FRAME = 8 * (4 + 9)
 _ACCEL_AFTER_FRAME = 8 * (4 + 9 + 3 + 9)
+_CDR_HEAD = np.dtype(
+    [("encapsulation", "<u2"), ("options", "<u2"), ("sec", "<i4"), ("nsec", "<u4"), ("frame_len", "<u4")]
+)
+_ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
 #: How many messages of a batch have their frame id read (evenly spread, the first included).
 FRAME_ID_SAMPLES = 64
 
@@ -76,28 +80,25 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     buf, starts, lengths = batch.buffer, batch.starts, batch.lengths
     n = len(starts)
     ok = lengths >= 16
+    # the first 16 bytes hold everything before the frame id: one gather
+    head_dtype = _CDR_HEAD if batch.encoding == "cdr" else _ROS1_HEAD
+    if batch.encoding not in ("cdr", "ros1"):
+        raise ValueError(f"unsupported encoding {batch.encoding!r}")
+    head = np.zeros(n, dtype=head_dtype)
+    if ok.any():
+        head[ok] = _gather(buf, starts[ok], 16, head_dtype).ravel()
+    frame_len = head["frame_len"].astype(np.int64)
     if batch.encoding == "cdr":
-        little = np.zeros(n, dtype=bool)
-        if ok.any():
-            little[ok] = _gather(buf, starts[ok], 2, "<u2").ravel() == 0x0100  # bytes 00 01: CDR_LE
-        ok &= little
+        ok &= head["encapsulation"] == 0x0100  # bytes 00 01: CDR, little endian
         body = starts + 4
-        frame_len = np.zeros(n, dtype=np.int64)
-        frame_len[ok] = _gather(buf, body[ok] + 8, 4, "<u4").ravel()
         floats_at = (12 + frame_len + 7) // 8 * 8  # relative to the body
         needed = 4 + floats_at + _TAIL
-        sec_dtype, frame_start, frame_chars = "<i4", body + 12, frame_len - 1
-        stamp_at = body
+        frame_start, frame_chars = body + 12, frame_len - 1
         floats_abs = body + floats_at
-    elif batch.encoding == "ros1":
-        frame_len = np.zeros(n, dtype=np.int64)
-        frame_len[ok] = _gather(buf, starts[ok] + 12, 4, "<u4").ravel()
-        needed = 16 + frame_len + _TAIL
-        sec_dtype, frame_start, frame_chars = "<u4", starts + 16, frame_len
-        stamp_at = starts + 4
-        floats_abs = starts + 16 + frame_len
     else:
-        raise ValueError(f"unsupported encoding {batch.encoding!r}")
+        needed = 16 + frame_len + _TAIL
+        frame_start, frame_chars = starts + 16, frame_len
+        floats_abs = starts + 16 + frame_len
     ok &= (lengths >= needed) & (frame_chars >= 0)
     index = np.flatnonzero(ok)
 
@@ -106,9 +107,7 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     accel = np.zeros((len(index), 3))
     frame_ids: list[str] = []
     if len(index):
-        stamp_dtype = np.dtype([("sec", sec_dtype), ("nsec", "<u4")])
-        both = _gather(buf, stamp_at[index], 8, stamp_dtype).ravel()
-        stamp = both["sec"].astype(np.int64) * 1_000_000_000 + both["nsec"].astype(np.int64)
+        stamp = head["sec"][index].astype(np.int64) * 1_000_000_000 + head["nsec"][index].astype(np.int64)
         gyro = _gather(buf, floats_abs[index] + _GYRO_AFTER_FRAME, 24, "<f8")
         accel = _gather(buf, floats_abs[index] + _ACCEL_AFTER_FRAME, 24, "<f8")
         lengths_used = frame_chars[index]
