@@ -226,6 +226,14 @@ OutOption = Annotated[Path | None, typer.Option("-o", "--out", help="Write YAML 
 JsonOption = Annotated[bool, typer.Option("--json", help="Print JSON instead of a summary.")]
 
 
+def _note_read(log: Path, topic: str, counts: dict[str, int]) -> None:
+    """One line on stderr when reading a topic sorted, replaced or dropped anything."""
+    changed = {k: v for k, v in counts.items() if k != "messages" and v}
+    if changed:
+        details = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in changed.items())
+        typer.echo(f"imucal: note: {log} [{topic}]: {counts['messages']} messages; {details}", err=True)
+
+
 def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     """Load the config, then the base and sensor IMU streams of the log."""
     from imucal_cli.config import load_config
@@ -240,10 +248,7 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
         stats = read.stats
         if len(read.stream) < 10:
             raise InputError(f"{log} [{topic}]: too little data: {len(read.stream)} usable messages")
-        dropped = {k: v for k, v in stats.to_dict().items() if k != "messages" and v}
-        if dropped:
-            details = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dropped.items())
-            typer.echo(f"imucal: note: {log} [{topic}]: {stats.messages} messages; {details}", err=True)
+        _note_read(log, topic, stats.to_dict())
     t0_ns = min(int(r.stream.t_ns[0]) for r in reads.values())
     streams = DriveStreams(
         base=reads[config.base.topic].stream,
@@ -285,12 +290,7 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
     except ImucalError as exc:
         raise InputError(f"{log}: {exc}") from None
     for topic, stats in reader.stats.items():
-        counts = stats.to_dict()
-        counts["duplicates"] = calibrator.duplicates(names[topic])
-        dropped = {k: v for k, v in counts.items() if k != "messages" and v}
-        if dropped:
-            details = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in dropped.items())
-            typer.echo(f"imucal: note: {log} [{topic}]: {stats.messages} messages; {details}", err=True)
+        _note_read(log, topic, stats.to_dict() | {"duplicates": calibrator.duplicates(names[topic])})
     return config, calibrator, t0_ns
 
 
