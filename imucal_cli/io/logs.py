@@ -199,38 +199,16 @@ class RosbagsLog(LogReader):
         return result
 
     def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
-        topics = list(topics)
+        # ROS 1 bags reach this reader only when their index could not be used (open_log).
         if self.ros1:
-            handle = self.path.open("rb")
-            try:
-                bag = Ros1Bag(handle)
-            except Exception:
-                handle.close()
-                return None
-
-            def ros1() -> Iterator[RawBatch]:
-                try:
-                    yield from bag.batches(topics)
-                finally:
-                    handle.close()
-
-            return ros1()
+            return None
         storage = getattr(self._reader, "storage", None)
         metadata = getattr(storage, "metadata", None)
         if metadata is not None and getattr(metadata, "compression_format", None):
             return None
         backends = getattr(storage, "storages", None) or [storage]
         paths = [Path(b.path) for b in backends if getattr(b, "path", None) is not None]
-        if not paths:
-            return None
-        if self.format_name == "rosbag2-sqlite3":
-            return sqlite_batches(paths, topics)
-        if self.format_name == "rosbag2-mcap":
-            parts = [mcap_batches(p, topics) for p in paths]
-            if any(part is None for part in parts):
-                return None
-            return (batch for part in parts for batch in part)  # type: ignore[union-attr]
-        return None
+        return _rosbag2_batches(self.format_name, paths, topics)
 
     def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
         wanted = set(topics)
@@ -242,6 +220,21 @@ class RosbagsLog(LogReader):
                 yield conn.topic, int(timestamp), bytes(data)
         except Exception as exc:
             raise self.error(f"cannot read {self.format_name} messages: {exc}") from None
+
+
+def _rosbag2_batches(format_name: str, files: list[Path], topics: Iterable[str]) -> Iterator[RawBatch] | None:
+    """Fast batches of uncompressed rosbag2 storage files, or None where there is no fast path."""
+    topics = list(topics)
+    if not files:
+        return None
+    if format_name == "rosbag2-sqlite3":
+        return sqlite_batches(files, topics)
+    if format_name == "rosbag2-mcap":
+        parts = [mcap_batches(f, topics) for f in files]
+        if any(part is None for part in parts):
+            return None
+        return (batch for part in parts for batch in part)  # type: ignore[union-attr]
+    return None
 
 
 class _LazyFallback(LogReader):
@@ -323,13 +316,7 @@ class Rosbag2Log(_LazyFallback):
         return dict(self._topics)
 
     def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
-        topics = list(topics)
-        if self.format_name == "rosbag2-sqlite3":
-            return sqlite_batches(self.files, topics)
-        parts = [mcap_batches(f, topics) for f in self.files]
-        if any(part is None for part in parts):
-            return None
-        return (batch for part in parts for batch in part)  # type: ignore[union-attr]
+        return _rosbag2_batches(self.format_name, self.files, topics)
 
 
 def detect_format(path: Path) -> str:
