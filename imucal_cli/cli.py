@@ -263,6 +263,7 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
     nothing solved yet). Returns the config, the calibrator and the log's first IMU stamp."""
     from imucal_cli.config import load_config
     from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.io.prefetch import read_ahead
     from imucal_cli.pipeline import make_calibrator
 
     config = load_config(config_path)
@@ -271,8 +272,9 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
     reader = ImuBatches(log, names)
     t0_ns: int | None = None
     count = 0
+    batches = read_ahead(reader)  # decoding runs beside the math, in a child process
     with _progress(f"reading {log}") as progress:
-        for topic, stamps, _log_times, gyro, accel in reader:
+        for topic, stamps, _log_times, gyro, accel in batches:
             if len(stamps):
                 first = int(stamps.min())
                 t0_ns = first if t0_ns is None else min(t0_ns, first)

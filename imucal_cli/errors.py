@@ -17,6 +17,9 @@ class ConfigError(ImucalError):
         where = f"{source}: {key}" if key else source
         super().__init__(f"{where}: {problem}")
 
+    def __reduce__(self) -> tuple[type, tuple[str, str, str]]:  # picklable across processes
+        return (type(self), (self.source, self.key, self.problem))
+
 
 class LogError(ImucalError):
     """A log cannot be read, or lacks what was asked of it. The message names the file."""
@@ -27,6 +30,9 @@ class LogError(ImucalError):
         self.problem = problem
         where = f"{path} [{topic}]" if topic else path
         super().__init__(f"{where}: {problem}")
+
+    def __reduce__(self) -> tuple[type, tuple[str, str, str | None]]:  # picklable across processes
+        return (type(self), (self.path, self.problem, self.topic))
 
 
 class InputError(ImucalError):

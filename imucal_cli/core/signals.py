@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 
 from imucal_cli.errors import ImucalError
 
@@ -82,11 +83,11 @@ class Lowpass:
         # sees no jump where the ends meet.
         line = extended[:, :1] + (extended[:, -1:] - extended[:, :1]) * np.linspace(0.0, 1.0, m)
         size = _fast_length(m + pad)
-        freq = np.fft.rfftfreq(size, d=1.0 / self.rate_hz)
+        freq = scipy.fft.rfftfreq(size, d=1.0 / self.rate_hz)
         gain = 1.0 / (1.0 + (freq / self.cutoff_hz) ** (2 * self.order))
-        spectrum = np.fft.rfft(extended - line, n=size, axis=1)
+        spectrum = scipy.fft.rfft(extended - line, n=size, axis=1, overwrite_x=True)
         spectrum *= gain
-        filtered = np.fft.irfft(spectrum, n=size, axis=1)[:, :m] + line
+        filtered = scipy.fft.irfft(spectrum, n=size, axis=1, overwrite_x=True)[:, :m] + line
         return np.ascontiguousarray(filtered[:, pad : pad + n].T).reshape(shape)
 
     def white_noise_gain(self) -> float:

@@ -1,0 +1,138 @@
+"""Read a log ahead of the math that consumes it.
+
+:func:`read_ahead` runs a batch reader (:class:`~imucal_cli.io.logs.ImuBatches`) in a forked
+child process that decompresses and decodes while the parent calibrates, so on a machine with
+two cores reading costs little wall time. (A thread does not pay: the reader's numpy work holds
+the GIL too often.) Batches cross a pipe; a bounded queue keeps at most :data:`DEPTH` of them
+waiting, so memory stays flat whatever the log's length. Errors raised in the child (a damaged
+log, a missing topic) are raised again in the parent, and the reader's statistics are copied
+back when it is done. Where ``fork`` is not available the reader simply runs inline.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import queue
+import threading
+from collections.abc import Iterable, Iterator
+from typing import Any, Protocol, TypeVar
+
+T = TypeVar("T")
+
+#: Batches that may wait between the reader and the calibration.
+DEPTH = 64
+
+
+class _Raised:
+    def __init__(self, exc: BaseException) -> None:
+        self.exc = exc
+
+
+class _Done:
+    def __init__(self, stats: Any) -> None:
+        self.stats = stats
+
+
+class StatsReader(Protocol):
+    stats: Any
+
+    def __iter__(self) -> Iterator[Any]: ...
+
+
+def _queued(items: Iterable[T], depth: int) -> Iterator[T]:
+    """``items`` produced by a background thread up to ``depth`` ahead (here: receiving from
+    the pipe, which releases the GIL while it waits)."""
+    slots: queue.Queue[object] = queue.Queue(maxsize=max(1, depth))
+    stop = threading.Event()
+
+    def put(item: object) -> bool:
+        while not stop.is_set():
+            try:
+                slots.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not put(item):
+                    return
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer
+            put(_Raised(exc))
+
+    thread = threading.Thread(target=produce, name="imucal-read-ahead", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = slots.get()
+            if isinstance(item, _Raised):
+                raise item.exc
+            yield item  # type: ignore[misc]
+            if isinstance(item, _Done):
+                return
+    finally:
+        stop.set()
+        thread.join(timeout=5.0)
+
+
+def _child(reader: StatsReader, conn: Any) -> None:  # pragma: no cover - runs in the child
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it ends us
+    try:
+        for item in reader:
+            conn.send(item)
+        conn.send(_Done(reader.stats))
+    except BaseException as exc:  # noqa: BLE001 - handed to the parent
+        try:
+            conn.send(_Raised(exc))
+        except Exception:  # noqa: BLE001 - an exception that does not pickle
+            conn.send(_Raised(RuntimeError(f"{type(exc).__name__}: {exc}")))
+    finally:
+        conn.close()
+
+
+def read_ahead(reader: StatsReader, background: bool = True) -> Iterator[Any]:
+    """Start reading ``reader`` (in a child process when ``background`` and ``fork`` are
+    available) and return an iterator over its items; once it is exhausted ``reader.stats``
+    holds what the reading counted, as if it had run here.
+
+    The child is forked here, at the call, so call it before starting threads (a progress bar).
+    """
+    if not background or "fork" not in multiprocessing.get_all_start_methods():
+        return iter(reader)
+    context = multiprocessing.get_context("fork")
+    receiving, sending = context.Pipe(duplex=False)
+    process = context.Process(target=_child, args=(reader, sending), name="imucal-reader", daemon=True)
+    process.start()
+    sending.close()
+    return _from_child(reader, process, receiving)
+
+
+def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[Any]:
+    def receive() -> Iterator[object]:
+        while True:
+            try:
+                item = receiving.recv()
+            except (EOFError, OSError):
+                code = process.exitcode
+                raise RuntimeError(f"the log reader process ended unexpectedly (exit code {code})") from None
+            yield item
+            if isinstance(item, (_Done, _Raised)):
+                return
+
+    try:
+        for item in _queued(receive(), DEPTH):
+            if isinstance(item, _Raised):
+                raise item.exc
+            if isinstance(item, _Done):
+                reader.stats = item.stats
+                return
+            yield item
+    finally:
+        if process.is_alive():
+            process.terminate()
+        process.join()
+        receiving.close()
