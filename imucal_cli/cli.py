@@ -144,7 +144,7 @@ def _check_output(out: Path | None) -> None:
 
 
 def _inspect_document(summary: Any) -> dict[str, Any]:
-    return {
+    document = {
         "log": summary.path,
         "format": summary.format_name,
         "t0_ns": summary.t0_ns,
@@ -162,6 +162,12 @@ def _inspect_document(summary: Any) -> dict[str, Any]:
             for t in summary.topics
         },
     }
+    if summary.losses:  # parts of a damaged log that could not be read
+        document["losses"] = [
+            {"reason": x.reason, "offset": x.offset, "bytes": x.nbytes, "start_ns": x.start_ns, "end_ns": x.end_ns, "messages": x.messages}
+            for x in summary.losses
+        ]
+    return document
 
 
 def _render_inspect(document: dict[str, Any]) -> None:
@@ -199,6 +205,7 @@ def inspect(
 
     _check_output(out)
     summary = summarize_log(log)
+    _note_losses(log, summary.losses)
     _emit(_inspect_document(summary), out, as_json, _render_inspect)
 
 
@@ -234,6 +241,14 @@ def _note_read(log: Path, topic: str, counts: dict[str, int]) -> None:
         typer.echo(f"imucal: note: {log} [{topic}]: {counts['messages']} messages; {details}", err=True)
 
 
+def _note_losses(log: Path, losses: list[Any]) -> None:
+    """One line on stderr per part of the log that could not be read (at most five, then a count)."""
+    for loss in losses[:5]:
+        typer.echo(f"imucal: warning: {log}: not read: {loss.describe()}", err=True)
+    if len(losses) > 5:
+        typer.echo(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read", err=True)
+
+
 def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     """Load the config, then the base and sensor IMU streams of the log."""
     from imucal_cli.config import load_config
@@ -242,8 +257,10 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
 
     config = load_config(config_path)
     topics = [config.base.topic] + [s.imu_topic for s in config.sensors]
+    losses: list[Any] = []
     with _progress(f"reading {log}") as progress:
-        reads = read_imu(log, topics, progress=progress)
+        reads = read_imu(log, topics, progress=progress, losses=losses)
+    _note_losses(log, losses)
     for topic, read in reads.items():
         stats = read.stats
         if len(read.stream) < 10:
@@ -281,6 +298,7 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
             calibrator.add(names[topic], stamps, gyro, accel)
             count += len(stamps)
             progress(count)
+    _note_losses(log, reader.losses)
     for topic, stats in reader.stats.items():
         usable = stats.messages - stats.decode_errors
         if usable < 10:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import sqlite3
 import struct
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,7 +80,7 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     """
     buf, starts, lengths = batch.buffer, batch.starts, batch.lengths
     n = len(starts)
-    ok = lengths >= 16
+    ok = (lengths >= 16) & (starts >= 0) & (starts + lengths <= len(buf))
     # the first 16 bytes hold everything before the frame id: one gather
     head_dtype = _CDR_HEAD if batch.encoding == "cdr" else _ROS1_HEAD
     if batch.encoding not in ("cdr", "ros1"):
@@ -189,7 +190,15 @@ class McapChunks:
         pos += 4 + name_len
         (records_len,) = struct.unpack_from("<Q", raw, pos)
         pos += 8
-        return _decompress(compression, raw[pos : pos + records_len], uncompressed_size)
+        if pos + records_len > len(raw):
+            raise ValueError("chunk cut off")
+        records = _decompress(compression, raw[pos : pos + records_len], uncompressed_size)
+        if len(records) != uncompressed_size:
+            raise ValueError(f"decompressed to {len(records)} bytes, the header says {uncompressed_size}")
+        crc = struct.unpack_from("<I", raw, 1 + 8 + 8 + 8 + 8)[0]
+        if crc and zlib.crc32(records) != crc:
+            raise ValueError("CRC mismatch")
+        return records
 
     def message_positions(self, chunk_index: object, channel_ids: set[int]) -> dict[int, np.ndarray]:
         """Per channel: (n, 2) uint64 of (log_time, offset in the chunk's records)."""
@@ -210,12 +219,18 @@ class McapChunks:
             out[channel] = entries.reshape(-1, 2)
         return out
 
-    def batches(self, wanted: dict[int, tuple[str, str]], group_bytes: int = 8 << 20) -> Iterator[RawBatch]:
+    def batches(
+        self, wanted: dict[int, tuple[str, str]], losses: list | None = None, group_bytes: int = 8 << 20
+    ) -> Iterator[RawBatch]:
         """Raw batches of the wanted channels (channel id -> (topic, encoding)).
 
         Consecutive chunks are decoded together, up to ``group_bytes`` of records, so that the
-        per-call cost of the vectorised decoder is spread over many messages.
+        per-call cost of the vectorised decoder is spread over many messages. A chunk that does
+        not decompress or fails its CRC is skipped and recorded in ``losses`` with the exact
+        message counts of its index.
         """
+        from imucal_cli.io.salvage import Loss
+
         assert self.summary is not None
         ids = set(wanted)
         chunks = sorted(self.summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset))
@@ -227,7 +242,14 @@ class McapChunks:
             positions = self.message_positions(ci, ids)
             if not any(len(p) for p in positions.values()):
                 continue
-            records = self.read_chunk(ci)
+            try:
+                records = self.read_chunk(ci)
+            except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
+                if losses is None:
+                    raise
+                counts = {wanted[c][0]: len(p) for c, p in positions.items() if len(p)}
+                losses.append(Loss(f"chunk that cannot be read ({exc})", ci.chunk_start_offset, ci.chunk_length, ci.message_start_time, ci.message_end_time, counts))
+                continue
             pending.append((records, positions))
             size += len(records)
             if size >= group_bytes:
@@ -252,7 +274,7 @@ class McapChunks:
             )
 
 
-def mcap_batches(path: Path, topics: Iterable[str]) -> Iterator[RawBatch] | None:
+def mcap_batches(path: Path, topics: Iterable[str], losses: list | None = None) -> Iterator[RawBatch] | None:
     """Fast batches of an indexed MCAP file, or None when it has no usable indexes."""
     handle = path.open("rb")
     try:
@@ -273,7 +295,7 @@ def mcap_batches(path: Path, topics: Iterable[str]) -> Iterator[RawBatch] | None
 
     def generate() -> Iterator[RawBatch]:
         try:
-            yield from chunks.batches(wanted)
+            yield from chunks.batches(wanted, losses)
         finally:
             handle.close()
 
@@ -283,8 +305,13 @@ def mcap_batches(path: Path, topics: Iterable[str]) -> Iterator[RawBatch] | None
 # --------------------------------------------------------------------------- rosbag2 sqlite3
 
 
-def sqlite_batches(db_paths: list[Path], topics: Iterable[str], batch_rows: int = 65536) -> Iterator[RawBatch]:
-    """Row batches of rosbag2 sqlite3 storage files (uncompressed messages)."""
+def sqlite_batches(
+    db_paths: list[Path], topics: Iterable[str], batch_rows: int = 65536, losses: list | None = None
+) -> Iterator[RawBatch]:
+    """Row batches of rosbag2 sqlite3 storage files (uncompressed messages). Where a damaged
+    file stops the query, what was read is kept and the rest recorded in ``losses``."""
+    from imucal_cli.io.salvage import Loss
+
     wanted = set(topics)
     for db_path in db_paths:
         connection = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
@@ -299,7 +326,13 @@ def sqlite_batches(db_paths: list[Path], topics: Iterable[str], batch_rows: int 
                 list(ids),
             )
             while True:
-                chunk = cursor.fetchmany(batch_rows)
+                try:
+                    chunk = cursor.fetchmany(batch_rows)
+                except sqlite3.DatabaseError as exc:
+                    if losses is None:
+                        raise
+                    losses.append(Loss(f"rows of {db_path.name} that cannot be read ({exc})", 0, 0))
+                    break
                 if not chunk:
                     break
                 id_column, time_column, blobs = zip(*chunk, strict=True)
@@ -332,6 +365,12 @@ def _ros1_header(data: bytes, pos: int) -> tuple[dict[str, bytes], int]:
         fields[name.decode()] = value
         pos += 4 + flen
     return fields, end
+
+
+class _ChunkLost(Exception):  # noqa: N818 - internal signal
+    def __init__(self, reason: str, nbytes: int, start_ns: int | None, end_ns: int | None, counts: dict[str, int]) -> None:
+        super().__init__(reason)
+        self.reason, self.nbytes, self.start_ns, self.end_ns, self.counts = reason, nbytes, start_ns, end_ns, counts
 
 
 class Ros1Bag:
@@ -372,42 +411,64 @@ class Ros1Bag:
                 pairs = np.frombuffer(data, dtype="<u4").reshape(-1, 2)
                 for conn, count in pairs.tolist():
                     self.counts[conn] = self.counts.get(conn, 0) + count
+        if len(self.topics) != self.conn_count or len(self.chunk_positions) != self.chunk_count:
+            raise ValueError(
+                f"index incomplete ({len(self.topics)} of {self.conn_count} connections, "
+                f"{len(self.chunk_positions)} of {self.chunk_count} chunks)"
+            )
 
-    def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
+    def batches(self, topics: Iterable[str], losses: list | None = None) -> Iterator[RawBatch]:
+        from imucal_cli.io.salvage import Loss
+
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
         for chunk_pos in self.chunk_positions:
-            self.handle.seek(chunk_pos)
-            head = self.handle.read(4096)
-            fields, pos = _ros1_header(head, 0)
-            compression = fields["compression"].decode()
-            size = struct.unpack("<I", fields["size"])[0]
-            (data_len,) = struct.unpack_from("<I", head, pos)
-            self.handle.seek(chunk_pos + pos + 4)
-            compressed = self.handle.read(data_len)
-            # index data records follow the chunk, one per connection in it
-            positions: dict[int, np.ndarray] = {}
-            while True:
-                start = self.handle.tell()
-                probe = self.handle.read(4096)
-                if len(probe) < 8:
-                    break
-                try:
-                    fields, pos = _ros1_header(probe, 0)
-                except struct.error:
-                    break
-                if fields.get("op", b"\x00")[0] != 0x04:
-                    break
-                conn = struct.unpack("<I", fields["conn"])[0]
-                count = struct.unpack("<I", fields["count"])[0]
-                (dlen,) = struct.unpack_from("<I", probe, pos)
-                self.handle.seek(start + pos + 4)
-                raw = self.handle.read(dlen)
-                if conn in wanted:
-                    entries = np.frombuffer(raw, dtype=np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")]), count=count)
-                    positions[conn] = entries
-                self.handle.seek(start + pos + 4 + dlen)
-            if not positions:
-                continue
+            try:
+                yield from self._chunk_batches(chunk_pos, wanted)
+            except _ChunkLost as lost:
+                if losses is None:
+                    raise ValueError(lost.reason) from None
+                losses.append(Loss(f"chunk that cannot be read ({lost.reason})", chunk_pos, lost.nbytes, lost.start_ns, lost.end_ns, lost.counts))
+            except Exception as exc:  # noqa: BLE001 - a damaged chunk header or index
+                if losses is None:
+                    raise
+                losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
+
+    def _chunk_batches(self, chunk_pos: int, wanted: dict[int, str]) -> Iterator[RawBatch]:
+        self.handle.seek(chunk_pos)
+        head = self.handle.read(4096)
+        fields, pos = _ros1_header(head, 0)
+        compression = fields["compression"].decode()
+        size = struct.unpack("<I", fields["size"])[0]
+        (data_len,) = struct.unpack_from("<I", head, pos)
+        self.handle.seek(chunk_pos + pos + 4)
+        compressed = self.handle.read(data_len)
+        # index data records follow the chunk, one per connection in it
+        positions: dict[int, np.ndarray] = {}
+        while True:
+            start = self.handle.tell()
+            probe = self.handle.read(4096)
+            if len(probe) < 8:
+                break
+            try:
+                fields, pos = _ros1_header(probe, 0)
+            except struct.error:
+                break
+            if fields.get("op", b"\x00")[0] != 0x04:
+                break
+            conn = struct.unpack("<I", fields["conn"])[0]
+            count = struct.unpack("<I", fields["count"])[0]
+            (dlen,) = struct.unpack_from("<I", probe, pos)
+            self.handle.seek(start + pos + 4)
+            raw = self.handle.read(dlen)
+            if conn in wanted:
+                entries = np.frombuffer(raw, dtype=np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")]), count=count)
+                positions[conn] = entries
+            self.handle.seek(start + pos + 4 + dlen)
+        if not positions:
+            return
+        try:
+            if len(compressed) != data_len:
+                raise ValueError("chunk cut off")
             if compression == "none":
                 data = compressed
             elif compression == "bz2":
@@ -422,10 +483,14 @@ class Ros1Bag:
                 raise ValueError(f"unsupported chunk compression {compression!r}")
             if len(data) != size:
                 raise ValueError("chunk size mismatch")
-            buffer = np.frombuffer(data, dtype=np.uint8)
-            for conn, entries in positions.items():
-                offset = entries["offset"].astype(np.int64)
-                header_len = _gather(buffer, offset, 4, "<u4").ravel().astype(np.int64)
-                data_len = _gather(buffer, offset + 4 + header_len, 4, "<u4").ravel().astype(np.int64)
-                log_ns = entries["sec"].astype(np.int64) * 1_000_000_000 + entries["nsec"].astype(np.int64)
-                yield RawBatch(wanted[conn], "ros1", buffer, offset + 8 + header_len, data_len, log_ns)
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk: its index says what is lost
+            counts = {wanted[c]: len(e) for c, e in positions.items()}
+            times = [int(e["sec"][k]) * 1_000_000_000 + int(e["nsec"][k]) for e in positions.values() if len(e) for k in (0, -1)]
+            raise _ChunkLost(str(exc), data_len, min(times, default=None), max(times, default=None), counts) from None
+        buffer = np.frombuffer(data, dtype=np.uint8)
+        for conn, entries in positions.items():
+            offset = entries["offset"].astype(np.int64)
+            header_len = _gather(buffer, offset, 4, "<u4").ravel().astype(np.int64)
+            data_len = _gather(buffer, offset + 4 + header_len, 4, "<u4").ravel().astype(np.int64)
+            log_ns = entries["sec"].astype(np.int64) * 1_000_000_000 + entries["nsec"].astype(np.int64)
+            yield RawBatch(wanted[conn], "ros1", buffer, offset + 8 + header_len, data_len, log_ns)

@@ -19,6 +19,7 @@ stamps removed; what was reordered, removed or replaced is counted in :class:`Re
 
 from __future__ import annotations
 
+import sqlite3
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -29,6 +30,7 @@ import numpy as np
 
 from imucal_cli.errors import LogError
 from imucal_cli.io.fastimu import RawBatch, Ros1Bag, decode_imu, mcap_batches, sqlite_batches
+from imucal_cli.io.salvage import Loss, ScanResult, scan_mcap, scan_ros1, scan_sqlite_rows
 from imucal_cli.types import ImuStream
 
 IMU_MSGTYPE = "sensor_msgs/msg/Imu"
@@ -67,6 +69,8 @@ class LogReader(ABC):
 
     def __init__(self, path: Path) -> None:
         self.path = path
+        #: What could not be read (damaged or cut-off parts), filled in as messages are read.
+        self.losses: list[Loss] = []
 
     def __enter__(self) -> LogReader:
         return self
@@ -114,10 +118,10 @@ class McapLog(LogReader):
             raise
         except Exception as exc:  # the mcap library raises many types on corrupt input
             self._file.close()
-            raise self.error(f"cannot read MCAP: {exc}") from None
+            raise _NeedsSalvage(f"its summary cannot be read ({exc})") from None
         if self._summary is None:
             self._file.close()
-            raise self.error("MCAP file has no summary section (truncated or still being written)")
+            raise _NeedsSalvage("it has no summary section (cut off, or still being written)")
 
     def close(self) -> None:
         self._file.close()
@@ -137,7 +141,7 @@ class McapLog(LogReader):
         return result
 
     def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
-        return mcap_batches(self.path, topics)
+        return mcap_batches(self.path, topics, self.losses)
 
     def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
         try:
@@ -281,20 +285,22 @@ class Ros1Log(_LazyFallback):
         return out
 
     def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
-        return self._bag.batches(list(topics))
+        return self._bag.batches(list(topics), self.losses)
 
     def close(self) -> None:
         super().close()
         self._handle.close()
 
 
-class Rosbag2Log(_LazyFallback):
-    """An uncompressed rosbag2 directory read through its ``metadata.yaml`` and storage files."""
+class Rosbag2Log(LogReader):
+    """An uncompressed rosbag2 directory: topics from its ``metadata.yaml``, messages from its
+    storage files through the storage's own reader (:class:`Sqlite3Log`, or :class:`McapLog` per
+    file), which also reads what is intact of a damaged file."""
 
     def __init__(self, path: Path) -> None:
         import yaml
 
-        super().__init__(path, ros1=False)
+        super().__init__(path)
         info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         if info.get("compression_format") or info.get("compression_mode"):
             raise ValueError("compressed rosbag2")
@@ -311,12 +317,174 @@ class Rosbag2Log(_LazyFallback):
             topic = meta["name"]
             count = int(entry["message_count"]) + (self._topics[topic].count if topic in self._topics else 0)
             self._topics[topic] = TopicInfo(topic, meta["type"], count, meta["serialization_format"])
+        self._storage: list[LogReader] = [Sqlite3Log(path, self.files)] if storage == "sqlite3" else [_open_mcap(f) for f in self.files]
+        for reader in self._storage:
+            self.losses.extend(reader.losses)
+            reader.losses = self.losses  # one list: what any storage file loses is this log's loss
+            if "recovered" in reader.format_name:
+                self.format_name += " (recovered)"
 
     def topics(self) -> dict[str, TopicInfo]:
         return dict(self._topics)
 
     def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
-        return _rosbag2_batches(self.format_name, self.files, topics)
+        topics = list(topics)
+        parts = [reader.fast_batches(topics) for reader in self._storage]
+        if any(part is None for part in parts):
+            return None
+        return (batch for part in parts for batch in part)  # type: ignore[union-attr]
+
+    def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
+        topics = list(topics)
+        for reader in self._storage:
+            yield from reader.iter_raw(topics)
+
+    def close(self) -> None:
+        for reader in self._storage:
+            reader.close()
+
+
+class _NeedsSalvage(Exception):  # noqa: N818 - a signal to the opener, never seen by users
+    """The container's index cannot be used: read it record by record instead."""
+
+
+class SalvageLog(LogReader):
+    """A damaged MCAP file or ROS 1 bag (no summary or index, cut off, damaged chunks), read
+    record by record from the start (:mod:`imucal_cli.io.salvage`). What could not be read is
+    in :attr:`losses` after a full pass (the opener makes one to list the topics)."""
+
+    def __init__(self, path: Path, kind: str, why: str) -> None:
+        super().__init__(path)
+        self.kind = kind
+        self.why = why
+        self.format_name = f"{kind} (recovered)"
+        self._scan = scan_mcap if kind == "mcap" else scan_ros1
+        try:
+            result, walk = self._scan(path, None)
+            for _ in walk:
+                pass
+        except Exception as exc:  # noqa: BLE001 - a file this damaged is unreadable
+            raise self.error(f"cannot read {kind}: {exc}") from None
+        self.result: ScanResult = result
+        self.losses = list(result.losses)
+        if not result.channels:
+            raise self.error(f"cannot read {kind}: {why}, and no topic could be recovered")
+
+    def topics(self) -> dict[str, TopicInfo]:
+        out: dict[str, TopicInfo] = {}
+        for cid, channel in self.result.channels.items():
+            count = self.result.counts.get(cid, 0) + (out[channel.topic].count if channel.topic in out else 0)
+            out[channel.topic] = TopicInfo(channel.topic, channel.msgtype, count, channel.encoding)
+        return out
+
+    def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
+        _, walk = self._scan(self.path, set(topics))
+        return walk
+
+    def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
+        _, walk = self._scan(self.path, set(topics))
+        for batch in walk:
+            buf = batch.buffer
+            for start, length, log_ns in zip(batch.starts.tolist(), batch.lengths.tolist(), batch.log_time_ns.tolist(), strict=True):
+                yield batch.topic, int(log_ns), bytes(buf[start : start + length])
+
+
+class Sqlite3Log(LogReader):
+    """rosbag2 sqlite3 storage files read directly: a lone ``.db3`` file, the storage of a
+    rosbag2 directory, or one whose ``metadata.yaml`` is missing or unreadable. A file SQLite
+    cannot read (cut off, damaged) is read page by page instead
+    (:func:`~imucal_cli.io.salvage.scan_sqlite_rows`)."""
+
+    format_name = "rosbag2-sqlite3"
+
+    def __init__(self, path: Path, files: list[Path], why: str = "") -> None:
+        super().__init__(path)
+        self.files = files
+        if why:
+            self.format_name = "rosbag2-sqlite3 (storage read directly)"
+        self._topics: dict[str, TopicInfo] = {}
+        self._salvaged: dict[Path, tuple[dict[int, tuple[str, str, str]], list[tuple[int, int, int, bytes]]]] = {}
+        for db in files:
+            try:
+                rows, counts = self._query_topics(db)
+            except sqlite3.DatabaseError as exc:
+                try:
+                    topics, losses, messages = scan_sqlite_rows(db)
+                except (OSError, ValueError) as scan_exc:
+                    raise LogError(str(db), f"cannot read rosbag2 sqlite3 storage: {exc}; {scan_exc}") from None
+                if not topics:
+                    raise LogError(str(db), f"cannot read rosbag2 sqlite3 storage: {exc}; no topic could be recovered") from None
+                self.format_name = "rosbag2-sqlite3 (recovered)"
+                self.losses.append(Loss(f"{db.name}: SQLite cannot read it ({exc}); its pages were read directly", 0, 0))
+                self.losses.extend(losses)
+                self._salvaged[db] = (topics, messages)
+                rows = [(tid, name, msgtype, fmt) for tid, (name, msgtype, fmt) in topics.items()]
+                counts = {}
+                for _, tid, _, _ in messages:
+                    counts[tid] = counts.get(tid, 0) + 1
+            for tid, name, msgtype, fmt in rows:
+                count = int(counts.get(tid, 0)) + (self._topics[name].count if name in self._topics else 0)
+                self._topics[name] = TopicInfo(name, msgtype, count, fmt)
+
+    @staticmethod
+    def _query_topics(db: Path) -> tuple[list[tuple[int, str, str, str]], dict[int, int]]:
+        connection = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        try:
+            rows = connection.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
+            counts = dict(connection.execute("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id").fetchall())
+        finally:
+            connection.close()
+        return rows, counts
+
+    def topics(self) -> dict[str, TopicInfo]:
+        return dict(self._topics)
+
+    def fast_batches(self, topics: Iterable[str]) -> Iterator[RawBatch] | None:
+        wanted = set(topics)
+
+        def generate() -> Iterator[RawBatch]:
+            for db in self.files:
+                if db not in self._salvaged:
+                    yield from sqlite_batches([db], wanted, losses=self.losses)
+                    continue
+                names, messages = self._salvaged[db]
+                ids = {tid: name for tid, (name, _, fmt) in names.items() if name in wanted and fmt == "cdr"}
+                for tid, name in ids.items():
+                    picked = [(stamp, blob) for _, t, stamp, blob in messages if t == tid]
+                    if not picked:
+                        continue
+                    lengths = np.array([len(b) for _, b in picked], dtype=np.int64)
+                    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+                    buffer = np.frombuffer(b"".join(b for _, b in picked), dtype=np.uint8)
+                    yield RawBatch(name, "cdr", buffer, starts, lengths, np.array([t for t, _ in picked], dtype=np.int64))
+
+        return generate()
+
+    def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
+        batches = self.fast_batches(topics)
+        assert batches is not None
+        for batch in batches:
+            buf = batch.buffer
+            for start, length, log_ns in zip(batch.starts.tolist(), batch.lengths.tolist(), batch.log_time_ns.tolist(), strict=True):
+                yield batch.topic, int(log_ns), bytes(buf[start : start + length])
+
+
+def _storage_directly(path: Path, why: str) -> LogReader | None:
+    """A rosbag2 directory without usable metadata: its storage files, read directly."""
+    dbs = sorted(path.glob("*.db3"))
+    if dbs:
+        return Sqlite3Log(path, dbs, why)
+    mcaps = sorted(path.glob("*.mcap"))
+    if len(mcaps) == 1:
+        return _open_mcap(mcaps[0])
+    return None
+
+
+def _open_mcap(path: Path) -> LogReader:
+    try:
+        return McapLog(path)
+    except _NeedsSalvage as exc:
+        return SalvageLog(path, "mcap", str(exc))
 
 
 def detect_format(path: Path) -> str:
@@ -353,18 +521,25 @@ def open_log(path: str | Path) -> LogReader:
         raise LogError(str(path), "no such file or directory")
     kind = detect_format(path)
     if kind == "mcap":
-        return McapLog(path)
+        return _open_mcap(path)
     if kind == "rosbag1":
         try:
             return Ros1Log(path)
-        except Exception:  # unindexed or damaged: the generic reader says what is wrong
-            return RosbagsLog(path, ros1=True)
-    if path.is_dir():
-        try:
-            return Rosbag2Log(path)
-        except Exception:  # compressed, or metadata the generic reader must judge
-            pass
-    return RosbagsLog(path, ros1=False)
+        except Exception as exc:  # noqa: BLE001 - unindexed, cut off or damaged: walk it
+            return SalvageLog(path, "rosbag1", f"its index cannot be used ({exc})")
+    if path.is_file():  # a lone .db3 storage file
+        return Sqlite3Log(path, [path])
+    try:
+        return Rosbag2Log(path)
+    except Exception:  # noqa: BLE001 - compressed, or metadata the generic reader must judge
+        pass
+    try:
+        return RosbagsLog(path, ros1=False)
+    except LogError as exc:
+        direct = _storage_directly(path, str(exc))
+        if direct is None:
+            raise
+        return direct
 
 
 # --------------------------------------------------------------------------- decoding
@@ -530,6 +705,10 @@ class ImuBatches:
         self.topics = list(dict.fromkeys(topics))
         self.fast = fast
         self.stats = {t: ReadStats() for t in self.topics}
+        #: What of the log could not be read (damaged or cut-off parts), after iterating.
+        self.losses: list[Loss] = []
+        #: The container as opened (``"mcap (recovered)"`` where it had to be walked).
+        self.format_name = ""
         self._last_stamp: dict[str, int] = {}
 
     def _count(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, frame_ids: list[str]) -> np.ndarray:
@@ -550,38 +729,45 @@ class ImuBatches:
 
     def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         with open_log(self.path) as log:
-            available = _check_topics(log, self.topics)
-            decoders = _LazyDecoders({t: available[t].encoding for t in self.topics})
-            batches = log.fast_batches(self.topics) if self.fast else None
-            if batches is not None:
-                try:
-                    for batch in batches:
-                        self.stats[batch.topic].messages += len(batch.starts)
-                        decoded = decode_imu(batch)
-                        parts = [(decoded.stamp_ns, decoded.log_time_ns, decoded.gyro, decoded.accel, decoded.frame_ids)]
-                        for i in decoded.undecoded:  # what the layout check did not recognise
-                            start, length = int(batch.starts[i]), int(batch.lengths[i])
-                            one = self._decode_one(batch.topic, decoders[batch.topic], bytes(batch.buffer[start : start + length]), int(batch.log_time_ns[i]))
-                            if one is not None:
-                                parts.append(one)
-                        for stamps, log_times, gyro, accel, frames in parts:
-                            yield batch.topic, self._count(batch.topic, stamps, log_times, frames), log_times, gyro, accel
-                except LogError:
-                    raise
-                except Exception as exc:  # noqa: BLE001 - a damaged container: say so, naming the file
-                    raise log.error(f"cannot read messages: {exc}") from None
-                return
-            pending: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]]] = {t: [] for t in self.topics}
-            count = 0
-            for topic, log_time_ns, data in log.iter_raw(self.topics):
-                self.stats[topic].messages += 1
-                one = self._decode_one(topic, decoders[topic], data, log_time_ns)
-                if one is not None:
-                    pending[topic].append(one)
-                count += 1
-                if count % 4096 == 0:
-                    yield from self._flush(pending)
-            yield from self._flush(pending)
+            self.format_name = log.format_name
+            try:
+                yield from self._read(log)
+            finally:
+                self.losses = list(log.losses)
+
+    def _read(self, log: LogReader) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        available = _check_topics(log, self.topics)
+        decoders = _LazyDecoders({t: available[t].encoding for t in self.topics})
+        batches = log.fast_batches(self.topics) if self.fast else None
+        if batches is not None:
+            try:
+                for batch in batches:
+                    self.stats[batch.topic].messages += len(batch.starts)
+                    decoded = decode_imu(batch)
+                    parts = [(decoded.stamp_ns, decoded.log_time_ns, decoded.gyro, decoded.accel, decoded.frame_ids)]
+                    for i in decoded.undecoded:  # what the layout check did not recognise
+                        start, length = int(batch.starts[i]), int(batch.lengths[i])
+                        one = self._decode_one(batch.topic, decoders[batch.topic], bytes(batch.buffer[start : start + length]), int(batch.log_time_ns[i]))
+                        if one is not None:
+                            parts.append(one)
+                    for stamps, log_times, gyro, accel, frames in parts:
+                        yield batch.topic, self._count(batch.topic, stamps, log_times, frames), log_times, gyro, accel
+            except LogError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a damaged container: say so, naming the file
+                raise log.error(f"cannot read messages: {exc}") from None
+            return
+        pending: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]]] = {t: [] for t in self.topics}
+        count = 0
+        for topic, log_time_ns, data in log.iter_raw(self.topics):
+            self.stats[topic].messages += 1
+            one = self._decode_one(topic, decoders[topic], data, log_time_ns)
+            if one is not None:
+                pending[topic].append(one)
+            count += 1
+            if count % 4096 == 0:
+                yield from self._flush(pending)
+        yield from self._flush(pending)
 
     def _flush(self, pending: dict[str, list]) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         for topic, items in pending.items():
@@ -614,6 +800,7 @@ def read_imu(
     topics: Iterable[str],
     progress: Callable[[int], None] | None = None,
     fast: bool = True,
+    losses: list[Loss] | None = None,
 ) -> dict[str, ImuRead]:
     """Read ``sensor_msgs/Imu`` topics of a log into one :class:`ImuRead` per topic.
 
@@ -635,6 +822,8 @@ def read_imu(
         count += len(stamps)
         if progress is not None:
             progress(count)
+    if losses is not None:
+        losses.extend(reader.losses)
     out = {}
     for topic in reader.topics:
         stats = reader.stats[topic]
@@ -668,6 +857,7 @@ class LogSummary:
     format_name: str
     t0_ns: int
     topics: list[TopicTiming]
+    losses: list[Loss] = field(default_factory=list)
 
 
 #: A gap is a step between consecutive stamps longer than this many median periods.
@@ -721,6 +911,7 @@ def summarize_log(path: str | Path) -> LogSummary:
                     continue
             stamps[topic].append(stamp)
         format_name = log.format_name
+        losses = list(log.losses)
     arrays = {t: np.asarray(s, dtype=np.int64) for t, s in stamps.items()}
     firsts = [int(a.min()) for a in arrays.values() if len(a)]
     t0_ns = min(firsts) if firsts else 0
@@ -734,4 +925,4 @@ def summarize_log(path: str | Path) -> LogSummary:
         )
         for topic in sorted(available)
     ]
-    return LogSummary(str(path), format_name, t0_ns, timings)
+    return LogSummary(str(path), format_name, t0_ns, timings, losses)

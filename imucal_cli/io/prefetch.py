@@ -84,7 +84,7 @@ def _child(reader: StatsReader, conn: Any) -> None:  # pragma: no cover - runs i
     try:
         for item in reader:
             conn.send(item)
-        conn.send(_Done(reader.stats))
+        conn.send(_Done((reader.stats, getattr(reader, "losses", None))))
     except BaseException as exc:  # noqa: BLE001 - handed to the parent
         try:
             conn.send(_Raised(exc))
@@ -128,7 +128,9 @@ def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[A
             if isinstance(item, _Raised):
                 raise item.exc
             if isinstance(item, _Done):
-                reader.stats = item.stats
+                reader.stats, losses = item.stats
+                if losses is not None:
+                    reader.losses = losses  # type: ignore[attr-defined]
                 return
             yield item
     finally:
