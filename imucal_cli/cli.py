@@ -6,6 +6,7 @@ partial output file. Heavy imports happen inside the commands so ``imucal --help
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import sys
 from collections.abc import Callable, Iterator
@@ -275,6 +276,45 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     return config, streams
 
 
+#: Spread of receive latencies allowed between topics when their clocks are compared (s).
+CLOCK_COMPARE_SLACK_S = 0.05
+
+
+class _ClockCheck:
+    """Compares each IMU's stamps with the recorder's log (receive) times, which all topics
+    share: the median of ``stamp - log_time`` over a topic's first batch is its clock's offset
+    from the recorder's. A sensor whose offset differs from the base's by more than
+    ``max_time_offset_s`` (plus receive-latency slack) is on another clock (stamped from power-on,
+    say), which the time-offset search cannot bridge: the user must fix the clock or the config."""
+
+    def __init__(self, log: Path, base_topic: str, max_offset_s: float) -> None:
+        self.log, self.base_topic, self.max_offset_s = log, base_topic, max_offset_s
+        self.offsets: dict[str, float] = {}
+        self.checked = False
+
+    def add(self, topic: str, stamps: Any, log_times: Any) -> None:
+        import numpy as np
+
+        if topic in self.offsets or not len(stamps):
+            return
+        self.offsets[topic] = float(np.median((stamps - log_times).astype(np.float64))) * 1e-9
+
+    def check(self, topics: list[str]) -> None:
+        if self.checked or not all(t in self.offsets for t in topics):
+            return
+        self.checked = True
+        base = self.offsets[self.base_topic]
+        for topic in topics:
+            difference = self.offsets[topic] - base
+            if abs(difference) > self.max_offset_s + CLOCK_COMPARE_SLACK_S:
+                raise InputError(
+                    f"{self.log} [{topic}]: stamps are {difference:+.3f} s from the base IMU's "
+                    f"({self.base_topic}), measured against the log's receive times; "
+                    f"calibration.max_time_offset_s is {self.max_offset_s:g} s: fix the sensor's "
+                    "clock, or raise max_time_offset_s if the offset is real"
+                )
+
+
 def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
     nothing solved yet). Returns the config, the calibrator and the log's first IMU stamp."""
@@ -289,9 +329,12 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
     reader = ImuBatches(log, names)
     t0_ns: int | None = None
     count = 0
+    clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
     batches = read_ahead(reader)  # decoding runs beside the math, in a child process
-    with _progress(f"reading {log}") as progress:
-        for topic, stamps, _log_times, gyro, accel in batches:
+    with _progress(f"reading {log}") as progress, contextlib.closing(batches):
+        for topic, stamps, log_times, gyro, accel in batches:
+            clocks.add(topic, stamps, log_times)
+            clocks.check(list(names))
             if len(stamps):
                 first = int(stamps.min())
                 t0_ns = first if t0_ns is None else min(t0_ns, first)
@@ -300,7 +343,7 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
             progress(count)
     _note_losses(log, reader.losses)
     for topic, stats in reader.stats.items():
-        usable = stats.messages - stats.decode_errors
+        usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated
         if usable < 10:
             raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages")
     if calibrator.t_ref_ns is None or t0_ns is None:

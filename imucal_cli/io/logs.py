@@ -594,6 +594,9 @@ class ReadStats:
     backwards: int = 0  # stamp earlier than the previous message's (in log order): sorted
     duplicates: int = 0  # stamp equal to an earlier one: removed (the first is kept)
     decode_errors: int = 0  # messages that could not be deserialized: skipped
+    non_finite: int = 0  # a NaN or infinite gyro or accelerometer value: dropped
+    saturated: int = 0  # a gyro or accelerometer axis clipped at its range: dropped
+    clock_jumps: int = 0  # stamps leaping by more than CLOCK_JUMP_S (forwards or back)
     frame_ids: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -603,6 +606,9 @@ class ReadStats:
             "backwards": self.backwards,
             "duplicates": self.duplicates,
             "decode_errors": self.decode_errors,
+            "non_finite": self.non_finite,
+            "saturated": self.saturated,
+            "clock_jumps": self.clock_jumps,
         }
 
 
@@ -695,6 +701,33 @@ class _LazyDecoders:
         return self._made[topic]
 
 
+#: A step between consecutive stamps of one topic longer than this (s) is a clock jump.
+CLOCK_JUMP_S = 60.0
+#: Smallest magnitude a run of identical extreme samples must have to be called clipped: a
+#: gyro past 2 rad/s or an accelerometer past 1.5 g is beyond vehicle motion and at the range
+#: of common MEMS parts (+-125 deg/s and up, +-2 g and up).
+SATURATION_GYRO_RADPS = 2.0
+SATURATION_ACCEL_MPS2 = 1.5 * 9.80665
+#: A value repeated this many samples in a row at its batch's extreme is clipped.
+SATURATION_RUN = 3
+
+
+def _clipped(values: np.ndarray, floor: float) -> np.ndarray:
+    """Rows where some axis sits at the batch's extreme magnitude (at least ``floor``) for
+    ``SATURATION_RUN`` or more samples in a row: what a sensor at the end of its range outputs."""
+    out = np.zeros(len(values), dtype=bool)
+    if len(values) < SATURATION_RUN:
+        return out
+    magnitude = np.abs(values)
+    extreme = magnitude.max(axis=0)
+    for axis in np.flatnonzero(extreme >= floor):
+        at = magnitude[:, axis] == extreme[axis]
+        run = np.convolve(at.astype(np.int64), np.ones(SATURATION_RUN, dtype=np.int64), mode="valid") == SATURATION_RUN
+        for k in range(SATURATION_RUN):
+            out[k : k + len(run)] |= run
+    return out
+
+
 class ImuBatches:
     """Decoded ``sensor_msgs/Imu`` batches of a log, in the container's order, without holding
     the whole log: ``(topic, stamp_ns, log_time_ns, gyro, accel)`` per batch (stamps that are
@@ -711,6 +744,22 @@ class ImuBatches:
         self.format_name = ""
         self._last_stamp: dict[str, int] = {}
 
+    def _screen(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray):  # noqa: ANN202
+        """Drop (and count) samples with non-finite or clipped values."""
+        st = self.stats[topic]
+        finite = np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1)
+        bad = ~finite
+        st.non_finite += int(np.count_nonzero(bad))
+        clipped = np.zeros(len(stamps), dtype=bool)
+        if finite.any():
+            clipped[finite] = _clipped(gyro[finite], SATURATION_GYRO_RADPS) | _clipped(accel[finite], SATURATION_ACCEL_MPS2)
+        st.saturated += int(np.count_nonzero(clipped))
+        bad |= clipped
+        if bad.any():
+            keep = ~bad
+            return stamps[keep], log_times[keep], gyro[keep], accel[keep]
+        return stamps, log_times, gyro, accel
+
     def _count(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, frame_ids: list[str]) -> np.ndarray:
         st = self.stats[topic]
         zero = stamps == 0
@@ -721,6 +770,7 @@ class ImuBatches:
             previous = self._last_stamp.get(topic)
             steps = np.diff(stamps if previous is None else np.concatenate([[previous], stamps]))
             st.backwards += int(np.count_nonzero(steps < 0))
+            st.clock_jumps += int(np.count_nonzero(np.abs(steps) > CLOCK_JUMP_S * 1e9))
             self._last_stamp[topic] = int(stamps[-1])
         for name in frame_ids:
             if name not in st.frame_ids:
@@ -751,6 +801,7 @@ class ImuBatches:
                         if one is not None:
                             parts.append(one)
                     for stamps, log_times, gyro, accel, frames in parts:
+                        stamps, log_times, gyro, accel = self._screen(batch.topic, stamps, log_times, gyro, accel)
                         yield batch.topic, self._count(batch.topic, stamps, log_times, frames), log_times, gyro, accel
             except LogError:
                 raise
@@ -776,8 +827,10 @@ class ImuBatches:
             stamps = np.concatenate([i[0] for i in items])
             log_times = np.concatenate([i[1] for i in items])
             frames = [f for i in items for f in i[4]]
+            gyro, accel = np.concatenate([i[2] for i in items]), np.concatenate([i[3] for i in items])
+            stamps, log_times, gyro, accel = self._screen(topic, stamps, log_times, gyro, accel)
             stamps = self._count(topic, stamps, log_times, list(dict.fromkeys(frames)))
-            yield topic, stamps, log_times, np.concatenate([i[2] for i in items]), np.concatenate([i[3] for i in items])
+            yield topic, stamps, log_times, gyro, accel
             items.clear()
 
     def _decode_one(self, topic: str, decode: Callable[[bytes], ImuSample], data: bytes, log_time_ns: int):  # noqa: ANN202

@@ -123,8 +123,9 @@ def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[A
             if isinstance(item, (_Done, _Raised)):
                 return
 
+    queued = _queued(receive(), DEPTH)
     try:
-        for item in _queued(receive(), DEPTH):
+        for item in queued:
             if isinstance(item, _Raised):
                 raise item.exc
             if isinstance(item, _Done):
@@ -134,7 +135,12 @@ def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[A
                 return
             yield item
     finally:
+        # end the child first: its end of the pipe closes, so the receiving thread stops
         if process.is_alive():
             process.terminate()
         process.join()
-        receiving.close()
+        queued.close()
+        try:
+            receiving.close()
+        except OSError:
+            pass

@@ -1,0 +1,251 @@
+"""Damaged logs: every intact message is recovered, bit-exact, and what was lost is said."""
+
+from __future__ import annotations
+
+import shutil
+import struct
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from imucal_cli.cli import app
+from imucal_cli.io.logs import open_log, read_imu
+from imucal_cli.io.writers import FORMATS, write_imu_log
+
+runner = CliRunner()
+NAMES = {"mcap": "d.mcap", "mcap-ros1": "d.mcap", "rosbag2-sqlite3": "d", "rosbag2-mcap": "d", "rosbag1": "d.bag"}
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory, short_drive):
+    """The short drive in every format, and its messages as read from the intact logs."""
+    root = tmp_path_factory.mktemp("faults")
+    out = {}
+    for fmt in FORMATS:
+        (root / fmt).mkdir()
+        log = write_imu_log(root / fmt / NAMES[fmt], fmt, short_drive.topics())
+        topics = list(short_drive.topics())
+        out[fmt] = (log, topics, read_imu(log, topics))
+    return out
+
+
+def _storage(log):
+    """The file holding the messages (the storage file of a rosbag2 directory)."""
+    if log.is_dir():
+        return next(p for p in log.iterdir() if p.suffix in (".db3", ".mcap"))
+    return log
+
+
+def _copy(log, name):
+    target = log.parent / name
+    if log.is_dir():
+        shutil.copytree(log, target)
+    else:
+        target = target.with_suffix(log.suffix)
+        shutil.copy(log, target)
+    return target
+
+
+def _assert_subset_exact(full, got):
+    """Every recovered sample is the written one, bit for bit."""
+    for topic, read in got.items():
+        ref = full[topic].stream
+        index = np.searchsorted(ref.t_ns, read.stream.t_ns)
+        assert np.all(index < len(ref.t_ns))
+        assert np.array_equal(ref.t_ns[index], read.stream.t_ns), topic
+        assert ref.gyro[index].tobytes() == read.stream.gyro.tobytes()
+        assert ref.accel[index].tobytes() == read.stream.accel.tobytes()
+
+
+@pytest.mark.parametrize("fraction", [0.5, 0.9])
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_cut_off_log_keeps_the_messages_before_the_cut(logs, fmt, fraction):
+    log, topics, full = logs[fmt]
+    cut = _copy(log, f"cut{int(fraction * 100)}")
+    storage = _storage(cut)
+    data = storage.read_bytes()
+    storage.write_bytes(data[: int(len(data) * fraction)])
+    losses = []
+    got = read_imu(cut, topics, losses=losses)
+    _assert_subset_exact(full, got)
+    recovered = sum(len(r.stream) for r in got.values())
+    total = sum(len(r.stream) for r in full.values())
+    # Compressed chunks hold the messages evenly: what is before the cut is about `fraction`
+    # of them; one partly written chunk and the headers (a few per cent here) may be lost.
+    assert recovered >= (fraction - 0.05) * total, (recovered, total)
+    assert recovered < total
+    assert losses, "a cut-off log must say what it lost"
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag1"])
+def test_corrupt_chunk_is_skipped_and_counted_exactly(logs, fmt):
+    log, topics, full = logs[fmt]
+    bad = _copy(log, "corrupt")
+    with open_log(log) as reader:
+        assert reader.format_name in ("mcap", "rosbag1")
+    data = bytearray(bad.read_bytes())
+    # damage the middle of the file: inside the compressed data of a chunk
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(64)
+    bad.write_bytes(bytes(data))
+    losses = []
+    got = read_imu(bad, topics, losses=losses)
+    _assert_subset_exact(full, got)
+    lost = sum(len(full[t].stream) - len(got[t].stream) for t in topics)
+    assert lost > 0 and len(losses) >= 1
+    counted = sum(sum(x.messages.values()) for x in losses if x.messages)
+    if counted:  # from the container's index: exact
+        assert counted == lost
+
+
+def test_rosbag1_without_index_is_read_whole(logs):
+    log, topics, full = logs["rosbag1"]
+    bag = _copy(log, "noindex")
+    data = bytearray(bag.read_bytes())
+    # the bag header record's index_pos field: what a recorder killed before closing leaves (0)
+    at = data.index(b"index_pos=") + len(b"index_pos=")
+    index_pos = struct.unpack_from("<Q", data, at)[0]
+    data[at : at + 8] = struct.pack("<Q", 0)
+    bag.write_bytes(bytes(data[:index_pos]))
+    got = read_imu(bag, topics)
+    _assert_subset_exact(full, got)
+    assert all(len(got[t].stream) == len(full[t].stream) for t in topics)
+
+
+@pytest.mark.parametrize("fmt", ["rosbag2-sqlite3", "rosbag2-mcap"])
+@pytest.mark.parametrize("damage", ["missing", "broken"])
+def test_rosbag2_without_usable_metadata_reads_the_storage(logs, fmt, damage):
+    log, topics, full = logs[fmt]
+    copy = _copy(log, f"meta_{damage}")
+    if damage == "missing":
+        (copy / "metadata.yaml").unlink()
+    else:
+        (copy / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: [")
+    got = read_imu(copy, topics)
+    _assert_subset_exact(full, got)
+    assert all(len(got[t].stream) == len(full[t].stream) for t in topics)
+
+
+def test_calibrate_goes_on_after_a_cut_and_stops_when_too_little_remains(logs, tmp_path, short_drive):
+    from imucal_cli.io.reports import write_document
+
+    log, topics, full = logs["mcap"]
+    config = tmp_path / "c.yaml"
+    write_document(config, short_drive.config_document())
+    for fraction, code in ((0.9, 0), (0.02, 2)):
+        cut = _copy(log, f"cli{fraction}")
+        data = cut.read_bytes()
+        cut.write_bytes(data[: int(len(data) * fraction)])
+        out = tmp_path / f"e{fraction}.yaml"
+        result = runner.invoke(app, ["calibrate", str(cut), "-c", str(config), "-o", str(out)])
+        assert result.exit_code == code, result.output
+        assert "Traceback" not in result.output
+        assert str(cut) in result.stderr
+        if code == 0:
+            assert "not read" in result.stderr and out.exists()
+        else:
+            assert not out.exists() and len(result.stderr.strip().splitlines()) == 1
+
+
+def _with(stream, gyro=None, accel=None, t_ns=None):
+    from imucal_cli.types import ImuStream
+
+    return ImuStream(
+        stream.t_ns if t_ns is None else t_ns,
+        stream.gyro if gyro is None else gyro,
+        stream.accel if accel is None else accel,
+        stream.frame_id,
+    )
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag1"])
+def test_non_finite_and_clipped_samples_are_dropped_and_counted(tmp_path, short_drive, fmt):
+    from imucal_cli.io.writers import TopicData
+
+    topics = short_drive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    gyro, accel = data.stream.gyro.copy(), data.stream.accel.copy()
+    gyro[[10, 500]] = np.nan
+    accel[700, 2] = np.inf
+    accel[900, 0] = -np.inf
+    gyro[1000:1006, 1] = 4.3633  # 250 deg/s: a part at the end of its range, six samples
+    accel[1500:1503, 0] = -2 * 9.80665  # a +-2 g part, three samples
+    topics[name] = TopicData(_with(data.stream, gyro, accel), data.log_time_ns)
+    log = write_imu_log(tmp_path / NAMES[fmt], fmt, topics)
+    from imucal_cli.io.logs import ImuBatches
+
+    reader = ImuBatches(log, list(topics))
+    kept = [t for topic, t, *_ in reader if topic == name]
+    stats = reader.stats[name]
+    assert stats.non_finite == 4
+    assert stats.saturated == 9
+    dropped = set(data.stream.t_ns[[10, 500, 700, 900, *range(1000, 1006), *range(1500, 1503)]].tolist())
+    got = set(np.concatenate(kept).tolist())
+    assert not got & dropped
+    assert len(got) == len(data.stream) - 13
+    # the other topics (the same motion, no clipping) lose nothing
+    for other in topics:
+        if other != name:
+            assert reader.stats[other].saturated == 0 and reader.stats[other].non_finite == 0
+
+
+def test_clock_jump_is_counted(tmp_path, short_drive):
+    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.io.writers import TopicData
+
+    topics = short_drive.topics()
+    name = "/gnss/imu"
+    data = topics[name]
+    t = data.stream.t_ns.copy()
+    t[1000:] += 300 * 10**9  # the clock leaps five minutes
+    topics[name] = TopicData(_with(data.stream, t_ns=t), data.log_time_ns)
+    log = write_imu_log(tmp_path / "j.mcap", "mcap", topics)
+    reader = ImuBatches(log, list(topics))
+    for _ in reader:
+        pass
+    assert reader.stats[name].clock_jumps == 1
+    assert all(reader.stats[t].clock_jumps == 0 for t in topics if t != name)
+
+
+def test_sensor_on_another_clock_exits_2_with_the_measured_offset(tmp_path, short_drive):
+    from imucal_cli.io.reports import write_document
+    from imucal_cli.io.writers import TopicData
+
+    topics = short_drive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    boot = data.stream.t_ns - data.stream.t_ns[0] + 12_345_000_000  # stamped from power-on
+    topics[name] = TopicData(_with(data.stream, t_ns=boot), data.log_time_ns)
+    log = write_imu_log(tmp_path / "p.mcap", "mcap", topics)
+    config = tmp_path / "c.yaml"
+    write_document(config, short_drive.config_document())
+    out = tmp_path / "e.yaml"
+    result = runner.invoke(app, ["calibrate", str(log), "-c", str(config), "-o", str(out)])
+    assert result.exit_code == 2, result.output
+    line = result.stderr.strip()
+    assert len(line.splitlines()) == 1 and str(log) in line and name in line and "max_time_offset_s" in line
+    expected = (int(boot[0]) - int(data.stream.t_ns[0])) * 1e-9
+    measured = float(line.split("stamps are ")[1].split(" s")[0])
+    assert measured == pytest.approx(expected, abs=0.05)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("rate", [100.0, 200.0, 400.0])
+def test_sensor_rates_up_to_400_hz(tmp_path, rate):
+    from imucal_cli.sim import DriveOptions, simulate_drive
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=40.0, seed=3, lidar_rate_hz=rate))
+    log = write_imu_log(tmp_path / "r.mcap", "mcap", drive.topics())
+    from imucal_cli.io.reports import write_document
+
+    config = tmp_path / "c.yaml"
+    write_document(config, drive.config_document())
+    truth = tmp_path / "t.yaml"
+    write_document(truth, drive.truth_document())
+    out = tmp_path / "e.json"
+    result = runner.invoke(app, ["calibrate", str(log), "-c", str(config), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(app, ["evaluate", str(out), str(truth), "--max-rotation-deg", "0.1", "--max-translation-m", "0.03"])
+    assert result.exit_code == 0, result.output
