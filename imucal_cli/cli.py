@@ -245,9 +245,18 @@ def _note_read(log: Path, topic: str, counts: dict[str, int]) -> None:
 def _note_losses(log: Path, losses: list[Any]) -> None:
     """One line on stderr per part of the log that could not be read (at most five, then a count)."""
     for loss in losses[:5]:
-        typer.echo(f"imucal: warning: {log}: not read: {loss.describe()}", err=True)
+        typer.echo(f"imucal: warning: {log}: {loss.describe()}", err=True)
     if len(losses) > 5:
         typer.echo(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read", err=True)
+
+
+def _lost(losses: list[Any]) -> str:
+    """For an error message: what of the log could not be read, if anything."""
+    real = [x for x in losses if x.lost]
+    if not real:
+        return ""
+    more = f" and {len(real) - 1} more" if len(real) > 1 else ""
+    return f" (damaged parts were skipped: {real[0].describe()}{more})"
 
 
 def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
@@ -261,11 +270,12 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     losses: list[Any] = []
     with _progress(f"reading {log}") as progress:
         reads = read_imu(log, topics, progress=progress, losses=losses)
+    for topic, read in reads.items():
+        if len(read.stream) < 10:
+            raise InputError(f"{log} [{topic}]: too little data: {len(read.stream)} usable messages{_lost(losses)}")
     _note_losses(log, losses)
     for topic, read in reads.items():
         stats = read.stats
-        if len(read.stream) < 10:
-            raise InputError(f"{log} [{topic}]: too little data: {len(read.stream)} usable messages")
         _note_read(log, topic, stats.to_dict())
     t0_ns = min(int(r.stream.t_ns[0]) for r in reads.values())
     streams = DriveStreams(
@@ -297,7 +307,9 @@ class _ClockCheck:
 
         if topic in self.offsets or not len(stamps):
             return
-        self.offsets[topic] = float(np.median((stamps - log_times).astype(np.float64))) * 1e-9
+        # the first samples only: a clock that jumps later is a jump, not another clock
+        first = slice(0, 200)
+        self.offsets[topic] = float(np.median((stamps[first] - log_times[first]).astype(np.float64))) * 1e-9
 
     def check(self, topics: list[str]) -> None:
         if self.checked or not all(t in self.offsets for t in topics):
@@ -341,17 +353,18 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
             calibrator.add(names[topic], stamps, gyro, accel)
             count += len(stamps)
             progress(count)
-    _note_losses(log, reader.losses)
+    lost = _lost(reader.losses)
     for topic, stats in reader.stats.items():
         usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated
         if usable < 10:
-            raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages")
+            raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages{lost}")
     if calibrator.t_ref_ns is None or t0_ns is None:
-        raise InputError(f"{log}: too little data: an IMU topic has no messages")
+        raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
     try:
         calibrator.process(final=True)
     except ImucalError as exc:
-        raise InputError(f"{log}: {exc}") from None
+        raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
+    _note_losses(log, reader.losses)
     for topic, stats in reader.stats.items():
         _note_read(log, topic, stats.to_dict() | {"duplicates": calibrator.duplicates(names[topic])})
     return config, calibrator, t0_ns

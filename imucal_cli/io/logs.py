@@ -366,7 +366,7 @@ class SalvageLog(LogReader):
         except Exception as exc:  # noqa: BLE001 - a file this damaged is unreadable
             raise self.error(f"cannot read {kind}: {exc}") from None
         self.result: ScanResult = result
-        self.losses = list(result.losses)
+        self.losses = [Loss(f"read record by record: {why}", 0, 0, lost=False), *result.losses]
         if not result.channels:
             raise self.error(f"cannot read {kind}: {why}, and no topic could be recovered")
 
@@ -415,7 +415,7 @@ class Sqlite3Log(LogReader):
                 if not topics:
                     raise LogError(str(db), f"cannot read rosbag2 sqlite3 storage: {exc}; no topic could be recovered") from None
                 self.format_name = "rosbag2-sqlite3 (recovered)"
-                self.losses.append(Loss(f"{db.name}: SQLite cannot read it ({exc}); its pages were read directly", 0, 0))
+                self.losses.append(Loss(f"{db.name}: SQLite cannot read it ({exc}); its pages were read directly", 0, 0, lost=False))
                 self.losses.extend(losses)
                 self._salvaged[db] = (topics, messages)
                 rows = [(tid, name, msgtype, fmt) for tid, (name, msgtype, fmt) in topics.items()]
@@ -472,12 +472,15 @@ class Sqlite3Log(LogReader):
 def _storage_directly(path: Path, why: str) -> LogReader | None:
     """A rosbag2 directory without usable metadata: its storage files, read directly."""
     dbs = sorted(path.glob("*.db3"))
-    if dbs:
-        return Sqlite3Log(path, dbs, why)
     mcaps = sorted(path.glob("*.mcap"))
-    if len(mcaps) == 1:
-        return _open_mcap(mcaps[0])
-    return None
+    if dbs:
+        reader: LogReader = Sqlite3Log(path, dbs, why)
+    elif len(mcaps) == 1:
+        reader = _open_mcap(mcaps[0])
+    else:
+        return None
+    reader.losses.insert(0, Loss(f"metadata.yaml unusable ({why.removeprefix(str(path) + ': ')}); storage files read directly", 0, 0, lost=False))
+    return reader
 
 
 def _open_mcap(path: Path) -> LogReader:

@@ -43,15 +43,18 @@ class Loss:
     start_ns: int | None = None  # log-time span, where the container says
     end_ns: int | None = None
     messages: dict[str, int] | None = None  # per topic, where the container says
+    lost: bool = True  # False: a note on how the log was read, nothing lost by it
 
     def describe(self) -> str:
+        if not self.lost:
+            return self.reason
         span = ""
         if self.start_ns is not None and self.end_ns is not None and self.end_ns >= self.start_ns:
             span = f", {(self.end_ns - self.start_ns) * 1e-9:.2f} s of log time"
         count = ""
         if self.messages:
             count = ", " + ", ".join(f"{n} messages of {t}" for t, n in sorted(self.messages.items()))
-        return f"{self.reason} at byte {self.offset} ({self.nbytes} bytes{span}{count})"
+        return f"not read: {self.reason} at byte {self.offset} ({self.nbytes} bytes{span}{count})"
 
 
 @dataclass
