@@ -462,7 +462,7 @@ def calibrate(
     _check_output(out)
     cfg, calibrator, _ = _stream_log(log, config)
     with _progress("calibrating"):
-        result = CalibrationResult(calibrator.estimates(), cfg)
+        result = CalibrationResult(calibrator.estimates(), cfg, dict(calibrator.rates_hz))
     document = calibration_document(result, str(log))
 
     def render(doc: dict[str, Any]) -> None:
@@ -509,6 +509,51 @@ def _transforms(path: Path, key: str) -> dict[str, Any]:
         except ConfigError as exc:
             raise InputError(str(exc)) from None
     return out
+
+
+PANEL_EXPORT = "Export"
+LAUNCH_SUFFIX = {"tf-static-ros2": ".launch.xml", "tf-static-ros1": ".launch"}
+
+
+@app.command(rich_help_panel=PANEL_EXPORT)
+@handles_errors
+def export(
+    extrinsics: Annotated[Path, typer.Argument(help="What `imucal calibrate -o` wrote (YAML or JSON).")],
+    fmt: Annotated[
+        str,
+        typer.Option("--format", "-f", help="autoware, urdf, tf-static-ros2, tf-static-ros1, kalibr or json."),
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "-o", "--out",
+            help="Write here (tf-static: the command lines; the launch file goes beside it as "
+            "STEM.launch.xml for ROS 2, STEM.launch for ROS 1). Default: print.",
+        ),
+    ] = None,
+    parent: Annotated[str | None, typer.Option("--parent", help="Parent frame (default: the calibration's base frame).")] = None,
+) -> None:
+    """The extrinsics in the layout of Autoware, URDF, tf2 static publishers, Kalibr or JSON."""
+    from imucal_cli.io.exports import FORMATS, Extrinsics, export as make
+    from imucal_cli.io.reports import load_document, write_text_atomic
+
+    if fmt not in FORMATS:
+        raise InputError(f"--format {fmt}: unknown format (expected one of: {', '.join(FORMATS)})")
+    if out is not None and not out.parent.is_dir():
+        raise InputError(f"{out}: output folder {out.parent} does not exist")
+    files = make(Extrinsics.from_document(load_document(extrinsics), str(extrinsics)), fmt, parent)
+    if out is None:
+        typer.echo(files["main"], nl=False)
+        if "launch" in files:
+            typer.echo(files["launch"], nl=False)
+        return
+    targets = {"main": out}
+    if "launch" in files:
+        stem = out.name.split(".")[0] or out.name
+        targets["launch"] = out.with_name(stem + LAUNCH_SUFFIX[fmt])
+    for key, path in targets.items():
+        write_text_atomic(path, files[key])
+        typer.echo(f"imucal: wrote {path}", err=True)
 
 
 @app.command(rich_help_panel=PANEL_CAL)

@@ -7,7 +7,7 @@ No I/O: functions take streams and a config, return results, and build the SPEC'
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import combinations
 from typing import Any
 
@@ -152,6 +152,8 @@ def segments_document(t0_ns: int, config: Config, calibrator: StreamingCalibrato
 class CalibrationResult:
     estimates: dict[str, SensorEstimate]
     config: Config
+    #: Median sample rate of each IMU ("base" and the sensor names), where measured (Hz).
+    rates_hz: Mapping[str, float] = field(default_factory=dict)
 
     def T_base_lidar(self, name: str) -> Transform:
         return self.estimates[name].T_base_imu * self.config.sensor(name).T_imu_lidar
@@ -165,11 +167,17 @@ def run_calibrate(streams: DriveStreams, config: Config) -> CalibrationResult:
     """Calibrate every sensor from in-memory streams."""
     calibrator = make_calibrator(config)
     feed(calibrator, streams)
-    return CalibrationResult(calibrator.finish(), config)
+    estimates = calibrator.finish()
+    return CalibrationResult(estimates, config, dict(calibrator.rates_hz))
 
 
 def _std_list(values: np.ndarray | None) -> list[float] | None:
     return None if values is None else [float(v) for v in values]
+
+
+def _rate(result: CalibrationResult, name: str) -> float | None:
+    rate = result.rates_hz.get(name)
+    return None if rate is None else round(float(rate), 6)
 
 
 def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
@@ -182,6 +190,7 @@ def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
             "status": est.status,
             "imu_topic": sensor.imu_topic,
             "lidar_frame": sensor.lidar_frame,
+            "imu_rate_hz": _rate(result, sensor.name),
             "T_base_imu": est.T_base_imu.to_dict(),
             "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
             "rotation_std_deg": _std_list(None if cov is None else np.degrees(np.sqrt(np.diag(cov)[:3]))),
@@ -203,6 +212,8 @@ def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
         "imucal_version": __version__,
         "log": log,
         "base_frame": config.base.frame,
+        "base_topic": config.base.topic,
+        "base_imu_rate_hz": _rate(result, "base"),
         "sensors": sensors,
         "pairs": pairs,
     }

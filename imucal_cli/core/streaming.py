@@ -188,6 +188,8 @@ class StreamingCalibrator:
         self.tau0: dict[str, float] = {}
         self.noise: dict[str, tuple[float, float]] = {}
         self.sigma: dict[str, tuple[float, float]] = {}
+        #: Median sample rate of every IMU (Hz), measured at boot.
+        self.rates_hz: dict[str, float] = {}
         self.finished = False
         self.block_windows = max(1, int(block_windows))
 
@@ -254,10 +256,12 @@ class StreamingCalibrator:
                 tau, peak = estimate_time_offset(grid, speed_base, speed, setup.options.max_time_offset_s)
             candidates[name] = (tau, peak)
             self.noise[name] = _noise_density(g_s, a_s, 1.0 / sensor.period)
+            self.rates_hz[name] = 1.0 / sensor.period
         weak = min(peak for _, peak in candidates.values()) < 0.5
         if weak and not final and covered < MAX_BOOT_S:
             return False  # not enough motion yet to trust the offset
         self.noise[self.base_name] = _noise_density(g_b, a_b, 1.0 / base.period)
+        self.rates_hz[self.base_name] = 1.0 / base.period
         gb, ab = self.noise[self.base_name]
         for name, (tau, _) in candidates.items():
             self.tau0[name] = tau

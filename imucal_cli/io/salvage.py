@@ -244,7 +244,7 @@ def scan_mcap(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanRe
                     except (struct.error, ValueError):
                         result.truncated = end > size
                         result.losses.append(Loss("damaged chunk header", pos, min(end, size) - pos))
-                        pos = end if end <= size else size
+                        pos = min(end, size)
                         continue
                     data = body[rec_at : rec_at + rec_len]
                     cut = end > size or len(data) < rec_len

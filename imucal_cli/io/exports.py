@@ -1,0 +1,206 @@
+"""Extrinsics in the formats vehicle software reads: Autoware, URDF, tf2 static publishers
+(ROS 2 and ROS 1), a Kalibr IMU chain, and plain JSON matrices.
+
+Input is what ``imucal calibrate`` writes (its YAML or JSON document); every function returns
+text and writes nothing. Full-precision formats print floats with ``repr`` (17 significant
+digits: parsing them back gives the same doubles); Autoware's file has 6 decimals, as Autoware
+writes it.
+
+Conventions: ``T_a_b`` maps points from frame b to frame a (the pose of b in a). ROS RPY is
+roll about x, then pitch about y, then yaw about z, all about the fixed parent axes:
+``R = Rz(yaw) Ry(pitch) Rx(roll)``. tf2 quaternions are ``(qx, qy, qz, qw)``. ROS 1's
+``static_transform_publisher`` also has an Euler form, ``x y z yaw pitch roll`` (yaw first):
+only the quaternion form is written here, so nothing depends on that order.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from imucal_cli.errors import InputError
+from imucal_cli.types import Transform
+
+FORMATS = ("autoware", "urdf", "tf-static-ros2", "tf-static-ros1", "kalibr", "json")
+
+
+@dataclass(frozen=True)
+class SensorExtrinsics:
+    name: str
+    lidar_frame: str
+    imu_topic: str
+    T_base_lidar: Transform
+    T_base_imu: Transform
+    time_offset_s: float
+    imu_rate_hz: float | None
+
+
+@dataclass(frozen=True)
+class Extrinsics:
+    """The parts of a calibrate document the exports need."""
+
+    source: str
+    base_frame: str
+    base_topic: str | None
+    base_imu_rate_hz: float | None
+    sensors: tuple[SensorExtrinsics, ...]
+
+    @staticmethod
+    def from_document(document: Any, source: str) -> Extrinsics:
+        """Parse a calibrate document; :class:`InputError` naming the file and key if it is not one."""
+        if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict) or not document["sensors"]:
+            raise InputError(f"{source}: not an imucal calibrate output (expected a mapping with 'sensors')")
+        sensors = []
+        for name, s in document["sensors"].items():
+            where = f"{source}: sensors.{name}"
+            if not isinstance(s, dict):
+                raise InputError(f"{where}: expected a mapping")
+            for key in ("T_base_lidar", "T_base_imu", "lidar_frame"):
+                if key not in s:
+                    raise InputError(f"{where}.{key}: missing")
+            try:
+                T_base_lidar = Transform.from_dict(s["T_base_lidar"], source, f"sensors.{name}.T_base_lidar")
+                T_base_imu = Transform.from_dict(s["T_base_imu"], source, f"sensors.{name}.T_base_imu")
+            except Exception as exc:  # ConfigError names file and key
+                raise InputError(str(exc)) from None
+            rate = s.get("imu_rate_hz")
+            sensors.append(
+                SensorExtrinsics(
+                    str(name), str(s["lidar_frame"]), str(s.get("imu_topic", "")), T_base_lidar, T_base_imu,
+                    float(s.get("time_offset_s") or 0.0), None if rate is None else float(rate),
+                )
+            )
+        rate = document.get("base_imu_rate_hz")
+        return Extrinsics(
+            source, str(document.get("base_frame", "base_link")), document.get("base_topic"),
+            None if rate is None else float(rate), tuple(sensors),
+        )
+
+
+def _f(value: float) -> str:
+    """A float that parses back to the same double."""
+    return repr(float(value))
+
+
+def autoware(ex: Extrinsics, parent: str) -> str:
+    """Autoware's ``sensor_kit_calibration.yaml``: ``parent: {lidar_frame: {x, y, z, roll, pitch, yaw}}``."""
+    lines = [f"{parent}:"]
+    for s in ex.sensors:
+        t = s.T_base_lidar.translation
+        r = s.T_base_lidar.rpy_rad
+        lines.append(f"  {s.lidar_frame}:")
+        for key, value in zip(("x", "y", "z", "roll", "pitch", "yaw"), [*t, *r], strict=True):
+            lines.append(f"    {key}: {value:.6f}")
+    return "\n".join(lines) + "\n"
+
+
+def urdf(ex: Extrinsics, parent: str) -> str:
+    """A URDF fragment: the parent link, one link and one fixed joint per lidar."""
+    lines = ['<?xml version="1.0"?>', '<robot name="imucal_extrinsics">', f"  <link name={quoteattr(parent)}/>"]
+    for s in ex.sensors:
+        t = s.T_base_lidar.translation
+        r = s.T_base_lidar.rpy_rad
+        lines += [
+            f"  <link name={quoteattr(s.lidar_frame)}/>",
+            f"  <joint name={quoteattr(f'{parent}_to_{s.lidar_frame}')} type=\"fixed\">",
+            f"    <parent link={quoteattr(parent)}/>",
+            f"    <child link={quoteattr(s.lidar_frame)}/>",
+            f"    <origin xyz=\"{' '.join(map(_f, t))}\" rpy=\"{' '.join(map(_f, r))}\"/>",
+            "  </joint>",
+        ]
+    lines.append("</robot>")
+    return "\n".join(lines) + "\n"
+
+
+def _tf_values(T: Transform) -> list[str]:
+    return [*map(_f, T.translation), *map(_f, T.quaternion_xyzw)]
+
+
+def tf_static_ros2(ex: Extrinsics, parent: str) -> tuple[str, str]:
+    """``ros2 run tf2_ros static_transform_publisher`` command lines and a ROS 2 XML launch file."""
+    commands, nodes = ["#!/bin/sh", "# imucal: one static transform per lidar (ROS 2)"], []
+    for s in ex.sensors:
+        x, y, z, qx, qy, qz, qw = _tf_values(s.T_base_lidar)
+        args = f"--x {x} --y {y} --z {z} --qx {qx} --qy {qy} --qz {qz} --qw {qw} --frame-id {parent} --child-frame-id {s.lidar_frame}"
+        commands.append(f"ros2 run tf2_ros static_transform_publisher {args} &")
+        nodes.append(
+            f'  <node pkg="tf2_ros" exec="static_transform_publisher" name={quoteattr(f"imucal_{s.name}_tf")} args={quoteattr(args)}/>'
+        )
+    launch = "\n".join(['<?xml version="1.0"?>', "<launch>", *nodes, "</launch>"]) + "\n"
+    return "\n".join([*commands, "wait"]) + "\n", launch
+
+
+def tf_static_ros1(ex: Extrinsics, parent: str) -> tuple[str, str]:
+    """``rosrun tf2_ros static_transform_publisher x y z qx qy qz qw frame child`` lines and a
+    roslaunch file (the quaternion form; the Euler form would be ``x y z yaw pitch roll``)."""
+    commands, nodes = ["#!/bin/sh", "# imucal: one static transform per lidar (ROS 1)"], []
+    for s in ex.sensors:
+        args = " ".join([*_tf_values(s.T_base_lidar), parent, s.lidar_frame])
+        commands.append(f"rosrun tf2_ros static_transform_publisher {args} &")
+        nodes.append(
+            f'  <node pkg="tf2_ros" type="static_transform_publisher" name={quoteattr(f"imucal_{s.name}_tf")} args={quoteattr(args)}/>'
+        )
+    launch = "\n".join(['<?xml version="1.0"?>', "<launch>", *nodes, "</launch>"]) + "\n"
+    return "\n".join([*commands, "wait"]) + "\n", launch
+
+
+def _matrix_rows(M: np.ndarray, indent: str) -> list[str]:
+    return [f"{indent}- [{', '.join(_f(v) for v in row)}]" for row in M]
+
+
+def kalibr(ex: Extrinsics) -> str:
+    """A Kalibr IMU chain (``imu_chain.yaml``): ``imu0`` is the base IMU (identity), then one
+    entry per sensor IMU with ``T_i_b``, the base expressed in that IMU: ``T_base_imu^-1``.
+    ``time_offset`` is added to the IMU's stamps to get the base's time (``-time_offset_s``)."""
+    lines = ["# imucal: IMU chain in Kalibr's layout; imu0 is the base IMU", "imu0:", "  T_i_b:"]
+    lines += _matrix_rows(np.eye(4), "    ")
+    lines += ["  model: calibrated", f"  rostopic: {ex.base_topic or ''}", "  time_offset: 0.0"]
+    if ex.base_imu_rate_hz is not None:
+        lines.append(f"  update_rate: {_f(ex.base_imu_rate_hz)}")
+    for k, s in enumerate(ex.sensors, start=1):
+        lines += [f"imu{k}:", f"  # {s.name}", "  T_i_b:"]
+        lines += _matrix_rows(s.T_base_imu.inverse().as_matrix(), "    ")
+        lines += ["  model: calibrated", f"  rostopic: {s.imu_topic}", f"  time_offset: {_f(-s.time_offset_s)}"]
+        if s.imu_rate_hz is not None:
+            lines.append(f"  update_rate: {_f(s.imu_rate_hz)}")
+    return "\n".join(lines) + "\n"
+
+
+def json_matrices(ex: Extrinsics) -> str:
+    """Per sensor the 4x4 ``T_base_lidar`` and ``T_base_imu`` matrices (row-major)."""
+    document = {
+        "base_frame": ex.base_frame,
+        "sensors": {
+            s.name: {
+                "lidar_frame": s.lidar_frame,
+                "T_base_lidar": s.T_base_lidar.as_matrix().tolist(),
+                "T_base_imu": s.T_base_imu.as_matrix().tolist(),
+            }
+            for s in ex.sensors
+        },
+    }
+    return json.dumps(document, indent=2) + "\n"
+
+
+def export(ex: Extrinsics, fmt: str, parent: str | None = None) -> dict[str, str]:
+    """The files of one format: ``{"main": text}`` plus ``{"launch": text}`` for tf-static."""
+    parent = parent or ex.base_frame
+    if fmt == "autoware":
+        return {"main": autoware(ex, parent)}
+    if fmt == "urdf":
+        return {"main": urdf(ex, parent)}
+    if fmt == "tf-static-ros2":
+        commands, launch = tf_static_ros2(ex, parent)
+        return {"main": commands, "launch": launch}
+    if fmt == "tf-static-ros1":
+        commands, launch = tf_static_ros1(ex, parent)
+        return {"main": commands, "launch": launch}
+    if fmt == "kalibr":
+        return {"main": kalibr(ex)}
+    if fmt == "json":
+        return {"main": json_matrices(ex)}
+    raise InputError(f"unknown export format {fmt!r} (expected one of: {', '.join(FORMATS)})")

@@ -1,0 +1,161 @@
+"""Exports: every format parsed back (YAML, XML, command lines) reproduces the transforms."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from imucal_cli.cli import app
+from imucal_cli.io.exports import FORMATS, Extrinsics, SensorExtrinsics, export
+from imucal_cli.types import Transform, rpy_to_rotation
+
+runner = CliRunner()
+FULL = 1e-9  # full-precision formats: round-off only
+SIX_DECIMALS_M = 0.5e-6 + 1e-12  # Autoware: 6 decimals in metres ...
+SIX_DECIMALS_RAD = 3 * 0.5e-6  # ... and radians: three rounded angles, each off by <= 5e-7 rad
+
+
+def angle(a: Rotation, b: Rotation) -> float:
+    return float((a.inv() * b).magnitude())
+
+
+def extrinsics(transforms: list[Transform]) -> Extrinsics:
+    sensors = tuple(
+        SensorExtrinsics(
+            f"s{k}", f"lidar_{k}", f"/lidar/{k}/imu", T, T * Transform.from_rpy(np.array([0.1, -0.2, 3.0]), np.array([0.01, 0.02, -0.03])),
+            0.001 * k - 0.002, 200.0,
+        )
+        for k, T in enumerate(transforms)
+    )
+    return Extrinsics("test.yaml", "base_link", "/gnss/imu", 100.0, sensors)
+
+
+def parse(fmt: str, files: dict[str, str], parent: str = "base_link") -> dict[str, Transform]:
+    """Per lidar frame, the transform the file says (T_parent_lidar; Kalibr: T_base_imu)."""
+    out: dict[str, Transform] = {}
+    if fmt == "autoware":
+        doc = yaml.safe_load(files["main"])
+        for frame, v in doc[parent].items():
+            out[frame] = Transform.from_rpy(np.array([v["roll"], v["pitch"], v["yaw"]]), np.array([v["x"], v["y"], v["z"]]))
+    elif fmt == "urdf":
+        root = ET.fromstring(files["main"])
+        for joint in root.iter("joint"):
+            assert joint.get("type") == "fixed" and joint.find("parent").get("link") == parent
+            origin = joint.find("origin")
+            xyz = np.array([float(v) for v in origin.get("xyz").split()])
+            rpy = np.array([float(v) for v in origin.get("rpy").split()])
+            out[joint.find("child").get("link")] = Transform(rpy_to_rotation(rpy), xyz)
+    elif fmt in ("tf-static-ros2", "tf-static-ros1"):
+        lines = [ln for ln in files["main"].splitlines() if "static_transform_publisher" in ln]
+        nodes = ET.fromstring(files["launch"]).findall("node")
+        assert len(nodes) == len(lines)
+        for line, node in zip(lines, nodes, strict=True):
+            words = shlex.split(line.removesuffix("&"))
+            args = words[words.index("static_transform_publisher") + 1 :]
+            assert args == shlex.split(node.get("args"))  # the launch file says the same
+            if fmt == "tf-static-ros2":
+                assert words[:3] == ["ros2", "run", "tf2_ros"] and node.get("exec") == "static_transform_publisher"
+                named = dict(zip(args[::2], args[1::2], strict=True))
+                assert named["--frame-id"] == parent
+                t = [float(named[k]) for k in ("--x", "--y", "--z")]
+                q = [float(named[k]) for k in ("--qx", "--qy", "--qz", "--qw")]
+                child = named["--child-frame-id"]
+            else:
+                assert words[:2] == ["rosrun", "tf2_ros"] and node.get("type") == "static_transform_publisher"
+                assert len(args) == 9 and args[7] == parent  # x y z qx qy qz qw frame child
+                t, q, child = [float(v) for v in args[:3]], [float(v) for v in args[3:7]], args[8]
+            out[child] = Transform(Rotation.from_quat(q), np.array(t))
+    elif fmt == "kalibr":
+        doc = yaml.safe_load(files["main"])
+        assert np.array_equal(np.array(doc["imu0"]["T_i_b"]), np.eye(4))
+        for key in sorted(doc):
+            if key == "imu0":
+                continue
+            T_i_b = np.array(doc[key]["T_i_b"])
+            assert doc[key]["model"] == "calibrated" and "update_rate" in doc[key] and "rostopic" in doc[key]
+            out[key] = Transform.from_matrix(np.linalg.inv(T_i_b))  # T_base_imu
+    elif fmt == "json":
+        doc = json.loads(files["main"])
+        for s in doc["sensors"].values():
+            out[s["lidar_frame"]] = Transform.from_matrix(np.array(s["T_base_lidar"]))
+            out["imu:" + s["lidar_frame"]] = Transform.from_matrix(np.array(s["T_base_imu"]))
+    return out
+
+
+def check(fmt: str, ex: Extrinsics) -> None:
+    got = parse(fmt, export(ex, fmt))
+    tol_t, tol_r = (SIX_DECIMALS_M, SIX_DECIMALS_RAD) if fmt == "autoware" else (FULL, FULL)
+    for k, s in enumerate(ex.sensors, start=1):
+        if fmt == "kalibr":
+            pairs = [(got[f"imu{k}"], s.T_base_imu)]
+        elif fmt == "json":
+            pairs = [(got[s.lidar_frame], s.T_base_lidar), (got["imu:" + s.lidar_frame], s.T_base_imu)]
+        else:
+            pairs = [(got[s.lidar_frame], s.T_base_lidar)]
+        for parsed, expected in pairs:
+            assert np.max(np.abs(parsed.translation - expected.translation)) <= tol_t
+            assert angle(parsed.rotation, expected.rotation) <= tol_r
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_sample_calibration_round_trips(fmt, tmp_path):
+    from conftest import SAMPLE_DATA
+
+    out = tmp_path / "ext.yaml"
+    result = runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    document = yaml.safe_load(out.read_text())
+    ex = Extrinsics.from_document(document, str(out))
+    check(fmt, ex)
+    target = tmp_path / f"export_{fmt}.txt"
+    result = runner.invoke(app, ["export", str(out), "--format", fmt, "-o", str(target)])
+    assert result.exit_code == 0, result.output
+    files = {"main": target.read_text()}
+    if fmt.startswith("tf-static"):
+        files["launch"] = (tmp_path / ("export_tf-static-ros2.launch.xml" if fmt.endswith("ros2") else "export_tf-static-ros1.launch")).read_text()
+    assert files == export(ex, fmt)
+
+
+def test_kalibr_T_i_b_is_the_base_in_the_imu():
+    T_base_imu = Transform.from_rpy(np.array([0.0, 0.0, np.pi / 2]), np.array([1.0, 0.0, 0.0]))
+    ex = extrinsics([Transform.identity()])
+    ex = Extrinsics(ex.source, ex.base_frame, ex.base_topic, ex.base_imu_rate_hz, (SensorExtrinsics("s", "l", "/imu", Transform.identity(), T_base_imu, 0.0, 200.0),))
+    T_i_b = np.array(yaml.safe_load(export(ex, "kalibr")["main"])["imu1"]["T_i_b"])
+    # The IMU sits 1 m along the base's x axis, yawed 90 deg: its y axis points along the base's
+    # -x. The base origin, 1 m behind the IMU along base x, is 1 m along the IMU's +y.
+    assert np.allclose(T_i_b @ np.array([0, 0, 0, 1.0]), [0.0, 1.0, 0.0, 1.0])
+
+
+near_pole = st.floats(-1e-6, 1e-6) | st.floats(-1e-3, 1e-3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    yaw=st.sampled_from([np.pi, -np.pi, 0.0, np.pi / 2]).flatmap(lambda y: near_pole.map(lambda d: y + d)),
+    pitch=st.sampled_from([np.pi / 2, -np.pi / 2, 0.3]).flatmap(lambda p: near_pole.map(lambda d: p + d)),
+    roll=st.floats(-np.pi, np.pi),
+    xyz=st.lists(st.floats(-10, 10), min_size=3, max_size=3),
+)
+def test_every_format_round_trips_near_gimbal_lock_and_yaw_wrap(yaw, pitch, roll, xyz):
+    T = Transform.from_rpy(np.array([roll, pitch, yaw]), np.array(xyz))
+    ex = extrinsics([T, T.inverse()])
+    for fmt in FORMATS:
+        check(fmt, ex)
+
+
+def test_export_bad_input_exits_2(tmp_path):
+    bad = tmp_path / "x.yaml"
+    bad.write_text("sensors: {a: {lidar_frame: l}}\n")
+    result = runner.invoke(app, ["export", str(bad), "--format", "urdf"])
+    assert result.exit_code == 2 and "x.yaml" in result.stderr and "T_base_lidar" in result.stderr
+    result = runner.invoke(app, ["export", str(bad), "--format", "ros3"])
+    assert result.exit_code == 2 and "ros3" in result.stderr
