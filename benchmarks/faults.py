@@ -259,6 +259,11 @@ def matrix(work: Path) -> None:
                 (line for key in ("not read", "warning", "note") for line in result["lines"] if key in line), ""
             )
             message = message.replace(str(work) + "/", "")
+            if result["code"] == 0 and out.exists():
+                import yaml
+
+                statuses = sorted({s["status"] for s in yaml.safe_load(out.read_text())["sensors"].values()})
+                message = f"status {'/'.join(statuses)}" + (f"; {message}" if message else "")
             rows.append((name, fmt, result["code"], recovered, sum(written.values()), message[:150], result["traceback"], result["partial"]))
     print(f"## Fault matrix ({len(rows)} runs of `imucal calibrate -o`, {time.perf_counter() - start:.0f} s)\n")
     print("| fault | format | exit | messages recovered / written | first error, warning or note on stderr | traceback | partial output |")

@@ -11,4 +11,16 @@ try:
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.1.0"
 
-__all__ = ["__version__"]
+__all__ = ["__version__", "calibrate_log", "export_extrinsics", "load_config"]
+
+
+def __getattr__(name: str):  # noqa: ANN202 - lazy: ``import imucal_cli`` stays light for the CLI
+    if name in ("calibrate_log", "export_extrinsics"):
+        from imucal_cli import api
+
+        return getattr(api, name)
+    if name == "load_config":
+        from imucal_cli.config import load_config
+
+        return load_config
+    raise AttributeError(f"module 'imucal_cli' has no attribute {name!r}")

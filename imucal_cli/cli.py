@@ -250,17 +250,9 @@ def _note_losses(log: Path, losses: list[Any]) -> None:
         typer.echo(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read", err=True)
 
 
-def _lost(losses: list[Any]) -> str:
-    """For an error message: what of the log could not be read, if anything."""
-    real = [x for x in losses if x.lost]
-    if not real:
-        return ""
-    more = f" and {len(real) - 1} more" if len(real) > 1 else ""
-    return f" (damaged parts were skipped: {real[0].describe()}{more})"
-
-
 def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     """Load the config, then the base and sensor IMU streams of the log."""
+    from imucal_cli.api import lost_summary
     from imucal_cli.config import load_config
     from imucal_cli.io.logs import read_imu
     from imucal_cli.pipeline import DriveStreams
@@ -272,7 +264,7 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
         reads = read_imu(log, topics, progress=progress, losses=losses)
     for topic, read in reads.items():
         if len(read.stream) < 10:
-            raise InputError(f"{log} [{topic}]: too little data: {len(read.stream)} usable messages{_lost(losses)}")
+            raise InputError(f"{log} [{topic}]: too little data: {len(read.stream)} usable messages{lost_summary(losses)}")
     _note_losses(log, losses)
     for topic, read in reads.items():
         stats = read.stats
@@ -286,88 +278,20 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     return config, streams
 
 
-#: Spread of receive latencies allowed between topics when their clocks are compared (s).
-CLOCK_COMPARE_SLACK_S = 0.05
-
-
-class _ClockCheck:
-    """Compares each IMU's stamps with the recorder's log (receive) times, which all topics
-    share: the median of ``stamp - log_time`` over a topic's first batch is its clock's offset
-    from the recorder's. A sensor whose offset differs from the base's by more than
-    ``max_time_offset_s`` (plus receive-latency slack) is on another clock (stamped from power-on,
-    say), which the time-offset search cannot bridge: the user must fix the clock or the config."""
-
-    def __init__(self, log: Path, base_topic: str, max_offset_s: float) -> None:
-        self.log, self.base_topic, self.max_offset_s = log, base_topic, max_offset_s
-        self.offsets: dict[str, float] = {}
-        self.checked = False
-
-    def add(self, topic: str, stamps: Any, log_times: Any) -> None:
-        import numpy as np
-
-        if topic in self.offsets or not len(stamps):
-            return
-        # the first samples only: a clock that jumps later is a jump, not another clock
-        first = slice(0, 200)
-        self.offsets[topic] = float(np.median((stamps[first] - log_times[first]).astype(np.float64))) * 1e-9
-
-    def check(self, topics: list[str]) -> None:
-        if self.checked or not all(t in self.offsets for t in topics):
-            return
-        self.checked = True
-        base = self.offsets[self.base_topic]
-        for topic in topics:
-            difference = self.offsets[topic] - base
-            if abs(difference) > self.max_offset_s + CLOCK_COMPARE_SLACK_S:
-                raise InputError(
-                    f"{self.log} [{topic}]: stamps are {difference:+.3f} s from the base IMU's "
-                    f"({self.base_topic}), measured against the log's receive times; "
-                    f"calibration.max_time_offset_s is {self.max_offset_s:g} s: fix the sensor's "
-                    "clock, or raise max_time_offset_s if the offset is real"
-                )
-
-
 def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
-    nothing solved yet). Returns the config, the calibrator and the log's first IMU stamp."""
+    nothing solved yet); say on stderr what reading found. Returns the config, the calibrator
+    and the log's first IMU stamp."""
+    from imucal_cli.api import stream_log
     from imucal_cli.config import load_config
-    from imucal_cli.io.logs import ImuBatches
-    from imucal_cli.io.prefetch import read_ahead
-    from imucal_cli.pipeline import make_calibrator
 
     config = load_config(config_path)
-    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
-    calibrator = make_calibrator(config)
-    reader = ImuBatches(log, names)
-    t0_ns: int | None = None
-    count = 0
-    clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
-    batches = read_ahead(reader)  # decoding runs beside the math, in a child process
-    with _progress(f"reading {log}") as progress, contextlib.closing(batches):
-        for topic, stamps, log_times, gyro, accel in batches:
-            clocks.add(topic, stamps, log_times)
-            clocks.check(list(names))
-            if len(stamps):
-                first = int(stamps.min())
-                t0_ns = first if t0_ns is None else min(t0_ns, first)
-            calibrator.add(names[topic], stamps, gyro, accel)
-            count += len(stamps)
-            progress(count)
-    lost = _lost(reader.losses)
-    for topic, stats in reader.stats.items():
-        usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated
-        if usable < 10:
-            raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages{lost}")
-    if calibrator.t_ref_ns is None or t0_ns is None:
-        raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
-    try:
-        calibrator.process(final=True)
-    except ImucalError as exc:
-        raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
-    _note_losses(log, reader.losses)
-    for topic, stats in reader.stats.items():
-        _note_read(log, topic, stats.to_dict() | {"duplicates": calibrator.duplicates(names[topic])})
-    return config, calibrator, t0_ns
+    with _progress(f"reading {log}") as progress:
+        streamed = stream_log(log, config, progress=progress)
+    _note_losses(log, streamed.losses)
+    for topic, stats in streamed.stats.items():
+        _note_read(log, topic, stats.to_dict() | {"duplicates": streamed.duplicates[topic]})
+    return config, streamed.calibrator, streamed.t0_ns
 
 
 def _fmt(values: Any, digits: int) -> str:

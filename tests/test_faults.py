@@ -249,3 +249,39 @@ def test_sensor_rates_up_to_400_hz(tmp_path, rate):
     assert result.exit_code == 0, result.output
     result = runner.invoke(app, ["evaluate", str(out), str(truth), "--max-rotation-deg", "0.1", "--max-translation-m", "0.03"])
     assert result.exit_code == 0, result.output
+
+
+def test_gap_is_counted_and_windows_across_it_are_not_used(tmp_path, short_drive):
+    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.io.writers import TopicData
+
+    topics = short_drive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    t = data.stream.t_ns
+    keep = (t < t[0] + 8 * 10**9) | (t > t[0] + 11 * 10**9)  # 3 s without data
+    from imucal_cli.types import ImuStream
+
+    topics[name] = TopicData(ImuStream(t[keep], data.stream.gyro[keep], data.stream.accel[keep], data.stream.frame_id), data.log_time_ns[keep])
+    log = write_imu_log(tmp_path / "g.mcap", "mcap", topics)
+    reader = ImuBatches(log, list(topics))
+    for _ in reader:
+        pass
+    assert reader.stats[name].gaps == 1
+    assert all(reader.stats[o].gaps == 0 for o in topics if o != name)
+    from imucal_cli.api import stream_log
+    from imucal_cli.io.reports import write_document
+    from imucal_cli.config import load_config
+
+    write_document(tmp_path / "c.yaml", short_drive.config_document())
+    config = load_config(tmp_path / "c.yaml")
+    streamed = stream_log(log, config, background=False)
+    sensor = next(s.name for s in config.sensors if s.imu_topic == name)
+    windows = streamed.calibrator.windows[sensor]
+    gap = (8.0, 11.0)
+    t_ref = (streamed.calibrator.t_ref_ns - int(t[0])) * 1e-9
+    for w in windows:
+        start, end = w.start_s + t_ref, w.end_s + t_ref
+        if start < gap[1] and end > gap[0]:
+            assert not w.valid
+    assert any(w.valid for w in windows)

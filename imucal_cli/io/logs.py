@@ -600,6 +600,7 @@ class ReadStats:
     non_finite: int = 0  # a NaN or infinite gyro or accelerometer value: dropped
     saturated: int = 0  # a gyro or accelerometer axis clipped at its range: dropped
     clock_jumps: int = 0  # stamps leaping by more than CLOCK_JUMP_S (forwards or back)
+    gaps: int = 0  # steps over GAP_MEDIAN_PERIODS median periods: windows spanning them are not used
     frame_ids: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -612,6 +613,7 @@ class ReadStats:
             "non_finite": self.non_finite,
             "saturated": self.saturated,
             "clock_jumps": self.clock_jumps,
+            "gaps": self.gaps,
         }
 
 
@@ -773,7 +775,12 @@ class ImuBatches:
             previous = self._last_stamp.get(topic)
             steps = np.diff(stamps if previous is None else np.concatenate([[previous], stamps]))
             st.backwards += int(np.count_nonzero(steps < 0))
-            st.clock_jumps += int(np.count_nonzero(np.abs(steps) > CLOCK_JUMP_S * 1e9))
+            jumps = np.abs(steps) > CLOCK_JUMP_S * 1e9
+            st.clock_jumps += int(np.count_nonzero(jumps))
+            positive = steps[steps > 0]
+            if len(positive) >= 10:
+                period = float(np.median(positive))
+                st.gaps += int(np.count_nonzero((steps > GAP_MEDIAN_PERIODS * period) & ~jumps))
             self._last_stamp[topic] = int(stamps[-1])
         for name in frame_ids:
             if name not in st.frame_ids:

@@ -1,0 +1,168 @@
+"""The Python API: calibrate a recorded log, export and evaluate, without the command line.
+
+>>> from imucal_cli import calibrate_log, load_config              # doctest: +SKIP
+>>> run = calibrate_log("drive.mcap", load_config("vehicle.yaml"))  # doctest: +SKIP
+>>> run.result.T_base_lidar("front_left_top").as_matrix()          # doctest: +SKIP
+>>> run.document["sensors"]["front_left_top"]["status"]             # doctest: +SKIP
+
+Everything here raises :class:`~imucal_cli.errors.ImucalError` subclasses on bad input (with
+the file, topic or key in the message) and prints nothing; what reading found (counts, losses)
+is returned for the caller to report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imucal_cli.config import Config, load_config
+from imucal_cli.core.streaming import StreamingCalibrator
+from imucal_cli.errors import ImucalError, InputError
+from imucal_cli.io.logs import ImuBatches, ReadStats
+from imucal_cli.io.prefetch import read_ahead
+from imucal_cli.io.salvage import Loss
+from imucal_cli.pipeline import CalibrationResult, calibration_document, make_calibrator
+from imucal_cli.types import Transform
+
+#: Spread of receive latencies allowed between topics when their clocks are compared (s).
+CLOCK_COMPARE_SLACK_S = 0.05
+#: Samples at the start of each topic whose ``stamp - log_time`` gives its clock's offset.
+CLOCK_COMPARE_SAMPLES = 200
+
+__all__ = ["LogCalibration", "StreamedLog", "calibrate_log", "export_extrinsics", "lost_summary", "stream_log"]
+
+
+def lost_summary(losses: list[Loss]) -> str:
+    """For an error message: what of the log could not be read, if anything."""
+    real = [x for x in losses if x.lost]
+    if not real:
+        return ""
+    more = f" and {len(real) - 1} more" if len(real) > 1 else ""
+    return f" (damaged parts were skipped: {real[0].describe()}{more})"
+
+
+class _ClockCheck:
+    """Compares each IMU's stamps with the recorder's log (receive) times, which all topics
+    share: the median of ``stamp - log_time`` over a topic's first samples is its clock's offset
+    from the recorder's. A sensor whose offset differs from the base's by more than
+    ``max_time_offset_s`` (plus receive-latency slack) is on another clock (stamped from
+    power-on, say), which the time-offset search cannot bridge."""
+
+    def __init__(self, log: Path, base_topic: str, max_offset_s: float) -> None:
+        self.log, self.base_topic, self.max_offset_s = log, base_topic, max_offset_s
+        self.offsets: dict[str, float] = {}
+        self.checked = False
+
+    def add(self, topic: str, stamps: np.ndarray, log_times: np.ndarray) -> None:
+        if topic in self.offsets or not len(stamps):
+            return
+        first = slice(0, CLOCK_COMPARE_SAMPLES)  # a clock that jumps later is a jump, not another clock
+        self.offsets[topic] = float(np.median((stamps[first] - log_times[first]).astype(np.float64))) * 1e-9
+
+    def check(self, topics: list[str]) -> None:
+        if self.checked or not all(t in self.offsets for t in topics):
+            return
+        self.checked = True
+        base = self.offsets[self.base_topic]
+        for topic in topics:
+            difference = self.offsets[topic] - base
+            if abs(difference) > self.max_offset_s + CLOCK_COMPARE_SLACK_S:
+                raise InputError(
+                    f"{self.log} [{topic}]: stamps are {difference:+.3f} s from the base IMU's "
+                    f"({self.base_topic}), measured against the log's receive times; "
+                    f"calibration.max_time_offset_s is {self.max_offset_s:g} s: fix the sensor's "
+                    "clock, or raise max_time_offset_s if the offset is real"
+                )
+
+
+@dataclass
+class StreamedLog:
+    """A log streamed through a calibrator: windows reduced, nothing solved yet."""
+
+    log: Path
+    config: Config
+    calibrator: StreamingCalibrator
+    t0_ns: int  # first IMU stamp: the origin of report times
+    stats: dict[str, ReadStats]  # per topic: what reading counted
+    duplicates: dict[str, int]  # per topic: duplicate stamps the calibrator removed
+    losses: list[Loss]  # parts of a damaged log that could not be read
+    format_name: str
+
+
+def stream_log(
+    log: str | Path, config: Config, progress: Callable[[int], None] | None = None, background: bool = True
+) -> StreamedLog:
+    """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
+    log's length (decoding in a child process beside the math when ``background``)."""
+    log = Path(log)
+    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    calibrator = make_calibrator(config)
+    reader = ImuBatches(log, names)
+    t0_ns: int | None = None
+    count = 0
+    clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
+    batches = read_ahead(reader, background=background)
+    try:
+        for topic, stamps, log_times, gyro, accel in batches:
+            clocks.add(topic, stamps, log_times)
+            clocks.check(list(names))
+            if len(stamps):
+                first = int(stamps.min())
+                t0_ns = first if t0_ns is None else min(t0_ns, first)
+            calibrator.add(names[topic], stamps, gyro, accel)
+            count += len(stamps)
+            if progress is not None:
+                progress(count)
+    finally:
+        close = getattr(batches, "close", None)
+        if close is not None:
+            close()
+    lost = lost_summary(reader.losses)
+    for topic, stats in reader.stats.items():
+        usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated
+        if usable < 10:
+            raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages{lost}")
+    if calibrator.t_ref_ns is None or t0_ns is None:
+        raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
+    try:
+        calibrator.process(final=True)
+    except ImucalError as exc:
+        raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
+    duplicates = {topic: calibrator.duplicates(name) for topic, name in names.items()}
+    return StreamedLog(log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name)
+
+
+@dataclass
+class LogCalibration:
+    """The outcome of :func:`calibrate_log`."""
+
+    result: CalibrationResult  # estimates per sensor; ``result.T_base_lidar(name)``
+    document: dict[str, Any]  # the SPEC's calibrate document (what ``imucal calibrate -o`` writes)
+    streamed: StreamedLog  # what reading found: counts per topic, losses
+
+
+def calibrate_log(log: str | Path, config: Config | str | Path, background: bool = True) -> LogCalibration:
+    """Calibrate every sensor of ``config`` from the IMU topics of ``log`` (MCAP, rosbag2 or
+    ROS 1 bag). ``config`` is a :class:`Config` or the path of its YAML file."""
+    if not isinstance(config, Config):
+        config = load_config(config)
+    streamed = stream_log(log, config, background=background)
+    result = CalibrationResult(streamed.calibrator.estimates(), config, dict(streamed.calibrator.rates_hz))
+    return LogCalibration(result, calibration_document(result, str(log)), streamed)
+
+
+def export_extrinsics(document: Mapping[str, Any], fmt: str, parent: str | None = None, source: str = "<document>") -> dict[str, str]:
+    """The text of one export format (:mod:`imucal_cli.io.exports`) from a calibrate document:
+    ``{"main": ...}``, plus ``{"launch": ...}`` for the tf2 static publishers."""
+    from imucal_cli.io.exports import Extrinsics, export
+
+    return export(Extrinsics.from_document(dict(document), source), fmt, parent)
+
+
+def lidar_transforms(document: Mapping[str, Any]) -> dict[str, Transform]:
+    """``T_base_lidar`` of every sensor of a calibrate document."""
+    return {name: Transform.from_dict(s["T_base_lidar"]) for name, s in document["sensors"].items()}
