@@ -158,11 +158,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--only", type=lambda v: {int(x) for x in v.split(",")}, default=None, help="replay these fuzz cases")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="imucal-faults-"))
     try:
-        matrix(work)
-        fuzz(work, args.cases, args.seed)
+        if args.only is None:
+            matrix(work)
+        fuzz(work, args.cases, args.seed, args.only)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
@@ -175,7 +177,13 @@ def run(argv: list[str], out: Path | None) -> dict:
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     errors = [line for line in lines if line.startswith("imucal: error")]
     partial = out is not None and result.exit_code != 0 and out.exists()
+    trace = ""
+    if traceback and result.exc_info is not None:
+        import traceback as tb
+
+        trace = "".join(tb.format_exception(*result.exc_info)[-3:])
     return {
+        "trace": trace,
         "code": result.exit_code, "traceback": traceback or "Traceback" in result.output, "partial": partial,
         "error": errors[0] if errors else "", "lines": lines, "stderr": result.stderr,
     }
@@ -293,7 +301,7 @@ def mutate(data: bytes, rng: np.random.Generator) -> tuple[bytes, str]:
     return bytes(out), str(kind)
 
 
-def fuzz(work: Path, cases: int, seed: int) -> None:
+def fuzz(work: Path, cases: int, seed: int, only: set[int] | None = None) -> None:
     rng = np.random.default_rng(seed)
     drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=25.0, seed=3))
     config = work / "fuzz.yaml"
@@ -316,6 +324,9 @@ def fuzz(work: Path, cases: int, seed: int) -> None:
     start = time.perf_counter()
     for case in range(cases):
         source, cfg = seeds[case % len(seeds)]
+        if only is not None and case not in only:
+            mutate(storage(source).read_bytes(), rng)  # the same random sequence as a full run
+            continue
         target = work / "case" / f"{case}"
         target.parent.mkdir(exist_ok=True)
         log = copy(source, target)
@@ -336,7 +347,7 @@ def fuzz(work: Path, cases: int, seed: int) -> None:
             elif result["code"] not in (0, 1, 2):
                 problem = f"exit {result['code']}"
             if problem:
-                failures.append(f"case {case} ({source.name}, {kind}, {command[0]}): {problem}: {result['stderr'][-300:]!r}")
+                failures.append(f"case {case} ({source.name}, {kind}, {command[0]}): {problem}: {(result['trace'] or result['stderr'])[-400:]!r}")
         shutil.rmtree(log, ignore_errors=True) if log.is_dir() else log.unlink()
         if out.exists():
             out.unlink()

@@ -33,7 +33,7 @@ CLOCK_COMPARE_SLACK_S = 0.05
 #: Samples at the start of each topic whose ``stamp - log_time`` gives its clock's offset.
 CLOCK_COMPARE_SAMPLES = 200
 
-__all__ = ["LogCalibration", "StreamedLog", "calibrate_log", "export_extrinsics", "lost_summary", "stream_log"]
+__all__ = ["LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "lost_summary", "stream_log"]
 
 
 def lost_summary(losses: list[Loss]) -> str:
@@ -123,7 +123,7 @@ def stream_log(
             close()
     lost = lost_summary(reader.losses)
     for topic, stats in reader.stats.items():
-        usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated
+        usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated - stats.implausible - stats.stamp_outliers
         if usable < 10:
             raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages{lost}")
     if calibrator.t_ref_ns is None or t0_ns is None:
@@ -151,8 +151,19 @@ def calibrate_log(log: str | Path, config: Config | str | Path, background: bool
     if not isinstance(config, Config):
         config = load_config(config)
     streamed = stream_log(log, config, background=background)
-    result = CalibrationResult(streamed.calibrator.estimates(), config, dict(streamed.calibrator.rates_hz))
+    result = estimate(streamed)
     return LogCalibration(result, calibration_document(result, str(log)), streamed)
+
+
+def estimate(streamed: StreamedLog) -> CalibrationResult:
+    """Solve for every sensor from a streamed log."""
+    try:
+        with np.errstate(all="ignore"):
+            estimates = streamed.calibrator.estimates()
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        # only data no IMU produces get here (the reader drops what it can recognise)
+        raise InputError(f"{streamed.log}: the IMU data are numerically degenerate ({exc}); the log may hold damaged samples") from None
+    return CalibrationResult(estimates, streamed.config, dict(streamed.calibrator.rates_hz))
 
 
 def export_extrinsics(document: Mapping[str, Any], fmt: str, parent: str | None = None, source: str = "<document>") -> dict[str, str]:

@@ -278,10 +278,10 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     return config, streams
 
 
-def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
+def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
-    nothing solved yet); say on stderr what reading found. Returns the config, the calibrator
-    and the log's first IMU stamp."""
+    nothing solved yet); say on stderr what reading found. Returns the config and the
+    :class:`~imucal_cli.api.StreamedLog`."""
     from imucal_cli.api import stream_log
     from imucal_cli.config import load_config
 
@@ -291,7 +291,7 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any, int]:
     _note_losses(log, streamed.losses)
     for topic, stats in streamed.stats.items():
         _note_read(log, topic, stats.to_dict() | {"duplicates": streamed.duplicates[topic]})
-    return config, streamed.calibrator, streamed.t0_ns
+    return config, streamed
 
 
 def _fmt(values: Any, digits: int) -> str:
@@ -346,7 +346,8 @@ def segments(
     from imucal_cli.pipeline import segments_document
 
     _check_output(out)
-    cfg, calibrator, t0_ns = _stream_log(log, config)
+    cfg, streamed = _stream_log(log, config)
+    calibrator, t0_ns = streamed.calibrator, streamed.t0_ns
     document = segments_document(t0_ns, cfg, calibrator)
 
     def render(doc: dict[str, Any]) -> None:
@@ -381,12 +382,13 @@ def calibrate(
     ] = False,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
-    from imucal_cli.pipeline import CalibrationResult, calibration_document
+    from imucal_cli.api import estimate
+    from imucal_cli.pipeline import calibration_document
 
     _check_output(out)
-    cfg, calibrator, _ = _stream_log(log, config)
+    cfg, streamed = _stream_log(log, config)
     with _progress("calibrating"):
-        result = CalibrationResult(calibrator.estimates(), cfg, dict(calibrator.rates_hz))
+        result = estimate(streamed)
     document = calibration_document(result, str(log))
 
     def render(doc: dict[str, Any]) -> None:

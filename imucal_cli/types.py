@@ -78,12 +78,19 @@ def rpy_to_rotation(rpy_rad: np.ndarray) -> Rotation:
 
 
 def rotation_to_rpy(rotation: Rotation) -> np.ndarray:
-    """Rotation to ROS RPY (roll, pitch, yaw) in rad; the inverse of :func:`rpy_to_rotation`."""
-    import warnings
+    """Rotation to ROS RPY (roll, pitch, yaw) in rad; the inverse of :func:`rpy_to_rotation`.
 
-    with warnings.catch_warnings():  # gimbal lock: scipy warns, the angles are still valid
-        warnings.simplefilter("ignore", UserWarning)
-        return np.asarray(rotation.as_euler("xyz"), dtype=np.float64)
+    Pitch comes from ``atan2(-r20, hypot(r00, r10))`` (well conditioned everywhere), yaw from
+    the first column, and roll from what is left, ``Ry(pitch)^T Rz(yaw)^T R``: near gimbal lock
+    (pitch near +-90 deg) yaw and roll are not determined one by one, but the angles returned
+    rebuild the rotation to round-off, which is what every RPY consumer needs of them.
+    """
+    R = rotation.as_matrix()
+    pitch = float(np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0])))
+    yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    rest = (Rotation.from_euler("z", yaw) * Rotation.from_euler("y", pitch)).inv().as_matrix() @ R
+    roll = float(np.arctan2(rest[2, 1], rest[1, 1]))
+    return np.array([roll, pitch, yaw])
 
 
 def _vector3(value: Any, source: str, key: str) -> np.ndarray:

@@ -285,3 +285,29 @@ def test_gap_is_counted_and_windows_across_it_are_not_used(tmp_path, short_drive
         if start < gap[1] and end > gap[0]:
             assert not w.valid
     assert any(w.valid for w in windows)
+
+
+def test_damaged_stamp_runs_and_absurd_values_are_dropped_and_counted(tmp_path, short_drive):
+    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.io.writers import TopicData
+    from imucal_cli.types import ImuStream
+
+    topics = short_drive.topics()
+    name = "/gnss/imu"
+    data = topics[name]
+    t = data.stream.t_ns.copy()
+    t[700:740] -= 15 * 365 * 86400 * 10**9  # a run of 40 stamps 15 years off, then back
+    t[1200] += 10**18  # one stamp decades ahead
+    gyro = data.stream.gyro.copy()
+    gyro[300] = [1e300, 0.0, 0.0]  # finite, but no IMU measures it
+    raw = ImuStream.__new__(ImuStream)
+    for key, value in (("t_ns", t), ("gyro", gyro), ("accel", data.stream.accel), ("frame_id", data.stream.frame_id)):
+        object.__setattr__(raw, key, value)
+    topics[name] = TopicData(raw, data.log_time_ns)
+    log = write_imu_log(tmp_path / "s.mcap", "mcap", topics)
+    reader = ImuBatches(log, list(topics))
+    kept = np.concatenate([st for topic, st, *_ in reader if topic == name])
+    stats = reader.stats[name]
+    assert stats.stamp_outliers == 41 and stats.implausible == 1
+    assert len(kept) == len(t) - 42
+    assert np.all(np.abs(np.diff(np.sort(kept))) < 10**9)  # what is left is one clock, no leaps

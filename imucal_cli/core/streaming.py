@@ -234,7 +234,7 @@ class StreamingCalibrator:
         covered = self._covered_until() if self.t_ref_ns is not None else 0.0
         if not final and covered < self._grid_start + BOOT_S + PAD_S:
             return False
-        end = covered - PAD_S - self.max_offset
+        end = min(covered - PAD_S - self.max_offset, self._grid_start + MAX_BOOT_S)
         grid = np.arange(self._grid_start, end, 1.0 / self.rate)
         if len(grid) < 10:
             if final:
@@ -277,6 +277,7 @@ class StreamingCalibrator:
         count = 0
         covered = self._covered_until()
         while True:
+            self._skip_empty()
             spans: list[tuple[int, float, float]] = []
             partial = False
             while len(spans) < self.block_windows:
@@ -304,6 +305,22 @@ class StreamingCalibrator:
             if partial or len(spans) < self.block_windows:
                 break
         return count
+
+    def _skip_empty(self) -> None:
+        """Move the next window past a stretch where some IMU has no data at all (a long gap,
+        or a clock that leapt forward): such windows could not be used, and there may be very
+        many of them."""
+        assert self.t_ref_ns is not None
+        firsts = []
+        for buffer in self.buffers.values():
+            t, _, _ = buffer.arrays()
+            if not len(t):
+                return
+            firsts.append(int(t.min()))
+        ready = (max(firsts) - self.t_ref_ns) * 1e-9 - PAD_S - self.max_offset
+        start = self._grid_start + self.next_window * self.window_s
+        if ready > start + 2 * self.window_s:
+            self.next_window = int((ready - self._grid_start) // self.window_s)
 
     def _reduce(self, spans: list[tuple[int, float, float]]) -> None:
         """Condition a block of consecutive windows once and reduce each to its moments."""

@@ -315,6 +315,7 @@ def sqlite_batches(
     wanted = set(topics)
     for db_path in db_paths:
         connection = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
+        connection.text_factory = lambda raw: raw.decode("utf-8", errors="replace")  # damaged text stays readable
         try:
             rows = connection.execute("SELECT id, name, serialization_format FROM topics").fetchall()
             ids = {tid: name for tid, name, fmt in rows if name in wanted and fmt == "cdr"}
@@ -328,7 +329,7 @@ def sqlite_batches(
             while True:
                 try:
                     chunk = cursor.fetchmany(batch_rows)
-                except sqlite3.DatabaseError as exc:
+                except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
                     if losses is None:
                         raise
                     losses.append(Loss(f"rows of {db_path.name} that cannot be read ({exc})", 0, 0))

@@ -407,7 +407,7 @@ class Sqlite3Log(LogReader):
         for db in files:
             try:
                 rows, counts = self._query_topics(db)
-            except sqlite3.DatabaseError as exc:
+            except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
                 try:
                     topics, losses, messages = scan_sqlite_rows(db)
                 except (OSError, ValueError) as scan_exc:
@@ -429,6 +429,7 @@ class Sqlite3Log(LogReader):
     @staticmethod
     def _query_topics(db: Path) -> tuple[list[tuple[int, str, str, str]], dict[int, int]]:
         connection = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        connection.text_factory = lambda raw: raw.decode("utf-8", errors="replace")  # damaged text stays readable
         try:
             rows = connection.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
             counts = dict(connection.execute("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id").fetchall())
@@ -601,6 +602,8 @@ class ReadStats:
     saturated: int = 0  # a gyro or accelerometer axis clipped at its range: dropped
     clock_jumps: int = 0  # stamps leaping by more than CLOCK_JUMP_S (forwards or back)
     gaps: int = 0  # steps over GAP_MEDIAN_PERIODS median periods: windows spanning them are not used
+    implausible: int = 0  # values no IMU measures (|gyro| > 100 rad/s, |accel| > 2000 m/s^2): dropped
+    stamp_outliers: int = 0  # a lone stamp far from both neighbours (a damaged message): dropped
     frame_ids: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
@@ -614,6 +617,8 @@ class ReadStats:
             "saturated": self.saturated,
             "clock_jumps": self.clock_jumps,
             "gaps": self.gaps,
+            "implausible": self.implausible,
+            "stamp_outliers": self.stamp_outliers,
         }
 
 
@@ -712,9 +717,36 @@ CLOCK_JUMP_S = 60.0
 #: gyro past 2 rad/s or an accelerometer past 1.5 g is beyond vehicle motion and at the range
 #: of common MEMS parts (+-125 deg/s and up, +-2 g and up).
 SATURATION_GYRO_RADPS = 2.0
+#: Beyond these no IMU measures: such values are damaged data, dropped and counted.
+IMPLAUSIBLE_GYRO_RADPS = 100.0
+IMPLAUSIBLE_ACCEL_MPS2 = 2000.0
 SATURATION_ACCEL_MPS2 = 1.5 * 9.80665
 #: A value repeated this many samples in a row at its batch's extreme is clipped.
 SATURATION_RUN = 3
+
+
+def _stamp_outliers(stamps: np.ndarray) -> np.ndarray:
+    """Runs of stamps that leap more than ``CLOCK_JUMP_S`` away and come back within the batch
+    (to within ``CLOCK_JUMP_S`` of where they left): damaged stamps (a flipped bit, copied along
+    by the compressor), not a clock jump, after which the stamps stay moved."""
+    out = np.zeros(len(stamps), dtype=bool)
+    if len(stamps) < 2:
+        return out
+    jump = CLOCK_JUMP_S * 1e9
+    t = stamps.astype(np.float64)
+    leaps = np.flatnonzero(np.abs(np.diff(t)) > jump)  # a leap between k and k + 1
+    if len(leaps) and np.abs(t[leaps[0] + 1 :] - t[leaps[0]]).min(initial=np.inf) > jump and leaps[0] == 0:
+        out[0] = True  # the first stamp alone is off: everything after it agrees
+        leaps = leaps[1:]
+    k = 0
+    while k < len(leaps):
+        start = leaps[k]
+        back = next((j for j in leaps[k + 1 :] if abs(t[j + 1] - t[start]) <= jump), None)
+        if back is None:
+            break
+        out[start + 1 : back + 1] = True
+        k = int(np.searchsorted(leaps, back)) + 1
+    return out
 
 
 def _clipped(values: np.ndarray, floor: float) -> np.ndarray:
@@ -748,13 +780,34 @@ class ImuBatches:
         #: The container as opened (``"mcap (recovered)"`` where it had to be walked).
         self.format_name = ""
         self._last_stamp: dict[str, int] = {}
+        self._reached: dict[str, int] = {}  # per topic: the latest stamp kept so far
 
     def _screen(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray):  # noqa: ANN202
         """Drop (and count) samples with non-finite or clipped values."""
         st = self.stats[topic]
+        zero = stamps == 0
+        if zero.any():
+            st.zero_stamps += int(np.count_nonzero(zero))
+            stamps = np.where(zero, log_times, stamps)
         finite = np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1)
         bad = ~finite
         st.non_finite += int(np.count_nonzero(bad))
+        with np.errstate(invalid="ignore"):
+            absurd = finite & ((np.abs(gyro) > IMPLAUSIBLE_GYRO_RADPS).any(axis=1) | (np.abs(accel) > IMPLAUSIBLE_ACCEL_MPS2).any(axis=1))
+        st.implausible += int(np.count_nonzero(absurd))
+        bad |= absurd
+        finite &= ~absurd
+        outlier = _stamp_outliers(stamps)
+        # stamps that leap back by minutes or more behind what this topic already reached
+        # cannot be placed in time: dropped (a forward leap is kept: time moves on)
+        reached = max(self._reached.get(topic, -(2**62)), int(stamps[~outlier].max()) if (~outlier).any() else -(2**62))
+        running = np.maximum.accumulate(np.where(outlier, -(2**62), stamps))
+        running = np.maximum(running, self._reached.get(topic, -(2**62)))
+        behind = ~outlier & (stamps < running - int(CLOCK_JUMP_S * 1e9))
+        self._reached[topic] = reached
+        st.stamp_outliers += int(np.count_nonzero((outlier | behind) & ~bad))
+        st.clock_jumps += int(np.count_nonzero(np.diff(np.concatenate([[0], behind.astype(np.int8)])) == 1))
+        bad |= outlier | behind
         clipped = np.zeros(len(stamps), dtype=bool)
         if finite.any():
             clipped[finite] = _clipped(gyro[finite], SATURATION_GYRO_RADPS) | _clipped(accel[finite], SATURATION_ACCEL_MPS2)
@@ -767,10 +820,6 @@ class ImuBatches:
 
     def _count(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, frame_ids: list[str]) -> np.ndarray:
         st = self.stats[topic]
-        zero = stamps == 0
-        if zero.any():
-            st.zero_stamps += int(np.count_nonzero(zero))
-            stamps = np.where(zero, log_times, stamps)
         if len(stamps):
             previous = self._last_stamp.get(topic)
             steps = np.diff(stamps if previous is None else np.concatenate([[previous], stamps]))
