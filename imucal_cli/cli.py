@@ -250,7 +250,7 @@ def _note_losses(log: Path, losses: list[Any]) -> None:
         typer.echo(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read", err=True)
 
 
-def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
+def _load_drive(log: Path, config_path: Path, quiet: bool = False) -> tuple[Any, Any]:
     """Load the config, then the base and sensor IMU streams of the log."""
     from imucal_cli.api import lost_summary
     from imucal_cli.config import load_config
@@ -265,10 +265,10 @@ def _load_drive(log: Path, config_path: Path) -> tuple[Any, Any]:
     for topic, read in reads.items():
         if len(read.stream) < 10:
             raise InputError(f"{log} [{topic}]: too little data: {len(read.stream)} usable messages{lost_summary(losses)}")
-    _note_losses(log, losses)
-    for topic, read in reads.items():
-        stats = read.stats
-        _note_read(log, topic, stats.to_dict())
+    if not quiet:
+        _note_losses(log, losses)
+        for topic, read in reads.items():
+            _note_read(log, topic, read.stats.to_dict())
     t0_ns = min(int(r.stream.t_ns[0]) for r in reads.values())
     streams = DriveStreams(
         base=reads[config.base.topic].stream,
@@ -380,12 +380,24 @@ def calibrate(
     require_observable: Annotated[
         bool, typer.Option("--require-observable", help="Exit 1 unless every sensor is fully observable (status ok).")
     ] = False,
+    report: Annotated[
+        Path | None,
+        typer.Option("--report", help="Also write figures (PNG) and report.html into this folder (needs imucal[report])."),
+    ] = None,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
     from imucal_cli.api import estimate
     from imucal_cli.pipeline import calibration_document
 
     _check_output(out)
+    if report is not None:
+        if not report.parent.is_dir():
+            raise InputError(f"{report}: report folder's parent {report.parent} does not exist")
+        if report.exists() and not report.is_dir():
+            raise InputError(f"{report}: exists and is not a folder")
+        from imucal_cli.io.report import _pyplot
+
+        _pyplot()  # fail before the work when matplotlib is missing
     cfg, streamed = _stream_log(log, config)
     with _progress("calibrating"):
         result = estimate(streamed)
@@ -411,6 +423,14 @@ def calibrate(
         for pair, T in doc["pairs"].items():
             console.print(f"{pair}: xyz {_fmt(T['translation'], 4)} m, rpy {_fmt(T['rpy_deg'], 3)} deg")
 
+    if report is not None:
+        from imucal_cli.io.report import write_report
+        from imucal_cli.pipeline import run_biases
+
+        _, streams = _load_drive(log, config, quiet=True)
+        with _progress("drawing the report"):
+            written = write_report(report, log, streams, result, streamed, run_biases(streams, cfg), document)
+        typer.echo(f"imucal: report: {written[-1]}", err=True)
     _emit(document, out, as_json, render)
     if require_observable and not result.all_ok:
         weak = [n for n, e in result.estimates.items() if e.status != "ok"]

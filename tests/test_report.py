@@ -1,0 +1,41 @@
+"""calibrate --report: every figure is written, the page embeds them and the result table."""
+
+from __future__ import annotations
+
+import base64
+import re
+
+import yaml
+from conftest import SAMPLE_DATA
+from typer.testing import CliRunner
+
+from imucal_cli.cli import app
+
+
+
+def test_report_for_the_sample_drive(tmp_path):
+    out, report = tmp_path / "e.yaml", tmp_path / "report"
+    result = CliRunner().invoke(
+        app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out), "--report", str(report)]
+    )
+    assert result.exit_code == 0, result.output
+    document = yaml.safe_load(out.read_text())
+    names = list(document["sensors"])
+    expected = {f"gyro_{n}.png" for n in names} | {"biases.png", "windows.png", "residuals.png", "std.png", "vehicle.png", "report.html"}
+    assert {p.name for p in report.iterdir()} == expected
+    page = (report / "report.html").read_text()
+    images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
+    assert len(images) == len(expected) - 1
+    pngs = {p.read_bytes() for p in report.glob("*.png")}
+    assert {base64.b64decode(i) for i in images} == pngs and all(p.startswith(b"\x89PNG\r\n\x1a\n") for p in pngs)
+    for name in names:  # the result table: every sensor with its status and estimate
+        row = re.search(rf"<tr><td>{name}</td><td>(\w+)</td><td>([^<]+)</td>", page)
+        assert row and row.group(1) == document["sensors"][name]["status"]
+        assert row.group(2) == ", ".join(f"{v:.4f}" for v in document["sensors"][name]["T_base_lidar"]["translation"])
+
+
+def test_report_folder_parent_missing_exits_2(tmp_path):
+    result = CliRunner().invoke(
+        app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "--report", str(tmp_path / "no" / "r")]
+    )
+    assert result.exit_code == 2 and "no/r" in result.stderr
