@@ -502,6 +502,75 @@ def export(
         typer.echo(f"imucal: wrote {path}", err=True)
 
 
+PANEL_FLEET = "Fleet"
+
+
+@app.command(rich_help_panel=PANEL_FLEET)
+@handles_errors
+def batch(
+    logs: Annotated[list[Path] | None, typer.Argument(help="Logs to calibrate (or --manifest).")] = None,
+    config: Annotated[Path | None, typer.Option("-c", "--config", help="Calibration config for every log (a manifest may name one per log).")] = None,
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="Folder for each log's calibration and the summary.")] = Path("imucal-batch"),
+    manifest: Annotated[Path | None, typer.Option("--manifest", help="CSV with columns log[, config, truth, reference].")] = None,
+    jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Local worker processes.")] = 1,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help="Dask scheduler address (tcp://host:port); needs imucal[fleet].")] = None,
+    truth_dir: Annotated[Path | None, typer.Option("--truth-dir", help="Folder of STEM.truth.yaml files to compare against.")] = None,
+    reference: Annotated[Path | None, typer.Option("--reference", help="The vehicle's previous calibration: sensors past the thresholds are flagged as moved.")] = None,
+    max_rotation_deg: Annotated[float | None, typer.Option("--max-rotation-deg", help="Pass threshold on the rotation error (deg).")] = None,
+    max_translation_m: Annotated[float | None, typer.Option("--max-translation-m", help="Pass threshold on the translation error (m).")] = None,
+    junit: Annotated[Path | None, typer.Option("--junit", help="Write JUnit XML here (for CI).")] = None,
+) -> None:
+    """Calibrate many logs (local processes or a Dask cluster); summary CSV/JSON, JUnit; exit 1 if any fails."""
+    from imucal_cli.fleet import Task, junit_xml, read_manifest, run_dask, run_local, summary_csv, summary_json
+    from imucal_cli.io.reports import write_text_atomic
+
+    if truth_dir is not None and reference is not None:
+        raise InputError("--truth-dir and --reference: give one of them")
+    entries: list[dict[str, str]] = [{"log": str(p)} for p in logs or []]
+    if manifest is not None:
+        entries += read_manifest(manifest)
+    if not entries:
+        raise InputError("no logs: give LOG... or --manifest CSV")
+    if not out_dir.parent.is_dir():
+        raise InputError(f"{out_dir}: output folder's parent {out_dir.parent} does not exist")
+    for path in (truth_dir, junit.parent if junit else None):
+        if path is not None and not path.is_dir():
+            raise InputError(f"{path}: folder does not exist")
+    if reference is not None and not reference.is_file():
+        raise InputError(f"{reference}: no such file")
+    out_dir.mkdir(exist_ok=True)
+    tasks, seen = [], set()
+    for entry in entries:
+        log = Path(entry["log"])
+        cfg = entry.get("config") or (str(config) if config else None)
+        if cfg is None:
+            raise InputError(f"{log}: no config: give -c CFG or a config column in the manifest")
+        stem = log.name.split(".")[0] if log.is_file() else log.name
+        if stem in seen:
+            raise InputError(f"{log}: two logs named {stem}: their outputs would collide in {out_dir}")
+        seen.add(stem)
+        truth = entry.get("truth") or (str(truth_dir / f"{stem}.truth.yaml") if truth_dir else None)
+        tasks.append(Task(str(log), cfg, str(out_dir / f"{stem}.yaml"), truth, entry.get("reference") or (str(reference) if reference else None),
+                          max_rotation_deg, max_translation_m))
+
+    def done(i: int, rows: list[Any]) -> None:
+        verdict = "ok" if all(r.passed for r in rows) else "FAIL"
+        typer.echo(f"imucal: [{i + 1}/{len(tasks)}] {tasks[i].log}: {verdict}", err=True)
+
+    results = run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
+    rows = [row for result in results for row in result]
+    settings = {"jobs": jobs, "scheduler": scheduler, "max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m,
+                "truth_dir": str(truth_dir) if truth_dir else None, "reference": str(reference) if reference else None}
+    write_text_atomic(out_dir / "summary.csv", summary_csv(rows))
+    write_text_atomic(out_dir / "summary.json", summary_json(rows, settings))
+    if junit is not None:
+        write_text_atomic(junit, junit_xml(rows))
+    failed = sum(not r.passed for r in rows)
+    typer.echo(f"imucal: {len(tasks)} logs, {len(rows)} rows, {failed} failed; summary in {out_dir / 'summary.csv'}", err=True)
+    if failed:
+        raise typer.Exit(EXIT_CHECK_FAILED)
+
+
 @app.command(rich_help_panel=PANEL_CAL)
 @handles_errors
 def evaluate(

@@ -1,0 +1,250 @@
+"""Fleet runs: one calibration per log, in local processes or on a Dask cluster, with a summary
+(CSV, JSON, JUnit XML) of every log and sensor against truth files or a reference calibration.
+
+Every task is :func:`run_one`: it calibrates one log, writes its calibrate document into the
+output folder and returns the summary rows; it never raises (a broken log is a failed row), so
+one bad log never stops the others. The same function runs under ``--jobs N``
+(``concurrent.futures`` processes) and ``--scheduler tcp://...`` (``dask.distributed``, the
+optional extra ``imucal[fleet]``); results do not depend on where a task ran.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import traceback
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from imucal_cli.errors import ImucalError, InputError
+
+SUMMARY_COLUMNS = (
+    "log", "sensor", "status", "x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg",
+    "rotation_std_deg", "translation_std_m", "rotation_error_deg", "translation_error_m", "moved", "pass", "error",
+)
+
+
+@dataclass(frozen=True)
+class Task:
+    log: str
+    config: str
+    out: str  # where the calibrate document goes
+    truth: str | None = None  # a truth file (sensors: NAME: T_base_lidar) to compare against
+    reference: str | None = None  # the vehicle's previous calibration: sensors past the thresholds moved
+    max_rotation_deg: float | None = None
+    max_translation_m: float | None = None
+
+
+@dataclass
+class Row:
+    log: str
+    sensor: str
+    status: str
+    x_m: float | None = None
+    y_m: float | None = None
+    z_m: float | None = None
+    roll_deg: float | None = None
+    pitch_deg: float | None = None
+    yaw_deg: float | None = None
+    rotation_std_deg: float | None = None  # the largest of the three axes
+    translation_std_m: float | None = None
+    rotation_error_deg: float | None = None  # against truth or reference
+    translation_error_m: float | None = None
+    moved: bool | None = None  # against a reference: past a threshold
+    passed: bool = False
+    error: str = ""
+    seconds: float = field(default=0.0, compare=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["pass"] = out.pop("passed")
+        out.pop("seconds")
+        return out
+
+
+def _transforms(path: str) -> dict[str, Any]:
+    from imucal_cli.io.reports import load_document
+    from imucal_cli.types import Transform
+
+    document = load_document(path)
+    if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict):
+        raise InputError(f"{path}: expected a mapping with 'sensors'")
+    out = {}
+    for name, s in document["sensors"].items():
+        if not isinstance(s, dict) or "T_base_lidar" not in s:
+            raise InputError(f"{path}: sensors.{name}.T_base_lidar: missing")
+        out[str(name)] = Transform.from_dict(s["T_base_lidar"], path, f"sensors.{name}.T_base_lidar")
+    return out
+
+
+def run_one(task: Task) -> list[Row]:
+    """Calibrate one log and compare; never raises. Safe to run in any process or worker."""
+    import time
+
+    from imucal_cli.api import calibrate_log
+    from imucal_cli.io.reports import write_document
+    from imucal_cli.pipeline import transform_errors
+
+    start = time.perf_counter()
+    name = Path(task.log).name
+    try:
+        run = calibrate_log(task.log, task.config, background=False)
+        write_document(task.out, run.document)
+        compare_to = task.truth or task.reference
+        against = _transforms(compare_to) if compare_to else {}
+    except ImucalError as exc:
+        return [Row(name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)]
+    except Exception as exc:  # noqa: BLE001 - a fleet run reports, it does not stop
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        return [Row(name, "", "failed", error=f"internal error: {type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})", seconds=time.perf_counter() - start)]
+    rows = []
+    for sensor, s in run.document["sensors"].items():
+        T = run.result.T_base_lidar(sensor)
+        std_r, std_t = s["rotation_std_deg"], s["translation_std_m"]
+        row = Row(
+            name, sensor, s["status"], *map(float, T.translation), *map(float, np.degrees(T.rpy_rad)),
+            None if std_r is None else float(max(std_r)), None if std_t is None else float(max(std_t)),
+        )
+        row.passed = s["status"] == "ok"
+        if sensor in against:
+            errors = transform_errors(T, against[sensor])
+            row.rotation_error_deg = errors["rotation_error_deg"]
+            row.translation_error_m = errors["translation_error_m"]
+            over = (task.max_rotation_deg is not None and row.rotation_error_deg > task.max_rotation_deg) or (
+                task.max_translation_m is not None and row.translation_error_m > task.max_translation_m
+            )
+            if task.reference:
+                row.moved = bool(over)
+            row.passed = row.passed and not over
+        elif compare_to:
+            row.passed = False
+            row.error = f"{compare_to}: no entry for sensor {sensor}"
+        rows.append(row)
+    elapsed = time.perf_counter() - start
+    for row in rows:
+        row.seconds = elapsed
+    return rows
+
+
+def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
+    """Every task in ``jobs`` local processes (in order of the tasks)."""
+    results: list[list[Row] | None] = [None] * len(tasks)
+    if jobs <= 1:
+        for i, task in enumerate(tasks):
+            results[i] = run_one(task)
+            if on_done:
+                on_done(i, results[i])  # type: ignore[arg-type]
+        return results  # type: ignore[return-value]
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method)) as pool:
+        futures = {pool.submit(run_one, task): i for i, task in enumerate(tasks)}
+        for future in as_completed(futures):
+            i = futures[future]
+            try:
+                results[i] = future.result()
+            except Exception as exc:  # noqa: BLE001 - a worker that died (out of memory, killed)
+                results[i] = [Row(Path(tasks[i].log).name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
+            if on_done:
+                on_done(i, results[i])  # type: ignore[arg-type]
+    return results  # type: ignore[return-value]
+
+
+def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
+    """Every task on the Dask cluster whose scheduler listens at ``address``."""
+    try:
+        from dask.distributed import Client, as_completed
+    except ImportError:
+        raise InputError("--scheduler needs dask.distributed: pip install 'imucal[fleet]'") from None
+    try:
+        client = Client(address, timeout="10s")
+    except Exception as exc:  # noqa: BLE001 - unreachable scheduler
+        raise InputError(f"--scheduler {address}: cannot connect: {exc}") from None
+    results: list[list[Row] | None] = [None] * len(tasks)
+    try:
+        futures = client.map(run_one, list(tasks), pure=False)
+        index = {f.key: i for i, f in enumerate(futures)}
+        for future in as_completed(futures):
+            i = index[future.key]
+            try:
+                results[i] = future.result()
+            except Exception as exc:  # noqa: BLE001 - a worker that died
+                results[i] = [Row(Path(tasks[i].log).name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
+            if on_done:
+                on_done(i, results[i])  # type: ignore[arg-type]
+    finally:
+        client.close()
+    return results  # type: ignore[return-value]
+
+
+def read_manifest(path: Path) -> list[dict[str, str]]:
+    """A CSV with a ``log`` column (and optional ``config``, ``truth``, ``reference``); relative
+    paths are relative to the manifest's folder."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror}") from None
+    reader = csv.DictReader(io.StringIO(text))
+    if not reader.fieldnames or "log" not in reader.fieldnames:
+        raise InputError(f"{path}: expected a CSV with a 'log' column")
+    unknown = set(reader.fieldnames) - {"log", "config", "truth", "reference"}
+    if unknown:
+        raise InputError(f"{path}: unknown column {sorted(unknown)[0]!r} (expected log, config, truth, reference)")
+    rows = []
+    for k, row in enumerate(reader, start=2):
+        if not row.get("log"):
+            raise InputError(f"{path}: line {k}: empty log")
+        rows.append({key: str(path.parent / value) if value and not os.path.isabs(value) else value for key, value in row.items() if value})
+    return rows
+
+
+def summary_csv(rows: Iterable[Row]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=list(SUMMARY_COLUMNS), lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: ("" if v is None else v) for k, v in row.to_dict().items()})
+    return out.getvalue()
+
+
+def summary_json(rows: Iterable[Row], settings: dict[str, Any]) -> str:
+    rows = list(rows)
+    return json.dumps(
+        {"settings": settings, "logs": len({r.log for r in rows}), "failed": sum(not r.passed for r in rows), "rows": [r.to_dict() for r in rows]},
+        indent=2,
+    ) + "\n"
+
+
+def junit_xml(rows: Sequence[Row]) -> str:
+    """JUnit XML: a test case per log and sensor (a log that failed to run is one error)."""
+    cases = []
+    for r in rows:
+        name = quoteattr(r.sensor or "calibration")
+        head = f"  <testcase classname={quoteattr(r.log)} name={name} time=\"{r.seconds:.3f}\">"
+        if r.status == "failed":
+            cases.append(f"{head}<error message={quoteattr(r.error)}/></testcase>")
+        elif not r.passed:
+            why = r.error or (
+                f"status {r.status}" + ("" if r.rotation_error_deg is None else f", rotation error {r.rotation_error_deg:.4f} deg, translation error {r.translation_error_m:.4f} m")
+                + (", moved" if r.moved else "")
+            )
+            cases.append(f"{head}<failure message={quoteattr(why)}/></testcase>")
+        else:
+            cases.append(f"{head}</testcase>")
+    failures = sum(1 for r in rows if not r.passed and r.status != "failed")
+    errors = sum(1 for r in rows if r.status == "failed")
+    total = sum(r.seconds for r in {(r.log): r for r in rows}.values())
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        f'<testsuites><testsuite name="imucal batch" tests="{len(rows)}" failures="{failures}" errors="{errors}" time="{total:.3f}">\n'
+        + "\n".join(cases) + "\n</testsuite></testsuites>\n"
+    )
