@@ -418,13 +418,24 @@ class Ros1Bag:
                 f"{len(self.chunk_positions)} of {self.chunk_count} chunks)"
             )
 
-    def batches(self, topics: Iterable[str], losses: list | None = None) -> Iterator[RawBatch]:
+    def batches(self, topics: Iterable[str], losses: list | None = None, group_bytes: int = 8 << 20) -> Iterator[RawBatch]:
+        """Raw batches of the wanted topics; consecutive chunks are decoded together, up to
+        ``group_bytes``, so the vectorised decoder's per-call cost is spread over many messages.
+        A chunk that cannot be read is skipped and recorded in ``losses`` (counts from its index)."""
         from imucal_cli.io.salvage import Loss
 
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
+        pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
+        size = 0
         for chunk_pos in self.chunk_positions:
             try:
-                yield from self._chunk_batches(chunk_pos, wanted)
+                chunk = self._read_chunk(chunk_pos, wanted)
+                if chunk is not None:
+                    pending.append(chunk)
+                    size += len(chunk[0])
+                    if size >= group_bytes:
+                        yield from self._group(pending, wanted)
+                        pending, size = [], 0
             except _ChunkLost as lost:
                 if losses is None:
                     raise ValueError(lost.reason) from None
@@ -433,8 +444,26 @@ class Ros1Bag:
                 if losses is None:
                     raise
                 losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
+        if pending:
+            yield from self._group(pending, wanted)
 
-    def _chunk_batches(self, chunk_pos: int, wanted: dict[int, str]) -> Iterator[RawBatch]:
+    @staticmethod
+    def _group(pending: list[tuple[bytes, dict[int, np.ndarray]]], wanted: dict[int, str]) -> Iterator[RawBatch]:
+        buffer = np.frombuffer(b"".join(data for data, _ in pending), dtype=np.uint8)
+        base = np.cumsum([0] + [len(data) for data, _ in pending[:-1]])
+        for conn, topic in wanted.items():
+            parts = [(e, b) for (_, positions), b in zip(pending, base, strict=True) if len(e := positions.get(conn, ()))]
+            if not parts:
+                continue
+            offset = np.concatenate([e["offset"].astype(np.int64) + b for e, b in parts])
+            sec = np.concatenate([e["sec"] for e, _ in parts]).astype(np.int64)
+            nsec = np.concatenate([e["nsec"] for e, _ in parts]).astype(np.int64)
+            header_len = _gather(buffer, offset, 4, "<u4").ravel().astype(np.int64)
+            data_len = _gather(buffer, offset + 4 + header_len, 4, "<u4").ravel().astype(np.int64)
+            yield RawBatch(topic, "ros1", buffer, offset + 8 + header_len, data_len, sec * 1_000_000_000 + nsec)
+
+    def _read_chunk(self, chunk_pos: int, wanted: dict[int, str]) -> tuple[bytes, dict[int, np.ndarray]] | None:
+        """One chunk's decompressed records and, per wanted connection, its index entries."""
         self.handle.seek(chunk_pos)
         head = self.handle.read(4096)
         fields, pos = _ros1_header(head, 0)
@@ -466,7 +495,7 @@ class Ros1Bag:
                 positions[conn] = entries
             self.handle.seek(start + pos + 4 + dlen)
         if not positions:
-            return
+            return None
         try:
             if len(compressed) != data_len:
                 raise ValueError("chunk cut off")
@@ -488,10 +517,8 @@ class Ros1Bag:
             counts = {wanted[c]: len(e) for c, e in positions.items()}
             times = [int(e["sec"][k]) * 1_000_000_000 + int(e["nsec"][k]) for e in positions.values() if len(e) for k in (0, -1)]
             raise _ChunkLost(str(exc), data_len, min(times, default=None), max(times, default=None), counts) from None
-        buffer = np.frombuffer(data, dtype=np.uint8)
-        for conn, entries in positions.items():
-            offset = entries["offset"].astype(np.int64)
-            header_len = _gather(buffer, offset, 4, "<u4").ravel().astype(np.int64)
-            data_len = _gather(buffer, offset + 4 + header_len, 4, "<u4").ravel().astype(np.int64)
-            log_ns = entries["sec"].astype(np.int64) * 1_000_000_000 + entries["nsec"].astype(np.int64)
-            yield RawBatch(wanted[conn], "ros1", buffer, offset + 8 + header_len, data_len, log_ns)
+        # every index offset must lie inside the chunk, or the chunk is damaged
+        if any(len(e) and int(e["offset"].max()) + 8 > len(data) for e in positions.values()):
+            counts = {wanted[c]: len(e) for c, e in positions.items()}
+            raise _ChunkLost("index offsets past the chunk's end", data_len, None, None, counts)
+        return data, positions

@@ -781,14 +781,32 @@ class ImuBatches:
         self.format_name = ""
         self._last_stamp: dict[str, int] = {}
         self._reached: dict[str, int] = {}  # per topic: the latest stamp kept so far
+        self._period: dict[str, float] = {}  # per topic: median step between stamps (ns)
 
     def _screen(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray):  # noqa: ANN202
-        """Drop (and count) samples with non-finite or clipped values."""
+        """Drop (and count) samples with non-finite, implausible or clipped values and damaged
+        stamps. The common case (nothing to drop) costs a few whole-batch reductions."""
         st = self.stats[topic]
         zero = stamps == 0
         if zero.any():
             st.zero_stamps += int(np.count_nonzero(zero))
             stamps = np.where(zero, log_times, stamps)
+        if not len(stamps):
+            return stamps, log_times, gyro, accel
+        jump = int(CLOCK_JUMP_S * 1e9)
+        reached_before = self._reached.get(topic, -(2**62))
+        # whole-array extremes (a NaN anywhere makes them NaN, and the comparisons False)
+        values_ok = bool(
+            -SATURATION_GYRO_RADPS < gyro.min() and gyro.max() < SATURATION_GYRO_RADPS
+            and -SATURATION_ACCEL_MPS2 < accel.min() and accel.max() < SATURATION_ACCEL_MPS2
+        )
+        low, high = int(stamps.min()), int(stamps.max())
+        # no step can leap by more than `jump` when the whole batch spans less than that
+        stamps_ok = high - low <= jump or bool(np.abs(np.diff(stamps)).max() <= jump)
+        stamps_ok = stamps_ok and low >= reached_before - jump
+        if values_ok and stamps_ok:
+            self._reached[topic] = max(reached_before, high)
+            return stamps, log_times, gyro, accel
         finite = np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1)
         bad = ~finite
         st.non_finite += int(np.count_nonzero(bad))
@@ -800,11 +818,10 @@ class ImuBatches:
         outlier = _stamp_outliers(stamps)
         # stamps that leap back by minutes or more behind what this topic already reached
         # cannot be placed in time: dropped (a forward leap is kept: time moves on)
-        reached = max(self._reached.get(topic, -(2**62)), int(stamps[~outlier].max()) if (~outlier).any() else -(2**62))
-        running = np.maximum.accumulate(np.where(outlier, -(2**62), stamps))
-        running = np.maximum(running, self._reached.get(topic, -(2**62)))
-        behind = ~outlier & (stamps < running - int(CLOCK_JUMP_S * 1e9))
-        self._reached[topic] = reached
+        running = np.maximum(np.maximum.accumulate(np.where(outlier, -(2**62), stamps)), reached_before)
+        behind = ~outlier & (stamps < running - jump)
+        if (~outlier).any():
+            self._reached[topic] = max(reached_before, int(stamps[~outlier].max()))
         st.stamp_outliers += int(np.count_nonzero((outlier | behind) & ~bad))
         st.clock_jumps += int(np.count_nonzero(np.diff(np.concatenate([[0], behind.astype(np.int8)])) == 1))
         bad |= outlier | behind
@@ -826,9 +843,12 @@ class ImuBatches:
             st.backwards += int(np.count_nonzero(steps < 0))
             jumps = np.abs(steps) > CLOCK_JUMP_S * 1e9
             st.clock_jumps += int(np.count_nonzero(jumps))
-            positive = steps[steps > 0]
-            if len(positive) >= 10:
-                period = float(np.median(positive))
+            period = self._period.get(topic)
+            if period is None:  # the topic's median period, from its first batch long enough
+                positive = steps[steps > 0]
+                if len(positive) >= 10:
+                    period = self._period[topic] = float(np.median(positive))
+            if period is not None:
                 st.gaps += int(np.count_nonzero((steps > GAP_MEDIAN_PERIODS * period) & ~jumps))
             self._last_stamp[topic] = int(stamps[-1])
         for name in frame_ids:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import bz2
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
@@ -118,32 +118,44 @@ def _chunk_header(body: bytes) -> tuple[int, int, int, int, str, int, int]:
     return start, end, size, crc, compression, pos + 8, records_len
 
 
-def _find_mcap_chunk(handle: BinaryIO, start: int, size: int) -> int | None:
-    """The offset of the next record at or after ``start`` that parses as a whole chunk."""
+def _search(handle: BinaryIO, start: int, size: int, overlap: int, find: Callable[[bytes, int], int | None]) -> int | None:
+    """The first file offset at or after ``start`` where ``find(block, limit)`` finds a record
+    (the block is read in 1 MB pieces, ``overlap`` bytes longer so a record header is whole)."""
     block_size = 1 << 20
     pos = start
     while pos < size:
         handle.seek(pos)
-        block = handle.read(block_size + 64)
-        if len(block) < 50:
+        block = handle.read(block_size + overlap)
+        if len(block) < 16:
             return None
+        found = find(block, block_size)
+        if found is not None:
+            return pos + found
+        pos += block_size
+    return None
+
+
+def _find_mcap_chunk(handle: BinaryIO, start: int, size: int) -> int | None:
+    """The offset of the next record at or after ``start`` that parses as a whole chunk."""
+
+    def find(block: bytes, limit: int) -> int | None:
         arr = np.frombuffer(block, dtype=np.uint8)
-        for k in np.flatnonzero(arr[: block_size] == 0x06):
-            k = int(k)
+        for k in np.flatnonzero(arr[:limit] == 0x06).tolist():
             if k + 45 > len(block):
                 continue
             (length,) = struct.unpack_from("<Q", block, k + 1)
             (name_len,) = struct.unpack_from("<I", block, k + 1 + 8 + 28)
-            if name_len not in (0, 3, 4) or length > min(_MAX_CHUNK, size - pos - k - 9):
+            if name_len not in (0, 3, 4) or length > _MAX_CHUNK:
                 continue
             name = block[k + 9 + 32 : k + 9 + 32 + name_len]
             if name not in (b"", b"lz4", b"zstd") or k + 9 + 32 + name_len + 8 > len(block):
                 continue
             (records_len,) = struct.unpack_from("<Q", block, k + 9 + 32 + name_len)
             if length == 32 + name_len + 8 + records_len:
-                return pos + k
-        pos += block_size
-    return None
+                return k
+        return None
+
+    return _search(handle, start, size, 64, find)
 
 
 def _mcap_records(records: bytes, result: ScanResult, wanted: set[int] | None, base_offset: int):
@@ -189,22 +201,27 @@ def _mcap_records(records: bytes, result: ScanResult, wanted: set[int] | None, b
     return found, pos
 
 
+def _batches(result: ScanResult, wanted_topics: set[str] | None, found: dict, buffer: np.ndarray) -> Iterator[RawBatch]:
+    """Raw batches of the wanted topics among the messages ``found`` in one buffer."""
+    for cid, (times, starts, lengths) in found.items():
+        channel = result.channels.get(cid)
+        if channel is None or wanted_topics is None or channel.topic not in wanted_topics:
+            continue
+        if channel.encoding not in ("cdr", "ros1"):
+            continue
+        yield RawBatch(
+            channel.topic, channel.encoding, buffer,
+            np.asarray(starts, dtype=np.int64), np.asarray(lengths, dtype=np.int64), np.asarray(times, dtype=np.int64),
+        )
+
+
 def scan_mcap(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanResult, Iterator[RawBatch]]:
     """Walk an MCAP file from the start; with ``wanted_topics`` also yield raw batches of them
     (one per chunk and channel). The result fills in as the iterator is consumed."""
     result = ScanResult()
 
-    def batches(found, buffer: np.ndarray) -> Iterator[RawBatch]:
-        for cid, (times, starts, lengths) in found.items():
-            channel = result.channels.get(cid)
-            if channel is None or wanted_topics is None or channel.topic not in wanted_topics:
-                continue
-            if channel.encoding not in ("cdr", "ros1"):
-                continue
-            yield RawBatch(
-                channel.topic, channel.encoding, buffer,
-                np.asarray(starts, dtype=np.int64), np.asarray(lengths, dtype=np.int64), np.asarray(times, dtype=np.int64),
-            )
+    def batches(found: dict, buffer: np.ndarray) -> Iterator[RawBatch]:
+        return _batches(result, wanted_topics, found, buffer)
 
     def walk() -> Iterator[RawBatch]:
         size = path.stat().st_size
@@ -340,46 +357,32 @@ def _register_ros1_connection(result: ScanResult, fields: dict[str, bytes], data
 
 def _find_ros1_chunk(handle: BinaryIO, start: int, size: int) -> int | None:
     """The offset of the next record at or after ``start`` whose header says it is a chunk."""
-    block_size = 1 << 20
-    pos = start
-    while pos < size:
-        handle.seek(pos)
-        block = handle.read(block_size + 256)
-        if len(block) < 16:
-            return None
+
+    def find(block: bytes, limit: int) -> int | None:
         at = 0
-        while True:
-            k = block.find(b"op=\x05", at, block_size)
-            if k < 0:
-                break
+        while (k := block.find(b"op=\x05", at, limit)) >= 0:
             at = k + 1
             for h in range(max(0, k - 128), k - 7):
                 try:
                     (hlen,) = struct.unpack_from("<I", block, h)
                     if not 8 <= hlen <= 256 or h + 4 + hlen <= k:
                         continue
-                    fields, hend = _ros1_header(block, h)
+                    fields, _ = _ros1_header(block, h)
                 except (struct.error, ValueError):
                     continue
                 if fields.get("op") == b"\x05" and "compression" in fields and "size" in fields:
-                    return pos + h
-        pos += block_size
-    return None
+                    return h
+        return None
+
+    return _search(handle, start, size, 256, find)
 
 
 def scan_ros1(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanResult, Iterator[RawBatch]]:
     """Walk a ROS 1 bag (v2.0) from the start, index or not; like :func:`scan_mcap`."""
     result = ScanResult()
 
-    def batches(found, buffer: np.ndarray) -> Iterator[RawBatch]:
-        for conn, (times, starts, lengths) in found.items():
-            channel = result.channels.get(conn)
-            if channel is None or wanted_topics is None or channel.topic not in wanted_topics:
-                continue
-            yield RawBatch(
-                channel.topic, "ros1", buffer,
-                np.asarray(starts, dtype=np.int64), np.asarray(lengths, dtype=np.int64), np.asarray(times, dtype=np.int64),
-            )
+    def batches(found: dict, buffer: np.ndarray) -> Iterator[RawBatch]:
+        return _batches(result, wanted_topics, found, buffer)
 
     def walk() -> Iterator[RawBatch]:
         size = path.stat().st_size
