@@ -311,8 +311,13 @@ def solve(
     numbers = np.array([w.number for w in used])
     n_knots = int(max(w.number for w in windows)) + 2
     S_g = np.stack([w.S_gyro for w in used])  # (K, 11, 11): small
-    S_a_chunks = [np.stack([w.S_accel for w in used[a : a + SOLVE_CHUNK]]) for a in range(0, len(used), SOLVE_CHUNK)]
-    trace_f = sum(float(np.trace(S[:, 0:3, 0:3].sum(axis=0))) for S in S_a_chunks)
+    # the accelerometer's moments are stacked a chunk at a time (memory bounded by the chunk)
+    starts = range(0, len(used), SOLVE_CHUNK)
+
+    def S_a_chunk(a: int) -> np.ndarray:
+        return np.stack([w.S_accel for w in used[a : a + SOLVE_CHUNK]])
+
+    trace_f = sum(float(np.trace(w.S_accel[0:3, 0:3])) for w in used)
     samples = sum(w.samples for w in used)
     gain = lowpass.white_noise_gain()
 
@@ -352,9 +357,9 @@ def solve(
         Ca = _C_accel(Rt, t, dtau, bj[:, 3:6], bk[:, 3:6])
         Hg, gg, cost_g = _normal_equations(_derivatives_gyro(Cg, Rt), S_g, Cg)
         parts = []
-        for a, S_a in zip(range(0, len(used), SOLVE_CHUNK), S_a_chunks, strict=True):
+        for a in starts:
             chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 13, 3, 29) in slices
-            parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a, Ca[chunk]))
+            parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a_chunk(a), Ca[chunk]))
         Ha, ga, cost_a = (np.concatenate([p[i] for p in parts]) for i in range(3))
         if iterations > 1:  # residual variance from the fit, above what the moments resolve
             scale_g = float(np.sqrt(max(cost_g.sum() / (3 * samples), floor_g)))
@@ -362,12 +367,12 @@ def solve(
         wg, wa = gain / scale_g**2, gain / scale_a**2
         # local -> global columns: globals [rot 0-2, t 3-5, dtau 6], knot j: 7 + 6 j + [g 0-2, a 3-5]
         K = len(used)
-        col_g = np.zeros((K, 10), dtype=np.int64)
+        col_g = np.zeros((K, 10), dtype=np.int32)  # int32: the index arrays are the solve's largest
         col_g[:, 0:3] = np.arange(3)
         col_g[:, 3] = 6
         col_g[:, 4:7] = 7 + 6 * numbers[:, None] + np.arange(3)
         col_g[:, 7:10] = 7 + 6 * (numbers[:, None] + 1) + np.arange(3)
-        col_a = np.zeros((K, 13), dtype=np.int64)
+        col_a = np.zeros((K, 13), dtype=np.int32)
         col_a[:, 0:6] = np.arange(6)
         col_a[:, 6] = 6
         col_a[:, 7:10] = 7 + 6 * numbers[:, None] + 3 + np.arange(3)
