@@ -311,3 +311,50 @@ def test_damaged_stamp_runs_and_absurd_values_are_dropped_and_counted(tmp_path, 
     assert stats.stamp_outliers == 41 and stats.implausible == 1
     assert len(kept) == len(t) - 42
     assert np.all(np.abs(np.diff(np.sort(kept))) < 10**9)  # what is left is one clock, no leaps
+
+
+def test_wrong_message_type_exits_2_naming_both_types(tmp_path, short_drive):
+    from conftest import DATA
+
+    from imucal_cli.io.reports import write_document
+
+    document = short_drive.config_document()
+    document["base"]["topic"] = "/imu/data"
+    first = next(iter(document["sensors"]))
+    document["sensors"] = {first: dict(document["sensors"][first], imu_topic="/chatter")}
+    write_document(tmp_path / "c.yaml", document)
+    log = DATA / "ros2_mcap_ros2_writer.mcap"
+    result = runner.invoke(app, ["calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(tmp_path / "e.yaml")])
+    assert result.exit_code == 2
+    line = result.stderr.strip()
+    assert len(line.splitlines()) == 1
+    assert str(log) in line and "/chatter" in line and "std_msgs/msg/String" in line and "sensor_msgs/msg/Imu" in line
+    assert not (tmp_path / "e.yaml").exists()
+
+
+def test_ctrl_c_leaves_no_partial_file_and_keeps_the_old_one(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from imucal_cli.io.reports import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+
+    drive = simulate_drive(DriveOptions(scenario="urban", duration_s=900.0, seed=2, sensors=4))
+    log = write_imu_log(tmp_path / "long.mcap", "mcap", drive.topics())
+    write_document(tmp_path / "c.yaml", drive.config_document())
+    out = tmp_path / "e.yaml"
+    out.write_text("previous: calibration\n")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+    )
+    time.sleep(2.0)  # reading and reducing: several seconds of work remain
+    os.killpg(process.pid, signal.SIGINT)  # what Ctrl-C sends: the whole process group
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 130, stderr
+    assert b"Traceback" not in stderr and b"interrupted" in stderr
+    assert out.read_text() == "previous: calibration\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "e.yaml", "long.mcap"]  # no temp files left
