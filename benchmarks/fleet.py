@@ -63,27 +63,37 @@ def main() -> None:
     work.mkdir(exist_ok=True)
     t1, rows1 = batch(folder, logs, work / "jobs1", ["--jobs", "1"])
     t2, rows2 = batch(folder, logs, work / "jobs2", ["--jobs", "2"])
-    import dask
     from dask.distributed import LocalCluster
 
-    runs = [("--jobs 1", t1, rows1), ("--jobs 2", t2, rows2)]
-    tuned = {
-        # Dask's statistical profiler samples every worker thread's stack every 10 ms; with
-        # tasks that hold the GIL as much as these, it slows them by a fifth or more
-        "distributed.worker.profile.enabled": False,
-    }
-    for label, settings in (("Dask LocalCluster, 2 workers (Dask defaults)", {}), ("Dask LocalCluster, 2 workers (worker profiler off)", tuned)):
+    runs = [("--jobs 1", t1, rows1, None), ("--jobs 2", t2, rows2, None)]
+    import dask.config
+
+    environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
+    # Dask's workers start with MALLOC_TRIM_THRESHOLD_=65536, which also fixes glibc's mmap
+    # threshold at 128 kB: every medium numpy temporary becomes an mmap/munmap pair and its
+    # pages fault in anew. imucal's tasks make many of them; this setting slows them by half.
+    environ.pop("MALLOC_TRIM_THRESHOLD_", None)
+    tuned = {"distributed.nanny.pre-spawn-environ": environ}
+    one_worker = None
+    for label, settings, workers in (
+        ("Dask LocalCluster, 2 workers (Dask defaults)", {}, 2),
+        ("Dask LocalCluster, 1 worker (glibc malloc defaults)", tuned, 1),
+        ("Dask LocalCluster, 2 workers (glibc malloc defaults)", tuned, 2),
+    ):
         with dask.config.set(settings), LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
         ) as cluster:
             wall, rows = batch(folder, logs, work / "dask", ["--scheduler", cluster.scheduler_address])
-        runs.append((label, wall, rows))
+        if workers == 1:
+            one_worker = wall
+        runs.append((label, wall, rows, one_worker if workers == 2 and settings else None))
     passed = sum(r["pass"] == "True" for r in rows1)
     print(f"## imucal batch: {len(logs)} simulated logs ({args.duration:.0f} s urban, 4 lidars each), 2-core machine\n")
-    print("| run | wall s | x of --jobs 1 | rows | passed | identical to --jobs 1 |")
-    print("|---|---|---|---|---|---|")
-    for name, wall, rows in runs:
-        print(f"| {name} | {wall:.1f} | {wall / t1:.2f} | {len(rows)} | {sum(r['pass'] == 'True' for r in rows)} | {'yes' if rows == rows1 else 'NO'} |")
+    print("| run | wall s | x of --jobs 1 | x of the same scheduler with 1 worker | rows | passed | identical to --jobs 1 |")
+    print("|---|---|---|---|---|---|---|")
+    for name, wall, rows, single in runs:
+        same = f"{wall / t1:.2f}" if name == "--jobs 2" else ("-" if single is None else f"{wall / single:.2f}")
+        print(f"| {name} | {wall:.1f} | {wall / t1:.2f} | {same} | {len(rows)} | {sum(r['pass'] == 'True' for r in rows)} | {'yes' if rows == rows1 else 'NO'} |")
     print(f"\nJUnit XML parsed for every run; {passed} of {len(rows1)} sensor rows pass 0.1 deg / 3 cm against truth.")
 
 
