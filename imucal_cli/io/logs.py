@@ -317,7 +317,7 @@ class Rosbag2Log(LogReader):
             topic = meta["name"]
             count = int(entry["message_count"]) + (self._topics[topic].count if topic in self._topics else 0)
             self._topics[topic] = TopicInfo(topic, meta["type"], count, meta["serialization_format"])
-        self._storage: list[LogReader] = [Sqlite3Log(path, self.files)] if storage == "sqlite3" else [_open_mcap(f) for f in self.files]
+        self._storage: list[LogReader] = [Sqlite3Log(path, self.files, count=False)] if storage == "sqlite3" else [_open_mcap(f) for f in self.files]
         for reader in self._storage:
             self.losses.extend(reader.losses)
             reader.losses = self.losses  # one list: what any storage file loses is this log's loss
@@ -397,16 +397,17 @@ class Sqlite3Log(LogReader):
 
     format_name = "rosbag2-sqlite3"
 
-    def __init__(self, path: Path, files: list[Path], why: str = "") -> None:
+    def __init__(self, path: Path, files: list[Path], why: str = "", count: bool = True) -> None:
         super().__init__(path)
         self.files = files
+        self._count_rows = count  # False where metadata.yaml has the counts: no table scan
         if why:
             self.format_name = "rosbag2-sqlite3 (storage read directly)"
         self._topics: dict[str, TopicInfo] = {}
         self._salvaged: dict[Path, tuple[dict[int, tuple[str, str, str]], list[tuple[int, int, int, bytes]]]] = {}
         for db in files:
             try:
-                rows, counts = self._query_topics(db)
+                rows, counts = self._query_topics(db, self._count_rows)
             except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
                 try:
                     topics, losses, messages = scan_sqlite_rows(db)
@@ -427,12 +428,12 @@ class Sqlite3Log(LogReader):
                 self._topics[name] = TopicInfo(name, msgtype, count, fmt)
 
     @staticmethod
-    def _query_topics(db: Path) -> tuple[list[tuple[int, str, str, str]], dict[int, int]]:
+    def _query_topics(db: Path, count: bool) -> tuple[list[tuple[int, str, str, str]], dict[int, int]]:
         connection = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
         connection.text_factory = lambda raw: raw.decode("utf-8", errors="replace")  # damaged text stays readable
         try:
             rows = connection.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
-            counts = dict(connection.execute("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id").fetchall())
+            counts = dict(connection.execute("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id").fetchall()) if count else {}
         finally:
             connection.close()
         return rows, counts
