@@ -198,7 +198,7 @@ def read_manifest(path: Path) -> list[dict[str, str]]:
         raise InputError(f"{path}: expected a CSV with a 'log' column")
     unknown = set(reader.fieldnames) - {"log", "config", "truth", "reference"}
     if unknown:
-        raise InputError(f"{path}: unknown column {sorted(unknown)[0]!r} (expected log, config, truth, reference)")
+        raise InputError(f"{path}: unknown column {min(unknown)!r} (expected log, config, truth, reference)")
     rows = []
     for k, row in enumerate(reader, start=2):
         if not row.get("log"):

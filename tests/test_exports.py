@@ -159,3 +159,16 @@ def test_export_bad_input_exits_2(tmp_path):
     assert result.exit_code == 2 and "x.yaml" in result.stderr and "T_base_lidar" in result.stderr
     result = runner.invoke(app, ["export", str(bad), "--format", "ros3"])
     assert result.exit_code == 2 and "ros3" in result.stderr
+
+
+def test_export_rejects_a_non_number_rate(tmp_path):
+    from conftest import SAMPLE_DATA
+
+    out = tmp_path / "e.yaml"
+    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    document = yaml.safe_load(out.read_text())
+    name = next(iter(document["sensors"]))
+    document["sensors"][name]["imu_rate_hz"] = "fast"
+    out.write_text(yaml.safe_dump(document))
+    result = runner.invoke(app, ["export", str(out), "--format", "kalibr"])
+    assert result.exit_code == 2 and f"sensors.{name}.imu_rate_hz" in result.stderr and "e.yaml" in result.stderr

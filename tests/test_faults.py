@@ -130,7 +130,7 @@ def test_rosbag2_without_usable_metadata_reads_the_storage(logs, fmt, damage):
 def test_calibrate_goes_on_after_a_cut_and_stops_when_too_little_remains(logs, tmp_path, short_drive):
     from imucal_cli.io.reports import write_document
 
-    log, topics, full = logs["mcap"]
+    log = logs["mcap"][0]
     config = tmp_path / "c.yaml"
     write_document(config, short_drive.config_document())
     for fraction, code in ((0.9, 0), (0.02, 2)):
@@ -270,8 +270,8 @@ def test_gap_is_counted_and_windows_across_it_are_not_used(tmp_path, short_drive
     assert reader.stats[name].gaps == 1
     assert all(reader.stats[o].gaps == 0 for o in topics if o != name)
     from imucal_cli.api import stream_log
-    from imucal_cli.io.reports import write_document
     from imucal_cli.config import load_config
+    from imucal_cli.io.reports import write_document
 
     write_document(tmp_path / "c.yaml", short_drive.config_document())
     config = load_config(tmp_path / "c.yaml")

@@ -12,7 +12,6 @@ from typer.testing import CliRunner
 from imucal_cli.cli import app
 
 
-
 def test_report_for_the_sample_drive(tmp_path):
     out, report = tmp_path / "e.yaml", tmp_path / "report"
     result = CliRunner().invoke(

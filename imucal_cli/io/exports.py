@@ -22,7 +22,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from imucal_cli.errors import InputError
+from imucal_cli.errors import ConfigError, InputError
 from imucal_cli.types import Transform
 
 FORMATS = ("autoware", "urdf", "tf-static-ros2", "tf-static-ros1", "kalibr", "json")
@@ -65,20 +65,27 @@ class Extrinsics:
             try:
                 T_base_lidar = Transform.from_dict(s["T_base_lidar"], source, f"sensors.{name}.T_base_lidar")
                 T_base_imu = Transform.from_dict(s["T_base_imu"], source, f"sensors.{name}.T_base_imu")
-            except Exception as exc:  # ConfigError names file and key
+            except ConfigError as exc:  # names file and key
                 raise InputError(str(exc)) from None
-            rate = s.get("imu_rate_hz")
             sensors.append(
                 SensorExtrinsics(
                     str(name), str(s["lidar_frame"]), str(s.get("imu_topic", "")), T_base_lidar, T_base_imu,
-                    float(s.get("time_offset_s") or 0.0), None if rate is None else float(rate),
+                    _number(s, "time_offset_s", f"{where}.time_offset_s") or 0.0, _number(s, "imu_rate_hz", f"{where}.imu_rate_hz"),
                 )
             )
-        rate = document.get("base_imu_rate_hz")
         return Extrinsics(
             source, str(document.get("base_frame", "base_link")), document.get("base_topic"),
-            None if rate is None else float(rate), tuple(sensors),
+            _number(document, "base_imu_rate_hz", f"{source}: base_imu_rate_hz"), tuple(sensors),
         )
+
+
+def _number(mapping: dict[str, Any], key: str, where: str) -> float | None:
+    value = mapping.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise InputError(f"{where}: expected a number, got {value!r}")
+    return float(value)
 
 
 def _f(value: float) -> str:
