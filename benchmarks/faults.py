@@ -5,7 +5,8 @@
    built from one simulated drive (aggressive, 60 s, two lidars) written in every format.
 2. A fuzzer (seeded): random byte flips, truncations and field mutations (u32/u64 fields set to
    0, all ones or random) of real logs (the fixtures written by other tools in ``tests/data``
-   and the simulated logs), each run through ``imucal inspect`` and ``imucal calibrate -o``.
+   and the simulated logs), each run through ``imucal inspect`` and ``imucal calibrate -o``,
+   and every tenth also through ``imucal segments -o`` and ``imucal biases -o``.
    A case fails if it raised anything but a clean exit, printed a traceback, exited 2 with
    more than one line or without naming the file, or left an output file behind on failure.
 
@@ -334,8 +335,11 @@ def fuzz(work: Path, cases: int, seed: int, only: set[int] | None = None) -> Non
         mutated, kind = mutate(f.read_bytes(), rng)
         f.write_bytes(mutated)
         out = work / "case" / f"{case}.yaml"
-        for command in (["inspect", str(log)], ["calibrate", str(log), "-c", str(cfg), "-o", str(out)]):
-            result = run(command, out if command[0] == "calibrate" else None)
+        commands = [["inspect", str(log)], ["calibrate", str(log), "-c", str(cfg), "-o", str(out)]]
+        if case % 10 == 0:  # the other commands that read logs, on every tenth case
+            commands += [["segments", str(log), "-c", str(cfg), "-o", str(out)], ["biases", str(log), "-c", str(cfg), "-o", str(out)]]
+        for command in commands:
+            result = run(command, out if command[0] != "inspect" else None)
             outcomes[f"{command[0]} exit {result['code']}"] += 1
             problem = ""
             if result["traceback"]:
@@ -351,7 +355,7 @@ def fuzz(work: Path, cases: int, seed: int, only: set[int] | None = None) -> Non
         shutil.rmtree(log, ignore_errors=True) if log.is_dir() else log.unlink()
         if out.exists():
             out.unlink()
-    print(f"## Fuzzer ({cases} mutated logs, seed {seed}, {2 * cases} runs, {time.perf_counter() - start:.0f} s)\n")
+    print(f"## Fuzzer ({cases} mutated logs, seed {seed}, {sum(outcomes.values())} runs, {time.perf_counter() - start:.0f} s)\n")
     print("| outcome | runs |")
     print("|---|---|")
     for key, count in sorted(outcomes.items()):
