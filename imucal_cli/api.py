@@ -33,7 +33,9 @@ CLOCK_COMPARE_SLACK_S = 0.05
 #: Samples at the start of each topic whose ``stamp - log_time`` gives its clock's offset.
 CLOCK_COMPARE_SAMPLES = 200
 
-__all__ = ["LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "lost_summary", "stream_log"]
+__all__ = [
+    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "load_transforms", "lost_summary", "stream_log",
+]
 
 
 def lost_summary(losses: list[Loss]) -> str:
@@ -174,6 +176,21 @@ def export_extrinsics(document: Mapping[str, Any], fmt: str, parent: str | None 
     return export(Extrinsics.from_document(dict(document), source), fmt, parent)
 
 
-def lidar_transforms(document: Mapping[str, Any]) -> dict[str, Transform]:
-    """``T_base_lidar`` of every sensor of a calibrate document."""
-    return {name: Transform.from_dict(s["T_base_lidar"]) for name, s in document["sensors"].items()}
+def load_transforms(path: str | Path, key: str = "T_base_lidar") -> dict[str, Transform]:
+    """``key`` of every sensor of a calibrate output or truth file (``sensors: NAME: key``);
+    :class:`InputError` naming the file and the key path when one is missing or malformed."""
+    from imucal_cli.errors import ConfigError
+    from imucal_cli.io.reports import load_document
+
+    document = load_document(path)
+    if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict):
+        raise InputError(f"{path}: expected a mapping with 'sensors'")
+    out = {}
+    for name, sensor in document["sensors"].items():
+        if not isinstance(sensor, dict) or key not in sensor:
+            raise InputError(f"{path}: sensors.{name}.{key}: missing")
+        try:
+            out[str(name)] = Transform.from_dict(sensor[key], str(path), f"sensors.{name}.{key}")
+        except ConfigError as exc:
+            raise InputError(str(exc)) from None
+    return out

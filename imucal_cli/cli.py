@@ -438,25 +438,6 @@ def calibrate(
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
-def _transforms(path: Path, key: str) -> dict[str, Any]:
-    from imucal_cli.errors import ConfigError
-    from imucal_cli.io.reports import load_document
-    from imucal_cli.types import Transform
-
-    document = load_document(path)
-    if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict):
-        raise InputError(f"{path}: expected a mapping with 'sensors'")
-    out = {}
-    for name, sensor in document["sensors"].items():
-        if not isinstance(sensor, dict) or key not in sensor:
-            raise InputError(f"{path}: sensors.{name}.{key}: missing")
-        try:
-            out[str(name)] = Transform.from_dict(sensor[key], str(path), f"sensors.{name}.{key}")
-        except ConfigError as exc:
-            raise InputError(str(exc)) from None
-    return out
-
-
 PANEL_EXPORT = "Export"
 LAUNCH_SUFFIX = {"tf-static-ros2": ".launch.xml", "tf-static-ros1": ".launch"}
 
@@ -582,11 +563,12 @@ def evaluate(
     as_json: JsonOption = False,
 ) -> None:
     """Rotation and translation errors of every sensor and pair against ground truth."""
+    from imucal_cli.api import load_transforms
     from imucal_cli.pipeline import evaluate_document
 
     _check_output(out)
-    estimates = _transforms(estimate, "T_base_lidar")
-    truths = _transforms(truth, "T_base_lidar")
+    estimates = load_transforms(estimate)
+    truths = load_transforms(truth)
     if not set(estimates) & set(truths):
         raise InputError(f"{estimate}: no sensor in common with {truth}")
     document = evaluate_document(estimates, truths, max_rotation_deg, max_translation_m)

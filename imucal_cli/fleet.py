@@ -69,26 +69,11 @@ class Row:
         return out
 
 
-def _transforms(path: str) -> dict[str, Any]:
-    from imucal_cli.io.reports import load_document
-    from imucal_cli.types import Transform
-
-    document = load_document(path)
-    if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict):
-        raise InputError(f"{path}: expected a mapping with 'sensors'")
-    out = {}
-    for name, s in document["sensors"].items():
-        if not isinstance(s, dict) or "T_base_lidar" not in s:
-            raise InputError(f"{path}: sensors.{name}.T_base_lidar: missing")
-        out[str(name)] = Transform.from_dict(s["T_base_lidar"], path, f"sensors.{name}.T_base_lidar")
-    return out
-
-
 def run_one(task: Task) -> list[Row]:
     """Calibrate one log and compare; never raises. Safe to run in any process or worker."""
     import time
 
-    from imucal_cli.api import calibrate_log
+    from imucal_cli.api import calibrate_log, load_transforms
     from imucal_cli.io.reports import write_document
     from imucal_cli.pipeline import transform_errors
 
@@ -98,7 +83,7 @@ def run_one(task: Task) -> list[Row]:
         run = calibrate_log(task.log, task.config, background=False)
         write_document(task.out, run.document)
         compare_to = task.truth or task.reference
-        against = _transforms(compare_to) if compare_to else {}
+        against = load_transforms(compare_to) if compare_to else {}
     except ImucalError as exc:
         return [Row(name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)]
     except Exception as exc:  # noqa: BLE001 - a fleet run reports, it does not stop

@@ -277,6 +277,8 @@ class StreamingCalibrator:
         count = 0
         covered = self._covered_until()
         while True:
+            if not final and covered < self._need(self.next_window + self.block_windows - 1, final):
+                break  # no whole block yet (skipping empty stretches would only move it later)
             self._skip_empty()
             spans: list[tuple[int, float, float]] = []
             partial = False
@@ -284,8 +286,7 @@ class StreamingCalibrator:
                 number = self.next_window + len(spans)
                 start = self._grid_start + number * self.window_s
                 end = start + self.window_s
-                need = end + PAD_S + self.max_offset + (0.0 if final else REORDER_S)
-                if covered < need:
+                if covered < self._need(number, final):
                     if final:
                         end = min(end, covered - self.max_offset - 1.0 / self.rate)
                         if end - start >= self.window_s / 2:
@@ -305,6 +306,12 @@ class StreamingCalibrator:
             if partial or len(spans) < self.block_windows:
                 break
         return count
+
+    def _need(self, number: int, final: bool) -> float:
+        """Seconds from the origin every IMU must cover before window ``number`` is reduced:
+        its end, the padding, the clock offset and (while reading) the reordering slack."""
+        end = self._grid_start + (number + 1) * self.window_s
+        return end + PAD_S + self.max_offset + (0.0 if final else REORDER_S)
 
     def _skip_empty(self) -> None:
         """Move the next window past a stretch where some IMU has no data at all (a long gap,

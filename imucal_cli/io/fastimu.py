@@ -16,7 +16,7 @@ from __future__ import annotations
 import sqlite3
 import struct
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -46,6 +46,19 @@ class RawBatch:
     starts: np.ndarray  # int64, first byte of each message's data
     lengths: np.ndarray  # int64
     log_time_ns: np.ndarray  # int64
+
+    def messages(self) -> Iterator[tuple[str, int, bytes]]:
+        """``(topic, log_time_ns, serialized message)`` one at a time (for the generic path)."""
+        buf = self.buffer
+        for start, length, log_ns in zip(self.starts.tolist(), self.lengths.tolist(), self.log_time_ns.tolist(), strict=True):
+            yield self.topic, int(log_ns), bytes(buf[start : start + length])
+
+
+def pack_blobs(blobs: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Serialized messages in one buffer: ``(buffer, starts, lengths)``."""
+    lengths = np.fromiter(map(len, blobs), dtype=np.int64, count=len(blobs))
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+    return np.frombuffer(b"".join(blobs), dtype=np.uint8), starts, lengths
 
 
 @dataclass(frozen=True)
@@ -339,9 +352,7 @@ def sqlite_batches(
                 id_column, time_column, blobs = zip(*chunk, strict=True)
                 topic_ids = np.array(id_column, dtype=np.int64)
                 times = np.array(time_column, dtype=np.int64)
-                lengths = np.fromiter(map(len, blobs), dtype=np.int64, count=len(chunk))
-                buffer = np.frombuffer(b"".join(blobs), dtype=np.uint8)
-                starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+                buffer, starts, lengths = pack_blobs(blobs)
                 for tid, name in ids.items():
                     pick = topic_ids == tid
                     if pick.any():
@@ -368,7 +379,7 @@ def _ros1_header(data: bytes, pos: int) -> tuple[dict[str, bytes], int]:
     return fields, end
 
 
-class _ChunkLost(Exception):  # noqa: N818 - internal signal
+class _ChunkLost(Exception):  # internal signal: a chunk that cannot be read
     def __init__(self, reason: str, nbytes: int, start_ns: int | None, end_ns: int | None, counts: dict[str, int]) -> None:
         super().__init__(reason)
         self.reason, self.nbytes, self.start_ns, self.end_ns, self.counts = reason, nbytes, start_ns, end_ns, counts

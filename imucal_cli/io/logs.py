@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.errors import LogError
-from imucal_cli.io.fastimu import RawBatch, Ros1Bag, decode_imu, mcap_batches, sqlite_batches
+from imucal_cli.io.fastimu import RawBatch, Ros1Bag, decode_imu, mcap_batches, pack_blobs, sqlite_batches
 from imucal_cli.io.salvage import Loss, ScanResult, scan_mcap, scan_ros1, scan_sqlite_rows
 from imucal_cli.types import ImuStream
 
@@ -344,7 +344,7 @@ class Rosbag2Log(LogReader):
             reader.close()
 
 
-class _NeedsSalvage(Exception):  # noqa: N818 - a signal to the opener, never seen by users
+class _NeedsSalvage(Exception):  # a signal to the opener, never seen by users
     """The container's index cannot be used: read it record by record instead."""
 
 
@@ -384,9 +384,7 @@ class SalvageLog(LogReader):
     def iter_raw(self, topics: Iterable[str]) -> Iterator[tuple[str, int, bytes]]:
         _, walk = self._scan(self.path, set(topics))
         for batch in walk:
-            buf = batch.buffer
-            for start, length, log_ns in zip(batch.starts.tolist(), batch.lengths.tolist(), batch.log_time_ns.tolist(), strict=True):
-                yield batch.topic, int(log_ns), bytes(buf[start : start + length])
+            yield from batch.messages()
 
 
 class Sqlite3Log(LogReader):
@@ -455,9 +453,7 @@ class Sqlite3Log(LogReader):
                     picked = [(stamp, blob) for _, t, stamp, blob in messages if t == tid]
                     if not picked:
                         continue
-                    lengths = np.array([len(b) for _, b in picked], dtype=np.int64)
-                    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
-                    buffer = np.frombuffer(b"".join(b for _, b in picked), dtype=np.uint8)
+                    buffer, starts, lengths = pack_blobs([b for _, b in picked])
                     yield RawBatch(name, "cdr", buffer, starts, lengths, np.array([t for t, _ in picked], dtype=np.int64))
 
         return generate()
@@ -466,9 +462,7 @@ class Sqlite3Log(LogReader):
         batches = self.fast_batches(topics)
         assert batches is not None
         for batch in batches:
-            buf = batch.buffer
-            for start, length, log_ns in zip(batch.starts.tolist(), batch.lengths.tolist(), batch.log_time_ns.tolist(), strict=True):
-                yield batch.topic, int(log_ns), bytes(buf[start : start + length])
+            yield from batch.messages()
 
 
 def _storage_directly(path: Path, why: str) -> LogReader | None:
@@ -736,8 +730,8 @@ def _stamp_outliers(stamps: np.ndarray) -> np.ndarray:
     jump = CLOCK_JUMP_S * 1e9
     t = stamps.astype(np.float64)
     leaps = np.flatnonzero(np.abs(np.diff(t)) > jump)  # a leap between k and k + 1
-    if len(leaps) and np.abs(t[leaps[0] + 1 :] - t[leaps[0]]).min(initial=np.inf) > jump and leaps[0] == 0:
-        out[0] = True  # the first stamp alone is off: everything after it agrees
+    if len(leaps) and leaps[0] == 0 and np.all(np.abs(t[1:] - t[0]) > jump):
+        out[0] = True  # the first stamp alone is off: no later stamp comes near it
         leaps = leaps[1:]
     k = 0
     while k < len(leaps):

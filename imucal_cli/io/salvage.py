@@ -220,9 +220,6 @@ def scan_mcap(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanRe
     (one per chunk and channel). The result fills in as the iterator is consumed."""
     result = ScanResult()
 
-    def batches(found: dict, buffer: np.ndarray) -> Iterator[RawBatch]:
-        return _batches(result, wanted_topics, found, buffer)
-
     def walk() -> Iterator[RawBatch]:
         size = path.stat().st_size
         with path.open("rb") as handle:
@@ -287,7 +284,7 @@ def scan_mcap(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanRe
                         reason = "chunk cut off by the end of the file" if cut else "chunk with a damaged record"
                         result.losses.append(Loss(reason, pos, min(end, size) - pos, kept, end_ns))
                     if wanted_topics is not None and found:
-                        yield from batches(found, np.frombuffer(records, dtype=np.uint8))
+                        yield from _batches(result, wanted_topics, found, np.frombuffer(records, dtype=np.uint8))
                     if cut:
                         result.truncated = True
                         return
@@ -304,7 +301,7 @@ def scan_mcap(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanRe
                     record = head + body
                     found, _ = _mcap_records(record, result, None, 0)
                     if wanted_topics is not None and found:
-                        yield from batches(found, np.frombuffer(record, dtype=np.uint8))
+                        yield from _batches(result, wanted_topics, found, np.frombuffer(record, dtype=np.uint8))
                 elif op == 0x0F:  # data end: the summary follows, nothing more to read
                     return
                 if op != 0x07:
@@ -381,9 +378,6 @@ def scan_ros1(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanRe
     """Walk a ROS 1 bag (v2.0) from the start, index or not; like :func:`scan_mcap`."""
     result = ScanResult()
 
-    def batches(found: dict, buffer: np.ndarray) -> Iterator[RawBatch]:
-        return _batches(result, wanted_topics, found, buffer)
-
     def walk() -> Iterator[RawBatch]:
         size = path.stat().st_size
         with path.open("rb") as handle:
@@ -444,7 +438,7 @@ def scan_ros1(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanRe
                         reason = "chunk cut off by the end of the file" if cut else "chunk with a damaged record"
                         result.losses.append(Loss(reason, pos, min(end, size) - pos))
                     if wanted_topics is not None and found:
-                        yield from batches(found, np.frombuffer(records, dtype=np.uint8))
+                        yield from _batches(result, wanted_topics, found, np.frombuffer(records, dtype=np.uint8))
                     if cut:
                         result.truncated = True
                         return
@@ -454,7 +448,7 @@ def scan_ros1(path: Path, wanted_topics: set[str] | None = None) -> tuple[ScanRe
                     record = head + header + struct.pack("<I", dlen) + data
                     found, _ = _ros1_records(record, result, None)
                     if wanted_topics is not None and found:
-                        yield from batches(found, np.frombuffer(record, dtype=np.uint8))
+                        yield from _batches(result, wanted_topics, found, np.frombuffer(record, dtype=np.uint8))
                 elif cut:
                     result.truncated = True
                     if op not in (b"\x04", b"\x06"):  # a cut index is no data lost
