@@ -358,3 +358,13 @@ def test_ctrl_c_leaves_no_partial_file_and_keeps_the_old_one(tmp_path):
     assert b"Traceback" not in stderr and b"interrupted" in stderr
     assert out.read_text() == "previous: calibration\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "e.yaml", "long.mcap"]  # no temp files left
+
+
+def test_damaged_stamp_run_after_a_clock_jump_is_still_found():
+    from imucal_cli.io.logs import _stamp_outliers
+
+    t = np.arange(1000, dtype=np.int64) * 10_000_000 + 1_700_000_000 * 10**9
+    t[300:] += 300 * 10**9  # a real jump: the clock stays moved
+    t[600:620] -= 15 * 365 * 86400 * 10**9  # then a damaged run that comes back
+    out = _stamp_outliers(t)
+    assert np.flatnonzero(out).tolist() == list(range(600, 620))

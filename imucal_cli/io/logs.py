@@ -737,8 +737,9 @@ def _stamp_outliers(stamps: np.ndarray) -> np.ndarray:
     while k < len(leaps):
         start = leaps[k]
         back = next((j for j in leaps[k + 1 :] if abs(t[j + 1] - t[start]) <= jump), None)
-        if back is None:
-            break
+        if back is None:  # a clock jump: the stamps stay moved; later runs may still come back
+            k += 1
+            continue
         out[start + 1 : back + 1] = True
         k = int(np.searchsorted(leaps, back)) + 1
     return out
