@@ -395,9 +395,9 @@ def calibrate(
             raise InputError(f"{report}: report folder's parent {report.parent} does not exist")
         if report.exists() and not report.is_dir():
             raise InputError(f"{report}: exists and is not a folder")
-        from imucal_cli.io.report import _pyplot
+        from imucal_cli.io.report import pyplot
 
-        _pyplot()  # fail before the work when matplotlib is missing
+        pyplot()  # fail before the work when matplotlib is missing
     cfg, streamed = _stream_log(log, config)
     with _progress("calibrating"):
         result = estimate(streamed)

@@ -38,7 +38,7 @@ AXES = ("x", "y", "z")
 COLOURS = ("tab:red", "tab:green", "tab:blue")
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
     try:
         import matplotlib
     except ImportError:
@@ -288,7 +288,7 @@ def write_report(out_dir: Path, log: Path, streams: Any, result: Any, streamed: 
     """Draw every figure into ``out_dir`` and write ``report.html``; returns the files written."""
     from imucal_cli.core.signals import Lowpass
 
-    plt = _pyplot()
+    plt = pyplot()
     out_dir.mkdir(parents=True, exist_ok=True)
     config = result.config
     t0 = streams.t0_ns
