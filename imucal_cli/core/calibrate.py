@@ -30,6 +30,7 @@ neighbouring residuals.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -171,28 +172,37 @@ class WindowMoments:
 
     @property
     def S_gyro(self) -> np.ndarray:
-        return _assemble(self.rows_gyro, self.base.packed_gyro, GYRO_DIM)
+        return assemble_moments([self], "gyro")[0]
 
     @property
     def S_accel(self) -> np.ndarray:
-        return _assemble(self.rows_accel, self.base.packed_accel, ACCEL_DIM)
+        return assemble_moments([self], "accel")[0]
+
+
+_UPPER = {dim: np.triu_indices(dim - 3) for dim in (GYRO_DIM, ACCEL_DIM)}
 
 
 def base_moments(X_gyro: np.ndarray, X_accel: np.ndarray) -> BaseMoments:
     """The base block from the base part of the data vectors (n, 8) and (n, 26)."""
     G, A = X_gyro.T @ X_gyro, X_accel.T @ X_accel
-    return BaseMoments(G[np.triu_indices(GYRO_DIM - 3)], A[np.triu_indices(ACCEL_DIM - 3)])
+    return BaseMoments(G[_UPPER[GYRO_DIM]], A[_UPPER[ACCEL_DIM]])
 
 
-def _assemble(rows: np.ndarray, packed: np.ndarray, dim: int) -> np.ndarray:
-    full = np.empty((dim, dim))
-    upper = np.triu_indices(dim - 3)
-    block = np.empty((dim - 3, dim - 3))
-    block[upper] = packed
-    block[upper[1], upper[0]] = packed
-    full[3:, 3:] = block
-    full[0:3, :] = rows
-    full[:, 0:3] = rows.T
+def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray:
+    """The full moments ``S`` of several windows, (K, dim, dim), ``which`` is "gyro" or "accel"."""
+    dim = GYRO_DIM if which == "gyro" else ACCEL_DIM
+    if which == "gyro":
+        rows = np.stack([w.rows_gyro for w in windows])
+        packed = np.stack([w.base.packed_gyro for w in windows])
+    else:
+        rows = np.stack([w.rows_accel for w in windows])
+        packed = np.stack([w.base.packed_accel for w in windows])
+    upper = _UPPER[dim]
+    full = np.empty((len(windows), dim, dim))
+    full[:, 3 + upper[0], 3 + upper[1]] = packed
+    full[:, 3 + upper[1], 3 + upper[0]] = packed
+    full[:, 0:3, :] = rows
+    full[:, :, 0:3] = rows.transpose(0, 2, 1)
     return full
 
 
@@ -310,14 +320,14 @@ def solve(
     used = [w for w in windows if w.info is not None and w.info.selected]
     numbers = np.array([w.number for w in used])
     n_knots = int(max(w.number for w in windows)) + 2
-    S_g = np.stack([w.S_gyro for w in used])  # (K, 11, 11): small
+    S_g = assemble_moments(used, "gyro")  # (K, 11, 11): small
     # the accelerometer's moments are stacked a chunk at a time (memory bounded by the chunk)
     starts = range(0, len(used), SOLVE_CHUNK)
 
     def S_a_chunk(a: int) -> np.ndarray:
-        return np.stack([w.S_accel for w in used[a : a + SOLVE_CHUNK]])
+        return assemble_moments(used[a : a + SOLVE_CHUNK], "accel")
 
-    trace_f = sum(float(np.trace(w.S_accel[0:3, 0:3])) for w in used)
+    trace_f = float(sum(np.trace(w.rows_accel[:, 0:3]) for w in used))
     samples = sum(w.samples for w in used)
     gain = lowpass.white_noise_gain()
 

@@ -39,6 +39,7 @@ from imucal_cli.core.calibrate import (
     CalibrationOptions,
     SensorEstimate,
     WindowMoments,
+    assemble_moments,
     base_moments,
     solve,
     unobservable,
@@ -392,8 +393,8 @@ class StreamingCalibrator:
             infos = window_infos_from_moments(
                 [(w.start_s, w.end_s, w.valid) for w in part],
                 np.array([w.samples for w in part]),
-                np.stack([w.S_gyro for w in part]),
-                np.stack([w.S_accel for w in part]),
+                assemble_moments(part, "gyro"),
+                assemble_moments(part, "accel"),
                 setup.prior_T_base_imu.translation,
                 sigma_gyro, sigma_accel, opts.max_rotation_std_deg, opts.translation_bound_m,
             )

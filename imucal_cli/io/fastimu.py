@@ -32,6 +32,11 @@ _CDR_HEAD = np.dtype(
     [("encapsulation", "<u2"), ("options", "<u2"), ("sec", "<i4"), ("nsec", "<u4"), ("frame_len", "<u4")]
 )
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
+#: Groups of chunks read and decompressed ahead of the decoding, in a thread.
+READ_AHEAD_GROUPS = 2
+#: The interpreter's switch interval while reading ahead (s): the reading thread takes the GIL
+#: back after every read, decompression and CRC, and would wait the default 5 ms each time.
+READ_AHEAD_SWITCH_S = 0.0005
 #: How many messages of a batch have their frame id read (evenly spread, the first included).
 FRAME_ID_SAMPLES = 64
 
@@ -46,6 +51,9 @@ class RawBatch:
     starts: np.ndarray  # int64, first byte of each message's data
     lengths: np.ndarray  # int64
     log_time_ns: np.ndarray  # int64
+    #: The first 16 bytes of every message (``_CDR_HEAD`` or ``_ROS1_HEAD``) when the reader
+    #: gathered them with its record headers; only for batches whose messages all hold them.
+    head: np.ndarray | None = None
 
     def messages(self) -> Iterator[tuple[str, int, bytes]]:
         """``(topic, log_time_ns, serialized message)`` one at a time (for the generic path)."""
@@ -93,38 +101,46 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     """
     buf, starts, lengths = batch.buffer, batch.starts, batch.lengths
     n = len(starts)
-    ok = (lengths >= 16) & (starts >= 0) & (starts + lengths <= len(buf))
-    # the first 16 bytes hold everything before the frame id: one gather
-    head_dtype = _CDR_HEAD if batch.encoding == "cdr" else _ROS1_HEAD
     if batch.encoding not in ("cdr", "ros1"):
         raise ValueError(f"unsupported encoding {batch.encoding!r}")
-    head = np.zeros(n, dtype=head_dtype)
-    if ok.any():
-        head[ok] = _gather(buf, starts[ok], 16, head_dtype).ravel()
+    # the first 16 bytes hold everything before the frame id: one gather
+    head_dtype = _CDR_HEAD if batch.encoding == "cdr" else _ROS1_HEAD
+    ok = (lengths >= 16) & (starts >= 0) & (starts + lengths <= len(buf))
+    all_ok = bool(ok.all())
+    if all_ok and batch.head is not None:
+        head = batch.head
+    elif all_ok:
+        head = _gather(buf, starts, 16, head_dtype).ravel()
+    else:
+        head = np.zeros(n, dtype=head_dtype)
+        if ok.any():
+            head[ok] = _gather(buf, starts[ok], 16, head_dtype).ravel()
     frame_len = head["frame_len"].astype(np.int64)
     if batch.encoding == "cdr":
         ok &= head["encapsulation"] == 0x0100  # bytes 00 01: CDR, little endian
-        body = starts + 4
-        floats_at = (12 + frame_len + 7) // 8 * 8  # relative to the body
+        floats_at = (frame_len + 19) // 8 * 8  # after the body's 12 bytes and the frame id, to 8
         needed = 4 + floats_at + _TAIL
-        frame_start, frame_chars = body + 12, frame_len - 1
-        floats_abs = body + floats_at
+        frame_start, frame_chars = starts + 16, frame_len - 1
+        floats_abs = starts + 4 + floats_at
     else:
         needed = 16 + frame_len + _TAIL
         frame_start, frame_chars = starts + 16, frame_len
         floats_abs = starts + 16 + frame_len
     ok &= (lengths >= needed) & (frame_chars >= 0)
-    index = np.flatnonzero(ok)
+    all_ok = bool(ok.all())
+    index = np.arange(n) if all_ok else np.flatnonzero(ok)
 
     stamp = np.zeros(len(index), dtype=np.int64)
     gyro = np.zeros((len(index), 3))
     accel = np.zeros((len(index), 3))
     frame_ids: list[str] = []
     if len(index):
-        stamp = head["sec"][index].astype(np.int64) * 1_000_000_000 + head["nsec"][index].astype(np.int64)
-        gyro = _gather(buf, floats_abs[index] + _GYRO_AFTER_FRAME, 24, "<f8")
-        accel = _gather(buf, floats_abs[index] + _ACCEL_AFTER_FRAME, 24, "<f8")
-        lengths_used = frame_chars[index]
+        used = head if all_ok else head[index]
+        stamp = used["sec"].astype(np.int64) * 1_000_000_000 + used["nsec"]
+        at = floats_abs if all_ok else floats_abs[index]
+        gyro = _gather(buf, at + _GYRO_AFTER_FRAME, 24, "<f8")
+        accel = _gather(buf, at + _ACCEL_AFTER_FRAME, 24, "<f8")
+        lengths_used = frame_chars if all_ok else frame_chars[index]
         groups = [lengths_used[0]] if lengths_used.min() == lengths_used.max() else np.unique(lengths_used)
         for length in groups:
             group = index if len(groups) == 1 else index[lengths_used == length]
@@ -146,11 +162,11 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     return DecodedBatch(
         batch.topic,
         stamp,
-        batch.log_time_ns[index],
+        batch.log_time_ns if all_ok else batch.log_time_ns[index],
         np.asarray(gyro, dtype=np.float64),
         np.asarray(accel, dtype=np.float64),
         frame_ids,
-        np.flatnonzero(~ok),
+        np.zeros(0, dtype=np.int64) if all_ok else np.flatnonzero(~ok),
     )
 
 
@@ -158,19 +174,37 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
 
 _MCAP_MESSAGE_HEADER = 1 + 8 + 2 + 4 + 8 + 8  # opcode, length, channel, sequence, log, publish
 _MCAP_OP_MESSAGE_INDEX = 0x07
+#: Largest uncompressed chunk believed (bytes): a bigger size in an index is damage.
+_MCAP_MAX_CHUNK = 1 << 30
 
 
-def _decompress(compression: str, data: bytes, size: int) -> bytes:
+def _decompress_into(compression: str, data: bytes | memoryview, out: memoryview) -> int:
+    """Decompress ``data`` into ``out``; returns the number of bytes written (at most
+    ``len(out)``). zstd writes in place; the others are copied."""
     if compression == "":
-        return data
+        n = min(len(data), len(out))
+        out[:n] = data[:n]
+        return len(data)
     if compression == "zstd":
         import zstandard
 
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+        reader = zstandard.ZstdDecompressor().stream_reader(data)
+        done = 0
+        while done < len(out):
+            got = reader.readinto(out[done:])
+            if not got:
+                break
+            done += got
+        if done == len(out) and reader.read(1):
+            return done + 1  # more than the header says
+        return done
     if compression == "lz4":
         import lz4.frame
 
-        return lz4.frame.decompress(data)
+        records = lz4.frame.decompress(data)
+        n = min(len(records), len(out))
+        out[:n] = records[:n]
+        return len(records)
     raise ValueError(f"unsupported chunk compression {compression!r}")
 
 
@@ -189,14 +223,15 @@ class McapChunks:
         s = self.summary
         return bool(s and s.chunk_indexes and all(c.message_index_offsets for c in s.chunk_indexes))
 
-    def read_chunk(self, chunk_index: object) -> bytes:
-        """The decompressed records of one chunk."""
+    def read_chunk(self, chunk_index: object, out: memoryview | None = None) -> memoryview:
+        """The decompressed records of one chunk, written into ``out`` when given (it must hold
+        the chunk's uncompressed size), and checked against the chunk's size and CRC."""
         ci = chunk_index
         self.handle.seek(ci.chunk_start_offset)  # type: ignore[attr-defined]
         raw = self.handle.read(ci.chunk_length)  # type: ignore[attr-defined]
         # opcode(1) length(8) start(8) end(8) uncompressed_size(8) crc(4) compression(str) records(u64 + bytes)
         pos = 1 + 8 + 8 + 8
-        uncompressed_size = struct.unpack_from("<Q", raw, pos)[0]
+        uncompressed_size, crc = struct.unpack_from("<QI", raw, pos)
         pos += 8 + 4
         (name_len,) = struct.unpack_from("<I", raw, pos)
         compression = raw[pos + 4 : pos + 4 + name_len].decode()
@@ -205,13 +240,16 @@ class McapChunks:
         pos += 8
         if pos + records_len > len(raw):
             raise ValueError("chunk cut off")
-        records = _decompress(compression, raw[pos : pos + records_len], uncompressed_size)
-        if len(records) != uncompressed_size:
-            raise ValueError(f"decompressed to {len(records)} bytes, the header says {uncompressed_size}")
-        crc = struct.unpack_from("<I", raw, 1 + 8 + 8 + 8 + 8)[0]
-        if crc and zlib.crc32(records) != crc:
+        if out is None:
+            out = memoryview(bytearray(uncompressed_size))
+        if len(out) != uncompressed_size:
+            raise ValueError(f"the chunk index says {len(out)} bytes, the chunk {uncompressed_size}")
+        written = _decompress_into(compression, memoryview(raw)[pos : pos + records_len], out)
+        if written != uncompressed_size:
+            raise ValueError(f"decompressed to {written} bytes, the header says {uncompressed_size}")
+        if crc and zlib.crc32(out) != crc:
             raise ValueError("CRC mismatch")
-        return records
+        return out
 
     def message_positions(self, chunk_index: object, channel_ids: set[int]) -> dict[int, np.ndarray]:
         """Per channel: (n, 2) uint64 of (log_time, offset in the chunk's records)."""
@@ -237,17 +275,27 @@ class McapChunks:
     ) -> Iterator[RawBatch]:
         """Raw batches of the wanted channels (channel id -> (topic, encoding)).
 
-        Consecutive chunks are decoded together, up to ``group_bytes`` of records, so that the
-        per-call cost of the vectorised decoder is spread over many messages. A chunk that does
-        not decompress or fails its CRC is skipped and recorded in ``losses`` with the exact
-        message counts of its index.
+        Consecutive chunks are decompressed into one buffer and decoded together, up to
+        ``group_bytes`` of records, so that the per-call cost of the vectorised decoder is spread
+        over many messages. A chunk that does not decompress or fails its CRC is skipped and
+        recorded in ``losses`` with the exact message counts of its index.
         """
-        from imucal_cli.io.salvage import Loss
+        from imucal_cli.io.prefetch import queued
 
+        # reading, decompressing and checking run a group ahead in a thread (zstd and the CRC
+        # release the GIL) while the groups before are decoded here
+        groups = self._read_groups(wanted, losses, group_bytes)
+        ahead = queued(groups, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else groups
+        for buffer, pending in ahead:
+            yield from self._group(buffer, pending, wanted)
+
+    def _read_groups(
+        self, wanted: dict[int, tuple[str, str]], losses: list | None, group_bytes: int
+    ) -> Iterator[tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]]:
         assert self.summary is not None
         ids = set(wanted)
         chunks = sorted(self.summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset))
-        pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
+        group: list[tuple[object, dict[int, np.ndarray]]] = []
         size = 0
         for ci in chunks:
             if not ids & set(ci.message_index_offsets):
@@ -255,36 +303,62 @@ class McapChunks:
             positions = self.message_positions(ci, ids)
             if not any(len(p) for p in positions.values()):
                 continue
+            group.append((ci, positions))
+            size += ci.uncompressed_size
+            if size >= group_bytes:
+                yield self._read_group(group, wanted, losses)
+                group, size = [], 0
+        if group:
+            yield self._read_group(group, wanted, losses)
+
+    def _read_group(
+        self, group: list[tuple[object, dict[int, np.ndarray]]], wanted: dict[int, tuple[str, str]], losses: list | None
+    ) -> tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]:
+        from imucal_cli.io.salvage import Loss
+
+        sizes = [ci.uncompressed_size for ci, _ in group]  # type: ignore[attr-defined]
+        buffer = np.empty(sum(n for n in sizes if n <= _MCAP_MAX_CHUNK), dtype=np.uint8)
+        view = memoryview(buffer)
+        pending: list[tuple[int, dict[int, np.ndarray]]] = []
+        at = 0
+        for (ci, positions), n in zip(group, sizes, strict=True):
             try:
-                records = self.read_chunk(ci)
+                if n > _MCAP_MAX_CHUNK:
+                    raise ValueError(f"implausible uncompressed size {n}")
+                if any(len(p) and int(p[:, 1].max()) + _MCAP_MESSAGE_HEADER > n for p in positions.values()):
+                    raise ValueError("message index offsets past the chunk's end")
+                self.read_chunk(ci, view[at : at + n])
             except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
                 if losses is None:
                     raise
                 counts = {wanted[c][0]: len(p) for c, p in positions.items() if len(p)}
-                losses.append(Loss(f"chunk that cannot be read ({exc})", ci.chunk_start_offset, ci.chunk_length, ci.message_start_time, ci.message_end_time, counts))
+                losses.append(Loss(f"chunk that cannot be read ({exc})", ci.chunk_start_offset, ci.chunk_length, ci.message_start_time, ci.message_end_time, counts))  # type: ignore[attr-defined]
                 continue
-            pending.append((records, positions))
-            size += len(records)
-            if size >= group_bytes:
-                yield from self._group(pending, wanted)
-                pending, size = [], 0
-        if pending:
-            yield from self._group(pending, wanted)
+            pending.append((at, positions))
+            at += n
+        return buffer[:at], pending
 
     @staticmethod
-    def _group(pending: list[tuple[bytes, dict[int, np.ndarray]]], wanted: dict[int, tuple[str, str]]) -> Iterator[RawBatch]:
-        buffer = np.frombuffer(b"".join(records for records, _ in pending), dtype=np.uint8)
-        base = np.cumsum([0] + [len(records) for records, _ in pending[:-1]])
+    def _group(buffer: np.ndarray, pending: list[tuple[int, dict[int, np.ndarray]]], wanted: dict[int, tuple[str, str]]) -> Iterator[RawBatch]:
         for channel, (topic, encoding) in wanted.items():
-            parts = [(e, b) for (_, positions), b in zip(pending, base, strict=True) if len(e := positions.get(channel, ()))]
+            parts = [(e, b) for b, positions in pending if len(e := positions.get(channel, ()))]
             if not parts:
                 continue
             offset = np.concatenate([e[:, 1].astype(np.int64) + b for e, b in parts])
             log_ns = np.concatenate([e[:, 0].astype(np.int64) for e, _ in parts])
-            record_len = _gather(buffer, offset + 1, 8, "<u8").ravel().astype(np.int64)
-            yield RawBatch(
-                topic, encoding, buffer, offset + _MCAP_MESSAGE_HEADER, record_len - (_MCAP_MESSAGE_HEADER - 9), log_ns
-            )
+            # the record's length and the message's first 16 bytes in one gather, where they fit
+            head_dtype = _CDR_HEAD if encoding == "cdr" else _ROS1_HEAD
+            records = np.dtype([("op", "u1"), ("length", "<u8"), ("rest", f"V{_MCAP_MESSAGE_HEADER - 9}"), ("head", head_dtype)])
+            head = None
+            if len(offset) and int(offset.max()) + records.itemsize <= len(buffer):
+                both = _gather(buffer, offset, records.itemsize, "u1").view(records).ravel()
+                record_len, head = both["length"].astype(np.int64), both["head"]
+            else:
+                record_len = _gather(buffer, offset + 1, 8, "<u8").ravel().astype(np.int64)
+            data_len = record_len - (_MCAP_MESSAGE_HEADER - 9)
+            if head is not None and not np.all(data_len >= 16):
+                head = None
+            yield RawBatch(topic, encoding, buffer, offset + _MCAP_MESSAGE_HEADER, data_len, log_ns, head)
 
 
 def mcap_batches(path: Path, topics: Iterable[str], losses: list | None = None) -> Iterator[RawBatch] | None:
@@ -433,9 +507,19 @@ class Ros1Bag:
         """Raw batches of the wanted topics; consecutive chunks are decoded together, up to
         ``group_bytes``, so the vectorised decoder's per-call cost is spread over many messages.
         A chunk that cannot be read is skipped and recorded in ``losses`` (counts from its index)."""
-        from imucal_cli.io.salvage import Loss
+        from imucal_cli.io.prefetch import queued
 
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
+        groups = self._read_groups(wanted, losses, group_bytes)
+        ahead = queued(groups, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else groups
+        for buffer, pending in ahead:
+            yield from self._group(buffer, pending, wanted)
+
+    def _read_groups(
+        self, wanted: dict[int, str], losses: list | None, group_bytes: int
+    ) -> Iterator[tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]]:
+        from imucal_cli.io.salvage import Loss
+
         pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
         size = 0
         for chunk_pos in self.chunk_positions:
@@ -445,7 +529,7 @@ class Ros1Bag:
                     pending.append(chunk)
                     size += len(chunk[0])
                     if size >= group_bytes:
-                        yield from self._group(pending, wanted)
+                        yield self._joined(pending)
                         pending, size = [], 0
             except _ChunkLost as lost:
                 if losses is None:
@@ -456,22 +540,38 @@ class Ros1Bag:
                     raise
                 losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
         if pending:
-            yield from self._group(pending, wanted)
+            yield self._joined(pending)
 
     @staticmethod
-    def _group(pending: list[tuple[bytes, dict[int, np.ndarray]]], wanted: dict[int, str]) -> Iterator[RawBatch]:
+    def _joined(pending: list[tuple[bytes, dict[int, np.ndarray]]]) -> tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]:
         buffer = np.frombuffer(b"".join(data for data, _ in pending), dtype=np.uint8)
-        base = np.cumsum([0] + [len(data) for data, _ in pending[:-1]])
+        base = np.cumsum([0] + [len(data) for data, _ in pending[:-1]]).tolist()
+        return buffer, [(b, positions) for b, (_, positions) in zip(base, pending, strict=True)]
+
+    @staticmethod
+    def _group(buffer: np.ndarray, pending: list[tuple[int, dict[int, np.ndarray]]], wanted: dict[int, str]) -> Iterator[RawBatch]:
         for conn, topic in wanted.items():
-            parts = [(e, b) for (_, positions), b in zip(pending, base, strict=True) if len(e := positions.get(conn, ()))]
+            parts = [(e, b) for b, positions in pending if len(e := positions.get(conn, ()))]
             if not parts:
                 continue
             offset = np.concatenate([e["offset"].astype(np.int64) + b for e, b in parts])
             sec = np.concatenate([e["sec"] for e, _ in parts]).astype(np.int64)
             nsec = np.concatenate([e["nsec"] for e, _ in parts]).astype(np.int64)
+            log_ns = sec * 1_000_000_000 + nsec
+            # writers give every message record the same header length: then the record header,
+            # the data length and the message's first 16 bytes come in one gather
+            first = int(np.frombuffer(buffer, "<u4", 1, int(offset[0]))[0]) if 0 <= offset[0] <= len(buffer) - 4 else -1
+            records = np.dtype([("header_len", "<u4"), ("header", f"V{max(first, 1)}"), ("data_len", "<u4"), ("head", _ROS1_HEAD)])
+            if 0 < first < 4096 and int(offset.min()) >= 0 and int(offset.max()) + records.itemsize <= len(buffer):
+                both = _gather(buffer, offset, records.itemsize, "u1").view(records).ravel()
+                if np.all(both["header_len"] == first):
+                    data_len = both["data_len"].astype(np.int64)
+                    head = both["head"] if np.all(data_len >= 16) else None
+                    yield RawBatch(topic, "ros1", buffer, offset + 8 + first, data_len, log_ns, head)
+                    continue
             header_len = _gather(buffer, offset, 4, "<u4").ravel().astype(np.int64)
             data_len = _gather(buffer, offset + 4 + header_len, 4, "<u4").ravel().astype(np.int64)
-            yield RawBatch(topic, "ros1", buffer, offset + 8 + header_len, data_len, sec * 1_000_000_000 + nsec)
+            yield RawBatch(topic, "ros1", buffer, offset + 8 + header_len, data_len, log_ns)
 
     def _read_chunk(self, chunk_pos: int, wanted: dict[int, str]) -> tuple[bytes, dict[int, np.ndarray]] | None:
         """One chunk's decompressed records and, per wanted connection, its index entries."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import multiprocessing
 import queue
+import sys
 import threading
 from collections.abc import Iterable, Iterator
 from typing import Any, Protocol, TypeVar
@@ -39,9 +40,19 @@ class StatsReader(Protocol):
     def __iter__(self) -> Iterator[Any]: ...
 
 
-def _queued(items: Iterable[T], depth: int) -> Iterator[T]:
-    """``items`` produced by a background thread up to ``depth`` ahead (here: receiving from
-    the pipe, which releases the GIL while it waits)."""
+_END = object()
+
+
+def queued(items: Iterable[T], depth: int, switch_interval_s: float | None = None) -> Iterator[T]:
+    """``items`` produced by a background thread up to ``depth`` ahead: worth it where the
+    producer spends its time outside the GIL (receiving from a pipe, reading a file,
+    decompressing, checking a CRC). An exception in the producer is raised in the consumer;
+    closing the iterator stops the producer.
+
+    A producer that takes the GIL back after every call outside it waits up to the
+    interpreter's switch interval (5 ms) each time while the consumer computes;
+    ``switch_interval_s`` shortens it while the iterator runs (then puts it back).
+    """
     slots: queue.Queue[object] = queue.Queue(maxsize=max(1, depth))
     stop = threading.Event()
 
@@ -59,14 +70,20 @@ def _queued(items: Iterable[T], depth: int) -> Iterator[T]:
             for item in items:
                 if not put(item):
                     return
+            put(_END)
         except BaseException as exc:  # noqa: BLE001 - handed to the consumer
             put(_Raised(exc))
 
+    previous = sys.getswitchinterval()
+    if switch_interval_s is not None:
+        sys.setswitchinterval(min(previous, switch_interval_s))
     thread = threading.Thread(target=produce, name="imucal-read-ahead", daemon=True)
     thread.start()
     try:
         while True:
             item = slots.get()
+            if item is _END:
+                return
             if isinstance(item, _Raised):
                 raise item.exc
             yield item  # type: ignore[misc]
@@ -75,6 +92,8 @@ def _queued(items: Iterable[T], depth: int) -> Iterator[T]:
     finally:
         stop.set()
         thread.join(timeout=5.0)
+        if switch_interval_s is not None:
+            sys.setswitchinterval(previous)
 
 
 def _child(reader: StatsReader, conn: Any) -> None:  # pragma: no cover - runs in the child
@@ -123,9 +142,9 @@ def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[A
             if isinstance(item, (_Done, _Raised)):
                 return
 
-    queued = _queued(receive(), DEPTH)
+    queued_items = queued(receive(), DEPTH)
     try:
-        for item in queued:
+        for item in queued_items:
             if isinstance(item, _Raised):
                 raise item.exc
             if isinstance(item, _Done):
@@ -139,7 +158,7 @@ def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[A
         if process.is_alive():
             process.terminate()
         process.join()
-        queued.close()
+        queued_items.close()
         try:
             receiving.close()
         except OSError:
