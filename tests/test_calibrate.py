@@ -232,3 +232,49 @@ def test_live_feed_gives_an_estimate_after_every_window_and_the_batch_result():
         angle = np.radians(rotation_angle_deg(final[name].T_base_imu.rotation, estimate.T_base_imu.rotation))
         assert angle < 0.05 * std[:3].min()
         assert np.all(np.abs(final[name].T_base_imu.translation - estimate.T_base_imu.translation) < 0.05 * std[3:])
+
+
+def test_natural_cubic_spline_interpolates_and_matches_the_b_spline_away_from_the_ends():
+    """The tridiagonal natural spline passes through every sample, and where the end conditions
+    have died out (a few samples in) it is the not-a-knot B-spline, values and derivatives."""
+    from scipy.interpolate import make_interp_spline
+
+    from imucal_cli.core.streaming import _natural_cubic
+
+    rng = np.random.default_rng(5)
+    t = np.arange(2000) / 200.0 + rng.normal(0.0, 2e-5, 2000)  # jittered stamps
+    y = np.stack([np.sin(2 * np.pi * f * t + p) for f, p in [(0.3, 0), (1.0, 1), (3.0, 2)]], axis=1)
+    spline, reference = _natural_cubic(t, y), make_interp_spline(t, y, k=3)
+    np.testing.assert_allclose(spline(t), y, rtol=0, atol=1e-13)
+    query = np.linspace(t[40], t[-40], 5000)
+    for nu, tol in [(0, 1e-12), (1, 1e-10), (2, 1e-7)]:
+        np.testing.assert_allclose(spline(query, nu), reference(query, nu), rtol=0, atol=tol)
+
+
+def test_lowpass_with_a_second_cutoff_is_the_two_filters_in_turn():
+    """Two zero-phase responses multiplied in one pass equal the two filters applied one after
+    the other (to round-off, away from the ends), and the pass band is kept."""
+    from imucal_cli.core.signals import Lowpass
+
+    rng = np.random.default_rng(6)
+    x = np.cumsum(rng.normal(size=(4000, 2)), axis=0)
+    both = Lowpass(5.0, 200.0, 4, 40.0)(x)
+    in_turn = Lowpass(5.0, 200.0)(Lowpass(40.0, 200.0)(x))
+    np.testing.assert_allclose(both[200:-200], in_turn[200:-200], rtol=0, atol=1e-9 * np.abs(x).max())
+    t = np.arange(4000) / 200.0
+    slow = np.sin(2 * np.pi * 0.2 * t)
+    np.testing.assert_allclose(Lowpass(5.0, 200.0, 4, 40.0)(slow)[200:-200], slow[200:-200], atol=1e-6)
+
+
+def test_symmetric_terms_filtered_by_their_upper_triangles_are_the_full_matrices():
+    from imucal_cli.core.signals import Lowpass
+    from imucal_cli.core.so3 import skew, skew_squared
+    from imucal_cli.core.streaming import _unpack_symmetric, _upper
+
+    rng = np.random.default_rng(7)
+    w, dw = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
+    Sw, Sdw = skew(w), skew(dw)
+    full = np.hstack([w, skew_squared(w).reshape(-1, 9), (Sdw @ Sw + Sw @ Sdw).reshape(-1, 9), dw])
+    packed = np.hstack([w, _upper(skew_squared(w)), _upper(Sdw @ Sw + Sw @ Sdw), dw])
+    lp = Lowpass(5.0, 100.0)
+    np.testing.assert_allclose(_unpack_symmetric(lp(packed), 3), lp(full), rtol=0, atol=1e-12)

@@ -182,10 +182,10 @@ class WindowMoments:
 _UPPER = {dim: np.triu_indices(dim - 3) for dim in (GYRO_DIM, ACCEL_DIM)}
 
 
-def base_moments(X_gyro: np.ndarray, X_accel: np.ndarray) -> BaseMoments:
-    """The base block from the base part of the data vectors (n, 8) and (n, 26)."""
-    G, A = X_gyro.T @ X_gyro, X_accel.T @ X_accel
-    return BaseMoments(G[_UPPER[GYRO_DIM]], A[_UPPER[ACCEL_DIM]])
+def base_moments(G_gyro: np.ndarray, G_accel: np.ndarray) -> BaseMoments:
+    """The base block from the Gram matrices ``X^T X`` of the base part of the data vectors,
+    (8, 8) for the gyro and (26, 26) for the accelerometer."""
+    return BaseMoments(G_gyro[_UPPER[GYRO_DIM]], G_accel[_UPPER[ACCEL_DIM]])
 
 
 def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray:
@@ -285,10 +285,11 @@ def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float
 
 def _normal_equations(D: np.ndarray, S: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per window: GN Hessian ``tr(D_p S D_q^T)``, gradient ``tr(D_p S C^T)``, cost ``tr(C S C^T)``."""
-    DS = np.einsum("kpij,kjl->kpil", D, S)
-    H = np.einsum("kpil,kqil->kpq", DS, D)
-    g = np.einsum("kpil,kil->kp", DS, C)
-    cost = np.einsum("kij,kjl,kil->k", C, S, C)
+    K, P, rows, dim = D.shape
+    DS = (D.reshape(K, P * rows, dim) @ S).reshape(K, P, rows * dim)
+    H = DS @ D.reshape(K, P, rows * dim).transpose(0, 2, 1)
+    g = (DS @ C.reshape(K, rows * dim, 1))[:, :, 0]
+    cost = np.sum((C @ S) * C, axis=(1, 2))
     return H, g, cost
 
 

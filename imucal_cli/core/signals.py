@@ -60,11 +60,14 @@ class Lowpass:
     cutoff_hz: float
     rate_hz: float
     order: int = LOWPASS_ORDER
+    #: A second response of the same form multiplied in (an anti-alias filter applied in the
+    #: same pass), or None.
+    second_cutoff_hz: float | None = None
 
     @property
     def pad(self) -> int:
         """Samples of reflection at each end: three times the filter's effective length."""
-        return int(np.ceil(3.0 * self.rate_hz / self.cutoff_hz))
+        return int(np.ceil(3.0 * self.rate_hz / min(self.cutoff_hz, self.second_cutoff_hz or np.inf)))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Filter along axis 0 (any trailing shape)."""
@@ -84,11 +87,18 @@ class Lowpass:
         line = extended[:, :1] + (extended[:, -1:] - extended[:, :1]) * np.linspace(0.0, 1.0, m)
         size = _fast_length(m + pad)
         freq = scipy.fft.rfftfreq(size, d=1.0 / self.rate_hz)
-        gain = 1.0 / (1.0 + (freq / self.cutoff_hz) ** (2 * self.order))
+        gain = self.gain(freq)
         spectrum = scipy.fft.rfft(extended - line, n=size, axis=1, overwrite_x=True)
         spectrum *= gain
         filtered = scipy.fft.irfft(spectrum, n=size, axis=1, overwrite_x=True)[:, :m] + line
         return np.ascontiguousarray(filtered[:, pad : pad + n].T).reshape(shape)
+
+    def gain(self, freq_hz: np.ndarray) -> np.ndarray:
+        """The filter's (real, zero-phase) frequency response."""
+        gain = 1.0 / (1.0 + (freq_hz / self.cutoff_hz) ** (2 * self.order))
+        if self.second_cutoff_hz is not None:
+            gain /= 1.0 + (freq_hz / self.second_cutoff_hz) ** (2 * self.order)
+        return gain
 
     def white_noise_gain(self) -> float:
         """Variance of the filtered output of unit white noise: ``sum h^2`` of the zero-phase

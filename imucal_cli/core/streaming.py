@@ -32,12 +32,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import make_interp_spline
+from scipy.interpolate import PPoly
+from scipy.linalg import solve_banded
 
 from imucal_cli.core.calibrate import (
     GAP_PERIODS,
     CalibrationOptions,
     SensorEstimate,
+    ACCEL_DIM,
+    GYRO_DIM,
     WindowMoments,
     assemble_moments,
     base_moments,
@@ -121,17 +124,28 @@ def _clean(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarr
 
 class _Spline:
     """A cubic interpolating spline of one IMU segment, gyro and accelerometer together
-    (columns 0-2 and 3-5), with an anti-alias filter where the IMU runs well above the grid."""
+    (columns 0-2 and 3-5), with an anti-alias filter where the IMU runs well above the grid.
 
-    def __init__(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, grid_rate: float) -> None:
+    With ``smooth`` (the calibration's low-pass), the samples are low-passed by it first, at
+    the IMU's own rate and in the same pass as the anti-alias filter: what the spline then gives
+    on the grid is what low-passing its values on the grid would give, without filtering them
+    again there.
+    """
+
+    def __init__(
+        self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, grid_rate: float, smooth: Lowpass | None = None
+    ) -> None:
         period = float(np.median(np.diff(t)))
         rate = 1.0 / period
         both = np.hstack([gyro, accel])
-        if rate > 1.5 * grid_rate:
-            both = Lowpass(0.4 * grid_rate, rate)(both)
+        anti_alias = 0.4 * grid_rate if rate > 1.5 * grid_rate else None
+        if smooth is not None:
+            both = Lowpass(smooth.cutoff_hz, rate, smooth.order, anti_alias)(both)
+        elif anti_alias is not None:
+            both = Lowpass(anti_alias, rate)(both)
         self.t = t
         self.period = period
-        self.spline = make_interp_spline(t, both, k=3)
+        self.spline = _natural_cubic(t, both)
 
     def gyro(self, query: np.ndarray, nu: int = 0) -> np.ndarray:
         return self.spline(query, nu=nu)[:, 0:3]
@@ -146,10 +160,51 @@ class _Spline:
         return bool(np.all(inside & (self.t[j] - self.t[j - 1] <= GAP_PERIODS * self.period)))
 
 
+def _natural_cubic(t: np.ndarray, y: np.ndarray) -> PPoly:
+    """The natural cubic spline through ``(t, y)`` (y: (n, m)), as a piecewise polynomial.
+
+    Its second derivatives solve a tridiagonal system (LAPACK ``gtsv``), several times cheaper
+    than the general banded B-spline collocation; the end conditions differ from not-a-knot
+    only within a few samples of the ends, which lie in the padding.
+    """
+    if len(t) < 3:
+        raise TooLittleData("too little data: fewer than 3 samples to interpolate")
+    h = np.diff(t)
+    slope = np.diff(y, axis=0) / h[:, None]
+    bands = np.zeros((3, len(t) - 2))
+    bands[0, 1:] = h[1:-1]
+    bands[1] = 2.0 * (h[:-1] + h[1:])
+    bands[2, :-1] = h[1:-1]
+    M = np.zeros_like(y)
+    M[1:-1] = solve_banded((1, 1), bands, 6.0 * np.diff(slope, axis=0), overwrite_ab=True, overwrite_b=True, check_finite=False)
+    coefficients = np.empty((4, len(h), y.shape[1]))
+    coefficients[0] = np.diff(M, axis=0) / (6.0 * h[:, None])
+    coefficients[1] = 0.5 * M[:-1]
+    coefficients[2] = slope - h[:, None] * (2.0 * M[:-1] + M[1:]) / 6.0
+    coefficients[3] = y[:-1]
+    return PPoly.construct_fast(coefficients, t)
+
+
 def _noise_density(gyro: np.ndarray, accel: np.ndarray, rate: float) -> tuple[float, float]:
     g = float(np.sqrt(np.mean(white_noise_std(gyro) ** 2)) / np.sqrt(rate))
     a = float(np.sqrt(np.mean(white_noise_std(accel) ** 2)) / np.sqrt(rate))
     return g, a
+
+
+_UPPER_3 = np.triu_indices(3)
+#: Column of the packed upper triangle of each entry of a symmetric 3x3 matrix (row-major).
+_FROM_UPPER = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]]).ravel()
+
+
+def _upper(S: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) symmetric -> (n, 6), its upper triangle."""
+    return S[:, _UPPER_3[0], _UPPER_3[1]]
+
+
+def _unpack_symmetric(columns: np.ndarray, at: int) -> np.ndarray:
+    """Columns ``at..at+12`` hold two packed symmetric 3x3 matrices: expand them to 9 each."""
+    head, first, second = columns[:, :at], columns[:, at : at + 6], columns[:, at + 6 : at + 12]
+    return np.hstack([head, first[:, _FROM_UPPER], second[:, _FROM_UPPER], columns[:, at + 12 :]])
 
 
 def _vec(A: np.ndarray) -> np.ndarray:
@@ -348,36 +403,47 @@ class StreamingCalibrator:
         w_raw, dw_raw, ddw_raw = values[:, 0:3], first[:, 0:3], second[:, 0:3]
         Sw, Sdw = skew(w_raw), skew(dw_raw)
         sensors = {}
-        columns = [values, first, ddw_raw, skew_squared(w_raw).reshape(-1, 9), (Sdw @ Sw + Sw @ Sdw).reshape(-1, 9)]
-        for name in self.sensors:
+        columns = [values, first, ddw_raw, _upper(skew_squared(w_raw)), _upper(Sdw @ Sw + Sw @ Sdw)]
+
+        def condition(name: str) -> np.ndarray:
             t_s, g_s, a_s = self.buffers[name].cleaned()
             t_s = self._seconds(t_s)
             tau = self.tau0[name]
             pick = (t_s >= grid[0] + tau - margin - 0.1) & (t_s <= grid[-1] + tau + margin + 0.1)
-            sensors[name] = _Spline(t_s[pick], g_s[pick], a_s[pick], self.rate)
-            columns.append(sensors[name](grid + tau))
-        # one zero-phase low-pass for every term of every equation (linear filters commute)
-        filtered = lp(np.hstack(columns))
+            # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
+            sensors[name] = _Spline(t_s[pick], g_s[pick], a_s[pick], self.rate, smooth=lp)
+            return sensors[name](grid + tau)
+
+        sensor_columns = [condition(name) for name in self.sensors]
+        # one zero-phase low-pass for every term of every equation (linear filters commute);
+        # the symmetric 3x3 terms are filtered by their upper triangles
+        filtered = np.hstack([_unpack_symmetric(lp(np.hstack(columns)), 15), *sensor_columns])
+        # every data vector of the block side by side, so that each window's moments are one
+        # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, 1, u]
+        rows = filtered[n_pad : n_pad + n_block]
+        t_rows = grid[n_pad : n_pad + n_block]
+        w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
+        A = rows[:, 15:24].reshape(-1, 3, 3) + skew(dw)
+        A_dot = rows[:, 24:33].reshape(-1, 3, 3) + skew(ddw)
+        u = np.empty((len(rows), 1))
+        for _, start, end in spans:
+            i = slice(int(round((start - block_start) * self.rate)), int(round((end - block_start) * self.rate)))
+            u[i, 0] = (t_rows[i] - start) / self.window_s
+        ones = np.ones((len(rows), 1))
+        X = np.hstack([w, dw, ones, u, f, df, _vec(A), _vec(A_dot), ones, u, rows[:, 33:]])
+        n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
         for number, start, end in spans:
-            i0 = n_pad + int(round((start - block_start) * self.rate))
+            i0 = int(round((start - block_start) * self.rate))
             n_win = int(round((end - start) * self.rate))
-            window = filtered[i0 : i0 + n_win]
-            w, f, dw, df, ddw = (window[:, k : k + 3] for k in (0, 3, 6, 9, 12))
-            A = window[:, 15:24].reshape(-1, 3, 3) + skew(dw)
-            A_dot = window[:, 24:33].reshape(-1, 3, 3) + skew(ddw)
-            t_grid = grid[i0 : i0 + n_win]
-            u = (t_grid - start) / self.window_s
-            ones = np.ones((n_win, 1))
-            # moments: the base's block once, then each sensor's rows against it
-            X_g = np.hstack([w, dw, ones, u[:, None]])  # x_g = [w_I, X_g]
-            X_a = np.hstack([f, df, _vec(A), _vec(A_dot), ones, u[:, None]])  # x_a = [f_I, X_a]
-            shared = base_moments(X_g, X_a)
+            Xw = X[i0 : i0 + n_win]
+            G = Xw.T @ Xw
+            shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
+            t_grid = t_rows[i0 : i0 + n_win]
             valid_base = base.valid(t_grid)
             for k, name in enumerate(self.sensors):
-                w_I = window[:, 33 + 6 * k : 36 + 6 * k]
-                f_I = window[:, 36 + 6 * k : 39 + 6 * k]
-                rows_g = np.hstack([w_I.T @ w_I, w_I.T @ X_g])
-                rows_a = np.hstack([f_I.T @ f_I, f_I.T @ X_a])
+                wi = n_g + n_a + 6 * k
+                rows_g = np.hstack([G[wi : wi + 3, wi : wi + 3], G[wi : wi + 3, :n_g]])
+                rows_a = np.hstack([G[wi + 3 : wi + 6, wi + 3 : wi + 6], G[wi + 3 : wi + 6, n_g : n_g + n_a]])
                 valid = valid_base and sensors[name].valid(t_grid + self.tau0[name])
                 self.windows[name].append(WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win))
 
