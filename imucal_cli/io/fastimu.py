@@ -396,22 +396,42 @@ def sqlite_batches(
     db_paths: list[Path], topics: Iterable[str], batch_rows: int = 65536, losses: list | None = None
 ) -> Iterator[RawBatch]:
     """Row batches of rosbag2 sqlite3 storage files (uncompressed messages). Where a damaged
-    file stops the query, what was read is kept and the rest recorded in ``losses``."""
+    file stops the query, what was read is kept and the rest recorded in ``losses``.
+
+    The rows are fetched and packed a batch ahead in a thread (SQLite steps outside the GIL)
+    while the batches before are decoded.
+    """
+    from imucal_cli.io.prefetch import queued
+
+    packed = _sqlite_packed(db_paths, set(topics), batch_rows, losses)
+    ahead = queued(packed, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else packed
+    for names, buffer, starts, lengths, topic_ids, times in ahead:
+        for tid, name in names.items():
+            pick = topic_ids == tid
+            if pick.all():
+                yield RawBatch(name, "cdr", buffer, starts, lengths, times)
+            elif pick.any():
+                yield RawBatch(name, "cdr", buffer, starts[pick], lengths[pick], times[pick])
+
+
+def _sqlite_packed(
+    db_paths: list[Path], wanted: set[str], batch_rows: int, losses: list | None
+) -> Iterator[tuple[dict[int, str], np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     from imucal_cli.io.salvage import Loss
 
-    wanted = set(topics)
     for db_path in db_paths:
-        connection = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)
+        # made and used in the reading thread; closed wherever the generator ends
+        connection = sqlite3.connect(f"file:{db_path}?mode=ro", uri=True, check_same_thread=False)
         connection.text_factory = lambda raw: raw.decode("utf-8", errors="replace")  # damaged text stays readable
         try:
             rows = connection.execute("SELECT id, name, serialization_format FROM topics").fetchall()
-            ids = {tid: name for tid, name, fmt in rows if name in wanted and fmt == "cdr"}
-            if not ids:
+            names = {tid: name for tid, name, fmt in rows if name in wanted and fmt == "cdr"}
+            if not names:
                 continue
-            marks = ",".join("?" * len(ids))
+            marks = ",".join("?" * len(names))
             cursor = connection.execute(
                 f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks})",  # noqa: S608
-                list(ids),
+                list(names),
             )
             while True:
                 try:
@@ -423,14 +443,11 @@ def sqlite_batches(
                     break
                 if not chunk:
                     break
-                id_column, time_column, blobs = zip(*chunk, strict=True)
-                topic_ids = np.array(id_column, dtype=np.int64)
-                times = np.array(time_column, dtype=np.int64)
+                id_column, time_column, blobs = zip(*chunk)
+                topic_ids = np.fromiter(id_column, dtype=np.int64, count=len(chunk))
+                times = np.fromiter(time_column, dtype=np.int64, count=len(chunk))
                 buffer, starts, lengths = pack_blobs(blobs)
-                for tid, name in ids.items():
-                    pick = topic_ids == tid
-                    if pick.any():
-                        yield RawBatch(name, "cdr", buffer, starts[pick], lengths[pick], times[pick])
+                yield names, buffer, starts, lengths, topic_ids, times
         finally:
             connection.close()
 
