@@ -138,3 +138,98 @@ def test_bulk_serialisation_is_byte_identical_with_rosbags(frame_id):
             )
             expected = bytes(store.serialize_ros1(msg, IMU) if ros1 else store.serialize_cdr(msg, IMU))
             assert bulk[i].tobytes() == expected
+
+
+# --------------------------------------------------------------------------- sqlite3 pages
+
+
+def _sqlite_varint(value: int) -> bytes:
+    """SQLite's varint (https://www.sqlite.org/fileformat2.html#varint), as a reference."""
+    value &= (1 << 64) - 1
+    if value >= 1 << 56:
+        tail = bytes([value & 0xFF])
+        value >>= 8
+        groups = [(value >> (7 * k)) & 0x7F for k in range(7, -1, -1)]
+        return bytes(g | 0x80 for g in groups) + tail
+    groups = []
+    while True:
+        groups.append(value & 0x7F)
+        value >>= 7
+        if not value:
+            break
+    groups.reverse()
+    return bytes([g | 0x80 for g in groups[:-1]] + [groups[-1]])
+
+
+def test_sqlite_varints_decode_every_length():
+    from imucal_cli.io.sqlitepages import _varints
+
+    values = [0, 1, 127, 128, 16383, 16384, 2**21 - 1, 2**21, 2**28, 2**35 + 3, 2**42, 2**49 - 1, 2**56 - 1, 2**56, 2**63 - 1, -1, -(2**40)]
+    encoded = [_sqlite_varint(v) for v in values]
+    blob = b"".join(encoded) + bytes(16)
+    at = np.concatenate([[0], np.cumsum([len(e) for e in encoded])[:-1]])
+    value, length = _varints(np.frombuffer(blob, np.uint8), at)
+    assert value.tolist() == values
+    assert length.tolist() == [len(e) for e in encoded]
+
+
+def _sqlite_log(tmp_path, rng):
+    topics = _sample_streams(rng)
+    return write_imu_log(tmp_path / "log", "rosbag2-sqlite3", topics), topics
+
+
+def _count_page_groups(monkeypatch):
+    from imucal_cli.io import sqlitepages
+
+    groups = []
+    rows = sqlitepages.MessagePages.rows
+
+    def spy(self, *args, **kwargs):
+        for item in rows(self, *args, **kwargs):
+            groups.append(len(item.starts))
+            yield item
+
+    monkeypatch.setattr(sqlitepages.MessagePages, "rows", spy)
+    return groups
+
+
+def test_sqlite_pages_are_read_directly_and_equal_sqlite(tmp_path, monkeypatch):
+    path, topics = _sqlite_log(tmp_path, np.random.default_rng(11))
+    groups = _count_page_groups(monkeypatch)
+    monkeypatch.setattr("imucal_cli.io.sqlitepages.GROUP_PAGES", 3)
+    fast = read_imu(path, list(topics))
+    assert sum(groups) == 1400 and len(groups) > 3  # every row, from the pages
+    _same(fast, read_imu(path, list(topics), fast=False))
+
+
+def test_sqlite_pages_hand_over_to_sqlite_where_the_layout_is_unexpected(tmp_path, monkeypatch):
+    """A row on overflow pages halfway: the rows before come from the pages, the rest from
+    SQLite, and together they are exactly what SQLite reads."""
+    import sqlite3
+
+    path, topics = _sqlite_log(tmp_path, np.random.default_rng(12))
+    (db,) = sorted(path.glob("*.db3"))
+    with sqlite3.connect(db) as connection:
+        connection.execute("INSERT INTO topics (id, name, type, serialization_format, offered_qos_profiles, type_description_hash) VALUES (99, '/big', 'std_msgs/msg/String', 'cdr', '', '')")
+        rows = connection.execute("SELECT id, topic_id, timestamp, data FROM messages ORDER BY id").fetchall()
+        connection.execute("DELETE FROM messages")
+        half = len(rows) // 2
+        connection.executemany("INSERT INTO messages VALUES (?, ?, ?, ?)", rows[:half])
+        connection.execute("INSERT INTO messages VALUES (?, 99, 0, ?)", (rows[half - 1][0] + 1, bytes(20000)))
+        connection.executemany("INSERT INTO messages VALUES (?, ?, ?, ?)", [(i + 1, *r[1:]) for i, r in [(r[0] + 1, r) for r in rows[half:]]])
+    groups = _count_page_groups(monkeypatch)
+    monkeypatch.setattr("imucal_cli.io.sqlitepages.GROUP_PAGES", 2)
+    fast = read_imu(path, list(topics))
+    assert 0 < sum(groups) < 1400  # some rows from the pages, the rest through SQLite
+    _same(fast, read_imu(path, list(topics), fast=False))
+    assert sum(len(r.stream.t_ns) for r in fast.values()) == 1400
+
+
+def test_sqlite_with_a_write_ahead_log_is_read_through_sqlite(tmp_path, monkeypatch):
+    path, topics = _sqlite_log(tmp_path, np.random.default_rng(13))
+    (db,) = sorted(path.glob("*.db3"))
+    (tmp_path / "log" / (db.name + "-wal")).write_bytes(b"\x00" * 64)
+    groups = _count_page_groups(monkeypatch)
+    fast = read_imu(path, list(topics))
+    assert groups == []
+    assert sum(len(r.stream.t_ns) for r in fast.values()) == 1400

@@ -23,6 +23,8 @@ from typing import BinaryIO
 
 import numpy as np
 
+from imucal_cli.io.sqlitepages import MessagePages, PageLayoutError
+
 #: Bytes after the variable-length frame id: orientation (4 f64), its covariance (9),
 #: angular velocity (3), covariance (9), linear acceleration (3), covariance (9).
 _TAIL = 8 * (4 + 9 + 3 + 9 + 3 + 9)
@@ -414,6 +416,22 @@ def sqlite_batches(
                 yield RawBatch(name, "cdr", buffer, starts[pick], lengths[pick], times[pick])
 
 
+def _message_pages(connection: sqlite3.Connection, db_path: Path) -> MessagePages | None:
+    """The page reader of the file's ``messages`` table when its schema is rosbag2's, else None."""
+    try:
+        columns = connection.execute("PRAGMA table_info(messages)").fetchall()
+        root = connection.execute("SELECT rootpage FROM sqlite_master WHERE type = 'table' AND name = 'messages'").fetchone()
+    except sqlite3.DatabaseError:
+        return None
+    layout = [(name, str(kind).upper(), pk) for _, name, kind, _, _, pk in columns]
+    if root is None or layout[:4] != [("id", "INTEGER", 1), ("topic_id", "INTEGER", 0), ("timestamp", "INTEGER", 0), ("data", "BLOB", 0)] or len(layout) != 4:
+        return None
+    try:
+        return MessagePages(db_path, int(root[0]))
+    except (PageLayoutError, OSError):
+        return None
+
+
 def _sqlite_packed(
     db_paths: list[Path], wanted: set[str], batch_rows: int, losses: list | None
 ) -> Iterator[tuple[dict[int, str], np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
@@ -428,10 +446,22 @@ def _sqlite_packed(
             names = {tid: name for tid, name, fmt in rows if name in wanted and fmt == "cdr"}
             if not names:
                 continue
+            last_rowid = 0
+            pages = _message_pages(connection, db_path)
+            if pages is not None:
+                try:
+                    for rows in pages.rows(set(names)):
+                        last_rowid = rows.last_rowid
+                        yield names, rows.buffer, rows.starts, rows.lengths, rows.topic_ids, rows.timestamps
+                    continue
+                except PageLayoutError:
+                    pass  # read on from the last whole group through SQLite
+                finally:
+                    pages.close()
             marks = ",".join("?" * len(names))
             cursor = connection.execute(
-                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks})",  # noqa: S608
-                list(names),
+                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) AND id > ?",  # noqa: S608
+                [*names, last_rowid],
             )
             while True:
                 try:
