@@ -34,6 +34,8 @@ _CDR_HEAD = np.dtype(
     [("encapsulation", "<u2"), ("options", "<u2"), ("sec", "<i4"), ("nsec", "<u4"), ("frame_len", "<u4")]
 )
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
+#: Bytes of decompressed chunks decoded together.
+GROUP_BYTES = 8 << 20
 #: Groups of chunks read and decompressed ahead of the decoding, in a thread.
 READ_AHEAD_GROUPS = 2
 #: The interpreter's switch interval while reading ahead (s): the reading thread takes the GIL
@@ -273,7 +275,7 @@ class McapChunks:
         return out
 
     def batches(
-        self, wanted: dict[int, tuple[str, str]], losses: list | None = None, group_bytes: int = 8 << 20
+        self, wanted: dict[int, tuple[str, str]], losses: list | None = None, group_bytes: int | None = None
     ) -> Iterator[RawBatch]:
         """Raw batches of the wanted channels (channel id -> (topic, encoding)).
 
@@ -286,7 +288,7 @@ class McapChunks:
 
         # reading, decompressing and checking run a group ahead in a thread (zstd and the CRC
         # release the GIL) while the groups before are decoded here
-        groups = self._read_groups(wanted, losses, group_bytes)
+        groups = self._read_groups(wanted, losses, group_bytes or GROUP_BYTES)
         ahead = queued(groups, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else groups
         for buffer, pending in ahead:
             yield from self._group(buffer, pending, wanted)
@@ -550,14 +552,14 @@ class Ros1Bag:
                 f"{len(self.chunk_positions)} of {self.chunk_count} chunks)"
             )
 
-    def batches(self, topics: Iterable[str], losses: list | None = None, group_bytes: int = 8 << 20) -> Iterator[RawBatch]:
+    def batches(self, topics: Iterable[str], losses: list | None = None, group_bytes: int | None = None) -> Iterator[RawBatch]:
         """Raw batches of the wanted topics; consecutive chunks are decoded together, up to
         ``group_bytes``, so the vectorised decoder's per-call cost is spread over many messages.
         A chunk that cannot be read is skipped and recorded in ``losses`` (counts from its index)."""
         from imucal_cli.io.prefetch import queued
 
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
-        groups = self._read_groups(wanted, losses, group_bytes)
+        groups = self._read_groups(wanted, losses, group_bytes or GROUP_BYTES)
         ahead = queued(groups, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else groups
         for buffer, pending in ahead:
             yield from self._group(buffer, pending, wanted)

@@ -61,13 +61,13 @@ def _serialized(topics: Mapping[str, TopicData], ros1: bool) -> dict[str, np.nda
     return {topic: serialize(data.stream) for topic, data in topics.items()}
 
 
-def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool) -> None:
+def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool, compression: str = "zstd", chunk_size: int = 1024 * 1024) -> None:
     from mcap.writer import CompressionType, Writer
 
     msgdef, _ = _msgdef(ros1)
     blobs = _serialized(topics, ros1)
     with path.open("wb") as handle:
-        writer = Writer(handle, compression=CompressionType.ZSTD)
+        writer = Writer(handle, compression=CompressionType[compression.upper()], chunk_size=chunk_size)
         writer.start(profile="ros1" if ros1 else "ros2", library="imucal")
         schema_id = writer.register_schema(
             name="sensor_msgs/Imu" if ros1 else IMU_MSGTYPE,
