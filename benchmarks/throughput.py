@@ -9,7 +9,8 @@ and ROS 1 (lz4 chunks), and measures per format and length, side by side in one 
   the file's bytes, printed below the table (the fast path reads the pages itself);
 - decode: ``read_imu`` with the fast path, all IMU topics to arrays (messages/s, x floor);
 - naive: the generic path (container reader + rosbags' per-message deserialiser);
-- calibrate: ``imucal calibrate`` end to end in a fresh process, wall time and peak RSS.
+- calibrate: ``imucal calibrate`` end to end in a fresh process, wall time and peak RSS, and the
+  largest error of ``T_base_lidar`` over the four lidars against the simulator's truth.
 
 Floor, decode and calibrate are each run ``--repeat`` times (default 3) and the fastest run is
 reported (the machine's run-to-run spread is tens of per cent; the minimum is the least
@@ -123,14 +124,36 @@ try:
 except SystemExit as exc:
     if exc.code:
         raise
-print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=open(sys.argv[-1] + ".rss", "w"))
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+print(peak, file=open(sys.argv[-1] + ".rss", "w"))
 """
+
+
+def errors(log: Path) -> tuple[float, float]:
+    """Largest rotation (deg) and translation (m) error of ``T_base_lidar`` over the sensors of
+    the last ``calibrate`` run, against the simulator's truth."""
+    import json
+
+    import yaml
+    from scipy.spatial.transform import Rotation
+
+    estimate = json.loads((CACHE / "estimate.json").read_text())["sensors"]
+    truth_path = log.with_name(log.name.removesuffix(log.suffix) + ".truth.yaml") if log.suffix else Path(str(log) + ".truth.yaml")
+    truth = yaml.safe_load(truth_path.read_text())["sensors"]
+    worst_r = worst_t = 0.0
+    for name, sensor in estimate.items():
+        est, ref = sensor["T_base_lidar"], truth[name]["T_base_lidar"]
+        angle = (Rotation.from_quat(ref["rotation"]).inv() * Rotation.from_quat(est["rotation"])).magnitude()
+        worst_r = max(worst_r, float(np.degrees(angle)))
+        worst_t = max(worst_t, float(np.linalg.norm(np.subtract(est["translation"], ref["translation"]))))
+    return worst_r, worst_t
 
 
 def calibrate(log: Path, config: Path) -> tuple[float, float]:
     """Wall seconds and peak RSS (MB) of ``imucal calibrate`` in a fresh process.
 
-    The process reports its own peak. It is started through a shell that does not ``exec`` it,
+    The process reports its own peak plus its reading child's (the sum of the two peaks: an
+    upper bound of what they held together, pages shared after the fork counted twice). It is started through a shell that does not ``exec`` it,
     so it is not forked from this (large) process: Linux keeps a process's pre-``exec`` peak.
     """
     out = CACHE / "estimate.json"
@@ -171,19 +194,20 @@ def main() -> None:
             if LENGTHS[length] / 60.0 <= args.naive_max_minutes:
                 t_naive, _ = decode(log, topics, fast=False)
             wall, rss = min(calibrate(log, config_path) for _ in range(args.repeat))
+            worst_r, worst_t = errors(log)
             size = sum(p.stat().st_size for p in ([log] if log.is_file() else log.iterdir()))
             if fmt == "rosbag2-sqlite3":
                 fetches.append((length, min(file_read(log) for _ in range(args.repeat)), t_fast))
-            rows.append((length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss))
+            rows.append((length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss, worst_r, worst_t))
             print(f"measured {length} {fmt}", file=sys.stderr)
 
-    print("| length | format | messages | size MB | floor s | decode s | decode / floor | decode msg/s | naive s | naive / decode | calibrate s | calibrate / floor | peak RSS MB |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss in rows:
+    print("| length | format | messages | size MB | floor s | decode s | decode / floor | decode msg/s | naive s | naive / decode | calibrate s | calibrate / floor | peak RSS MB | max dR deg | max abs dt m |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss, worst_r, worst_t in rows:
         naive = f"{t_naive:.1f} | {t_naive / t_fast:.0f}x" if t_naive is not None else "- | -"
         print(
             f"| {length} | {fmt} | {count:,} | {size / 1e6:.0f} | {t_floor:.2f} | {t_fast:.2f} | {t_fast / t_floor:.2f} | "
-            f"{count / t_fast / 1e6:.2f} M | {naive} | {wall:.1f} | {wall / t_floor:.1f} | {rss:.0f} |"
+            f"{count / t_fast / 1e6:.2f} M | {naive} | {wall:.1f} | {wall / t_floor:.1f} | {rss:.0f} | {worst_r:.4f} | {worst_t:.4f} |"
         )
 
     for length, t_read, t_fast in fetches:

@@ -36,11 +36,11 @@ from scipy.interpolate import PPoly
 from scipy.linalg import solve_banded
 
 from imucal_cli.core.calibrate import (
+    ACCEL_DIM,
     GAP_PERIODS,
+    GYRO_DIM,
     CalibrationOptions,
     SensorEstimate,
-    ACCEL_DIM,
-    GYRO_DIM,
     WindowMoments,
     assemble_moments,
     base_moments,

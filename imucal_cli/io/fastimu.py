@@ -35,7 +35,7 @@ _CDR_HEAD = np.dtype(
 )
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
 #: Bytes of decompressed chunks decoded together.
-GROUP_BYTES = 8 << 20
+GROUP_BYTES = 16 << 20
 #: Groups of chunks read and decompressed ahead of the decoding, in a thread.
 READ_AHEAD_GROUPS = 2
 #: The interpreter's switch interval while reading ahead (s): the reading thread takes the GIL
@@ -332,7 +332,7 @@ class McapChunks:
                 if any(len(p) and int(p[:, 1].max()) + _MCAP_MESSAGE_HEADER > n for p in positions.values()):
                     raise ValueError("message index offsets past the chunk's end")
                 self.read_chunk(ci, view[at : at + n])
-            except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
+            except Exception as exc:
                 if losses is None:
                     raise
                 counts = {wanted[c][0]: len(p) for c, p in positions.items() if len(p)}
@@ -462,7 +462,7 @@ def _sqlite_packed(
                     pages.close()
             marks = ",".join("?" * len(names))
             cursor = connection.execute(
-                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) AND id > ?",  # noqa: S608
+                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) AND id > ?",
                 [*names, last_rowid],
             )
             while True:
@@ -584,7 +584,7 @@ class Ros1Bag:
                 if losses is None:
                     raise ValueError(lost.reason) from None
                 losses.append(Loss(f"chunk that cannot be read ({lost.reason})", chunk_pos, lost.nbytes, lost.start_ns, lost.end_ns, lost.counts))
-            except Exception as exc:  # noqa: BLE001 - a damaged chunk header or index
+            except Exception as exc:
                 if losses is None:
                     raise
                 losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
