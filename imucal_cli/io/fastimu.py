@@ -13,6 +13,7 @@ compressed rosbag2 storage, an MCAP without message indexes) is left to the gene
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import struct
 import zlib
@@ -420,6 +421,8 @@ def sqlite_batches(
 
 def _message_pages(connection: sqlite3.Connection, db_path: Path) -> MessagePages | None:
     """The page reader of the file's ``messages`` table when its schema is rosbag2's, else None."""
+    if not hasattr(os, "preadv"):  # positioned reads (not on Windows): SQLite reads it
+        return None
     try:
         columns = connection.execute("PRAGMA table_info(messages)").fetchall()
         root = connection.execute("SELECT rootpage FROM sqlite_master WHERE type = 'table' AND name = 'messages'").fetchone()
