@@ -196,7 +196,7 @@ def _count_page_groups(monkeypatch):
 def test_sqlite_pages_are_read_directly_and_equal_sqlite(tmp_path, monkeypatch):
     path, topics = _sqlite_log(tmp_path, np.random.default_rng(11))
     groups = _count_page_groups(monkeypatch)
-    monkeypatch.setattr("imucal_cli.io.sqlitepages.GROUP_PAGES", 3)
+    monkeypatch.setattr("imucal_cli.io.sqlitepages.GROUP_BYTES", 3 * 4096)
     fast = read_imu(path, list(topics))
     assert sum(groups) == 1400 and len(groups) > 3  # every row, from the pages
     _same(fast, read_imu(path, list(topics), fast=False))
@@ -218,7 +218,7 @@ def test_sqlite_pages_hand_over_to_sqlite_where_the_layout_is_unexpected(tmp_pat
         connection.execute("INSERT INTO messages VALUES (?, 99, 0, ?)", (rows[half - 1][0] + 1, bytes(20000)))
         connection.executemany("INSERT INTO messages VALUES (?, ?, ?, ?)", [(i + 1, *r[1:]) for i, r in [(r[0] + 1, r) for r in rows[half:]]])
     groups = _count_page_groups(monkeypatch)
-    monkeypatch.setattr("imucal_cli.io.sqlitepages.GROUP_PAGES", 2)
+    monkeypatch.setattr("imucal_cli.io.sqlitepages.GROUP_BYTES", 2 * 4096)
     fast = read_imu(path, list(topics))
     assert 0 < sum(groups) < 1400  # some rows from the pages, the rest through SQLite
     _same(fast, read_imu(path, list(topics), fast=False))

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-#: Leaf pages read and parsed together.
-GROUP_PAGES = 2048
+#: Bytes of leaf pages read and parsed together (2,048 pages of the usual 4 kB).
+GROUP_BYTES = 8 << 20
 _LEAF, _INTERIOR = 0x0D, 0x05
 _SPARE = 32  # bytes after the last page (the widest gather starting inside a page is 18)
 #: Bytes of an SQLite integer of each serial type (0: NULL, 8 and 9: the constants 0 and 1).
@@ -161,8 +161,8 @@ class MessagePages:
             level = below
 
     def rows(self, wanted_topics: set[int], after_rowid: int = 0, group_pages: int | None = None) -> Iterator[Rows]:
-        """Rows of the wanted topics, a group of leaf pages (:data:`GROUP_PAGES`) at a time."""
-        group_pages = group_pages or GROUP_PAGES
+        """Rows of the wanted topics, a group of leaf pages (:data:`GROUP_BYTES`) at a time."""
+        group_pages = group_pages or max(1, GROUP_BYTES // self.page_size)
         last = after_rowid
         for a in range(0, len(self.leaves), group_pages):
             numbers = self.leaves[a : a + group_pages]
