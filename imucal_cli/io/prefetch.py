@@ -21,7 +21,7 @@ from typing import Any, Protocol, TypeVar
 T = TypeVar("T")
 
 #: Batches that may wait between the reader and the calibration.
-DEPTH = 64
+DEPTH = 32
 
 
 class _Raised:
