@@ -169,18 +169,30 @@ def _natural_cubic(t: np.ndarray, y: np.ndarray) -> PPoly:
     """
     if len(t) < 3:
         raise TooLittleData("too little data: fewer than 3 samples to interpolate")
-    h = np.diff(t)
-    slope = np.diff(y, axis=0) / h[:, None]
-    bands = np.zeros((3, len(t) - 2))
-    bands[0, 1:] = h[1:-1]
-    bands[1] = 2.0 * (h[:-1] + h[1:])
-    bands[2, :-1] = h[1:-1]
-    M = np.zeros_like(y)
-    M[1:-1] = solve_banded((1, 1), bands, 6.0 * np.diff(slope, axis=0), overwrite_ab=True, overwrite_b=True, check_finite=False)
-    coefficients = np.empty((4, len(h), y.shape[1]))
-    coefficients[0] = np.diff(M, axis=0) / (6.0 * h[:, None])
-    coefficients[1] = 0.5 * M[:-1]
-    coefficients[2] = slope - h[:, None] * (2.0 * M[:-1] + M[1:]) / 6.0
+    # in place where it can be: this runs on every IMU of every block
+    n = len(t)
+    h = t[1:] - t[:-1]
+    slope = y[1:] - y[:-1]
+    slope /= h[:, None]
+    bands = np.empty((3, n - 2))
+    bands[0, 0], bands[0, 1:] = 0.0, h[1:-1]
+    np.add(h[:-1], h[1:], out=bands[1])
+    bands[1] *= 2.0
+    bands[2, :-1], bands[2, -1] = h[1:-1], 0.0
+    rhs = slope[1:] - slope[:-1]
+    rhs *= 6.0
+    M = np.empty_like(y)
+    M[0] = M[-1] = 0.0
+    M[1:-1] = solve_banded((1, 1), bands, rhs, overwrite_ab=True, overwrite_b=True, check_finite=False)
+    coefficients = np.empty((4, n - 1, y.shape[1]))
+    step = h[:, None]
+    np.subtract(M[1:], M[:-1], out=coefficients[0])
+    coefficients[0] /= 6.0 * step
+    np.multiply(M[:-1], 0.5, out=coefficients[1])
+    np.multiply(M[:-1], 2.0, out=coefficients[2])  # slope - h (2 M_i + M_i+1) / 6
+    coefficients[2] += M[1:]
+    coefficients[2] *= step / 6.0
+    np.subtract(slope, coefficients[2], out=coefficients[2])
     coefficients[3] = y[:-1]
     return PPoly.construct_fast(coefficients, t)
 
