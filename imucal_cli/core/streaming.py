@@ -78,48 +78,46 @@ class SensorSetup:
 
 @dataclass
 class _Buffer:
-    """Raw samples of one IMU still needed (stamps in ns)."""
+    """Raw samples of one IMU still needed: stamps (ns) and ``[gyro, accel]`` side by side (n, 6)."""
 
     t_ns: list[np.ndarray] = field(default_factory=list)
-    gyro: list[np.ndarray] = field(default_factory=list)
-    accel: list[np.ndarray] = field(default_factory=list)
+    both: list[np.ndarray] = field(default_factory=list)
     first_ns: int | None = None
     last_ns: int | None = None
     duplicates: int = 0
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         if len(self.t_ns) > 1:
             self.t_ns = [np.concatenate(self.t_ns)]
-            self.gyro = [np.concatenate(self.gyro)]
-            self.accel = [np.concatenate(self.accel)]
+            self.both = [np.concatenate(self.both)]
         if not self.t_ns:
-            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
-        return self.t_ns[0], self.gyro[0], self.accel[0]
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 6))
+        return self.t_ns[0], self.both[0]
 
-    def cleaned(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def cleaned(self) -> tuple[np.ndarray, np.ndarray]:
         """Sorted, duplicates removed (and counted), kept so for the next call."""
-        t, g, a = self.arrays()
-        t, g, a, removed = _clean(t, g, a)
-        self.t_ns, self.gyro, self.accel = [t], [g], [a]
+        t, both = self.arrays()
+        t, both, removed = _clean(t, both)
+        self.t_ns, self.both = [t], [both]
         self.duplicates += removed
-        return t, g, a
+        return t, both
 
     def drop_before(self, t_min_ns: int) -> None:
-        t, g, a = self.arrays()
+        t, both = self.arrays()
         keep = t >= t_min_ns
         if not keep.all():
-            self.t_ns, self.gyro, self.accel = [t[keep]], [g[keep]], [a[keep]]
+            self.t_ns, self.both = [t[keep]], [both[keep]]
 
 
-def _clean(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def _clean(t: np.ndarray, both: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """Sorted by time, duplicate stamps removed (the first kept); returns the count removed."""
     if len(t) < 2 or np.all(t[1:] > t[:-1]):
-        return t, gyro, accel, 0
+        return t, both, 0
     order = np.argsort(t, kind="stable")
-    t, gyro, accel = t[order], gyro[order], accel[order]
+    t, both = t[order], both[order]
     keep = np.ones(len(t), dtype=bool)
     keep[1:] = np.diff(t) > 0
-    return t[keep], gyro[keep], accel[keep], int(np.count_nonzero(~keep))
+    return t[keep], both[keep], int(np.count_nonzero(~keep))
 
 
 class _Spline:
@@ -132,12 +130,9 @@ class _Spline:
     again there.
     """
 
-    def __init__(
-        self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, grid_rate: float, smooth: Lowpass | None = None
-    ) -> None:
+    def __init__(self, t: np.ndarray, both: np.ndarray, grid_rate: float, smooth: Lowpass | None = None) -> None:
         period = float(np.median(np.diff(t)))
         rate = 1.0 / period
-        both = np.hstack([gyro, accel])
         anti_alias = 0.4 * grid_rate if rate > 1.5 * grid_rate else None
         if smooth is not None:
             both = Lowpass(smooth.cutoff_hz, rate, smooth.order, anti_alias)(both)
@@ -154,10 +149,12 @@ class _Spline:
         """(n, 6): gyro and accelerometer (or their ``nu``-th derivatives)."""
         return self.spline(query, nu=nu)
 
-    def valid(self, query: np.ndarray) -> bool:
+    def covered(self, query: np.ndarray) -> np.ndarray:
+        """Per query time: inside the samples and not in a gap (of more than ``GAP_PERIODS``
+        median periods)."""
         j = np.clip(np.searchsorted(self.t, query), 1, len(self.t) - 1)
         inside = (query >= self.t[0]) & (query <= self.t[-1])
-        return bool(np.all(inside & (self.t[j] - self.t[j - 1] <= GAP_PERIODS * self.period)))
+        return inside & (self.t[j] - self.t[j - 1] <= GAP_PERIODS * self.period)
 
 
 def _natural_cubic(t: np.ndarray, y: np.ndarray) -> PPoly:
@@ -273,8 +270,7 @@ class StreamingCalibrator:
         buffer.first_ns = int(t_ns.min()) if buffer.first_ns is None else min(buffer.first_ns, int(t_ns.min()))
         buffer.last_ns = int(t_ns.max()) if buffer.last_ns is None else max(buffer.last_ns, int(t_ns.max()))
         buffer.t_ns.append(t_ns)
-        buffer.gyro.append(np.asarray(gyro, dtype=np.float64).reshape(-1, 3))
-        buffer.accel.append(np.asarray(accel, dtype=np.float64).reshape(-1, 3))
+        buffer.both.append(np.hstack([np.asarray(gyro, dtype=np.float64).reshape(-1, 3), np.asarray(accel, dtype=np.float64).reshape(-1, 3)]))
         if self.t_ref_ns is None and all(b.first_ns is not None for b in self.buffers.values()):
             self.t_ref_ns = max(int(b.first_ns) for b in self.buffers.values())  # type: ignore[arg-type]
         return self.process()
@@ -311,24 +307,24 @@ class StreamingCalibrator:
                     f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window"
                 )
             return False
-        t_b, g_b, a_b = self.buffers[self.base_name].cleaned()
-        base = _Spline(self._seconds(t_b), g_b, a_b, self.rate)
+        t_b, both_b = self.buffers[self.base_name].cleaned()
+        base = _Spline(self._seconds(t_b), both_b, self.rate)
         speed_base = np.linalg.norm(self.lowpass(base.gyro(grid)), axis=1)
         candidates: dict[str, tuple[float, float]] = {}
         for name, setup in self.sensors.items():
-            t_s, g_s, a_s = self.buffers[name].cleaned()
-            sensor = _Spline(self._seconds(t_s), g_s, a_s, self.rate)
+            t_s, both_s = self.buffers[name].cleaned()
+            sensor = _Spline(self._seconds(t_s), both_s, self.rate)
             tau, peak = 0.0, 1.0
             if setup.options.max_time_offset_s > 0:
                 speed = np.linalg.norm(self.lowpass(sensor.gyro(grid)), axis=1)
                 tau, peak = estimate_time_offset(grid, speed_base, speed, setup.options.max_time_offset_s)
             candidates[name] = (tau, peak)
-            self.noise[name] = _noise_density(g_s, a_s, 1.0 / sensor.period)
+            self.noise[name] = _noise_density(both_s[:, :3], both_s[:, 3:], 1.0 / sensor.period)
             self.rates_hz[name] = 1.0 / sensor.period
         weak = min(peak for _, peak in candidates.values()) < 0.5
         if weak and not final and covered < MAX_BOOT_S:
             return False  # not enough motion yet to trust the offset
-        self.noise[self.base_name] = _noise_density(g_b, a_b, 1.0 / base.period)
+        self.noise[self.base_name] = _noise_density(both_b[:, :3], both_b[:, 3:], 1.0 / base.period)
         self.rates_hz[self.base_name] = 1.0 / base.period
         gb, ab = self.noise[self.base_name]
         for name, (tau, _) in candidates.items():
@@ -388,7 +384,7 @@ class StreamingCalibrator:
         assert self.t_ref_ns is not None
         firsts = []
         for buffer in self.buffers.values():
-            t, _, _ = buffer.arrays()
+            t, _ = buffer.arrays()
             if not len(t):
                 return
             firsts.append(int(t.min()))
@@ -407,10 +403,10 @@ class StreamingCalibrator:
         n_after = int(np.clip(np.floor((last - block_end) * self.rate), 0, n_pad))
         grid = block_start + np.arange(-n_pad, n_block + n_after) / self.rate
         margin = 3.0 / self.rate
-        t_b, g_b, a_b = self.buffers[self.base_name].cleaned()
+        t_b, both_b = self.buffers[self.base_name].cleaned()
         t_b = self._seconds(t_b)
         pick = (t_b >= grid[0] - margin - 0.1) & (t_b <= grid[-1] + margin + 0.1)
-        base = _Spline(t_b[pick], g_b[pick], a_b[pick], self.rate)
+        base = _Spline(t_b[pick], both_b[pick], self.rate)
         values, first, second = base(grid), base(grid, 1), base(grid, 2)
         w_raw, dw_raw, ddw_raw = values[:, 0:3], first[:, 0:3], second[:, 0:3]
         Sw, Sdw = skew(w_raw), skew(dw_raw)
@@ -418,12 +414,12 @@ class StreamingCalibrator:
         columns = [values, first, ddw_raw, _upper(skew_squared(w_raw)), _upper(Sdw @ Sw + Sw @ Sdw)]
 
         def condition(name: str) -> np.ndarray:
-            t_s, g_s, a_s = self.buffers[name].cleaned()
+            t_s, both_s = self.buffers[name].cleaned()
             t_s = self._seconds(t_s)
             tau = self.tau0[name]
             pick = (t_s >= grid[0] + tau - margin - 0.1) & (t_s <= grid[-1] + tau + margin + 0.1)
             # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
-            sensors[name] = _Spline(t_s[pick], g_s[pick], a_s[pick], self.rate, smooth=lp)
+            sensors[name] = _Spline(t_s[pick], both_s[pick], self.rate, smooth=lp)
             return sensors[name](grid + tau)
 
         sensor_columns = [condition(name) for name in self.sensors]
@@ -444,19 +440,21 @@ class StreamingCalibrator:
         ones = np.ones((len(rows), 1))
         X = np.hstack([w, dw, ones, u, f, df, _vec(A), _vec(A_dot), ones, u, rows[:, 33:]])
         n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
+        # where each stream has data (no gap), once for the block
+        base_covered = base.covered(t_rows)
+        sensor_covered = {name: sensors[name].covered(t_rows + self.tau0[name]) for name in self.sensors}
         for number, start, end in spans:
             i0 = int(round((start - block_start) * self.rate))
             n_win = int(round((end - start) * self.rate))
             Xw = X[i0 : i0 + n_win]
             G = Xw.T @ Xw
             shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
-            t_grid = t_rows[i0 : i0 + n_win]
-            valid_base = base.valid(t_grid)
+            valid_base = bool(base_covered[i0 : i0 + n_win].all())
             for k, name in enumerate(self.sensors):
                 wi = n_g + n_a + 6 * k
                 rows_g = np.hstack([G[wi : wi + 3, wi : wi + 3], G[wi : wi + 3, :n_g]])
                 rows_a = np.hstack([G[wi + 3 : wi + 6, wi + 3 : wi + 6], G[wi + 3 : wi + 6, n_g : n_g + n_a]])
-                valid = valid_base and sensors[name].valid(t_grid + self.tau0[name])
+                valid = valid_base and bool(sensor_covered[name][i0 : i0 + n_win].all())
                 self.windows[name].append(WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win))
 
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
