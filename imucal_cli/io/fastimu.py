@@ -20,11 +20,14 @@ import zlib
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO, TypeVar
 
 import numpy as np
 
-from imucal_cli.io.sqlitepages import MessagePages, PageLayoutError
+if TYPE_CHECKING:
+    from imucal_cli.io.sqlitepages import MessagePages
+
+T = TypeVar("T")
 
 #: Bytes after the variable-length frame id: orientation (4 f64), its covariance (9),
 #: angular velocity (3), covariance (9), linear acceleration (3), covariance (9).
@@ -67,6 +70,13 @@ class RawBatch:
             yield self.topic, int(log_ns), bytes(buf[start : start + length])
 
 
+def _ahead(items: Iterator[T]) -> Iterator[T]:
+    """``items`` produced :data:`READ_AHEAD_GROUPS` ahead in a thread (inline when it is 0)."""
+    from imucal_cli.io.prefetch import queued
+
+    return queued(items, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else iter(items)
+
+
 def pack_blobs(blobs: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Serialized messages in one buffer: ``(buffer, starts, lengths)``."""
     lengths = np.fromiter(map(len, blobs), dtype=np.int64, count=len(blobs))
@@ -85,15 +95,20 @@ class DecodedBatch:
     undecoded: np.ndarray  # indices into the batch left to the generic decoder
 
 
-def _gather(buffer: np.ndarray, positions: np.ndarray, nbytes: int, dtype: str) -> np.ndarray:
-    """Bytes ``positions[i] .. positions[i] + nbytes`` of every message, viewed as ``dtype``:
-    an (n, nbytes / itemsize) array.
+def bytes_at(buffer: np.ndarray, positions: np.ndarray, nbytes: int) -> np.ndarray:
+    """Bytes ``positions[i] .. positions[i] + nbytes`` of every position: an (n, nbytes) uint8
+    array.
 
     The buffer is seen as overlapping ``nbytes``-long records, one starting at every byte (a
-    strided view, no copy), so each field costs one index per message, not one per byte.
+    strided view, no copy), so each field costs one index per position, not one per byte.
     """
     records = np.ndarray(shape=(len(buffer) - nbytes + 1,), dtype=f"V{nbytes}", buffer=buffer, strides=(1,))
-    return records[positions].view(dtype).reshape(len(positions), -1)
+    return records[positions].view(np.uint8).reshape(len(positions), nbytes)
+
+
+def _gather(buffer: np.ndarray, positions: np.ndarray, nbytes: int, dtype: str | np.dtype) -> np.ndarray:
+    """:func:`bytes_at` viewed as ``dtype``: an (n, nbytes / itemsize) array."""
+    return bytes_at(buffer, positions, nbytes).view(dtype)
 
 
 def decode_imu(batch: RawBatch) -> DecodedBatch:
@@ -183,13 +198,18 @@ _MCAP_OP_MESSAGE_INDEX = 0x07
 _MCAP_MAX_CHUNK = 1 << 30
 
 
+def _copy_into(records: bytes | memoryview, out: memoryview) -> int:
+    """As much of ``records`` as ``out`` holds, copied in; returns the length of ``records``."""
+    n = min(len(records), len(out))
+    out[:n] = records[:n]
+    return len(records)
+
+
 def _decompress_into(compression: str, data: bytes | memoryview, out: memoryview) -> int:
-    """Decompress ``data`` into ``out``; returns the number of bytes written (at most
-    ``len(out)``). zstd writes in place; the others are copied."""
+    """Decompress ``data`` into ``out``; returns the size decompressed (more than ``len(out)``
+    when it does not fit). zstd writes in place; the others are copied."""
     if compression == "":
-        n = min(len(data), len(out))
-        out[:n] = data[:n]
-        return len(data)
+        return _copy_into(data, out)
     if compression == "zstd":
         import zstandard
 
@@ -206,10 +226,7 @@ def _decompress_into(compression: str, data: bytes | memoryview, out: memoryview
     if compression == "lz4":
         import lz4.frame
 
-        records = lz4.frame.decompress(data)
-        n = min(len(records), len(out))
-        out[:n] = records[:n]
-        return len(records)
+        return _copy_into(lz4.frame.decompress(data), out)
     raise ValueError(f"unsupported chunk compression {compression!r}")
 
 
@@ -285,13 +302,9 @@ class McapChunks:
         over many messages. A chunk that does not decompress or fails its CRC is skipped and
         recorded in ``losses`` with the exact message counts of its index.
         """
-        from imucal_cli.io.prefetch import queued
-
         # reading, decompressing and checking run a group ahead in a thread (zstd and the CRC
         # release the GIL) while the groups before are decoded here
-        groups = self._read_groups(wanted, losses, group_bytes or GROUP_BYTES)
-        ahead = queued(groups, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else groups
-        for buffer, pending in ahead:
+        for buffer, pending in _ahead(self._read_groups(wanted, losses, group_bytes or GROUP_BYTES)):
             yield from self._group(buffer, pending, wanted)
 
     def _read_groups(
@@ -333,7 +346,7 @@ class McapChunks:
                 if any(len(p) and int(p[:, 1].max()) + _MCAP_MESSAGE_HEADER > n for p in positions.values()):
                     raise ValueError("message index offsets past the chunk's end")
                 self.read_chunk(ci, view[at : at + n])
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
                 if losses is None:
                     raise
                 counts = {wanted[c][0]: len(p) for c, p in positions.items() if len(p)}
@@ -406,11 +419,7 @@ def sqlite_batches(
     The rows are fetched and packed a batch ahead in a thread (SQLite steps outside the GIL)
     while the batches before are decoded.
     """
-    from imucal_cli.io.prefetch import queued
-
-    packed = _sqlite_packed(db_paths, set(topics), batch_rows, losses)
-    ahead = queued(packed, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else packed
-    for names, buffer, starts, lengths, topic_ids, times in ahead:
+    for names, buffer, starts, lengths, topic_ids, times in _ahead(_sqlite_packed(db_paths, set(topics), batch_rows, losses)):
         for tid, name in names.items():
             pick = topic_ids == tid
             if pick.all():
@@ -421,6 +430,8 @@ def sqlite_batches(
 
 def _message_pages(connection: sqlite3.Connection, db_path: Path) -> MessagePages | None:
     """The page reader of the file's ``messages`` table when its schema is rosbag2's, else None."""
+    from imucal_cli.io.sqlitepages import MessagePages, PageLayoutError
+
     if not hasattr(os, "preadv"):  # positioned reads (not on Windows): SQLite reads it
         return None
     try:
@@ -441,6 +452,7 @@ def _sqlite_packed(
     db_paths: list[Path], wanted: set[str], batch_rows: int, losses: list | None
 ) -> Iterator[tuple[dict[int, str], np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     from imucal_cli.io.salvage import Loss
+    from imucal_cli.io.sqlitepages import PageLayoutError
 
     for db_path in db_paths:
         # made and used in the reading thread; closed wherever the generator ends
@@ -455,9 +467,9 @@ def _sqlite_packed(
             pages = _message_pages(connection, db_path)
             if pages is not None:
                 try:
-                    for rows in pages.rows(set(names)):
-                        last_rowid = rows.last_rowid
-                        yield names, rows.buffer, rows.starts, rows.lengths, rows.topic_ids, rows.timestamps
+                    for group in pages.rows(set(names)):
+                        last_rowid = group.last_rowid
+                        yield names, group.buffer, group.starts, group.lengths, group.topic_ids, group.timestamps
                     continue
                 except PageLayoutError:
                     pass  # read on from the last whole group through SQLite
@@ -465,7 +477,7 @@ def _sqlite_packed(
                     pages.close()
             marks = ",".join("?" * len(names))
             cursor = connection.execute(
-                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) AND id > ?",
+                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) AND id > ?",  # noqa: S608
                 [*names, last_rowid],
             )
             while True:
@@ -559,12 +571,8 @@ class Ros1Bag:
         """Raw batches of the wanted topics; consecutive chunks are decoded together, up to
         ``group_bytes``, so the vectorised decoder's per-call cost is spread over many messages.
         A chunk that cannot be read is skipped and recorded in ``losses`` (counts from its index)."""
-        from imucal_cli.io.prefetch import queued
-
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
-        groups = self._read_groups(wanted, losses, group_bytes or GROUP_BYTES)
-        ahead = queued(groups, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else groups
-        for buffer, pending in ahead:
+        for buffer, pending in _ahead(self._read_groups(wanted, losses, group_bytes or GROUP_BYTES)):
             yield from self._group(buffer, pending, wanted)
 
     def _read_groups(
@@ -587,7 +595,7 @@ class Ros1Bag:
                 if losses is None:
                     raise ValueError(lost.reason) from None
                 losses.append(Loss(f"chunk that cannot be read ({lost.reason})", chunk_pos, lost.nbytes, lost.start_ns, lost.end_ns, lost.counts))
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - a damaged chunk header or index
                 if losses is None:
                     raise
                 losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))

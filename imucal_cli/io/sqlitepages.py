@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from imucal_cli.io.fastimu import bytes_at
+
 #: Bytes of leaf pages read and parsed together (2,048 pages of the usual 4 kB).
 GROUP_BYTES = 8 << 20
 _LEAF, _INTERIOR = 0x0D, 0x05
@@ -49,13 +51,6 @@ class Rows:
     last_rowid: int  # of every row read so far, wanted or not
 
 
-def _bytes_at(buf: np.ndarray, at: np.ndarray, width: int) -> np.ndarray:
-    """``buf[at[i] : at[i] + width]`` of every ``i``: an (n, width) uint8 array (one index per
-    row through a strided view of overlapping records, not one per byte)."""
-    records = np.ndarray(shape=(len(buf) - width + 1,), dtype=f"V{width}", buffer=buf, strides=(1,))
-    return records[at].view(np.uint8).reshape(len(at), width)
-
-
 def _decode_varints(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """SQLite varints at the start of each row of ``block`` (n, >= 9): big-endian groups of 7
     bits, the ninth byte whole. Their values (int64) and byte lengths."""
@@ -71,7 +66,7 @@ def _decode_varints(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _varints(buf: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """SQLite varints starting at ``at``: values and byte lengths."""
-    return _decode_varints(_bytes_at(buf, at, 9))
+    return _decode_varints(bytes_at(buf, at, 9))
 
 
 def _shifted(block: np.ndarray, offset: np.ndarray, width: int) -> np.ndarray:
@@ -90,7 +85,7 @@ def _big_endian(buf: np.ndarray, at: np.ndarray, sizes: np.ndarray) -> np.ndarra
         pick = sizes == size
         if not pick.any():
             continue
-        raw = _bytes_at(buf, at[pick], int(size)).astype(np.uint64)
+        raw = bytes_at(buf, at[pick], int(size)).astype(np.uint64)
         v = np.zeros(len(raw), dtype=np.uint64)
         for k in range(int(size)):
             v = (v << np.uint64(8)) | raw[:, k]
@@ -211,7 +206,7 @@ class MessagePages:
         if np.any((pointer < 8) | (cell >= page_end)):
             raise PageLayoutError("a cell pointer is outside its page")
         # the cell: payload size and rowid (varints), then the record
-        start = _bytes_at(buffer, cell, 18)
+        start = bytes_at(buffer, cell, 18)
         payload, n1 = _decode_varints(start)
         rowid, n2 = _decode_varints(_shifted(start, n1, 9))
         record = cell + n1 + n2
@@ -222,7 +217,7 @@ class MessagePages:
         if len(rowid) and (rowid[0] <= after_rowid or np.any(np.diff(rowid) <= 0)):
             raise PageLayoutError("rowids are not in order")
         # record header: its length, then the serial types of id, topic_id, timestamp, data
-        header = _bytes_at(buffer, record, 16)
+        header = bytes_at(buffer, record, 16)
         if np.all(header[:, :4] < 0x80):  # the usual: four one-byte varints, then the blob's
             header_len, t_id, t_topic, t_time = (header[:, k].astype(np.int64) for k in range(4))
             t_data, h4 = _decode_varints(header[:, 4:13])
