@@ -170,14 +170,6 @@ class WindowMoments:
     samples: int
     info: WindowInfo | None = None  # observability, filled in (in bulk) when first needed
 
-    @property
-    def S_gyro(self) -> np.ndarray:
-        return assemble_moments([self], "gyro")[0]
-
-    @property
-    def S_accel(self) -> np.ndarray:
-        return assemble_moments([self], "accel")[0]
-
 
 _UPPER = {dim: np.triu_indices(dim - 3) for dim in (GYRO_DIM, ACCEL_DIM)}
 
@@ -190,13 +182,11 @@ def base_moments(G_gyro: np.ndarray, G_accel: np.ndarray) -> BaseMoments:
 
 def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray:
     """The full moments ``S`` of several windows, (K, dim, dim), ``which`` is "gyro" or "accel"."""
-    dim = GYRO_DIM if which == "gyro" else ACCEL_DIM
     if which == "gyro":
-        rows = np.stack([w.rows_gyro for w in windows])
-        packed = np.stack([w.base.packed_gyro for w in windows])
+        dim, rows, packed = GYRO_DIM, [w.rows_gyro for w in windows], [w.base.packed_gyro for w in windows]
     else:
-        rows = np.stack([w.rows_accel for w in windows])
-        packed = np.stack([w.base.packed_accel for w in windows])
+        dim, rows, packed = ACCEL_DIM, [w.rows_accel for w in windows], [w.base.packed_accel for w in windows]
+    rows, packed = np.stack(rows), np.stack(packed)
     upper = _UPPER[dim]
     full = np.empty((len(windows), dim, dim))
     full[:, 3 + upper[0], 3 + upper[1]] = packed

@@ -29,7 +29,7 @@ residual variance.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.interpolate import PPoly
@@ -135,7 +135,7 @@ class _Spline:
         rate = 1.0 / period
         anti_alias = 0.4 * grid_rate if rate > 1.5 * grid_rate else None
         if smooth is not None:
-            both = Lowpass(smooth.cutoff_hz, rate, smooth.order, anti_alias)(both)
+            both = replace(smooth, rate_hz=rate, second_cutoff_hz=anti_alias)(both)
         elif anti_alias is not None:
             both = Lowpass(anti_alias, rate)(both)
         self.t = t
@@ -194,9 +194,11 @@ def _natural_cubic(t: np.ndarray, y: np.ndarray) -> PPoly:
     return PPoly.construct_fast(coefficients, t)
 
 
-def _noise_density(gyro: np.ndarray, accel: np.ndarray, rate: float) -> tuple[float, float]:
-    g = float(np.sqrt(np.mean(white_noise_std(gyro) ** 2)) / np.sqrt(rate))
-    a = float(np.sqrt(np.mean(white_noise_std(accel) ** 2)) / np.sqrt(rate))
+def _noise_density(both: np.ndarray, rate: float) -> tuple[float, float]:
+    """White-noise densities of the gyro and the accelerometer (columns 0-2 and 3-5)."""
+    std = white_noise_std(both)
+    g = float(np.sqrt(np.mean(std[:3] ** 2)) / np.sqrt(rate))
+    a = float(np.sqrt(np.mean(std[3:] ** 2)) / np.sqrt(rate))
     return g, a
 
 
@@ -319,12 +321,12 @@ class StreamingCalibrator:
                 speed = np.linalg.norm(self.lowpass(sensor.gyro(grid)), axis=1)
                 tau, peak = estimate_time_offset(grid, speed_base, speed, setup.options.max_time_offset_s)
             candidates[name] = (tau, peak)
-            self.noise[name] = _noise_density(both_s[:, :3], both_s[:, 3:], 1.0 / sensor.period)
+            self.noise[name] = _noise_density(both_s, 1.0 / sensor.period)
             self.rates_hz[name] = 1.0 / sensor.period
         weak = min(peak for _, peak in candidates.values()) < 0.5
         if weak and not final and covered < MAX_BOOT_S:
             return False  # not enough motion yet to trust the offset
-        self.noise[self.base_name] = _noise_density(both_b[:, :3], both_b[:, 3:], 1.0 / base.period)
+        self.noise[self.base_name] = _noise_density(both_b, 1.0 / base.period)
         self.rates_hz[self.base_name] = 1.0 / base.period
         gb, ab = self.noise[self.base_name]
         for name, (tau, _) in candidates.items():
@@ -412,17 +414,15 @@ class StreamingCalibrator:
         Sw, Sdw = skew(w_raw), skew(dw_raw)
         sensors = {}
         columns = [values, first, ddw_raw, _upper(skew_squared(w_raw)), _upper(Sdw @ Sw + Sw @ Sdw)]
-
-        def condition(name: str) -> np.ndarray:
+        sensor_columns = []
+        for name in self.sensors:
             t_s, both_s = self.buffers[name].cleaned()
             t_s = self._seconds(t_s)
             tau = self.tau0[name]
             pick = (t_s >= grid[0] + tau - margin - 0.1) & (t_s <= grid[-1] + tau + margin + 0.1)
             # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
             sensors[name] = _Spline(t_s[pick], both_s[pick], self.rate, smooth=lp)
-            return sensors[name](grid + tau)
-
-        sensor_columns = [condition(name) for name in self.sensors]
+            sensor_columns.append(sensors[name](grid + tau))
         # one zero-phase low-pass for every term of every equation (linear filters commute);
         # the symmetric 3x3 terms are filtered by their upper triangles
         filtered = np.hstack([_unpack_symmetric(lp(np.hstack(columns)), 15), *sensor_columns])
@@ -433,19 +433,18 @@ class StreamingCalibrator:
         w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
         A = rows[:, 15:24].reshape(-1, 3, 3) + skew(dw)
         A_dot = rows[:, 24:33].reshape(-1, 3, 3) + skew(ddw)
+        # each window's rows in the block
+        at = [(int(round((start - block_start) * self.rate)), int(round((end - start) * self.rate))) for _, start, end in spans]
         u = np.empty((len(rows), 1))
-        for _, start, end in spans:
-            i = slice(int(round((start - block_start) * self.rate)), int(round((end - block_start) * self.rate)))
-            u[i, 0] = (t_rows[i] - start) / self.window_s
+        for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
+            u[i0 : i0 + n_win, 0] = (t_rows[i0 : i0 + n_win] - start) / self.window_s
         ones = np.ones((len(rows), 1))
         X = np.hstack([w, dw, ones, u, f, df, _vec(A), _vec(A_dot), ones, u, rows[:, 33:]])
         n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
         # where each stream has data (no gap), once for the block
         base_covered = base.covered(t_rows)
         sensor_covered = {name: sensors[name].covered(t_rows + self.tau0[name]) for name in self.sensors}
-        for number, start, end in spans:
-            i0 = int(round((start - block_start) * self.rate))
-            n_win = int(round((end - start) * self.rate))
+        for (number, start, end), (i0, n_win) in zip(spans, at, strict=True):
             Xw = X[i0 : i0 + n_win]
             G = Xw.T @ Xw
             shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
