@@ -130,22 +130,22 @@ print(peak, file=open(sys.argv[-1] + ".rss", "w"))
 """
 
 
-def errors(log: Path) -> tuple[float, float]:
-    """Largest rotation (deg) and translation (m) error of ``T_base_lidar`` over the sensors of
-    the last ``calibrate`` run, against the simulator's truth."""
+def errors(config: Path) -> tuple[float, float]:
+    """Largest rotation (deg, paper eq. 21) and translation (m) error of ``T_base_lidar`` over
+    the sensors of the last ``calibrate`` run, against the simulator's truth beside ``config``."""
     import json
 
     import yaml
     from scipy.spatial.transform import Rotation
 
+    from imucal_cli.core.so3 import rotation_angle_deg
+
     estimate = json.loads((CACHE / "estimate.json").read_text())["sensors"]
-    truth_path = log.with_name(log.name.removesuffix(log.suffix) + ".truth.yaml") if log.suffix else Path(str(log) + ".truth.yaml")
-    truth = yaml.safe_load(truth_path.read_text())["sensors"]
+    truth = yaml.safe_load(config.with_name(config.name.replace(".config.yaml", ".truth.yaml")).read_text())["sensors"]
     worst_r = worst_t = 0.0
     for name, sensor in estimate.items():
         est, ref = sensor["T_base_lidar"], truth[name]["T_base_lidar"]
-        angle = (Rotation.from_quat(ref["rotation"]).inv() * Rotation.from_quat(est["rotation"])).magnitude()
-        worst_r = max(worst_r, float(np.degrees(angle)))
+        worst_r = max(worst_r, rotation_angle_deg(Rotation.from_quat(ref["rotation"]), Rotation.from_quat(est["rotation"])))
         worst_t = max(worst_t, float(np.linalg.norm(np.subtract(est["translation"], ref["translation"]))))
     return worst_r, worst_t
 
@@ -154,8 +154,9 @@ def calibrate(log: Path, config: Path) -> tuple[float, float]:
     """Wall seconds and peak RSS (MB) of ``imucal calibrate`` in a fresh process.
 
     The process reports its own peak plus its reading child's (the sum of the two peaks: an
-    upper bound of what they held together, pages shared after the fork counted twice). It is started through a shell that does not ``exec`` it,
-    so it is not forked from this (large) process: Linux keeps a process's pre-``exec`` peak.
+    upper bound of what they held together, pages shared after the fork counted twice). It is
+    started through a shell that does not ``exec`` it, so it is not forked from this (large)
+    process: Linux keeps a process's pre-``exec`` peak.
     """
     out = CACHE / "estimate.json"
     command = " ".join(
@@ -200,7 +201,7 @@ def main() -> None:
             if LENGTHS[length] / 60.0 <= args.naive_max_minutes:
                 t_naive, _ = decode(log, topics, fast=False)
             wall, rss = min(calibrate(log, config_path) for _ in range(args.calibrate_repeat))
-            worst_r, worst_t = errors(log)
+            worst_r, worst_t = errors(config_path)
             size = sum(p.stat().st_size for p in ([log] if log.is_file() else log.iterdir()))
             if fmt == "rosbag2-sqlite3":
                 fetches.append((length, min(file_read(log) for _ in range(args.repeat)), t_fast))

@@ -216,7 +216,7 @@ def test_sqlite_pages_hand_over_to_sqlite_where_the_layout_is_unexpected(tmp_pat
         half = len(rows) // 2
         connection.executemany("INSERT INTO messages VALUES (?, ?, ?, ?)", rows[:half])
         connection.execute("INSERT INTO messages VALUES (?, 99, 0, ?)", (rows[half - 1][0] + 1, bytes(20000)))
-        connection.executemany("INSERT INTO messages VALUES (?, ?, ?, ?)", [(i + 1, *r[1:]) for i, r in [(r[0] + 1, r) for r in rows[half:]]])
+        connection.executemany("INSERT INTO messages VALUES (?, ?, ?, ?)", [(r[0] + 1, *r[1:]) for r in rows[half:]])
     groups = _count_page_groups(monkeypatch)
     monkeypatch.setattr("imucal_cli.io.sqlitepages.GROUP_BYTES", 2 * 4096)
     fast = read_imu(path, list(topics))
