@@ -76,22 +76,26 @@ class Lowpass:
         if n < 2:
             return x.copy()
         shape = x.shape
-        columns = np.ascontiguousarray(x.reshape(n, -1).T)  # time along the last, contiguous axis
         pad = min(self.pad, n - 1)
-        head = 2.0 * columns[:, :1] - columns[:, pad:0:-1]
-        tail = 2.0 * columns[:, -1:] - columns[:, -2 : -pad - 2 : -1]
-        extended = np.concatenate([head, columns, tail], axis=1)
-        m = extended.shape[1]
-        # The line through both ends passes the filter unchanged; without it the periodic FFT
-        # sees no jump where the ends meet.
-        line = extended[:, :1] + (extended[:, -1:] - extended[:, :1]) * np.linspace(0.0, 1.0, m)
+        m = n + 2 * pad
         size = _fast_length(m + pad)
-        freq = scipy.fft.rfftfreq(size, d=1.0 / self.rate_hz)
-        gain = self.gain(freq)
-        spectrum = scipy.fft.rfft(extended - line, n=size, axis=1, overwrite_x=True)
-        spectrum *= gain
-        filtered = scipy.fft.irfft(spectrum, n=size, axis=1, overwrite_x=True)[:, :m] + line
-        return np.ascontiguousarray(filtered[:, pad : pad + n].T).reshape(shape)
+        # one buffer, time along the last (contiguous) axis: the signal, its point reflections
+        # at both ends (as filtfilt pads), then zeros up to the transform's length
+        extended = np.empty((x[0].size, size))
+        extended[:, pad : pad + n] = x.reshape(n, -1).T
+        first, last = extended[:, pad : pad + 1], extended[:, pad + n - 1 : pad + n]
+        np.subtract(2.0 * first, extended[:, 2 * pad : pad : -1], out=extended[:, :pad])
+        np.subtract(2.0 * last, extended[:, pad + n - 2 : n - 2 : -1], out=extended[:, pad + n : m])
+        extended[:, m:] = 0.0
+        # The line through both ends passes the filter unchanged; without it the periodic FFT
+        # sees a jump where the ends meet.
+        line = extended[:, :1] + (extended[:, m - 1 : m] - extended[:, :1]) * np.linspace(0.0, 1.0, m)
+        extended[:, :m] -= line
+        spectrum = scipy.fft.rfft(extended, axis=1, overwrite_x=True)
+        spectrum *= self.gain(scipy.fft.rfftfreq(size, d=1.0 / self.rate_hz))
+        filtered = scipy.fft.irfft(spectrum, n=size, axis=1, overwrite_x=True)[:, pad : pad + n]
+        filtered += line[:, pad : pad + n]
+        return np.ascontiguousarray(filtered.T).reshape(shape)
 
     def gain(self, freq_hz: np.ndarray) -> np.ndarray:
         """The filter's (real, zero-phase) frequency response."""

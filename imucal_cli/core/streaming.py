@@ -32,8 +32,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.interpolate import PPoly
-from scipy.linalg import solve_banded
+from numpy.lib.stride_tricks import as_strided
+from scipy.linalg.lapack import dptsv
 
 from imucal_cli.core.calibrate import (
     ACCEL_DIM,
@@ -142,12 +142,12 @@ class _Spline:
         self.period = period
         self.spline = _natural_cubic(t, both)
 
-    def gyro(self, query: np.ndarray, nu: int = 0) -> np.ndarray:
-        return self.spline(query, nu=nu)[:, 0:3]
+    def gyro(self, query: np.ndarray) -> np.ndarray:
+        return self.spline(query)[:, 0:3]
 
-    def __call__(self, query: np.ndarray, nu: int = 0) -> np.ndarray:
-        """(n, 6): gyro and accelerometer (or their ``nu``-th derivatives)."""
-        return self.spline(query, nu=nu)
+    def __call__(self, query: np.ndarray, upto: int = 0) -> list[np.ndarray]:
+        """(n, 6) each: gyro and accelerometer, and their derivatives up to ``upto``."""
+        return self.spline.derivatives(query, upto)
 
     def covered(self, query: np.ndarray) -> np.ndarray:
         """Per query time: inside the samples and not in a gap (of more than ``GAP_PERIODS``
@@ -157,41 +157,73 @@ class _Spline:
         return inside & (self.t[j] - self.t[j - 1] <= GAP_PERIODS * self.period)
 
 
-def _natural_cubic(t: np.ndarray, y: np.ndarray) -> PPoly:
-    """The natural cubic spline through ``(t, y)`` (y: (n, m)), as a piecewise polynomial.
+class _NaturalCubic:
+    """The natural cubic spline through ``(t, y)`` (y: (n, m)), kept as its samples and its
+    second derivatives ``M`` at them.
 
-    Its second derivatives solve a tridiagonal system (LAPACK ``gtsv``), several times cheaper
-    than the general banded B-spline collocation; the end conditions differ from not-a-knot
-    only within a few samples of the ends, which lie in the padding.
+    ``M`` solves a symmetric positive-definite tridiagonal system (LAPACK ``ptsv``), several
+    times cheaper than the general banded B-spline collocation; the end conditions differ from
+    not-a-knot only within a few samples of the ends, which lie in the padding. It is evaluated
+    in the two-point form ``A y_j + B y_j+1 + ((A^3 - A) M_j + (B^3 - B) M_j+1) h^2 / 6``
+    (``B`` the query's fraction of its interval ``j``, ``A = 1 - B``), from the samples around
+    each query only: no coefficients are formed for intervals nobody asks about (half of them
+    when a 200 Hz IMU is resampled to 100 Hz).
     """
-    if len(t) < 3:
-        raise TooLittleData("too little data: fewer than 3 samples to interpolate")
-    # in place where it can be: this runs on every IMU of every block
-    n = len(t)
-    h = t[1:] - t[:-1]
-    slope = y[1:] - y[:-1]
-    slope /= h[:, None]
-    bands = np.empty((3, n - 2))
-    bands[0, 0], bands[0, 1:] = 0.0, h[1:-1]
-    np.add(h[:-1], h[1:], out=bands[1])
-    bands[1] *= 2.0
-    bands[2, :-1], bands[2, -1] = h[1:-1], 0.0
-    rhs = slope[1:] - slope[:-1]
-    rhs *= 6.0
-    M = np.empty_like(y)
-    M[0] = M[-1] = 0.0
-    M[1:-1] = solve_banded((1, 1), bands, rhs, overwrite_ab=True, overwrite_b=True, check_finite=False)
-    coefficients = np.empty((4, n - 1, y.shape[1]))
-    step = h[:, None]
-    np.subtract(M[1:], M[:-1], out=coefficients[0])
-    coefficients[0] /= 6.0 * step
-    np.multiply(M[:-1], 0.5, out=coefficients[1])
-    np.multiply(M[:-1], 2.0, out=coefficients[2])  # slope - h (2 M_i + M_i+1) / 6
-    coefficients[2] += M[1:]
-    coefficients[2] *= step / 6.0
-    np.subtract(slope, coefficients[2], out=coefficients[2])
-    coefficients[3] = y[:-1]
-    return PPoly.construct_fast(coefficients, t)
+
+    def __init__(self, t: np.ndarray, y: np.ndarray) -> None:
+        if len(t) < 3:
+            raise TooLittleData("too little data: fewer than 3 samples to interpolate")
+        n, m = y.shape
+        h = t[1:] - t[:-1]
+        slope = y[1:] - y[:-1]
+        slope /= h[:, None]
+        rhs = slope[1:] - slope[:-1]
+        rhs *= 6.0
+        diagonal = h[:-1] + h[1:]
+        diagonal *= 2.0
+        # with stamps strictly increasing (the buffers are cleaned) the system is diagonally
+        # dominant, so positive definite
+        _, _, inner, info = dptsv(diagonal, h[1:-1], rhs, overwrite_b=True)
+        if info != 0:
+            raise ValueError("spline stamps must strictly increase")
+        # [y, M] side by side; row j of `pairs` is [y_j, M_j, y_j+1, M_j+1] (a view), so one
+        # gather fetches all a query needs
+        self.y_M = np.zeros((n, 2 * m))
+        self.y_M[:, :m] = y
+        self.y_M[1:-1, m:] = inner
+        self.pairs = as_strided(self.y_M, (n - 1, 4 * m), (self.y_M.strides[0], self.y_M.strides[1]), writeable=False)
+        self.t, self.h, self.m = t, h, m
+
+    def __call__(self, query: np.ndarray, nu: int = 0) -> np.ndarray:
+        """Values (``nu`` = 0) or the ``nu``-th derivative (1, 2) at ``query``, (len(query), m)."""
+        return self.derivatives(query, nu)[nu]
+
+    def derivatives(self, query: np.ndarray, upto: int = 2) -> list[np.ndarray]:
+        """Values and the derivatives up to ``upto`` at ``query``, (len(query), m) each."""
+        j = np.searchsorted(self.t, query, side="right") - 1
+        np.clip(j, 0, len(self.t) - 2, out=j)  # the end intervals extend outside
+        h = self.h[j]
+        B = query - self.t[j]
+        B /= h
+        A = 1.0 - B
+        samples = self.pairs[j].reshape(len(query), 4, self.m)
+        # weights of [y_j, M_j, y_j+1, M_j+1] for each derivative
+        weights = np.empty((len(query), 4))
+        h2_6 = h * h / 6.0
+        weights[:, 0], weights[:, 1], weights[:, 2], weights[:, 3] = A, (A * A - 1.0) * A * h2_6, B, (B * B - 1.0) * B * h2_6
+        out = [np.einsum("qk,qkc->qc", weights, samples)]
+        if upto >= 1:
+            weights[:, 0], weights[:, 2] = -1.0 / h, 1.0 / h
+            weights[:, 1], weights[:, 3] = (1.0 - 3.0 * A * A) * h / 6.0, (3.0 * B * B - 1.0) * h / 6.0
+            out.append(np.einsum("qk,qkc->qc", weights, samples))
+        if upto >= 2:
+            out.append(np.einsum("qk,qkc->qc", np.stack([A, B], axis=1), samples[:, 1::2]))
+        return out
+
+
+def _natural_cubic(t: np.ndarray, y: np.ndarray) -> _NaturalCubic:
+    """The natural cubic spline through ``(t, y)`` (see :class:`_NaturalCubic`)."""
+    return _NaturalCubic(t, y)
 
 
 def _noise_density(both: np.ndarray, rate: float) -> tuple[float, float]:
@@ -409,7 +441,7 @@ class StreamingCalibrator:
         t_b = self._seconds(t_b)
         pick = (t_b >= grid[0] - margin - 0.1) & (t_b <= grid[-1] + margin + 0.1)
         base = _Spline(t_b[pick], both_b[pick], self.rate)
-        values, first, second = base(grid), base(grid, 1), base(grid, 2)
+        values, first, second = base(grid, 2)
         w_raw, dw_raw, ddw_raw = values[:, 0:3], first[:, 0:3], second[:, 0:3]
         Sw, Sdw = skew(w_raw), skew(dw_raw)
         sensors = {}
@@ -422,7 +454,7 @@ class StreamingCalibrator:
             pick = (t_s >= grid[0] + tau - margin - 0.1) & (t_s <= grid[-1] + tau + margin + 0.1)
             # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
             sensors[name] = _Spline(t_s[pick], both_s[pick], self.rate, smooth=lp)
-            sensor_columns.append(sensors[name](grid + tau))
+            sensor_columns.append(sensors[name](grid + tau)[0])
         # one zero-phase low-pass for every term of every equation (linear filters commute);
         # the symmetric 3x3 terms are filtered by their upper triangles
         filtered = np.hstack([_unpack_symmetric(lp(np.hstack(columns)), 15), *sensor_columns])
