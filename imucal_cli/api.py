@@ -13,6 +13,7 @@ is returned for the caller to report.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.logs import ImuBatches, ReadStats
 from imucal_cli.io.prefetch import read_ahead
 from imucal_cli.io.salvage import Loss
+from imucal_cli.parallel import ForkedWorker
 from imucal_cli.pipeline import CalibrationResult, calibration_document, make_calibrator
 from imucal_cli.types import Transform
 
@@ -107,8 +109,15 @@ def stream_log(
     t0_ns: int | None = None
     count = 0
     clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
-    batches = read_ahead(reader, background=background)
-    try:
+    with ExitStack() as stack:
+        if background and ForkedWorker.available():
+            # half the blocks' math in a second process, forked before the reader
+            calibrator.executor = stack.enter_context(ForkedWorker())
+            stack.callback(setattr, calibrator, "executor", None)
+        batches = read_ahead(reader, background=background)
+        close = getattr(batches, "close", None)
+        if close is not None:
+            stack.callback(close)
         for topic, stamps, log_times, gyro, accel in batches:
             clocks.add(topic, stamps, log_times)
             clocks.check(list(names))
@@ -119,21 +128,19 @@ def stream_log(
             count += len(stamps)
             if progress is not None:
                 progress(count)
-    finally:
-        close = getattr(batches, "close", None)
         if close is not None:
             close()
-    lost = lost_summary(reader.losses)
-    for topic, stats in reader.stats.items():
-        usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated - stats.implausible - stats.stamp_outliers
-        if usable < 10:
-            raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages{lost}")
-    if calibrator.t_ref_ns is None or t0_ns is None:
-        raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
-    try:
-        calibrator.process(final=True)
-    except ImucalError as exc:
-        raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
+        lost = lost_summary(reader.losses)
+        for topic, stats in reader.stats.items():
+            usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated - stats.implausible - stats.stamp_outliers
+            if usable < 10:
+                raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages{lost}")
+        if calibrator.t_ref_ns is None or t0_ns is None:
+            raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
+        try:
+            calibrator.process(final=True)
+        except ImucalError as exc:
+            raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
     duplicates = {topic: calibrator.duplicates(name) for topic, name in names.items()}
     return StreamedLog(log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name)
 

@@ -28,8 +28,10 @@ residual variance.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
@@ -255,6 +257,91 @@ def _vec(A: np.ndarray) -> np.ndarray:
     return A.transpose(0, 2, 1).reshape(len(A), 9)
 
 
+@dataclass
+class _BlockJob:
+    """What reducing one block of windows needs, as plain numbers and arrays (so that it can
+    be done in another process): per IMU its clock offset, stamps (s) and ``[gyro, accel]``."""
+
+    spans: list[tuple[int, float, float]]
+    rate: float
+    window_s: float
+    lowpass: Lowpass
+    n_pad: int
+    n_block: int
+    n_after: int
+    base_name: str
+    samples: dict[str, tuple[float, np.ndarray, np.ndarray]]
+
+
+class _Reduced:
+    """A block reduced here: the interface of a finished future."""
+
+    def __init__(self, windows: dict[str, list[WindowMoments]]) -> None:
+        self.windows = windows
+
+    def done(self) -> bool:
+        return True
+
+    def result(self) -> dict[str, list[WindowMoments]]:
+        return self.windows
+
+
+def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
+    """Condition a block of consecutive windows once and reduce each window, for every sensor,
+    to its moments."""
+    lp, rate, spans = job.lowpass, job.rate, job.spans
+    block_start = spans[0][1]
+    n_pad, n_block = job.n_pad, job.n_block
+    grid = block_start + np.arange(-n_pad, n_block + job.n_after) / rate
+    _, t_b, both_b = job.samples[job.base_name]
+    base = _Spline(t_b, both_b, rate)
+    values, first, second = base(grid, 2)
+    w_raw, dw_raw, ddw_raw = values[:, 0:3], first[:, 0:3], second[:, 0:3]
+    Sw, Sdw = skew(w_raw), skew(dw_raw)
+    columns = [values, first, ddw_raw, _upper(skew_squared(w_raw)), _upper(Sdw @ Sw + Sw @ Sdw)]
+    names = [name for name in job.samples if name != job.base_name]
+    sensors, sensor_columns = {}, []
+    for name in names:
+        tau, t_s, both_s = job.samples[name]
+        # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
+        sensors[name] = _Spline(t_s, both_s, rate, smooth=lp)
+        sensor_columns.append(sensors[name](grid + tau)[0])
+    # one zero-phase low-pass for every term of every equation (linear filters commute);
+    # the symmetric 3x3 terms are filtered by their upper triangles
+    filtered = np.hstack([_unpack_symmetric(lp(np.hstack(columns)), 15), *sensor_columns])
+    # every data vector of the block side by side, so that each window's moments are one
+    # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, 1, u]
+    rows = filtered[n_pad : n_pad + n_block]
+    t_rows = grid[n_pad : n_pad + n_block]
+    w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
+    A = rows[:, 15:24].reshape(-1, 3, 3) + skew(dw)
+    A_dot = rows[:, 24:33].reshape(-1, 3, 3) + skew(ddw)
+    # each window's rows in the block
+    at = [(int(round((start - block_start) * rate)), int(round((end - start) * rate))) for _, start, end in spans]
+    u = np.empty((len(rows), 1))
+    for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
+        u[i0 : i0 + n_win, 0] = (t_rows[i0 : i0 + n_win] - start) / job.window_s
+    ones = np.ones((len(rows), 1))
+    X = np.hstack([w, dw, ones, u, f, df, _vec(A), _vec(A_dot), ones, u, rows[:, 33:]])
+    n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
+    # where each stream has data (no gap), once for the block
+    base_covered = base.covered(t_rows)
+    sensor_covered = {name: sensors[name].covered(t_rows + job.samples[name][0]) for name in names}
+    out: dict[str, list[WindowMoments]] = {name: [] for name in names}
+    for (number, start, end), (i0, n_win) in zip(spans, at, strict=True):
+        Xw = X[i0 : i0 + n_win]
+        G = Xw.T @ Xw
+        shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
+        valid_base = bool(base_covered[i0 : i0 + n_win].all())
+        for k, name in enumerate(names):
+            wi = n_g + n_a + 6 * k
+            rows_g = np.hstack([G[wi : wi + 3, wi : wi + 3], G[wi : wi + 3, :n_g]])
+            rows_a = np.hstack([G[wi + 3 : wi + 6, wi + 3 : wi + 6], G[wi + 3 : wi + 6, n_g : n_g + n_a]])
+            valid = valid_base and bool(sensor_covered[name][i0 : i0 + n_win].all())
+            out[name].append(WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win))
+    return out
+
+
 class StreamingCalibrator:
     """Feed IMU samples as they are read; ask for the estimate at any time.
 
@@ -290,6 +377,12 @@ class StreamingCalibrator:
         #: Median sample rate of every IMU (Hz), measured at boot.
         self.rates_hz: dict[str, float] = {}
         self.finished = False
+        #: Where blocks may be reduced besides here: anything with ``submit(fn, *args)``
+        #: returning an object with ``done()`` and ``result()`` (a ``concurrent.futures``
+        #: executor, :class:`imucal_cli.parallel.ForkedWorker`). A block goes to it whenever it
+        #: is idle; results are stored in window order.
+        self.executor: Any = None
+        self._pending: deque[Any] = deque()
         self.block_windows = max(1, int(block_windows))
 
     # ---------------------------------------------------------------- input
@@ -403,6 +496,8 @@ class StreamingCalibrator:
                 buffer.drop_before(self.t_ref_ns + int(keep_from * 1e9))
             if partial or len(spans) < self.block_windows:
                 break
+        if final:
+            self._store(wait=True)
         return count
 
     def _need(self, number: int, final: bool) -> float:
@@ -428,68 +523,38 @@ class StreamingCalibrator:
             self.next_window = int((ready - self._grid_start) // self.window_s)
 
     def _reduce(self, spans: list[tuple[int, float, float]]) -> None:
-        """Condition a block of consecutive windows once and reduce each to its moments."""
-        lp = self.lowpass
+        """Condition a block of consecutive windows once and reduce each to its moments: here,
+        or on :attr:`executor` when it is idle. Results are stored in window order."""
         block_start, block_end = spans[0][1], spans[-1][2]
         n_pad = int(round(PAD_S * self.rate))
         n_block = int(round((block_end - block_start) * self.rate))
         last = self._covered_until() - self.max_offset - 2.0 / self.rate  # never extrapolate
         n_after = int(np.clip(np.floor((last - block_end) * self.rate), 0, n_pad))
-        grid = block_start + np.arange(-n_pad, n_block + n_after) / self.rate
-        margin = 3.0 / self.rate
-        t_b, both_b = self.buffers[self.base_name].cleaned()
-        t_b = self._seconds(t_b)
-        pick = (t_b >= grid[0] - margin - 0.1) & (t_b <= grid[-1] + margin + 0.1)
-        base = _Spline(t_b[pick], both_b[pick], self.rate)
-        values, first, second = base(grid, 2)
-        w_raw, dw_raw, ddw_raw = values[:, 0:3], first[:, 0:3], second[:, 0:3]
-        Sw, Sdw = skew(w_raw), skew(dw_raw)
-        sensors = {}
-        columns = [values, first, ddw_raw, _upper(skew_squared(w_raw)), _upper(Sdw @ Sw + Sw @ Sdw)]
-        sensor_columns = []
-        for name in self.sensors:
-            t_s, both_s = self.buffers[name].cleaned()
-            t_s = self._seconds(t_s)
-            tau = self.tau0[name]
-            pick = (t_s >= grid[0] + tau - margin - 0.1) & (t_s <= grid[-1] + tau + margin + 0.1)
-            # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
-            sensors[name] = _Spline(t_s[pick], both_s[pick], self.rate, smooth=lp)
-            sensor_columns.append(sensors[name](grid + tau)[0])
-        # one zero-phase low-pass for every term of every equation (linear filters commute);
-        # the symmetric 3x3 terms are filtered by their upper triangles
-        filtered = np.hstack([_unpack_symmetric(lp(np.hstack(columns)), 15), *sensor_columns])
-        # every data vector of the block side by side, so that each window's moments are one
-        # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, 1, u]
-        rows = filtered[n_pad : n_pad + n_block]
-        t_rows = grid[n_pad : n_pad + n_block]
-        w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
-        A = rows[:, 15:24].reshape(-1, 3, 3) + skew(dw)
-        A_dot = rows[:, 24:33].reshape(-1, 3, 3) + skew(ddw)
-        # each window's rows in the block
-        at = [(int(round((start - block_start) * self.rate)), int(round((end - start) * self.rate))) for _, start, end in spans]
-        u = np.empty((len(rows), 1))
-        for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
-            u[i0 : i0 + n_win, 0] = (t_rows[i0 : i0 + n_win] - start) / self.window_s
-        ones = np.ones((len(rows), 1))
-        X = np.hstack([w, dw, ones, u, f, df, _vec(A), _vec(A_dot), ones, u, rows[:, 33:]])
-        n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
-        # where each stream has data (no gap), once for the block
-        base_covered = base.covered(t_rows)
-        sensor_covered = {name: sensors[name].covered(t_rows + self.tau0[name]) for name in self.sensors}
-        for (number, start, end), (i0, n_win) in zip(spans, at, strict=True):
-            Xw = X[i0 : i0 + n_win]
-            G = Xw.T @ Xw
-            shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
-            valid_base = bool(base_covered[i0 : i0 + n_win].all())
-            for k, name in enumerate(self.sensors):
-                wi = n_g + n_a + 6 * k
-                rows_g = np.hstack([G[wi : wi + 3, wi : wi + 3], G[wi : wi + 3, :n_g]])
-                rows_a = np.hstack([G[wi + 3 : wi + 6, wi + 3 : wi + 6], G[wi + 3 : wi + 6, n_g : n_g + n_a]])
-                valid = valid_base and bool(sensor_covered[name][i0 : i0 + n_win].all())
-                self.windows[name].append(WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win))
+        # the samples the grid needs (as in _reduce_block), with a margin
+        grid_first, grid_last = block_start + np.array([-n_pad, n_block + n_after - 1]) / self.rate
+        first_s, last_s = grid_first - 3.0 / self.rate - 0.1, grid_last + 3.0 / self.rate + 0.1
+        samples = {}
+        for name, tau in [(self.base_name, 0.0), *((name, self.tau0[name]) for name in self.sensors)]:
+            t, both = self.buffers[name].cleaned()
+            t = self._seconds(t)
+            pick = (t >= first_s + tau) & (t <= last_s + tau)
+            samples[name] = (tau, t[pick], both[pick])
+        job = _BlockJob(spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after, self.base_name, samples)
+        if self.executor is not None and all(pending.done() for pending in self._pending):
+            self._pending.append(self.executor.submit(_reduce_block, job))
+        else:
+            self._pending.append(_Reduced(_reduce_block(job)))
+        self._store(wait=False)
+
+    def _store(self, wait: bool) -> None:
+        """Store the reduced blocks that are ready, in order (all of them when ``wait``)."""
+        while self._pending and (wait or self._pending[0].done()):
+            for name, windows in self._pending.popleft().result().items():
+                self.windows[name].extend(windows)
 
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
         """Fill in the observability of windows that lack it (all at once)."""
+        self._store(wait=True)
         windows = self.windows[name]
         missing = [w for w in windows if w.info is None]
         setup = self.sensors[name]

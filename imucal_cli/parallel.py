@@ -1,0 +1,133 @@
+"""A second process for the math: :class:`ForkedWorker` runs functions sent to it, in order.
+
+The calibration's per-block work (splines, filters, moments; :mod:`imucal_cli.core.streaming`)
+is plain numpy that holds the GIL too often for a thread to pay, so a block is handed to a
+forked process whenever that process is idle, and the caller reduces the next block meanwhile.
+The worker is forked before any data is read, so it shares the modules already imported and
+holds little memory of its own. Its results come back over a pipe in the order sent; an
+exception raised in it is raised again by ``result()``; a worker that dies is a
+``RuntimeError``. Where ``fork`` is not available, :func:`ForkedWorker.available` is False and
+callers work inline.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+
+class ForkedWorker:
+    """One forked process running ``fn(*args)`` for each :meth:`submit`, in order.
+
+    >>> with ForkedWorker() as worker:                  # doctest: +SKIP
+    ...     pending = worker.submit(sum, [1, 2, 3])
+    ...     pending.result()
+    6
+    """
+
+    @staticmethod
+    def available() -> bool:
+        return "fork" in multiprocessing.get_all_start_methods()
+
+    def __init__(self) -> None:
+        context = multiprocessing.get_context("fork")
+        self._conn, theirs = context.Pipe(duplex=True)
+        self._process = context.Process(target=_serve, args=(theirs,), name="imucal-math", daemon=True)
+        self._process.start()
+        theirs.close()
+        self._waiting: deque[_Pending] = deque()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> _Pending:
+        """Send ``fn(*args)`` to the worker (``fn`` and ``args`` must pickle); the returned
+        object's ``done()`` says whether it has finished, ``result()`` waits for it."""
+        pending = _Pending(self)
+        try:
+            self._conn.send((fn, args))
+        except (BrokenPipeError, ConnectionResetError):
+            raise self._died() from None
+        self._waiting.append(pending)
+        return pending
+
+    def _receive(self) -> None:
+        try:
+            ok, value = self._conn.recv()
+        except (EOFError, OSError):
+            raise self._died() from None
+        self._waiting.popleft()._set(ok, value)
+
+    def _died(self) -> RuntimeError:
+        self._process.join(timeout=1.0)
+        return RuntimeError(f"the math worker process ended unexpectedly (exit code {self._process.exitcode})")
+
+    def close(self) -> None:
+        """End the worker (what it has not finished is dropped)."""
+        try:
+            self._conn.send(None)
+        except OSError:
+            pass
+        self._process.join(timeout=5.0)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join()
+        self._conn.close()
+
+    def __enter__(self) -> ForkedWorker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _Pending:
+    """The future result of one :meth:`ForkedWorker.submit`."""
+
+    def __init__(self, worker: ForkedWorker) -> None:
+        self._worker = worker
+        self._finished = False
+        self._ok = False
+        self._value: Any = None
+
+    def _set(self, ok: bool, value: Any) -> None:
+        self._finished, self._ok, self._value = True, ok, value
+
+    def done(self) -> bool:
+        """Finished (without waiting)."""
+        while not self._finished and self._worker._conn.poll():
+            self._worker._receive()
+        return self._finished
+
+    def result(self) -> Any:
+        """Wait for the result; an exception raised in the worker is raised here."""
+        while not self._finished:
+            self._worker._receive()
+        if not self._ok:
+            raise self._value
+        return self._value
+
+
+def _serve(conn: Any) -> None:  # pragma: no cover - runs in the child
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it ends us
+    try:
+        while True:
+            try:
+                item = conn.recv()
+            except (EOFError, OSError):
+                return
+            if item is None:
+                return
+            fn, args = item
+            try:
+                reply = (True, fn(*args))
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                reply = (False, exc)
+            try:
+                conn.send(reply)
+            except Exception as exc:  # noqa: BLE001 - a result or exception that does not pickle
+                failed = exc if reply[0] else reply[1]
+                conn.send((False, RuntimeError(f"{type(failed).__name__}: {failed}")))
+    finally:
+        conn.close()
