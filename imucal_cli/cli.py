@@ -6,7 +6,6 @@ partial output file. Heavy imports happen inside the commands so ``imucal --help
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import sys
 from collections.abc import Callable, Iterator
@@ -99,24 +98,41 @@ def _stdout_console() -> Any:
 
 
 @contextmanager
-def _progress(description: str) -> Iterator[Any]:
-    """A spinner with a counter on stderr when it is a terminal; nothing otherwise."""
+def _progress(description: str, from_first_count: bool = False) -> Iterator[Any]:
+    """A spinner with a counter on stderr when it is a terminal; nothing otherwise.
+
+    With ``from_first_count`` it starts at the first count: its refresh thread must not exist
+    when the log reader and the math worker are forked, at the start of reading."""
     if not sys.stderr.isatty():
         yield lambda count: None
         return
     from rich.console import Console
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    with Progress(
+    progress = Progress(
         SpinnerColumn(),
         TextColumn("{task.description}"),
         TextColumn("{task.completed:>10,.0f} messages"),
         TimeElapsedColumn(),
         console=Console(stderr=True),
         transient=True,
-    ) as progress:
-        task = progress.add_task(description, total=None)
-        yield lambda count: progress.update(task, completed=count)
+    )
+    tasks = []
+
+    def update(count: int | None = None) -> None:
+        if not tasks:
+            progress.start()
+            tasks.append(progress.add_task(description, total=None))
+        if count is not None:
+            progress.update(tasks[0], completed=count)
+
+    if not from_first_count:
+        update()
+    try:
+        yield update
+    finally:
+        if tasks:
+            progress.stop()
 
 
 def _emit(document: dict[str, Any], out: Path | None, as_json: bool, render: Any) -> None:
@@ -260,7 +276,7 @@ def _load_drive(log: Path, config_path: Path, quiet: bool = False) -> tuple[Any,
     config = load_config(config_path)
     topics = [config.base.topic] + [s.imu_topic for s in config.sensors]
     losses: list[Any] = []
-    with _progress(f"reading {log}") as progress:
+    with _progress(f"reading {log}", from_first_count=True) as progress:
         reads = read_imu(log, topics, progress=progress, losses=losses)
     for topic, read in reads.items():
         if len(read.stream) < 10:
@@ -286,7 +302,7 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
     from imucal_cli.config import load_config
 
     config = load_config(config_path)
-    with _progress(f"reading {log}") as progress:
+    with _progress(f"reading {log}", from_first_count=True) as progress:
         streamed = stream_log(log, config, progress=progress)
     _note_losses(log, streamed.losses)
     for topic, stats in streamed.stats.items():

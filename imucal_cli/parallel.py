@@ -15,7 +15,7 @@ from __future__ import annotations
 import multiprocessing
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Self
 
 
 class ForkedWorker:
@@ -73,7 +73,7 @@ class ForkedWorker:
             self._process.join()
         self._conn.close()
 
-    def __enter__(self) -> ForkedWorker:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

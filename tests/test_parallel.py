@@ -1,0 +1,84 @@
+"""The forked math worker: results in order, errors raised again, a dead worker a clear error;
+a calibrator that hands blocks to it reduces exactly the same windows as one that does not."""
+
+from __future__ import annotations
+
+import os
+import signal
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from conftest import DATA
+
+from imucal_cli.api import stream_log
+from imucal_cli.config import load_config
+from imucal_cli.core.signals import TooLittleData
+from imucal_cli.parallel import ForkedWorker
+
+pytestmark = pytest.mark.skipif(not ForkedWorker.available(), reason="needs fork")
+
+SAMPLE = DATA.parent.parent / "sample_data" / "urban.mcap"
+CONFIG = DATA.parent.parent / "configs" / "sample_urban.yaml"
+
+
+def _fail(message: str) -> None:
+    raise TooLittleData(message)
+
+
+def test_results_come_back_in_order_and_errors_are_raised_again():
+    with ForkedWorker() as worker:
+        pending = [worker.submit(np.sum, np.arange(n)) for n in range(1, 6)]
+        failing = worker.submit(_fail, "too little data: 2 samples")
+        after = worker.submit(os.getpid)
+        assert [p.result() for p in pending] == [n * (n - 1) // 2 for n in range(1, 6)]
+        with pytest.raises(TooLittleData, match="2 samples"):
+            failing.result()
+        assert after.result() != os.getpid()  # it ran in the other process
+        assert after.done()
+
+
+def test_a_worker_that_dies_is_a_clear_error():
+    with ForkedWorker() as worker:
+        pid = worker.submit(os.getpid).result()
+        os.kill(pid, signal.SIGKILL)
+        with pytest.raises(RuntimeError, match="math worker process ended unexpectedly"):
+            worker.submit(os.getpid).result()
+
+
+def _windows(calibrator):
+    return {
+        name: [(w.number, w.valid, w.samples, w.base.packed_gyro.tobytes(), w.base.packed_accel.tobytes(), w.rows_gyro.tobytes(), w.rows_accel.tobytes()) for w in windows]
+        for name, windows in calibrator.windows.items()
+    }
+
+
+def test_blocks_reduced_by_the_worker_are_the_blocks_reduced_here():
+    config = load_config(CONFIG)
+    inline = stream_log(SAMPLE, config, background=False).calibrator
+    assert inline.executor is None
+    forked = stream_log(SAMPLE, config).calibrator  # the reader and the math worker forked
+    assert forked.executor is None  # let go once the log is read
+    assert sum(len(w) for w in inline.windows.values()) > 20
+    assert _windows(forked) == _windows(inline)  # bit for bit, in window order
+
+
+def test_a_concurrent_futures_executor_will_do_and_the_estimates_are_identical():
+    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.pipeline import make_calibrator
+
+    config = load_config(CONFIG)
+    inline = stream_log(SAMPLE, config, background=False).calibrator
+    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    calibrator = make_calibrator(config)
+    with ThreadPoolExecutor(1) as pool:
+        calibrator.executor = pool
+        for topic, stamps, _, gyro, accel in ImuBatches(SAMPLE, names):
+            calibrator.add(names[topic], stamps, gyro, accel)
+        calibrator.process(final=True)
+    assert _windows(calibrator) == _windows(inline)
+    got, expected = calibrator.estimates(), inline.estimates()
+    assert set(got) == set(expected)
+    for name, estimate in expected.items():
+        assert np.array_equal(got[name].T_base_imu.translation, estimate.T_base_imu.translation)
+        assert np.array_equal(got[name].T_base_imu.rotation.as_quat(), estimate.T_base_imu.rotation.as_quat())
