@@ -62,7 +62,9 @@ class ForkedWorker:
         return RuntimeError(f"the math worker process ended unexpectedly (exit code {self._process.exitcode})")
 
     def close(self) -> None:
-        """End the worker (what it has not finished is dropped)."""
+        """End the worker (what it has not finished is dropped); again does nothing."""
+        if self._conn.closed:
+            return
         try:
             self._conn.send(None)
         except OSError:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import DATA
 
-from imucal_cli.api import stream_log
+from imucal_cli.api import estimate, stream_log
 from imucal_cli.config import load_config
 from imucal_cli.core.signals import TooLittleData
 from imucal_cli.parallel import ForkedWorker
@@ -53,14 +53,27 @@ def _windows(calibrator):
     }
 
 
+def _infos(windows):
+    return [(w.info.selected, w.info.rotation_std_deg, w.info.translation_std_m.tobytes()) for w in windows]
+
+
 def test_blocks_reduced_by_the_worker_are_the_blocks_reduced_here():
     config = load_config(CONFIG)
     inline = stream_log(SAMPLE, config, background=False).calibrator
     assert inline.executor is None
-    forked = stream_log(SAMPLE, config).calibrator  # the reader and the math worker forked
-    assert forked.executor is None  # let go once the log is read
+    streamed = stream_log(SAMPLE, config)  # the reader and the math worker forked
+    forked, worker = streamed.calibrator, streamed.calibrator.executor
+    assert isinstance(worker, ForkedWorker)
     assert sum(len(w) for w in inline.windows.values()) > 20
     assert _windows(forked) == _windows(inline)  # bit for bit, in window order
+    # half the sensors are solved by the worker: the same estimates, and the same windows kept
+    result = estimate(streamed)
+    assert forked.executor is None and not worker._process.is_alive()  # ended by estimate()
+    expected = inline.estimates()
+    for name, sensor in expected.items():
+        assert np.array_equal(result.estimates[name].T_base_imu.translation, sensor.T_base_imu.translation)
+        assert np.array_equal(result.estimates[name].covariance, sensor.covariance)
+        assert _infos(forked.windows[name]) == _infos(inline.windows[name])
 
 
 def test_a_concurrent_futures_executor_will_do_and_the_estimates_are_identical():
@@ -76,9 +89,10 @@ def test_a_concurrent_futures_executor_will_do_and_the_estimates_are_identical()
         for topic, stamps, _, gyro, accel in ImuBatches(SAMPLE, names):
             calibrator.add(names[topic], stamps, gyro, accel)
         calibrator.process(final=True)
+        got = calibrator.estimates()
     assert _windows(calibrator) == _windows(inline)
-    got, expected = calibrator.estimates(), inline.estimates()
+    expected = inline.estimates()
     assert set(got) == set(expected)
-    for name, estimate in expected.items():
-        assert np.array_equal(got[name].T_base_imu.translation, estimate.T_base_imu.translation)
-        assert np.array_equal(got[name].T_base_imu.rotation.as_quat(), estimate.T_base_imu.rotation.as_quat())
+    for name, sensor in expected.items():
+        assert np.array_equal(got[name].T_base_imu.translation, sensor.T_base_imu.translation)
+        assert np.array_equal(got[name].T_base_imu.rotation.as_quat(), sensor.T_base_imu.rotation.as_quat())
