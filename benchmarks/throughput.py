@@ -118,15 +118,32 @@ def decode(log: Path, topics: list[str], fast: bool) -> tuple[float, int]:
 
 
 CHILD = """
-import resource, sys
+import os, resource, sys, threading, time
+peaks = {}  # per child process: the highest VmHWM (its own peak RSS, kB) seen
+def watch():
+    me = os.getpid()
+    while True:
+        try:
+            kids = [int(k) for k in open(f"/proc/{me}/task/{me}/children").read().split()]
+        except OSError:
+            kids = []
+        for kid in kids:
+            try:
+                for line in open(f"/proc/{kid}/status"):
+                    if line.startswith("VmHWM:"):
+                        peaks[kid] = max(peaks.get(kid, 0), int(line.split()[1]))
+            except OSError:
+                pass
+        time.sleep(0.01)
+threading.Thread(target=watch, daemon=True).start()
 from imucal_cli.cli import app
 try:
     app(sys.argv[1:])
 except SystemExit as exc:
     if exc.code:
         raise
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-print(peak, file=open(sys.argv[-1] + ".rss", "w"))
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + sum(peaks.values())
+print(peak, len(peaks), file=open(sys.argv[-1] + ".rss", "w"))
 """
 
 
@@ -153,8 +170,10 @@ def errors(config: Path) -> tuple[float, float]:
 def calibrate(log: Path, config: Path) -> tuple[float, float]:
     """Wall seconds and peak RSS (MB) of ``imucal calibrate`` in a fresh process.
 
-    The process reports its own peak plus its reading child's (the sum of the two peaks: an
-    upper bound of what they held together, pages shared after the fork counted twice). It is
+    The process reports its own peak plus the peaks of its children (the log reader and the
+    math worker; each child's ``VmHWM`` is read every 10 ms while it runs): the sum of the
+    peaks, an upper bound of what they held together, pages shared after the fork counted
+    twice. It is
     started through a shell that does not ``exec`` it, so it is not forked from this (large)
     process: Linux keeps a process's pre-``exec`` peak.
     """
@@ -166,7 +185,7 @@ def calibrate(log: Path, config: Path) -> tuple[float, float]:
     start = time.perf_counter()
     subprocess.run(["/bin/sh", "-c", f"{command}; true"], check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - start
-    rss_kb = float(Path(str(out) + ".rss").read_text())
+    rss_kb = float(Path(str(out) + ".rss").read_text().split()[0])
     return wall, rss_kb / 1024.0
 
 

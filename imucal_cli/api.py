@@ -13,7 +13,7 @@ is returned for the caller to report.
 from __future__ import annotations
 
 import weakref
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +24,7 @@ import numpy as np
 from imucal_cli.config import Config, load_config
 from imucal_cli.core.streaming import StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
-from imucal_cli.io.logs import ImuBatches, ReadStats
+from imucal_cli.io.logs import ImuBatches, ReadStats, start_reading
 from imucal_cli.io.prefetch import read_ahead
 from imucal_cli.io.salvage import Loss
 from imucal_cli.parallel import ForkedWorker
@@ -37,7 +37,7 @@ CLOCK_COMPARE_SLACK_S = 0.05
 CLOCK_COMPARE_SAMPLES = 200
 
 __all__ = [
-    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "load_transforms", "lost_summary", "stream_log",
+    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "load_transforms", "lost_summary", "start_reading", "stream_log",
 ]
 
 
@@ -105,25 +105,38 @@ class StreamedLog:
 
 
 def stream_log(
-    log: str | Path, config: Config, progress: Callable[[int], None] | None = None, background: bool = True
+    log: str | Path,
+    config: Config,
+    progress: Callable[[int], None] | None = None,
+    background: bool = True,
+    reading: tuple[ImuBatches, Iterator[Any]] | None = None,
 ) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
-    log's length (decoding in a child process beside the math when ``background``)."""
+    log's length (decoding in a child process beside the math when ``background``).
+
+    ``reading`` is what :func:`start_reading` returned for this log: used when its topics are
+    the config's, closed otherwise."""
     log = Path(log)
     names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
-    calibrator = make_calibrator(config)
-    reader = ImuBatches(log, names)
     t0_ns: int | None = None
     count = 0
-    clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
     with ExitStack() as stack:
+        if reading is not None:
+            stack.callback(reading[1].close)  # type: ignore[attr-defined]
+            if reading[0].path != log or reading[0].topics != list(names) or not background:
+                reading[1].close()  # type: ignore[attr-defined]
+                reading = None
+        calibrator = make_calibrator(config)
+        reader = reading[0] if reading is not None else ImuBatches(log, names)
+        clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
         if background and ForkedWorker.available():
-            # half the blocks' math, and of the sensors' solves, in a second process forked
-            # before the reader; it is ended by estimate() or StreamedLog.close() (on an error, here)
+            # half the blocks' math, and of the sensors' solves, in a second process (forked
+            # while this one has no thread); ended by estimate() or StreamedLog.close(), or here
+            # on an error
             worker = stack.enter_context(ForkedWorker())
             calibrator.executor = worker
             stack.callback(setattr, calibrator, "executor", None)
-        batches = read_ahead(reader, background=background)
+        batches = reading[1] if reading is not None else read_ahead(reader, background=background)
         close = getattr(batches, "close", None)
         if close is not None:
             stack.callback(close)

@@ -294,16 +294,40 @@ def _load_drive(log: Path, config_path: Path, quiet: bool = False) -> tuple[Any,
     return config, streams
 
 
+def _start_reading(log: Path, config_path: Path) -> Any:
+    """Start the log's reader before the math's imports (about a second of numpy and scipy),
+    from the config's topics read plainly; None when they cannot be (the config is then loaded
+    and checked as usual, and says what is wrong)."""
+    from imucal_cli.io.reports import load_document
+
+    try:
+        data = load_document(config_path)
+        topics = [data["base"]["topic"], *(sensor["imu_topic"] for sensor in data["sensors"].values())]
+    except Exception:  # noqa: BLE001 - anything unusual is left to the full check
+        return None
+    if not all(isinstance(topic, str) for topic in topics) or len(set(topics)) != len(topics) or not log.exists():
+        return None
+    from imucal_cli.io.logs import start_reading
+
+    return start_reading(log, topics)
+
+
 def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
     nothing solved yet); say on stderr what reading found. Returns the config and the
     :class:`~imucal_cli.api.StreamedLog`."""
-    from imucal_cli.api import stream_log
-    from imucal_cli.config import load_config
+    reading = _start_reading(log, config_path)
+    try:
+        from imucal_cli.api import stream_log
+        from imucal_cli.config import load_config
 
-    config = load_config(config_path)
+        config = load_config(config_path)
+    except BaseException:
+        if reading is not None:
+            reading[1].close()
+        raise
     with _progress(f"reading {log}", from_first_count=True) as progress:
-        streamed = stream_log(log, config, progress=progress)
+        streamed = stream_log(log, config, progress=progress, reading=reading)
     _note_losses(log, streamed.losses)
     for topic, stats in streamed.stats.items():
         _note_read(log, topic, stats.to_dict() | {"duplicates": streamed.duplicates[topic]})
@@ -359,10 +383,10 @@ def segments(
     as_json: JsonOption = False,
 ) -> None:
     """Per sensor: each window's Fisher-information min singular value, rotation std, selected or not."""
-    from imucal_cli.pipeline import segments_document
-
     _check_output(out)
     cfg, streamed = _stream_log(log, config)
+    from imucal_cli.pipeline import segments_document
+
     calibrator, t0_ns = streamed.calibrator, streamed.t0_ns
     document = segments_document(t0_ns, cfg, calibrator)
 
@@ -402,9 +426,6 @@ def calibrate(
     ] = None,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
-    from imucal_cli.api import estimate
-    from imucal_cli.pipeline import calibration_document
-
     _check_output(out)
     if report is not None:
         if not report.parent.is_dir():
@@ -415,6 +436,9 @@ def calibrate(
 
         pyplot()  # fail before the work when matplotlib is missing
     cfg, streamed = _stream_log(log, config)
+    from imucal_cli.api import estimate
+    from imucal_cli.pipeline import calibration_document
+
     with _progress("calibrating"):
         result = estimate(streamed)
     document = calibration_document(result, str(log))

@@ -96,3 +96,52 @@ def test_a_concurrent_futures_executor_will_do_and_the_estimates_are_identical()
     for name, sensor in expected.items():
         assert np.array_equal(got[name].T_base_imu.translation, sensor.T_base_imu.translation)
         assert np.array_equal(got[name].T_base_imu.rotation.as_quat(), sensor.T_base_imu.rotation.as_quat())
+
+
+def test_a_reader_started_early_is_used_when_its_topics_are_the_configs_and_closed_otherwise():
+    """The CLI starts the reader before the math's imports (``start_reading``): ``stream_log``
+    takes it over when it reads the config's topics, and ends it and reads anew when not."""
+    import multiprocessing
+
+    from imucal_cli.io.logs import start_reading
+
+    config = load_config(CONFIG)
+    inline = stream_log(SAMPLE, config, background=False).calibrator
+    topics = [config.base.topic, *(s.imu_topic for s in config.sensors)]
+    early = start_reading(SAMPLE, topics)
+    streamed = stream_log(SAMPLE, config, reading=early)
+    assert streamed.calibrator.windows and _windows(streamed.calibrator) == _windows(inline)
+    assert streamed.stats.keys() == set(topics)
+    streamed.close()
+    wrong = start_reading(SAMPLE, topics[:2])  # not the config's topics: ended, read anew
+    streamed = stream_log(SAMPLE, config, reading=wrong)
+    streamed.close()
+    assert _windows(streamed.calibrator) == _windows(inline)
+    assert not wrong[1]._process.is_alive()
+    assert not multiprocessing.active_children()
+
+
+def test_the_cli_ends_the_early_reader_when_the_config_is_bad(tmp_path, monkeypatch):
+    """Topics read plainly, then the full check fails: one clear message, exit 2, no process
+    left behind."""
+    import multiprocessing
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+    from imucal_cli.io import logs
+
+    started = []
+    start_reading = logs.start_reading
+    monkeypatch.setattr(logs, "start_reading", lambda *args: started.append(args) or start_reading(*args))
+
+    document = yaml.safe_load(CONFIG.read_text())
+    document["rest"] = {"no_such_key": 1}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(document))
+    result = CliRunner().invoke(app, ["calibrate", str(SAMPLE), "-c", str(bad)])
+    assert result.exit_code == 2
+    assert "no_such_key" in result.output and "Traceback" not in result.output
+    assert len(started) == 1  # the reader was started before the check
+    assert not multiprocessing.active_children()

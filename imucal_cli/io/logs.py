@@ -24,14 +24,16 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from imucal_cli.errors import LogError
 from imucal_cli.io.fastimu import RawBatch, Ros1Bag, decode_imu, mcap_batches, pack_blobs, sqlite_batches
 from imucal_cli.io.salvage import Loss, ScanResult, scan_mcap, scan_ros1, scan_sqlite_rows
-from imucal_cli.types import ImuStream
+
+if TYPE_CHECKING:
+    from imucal_cli.types import ImuStream
 
 IMU_MSGTYPE = "sensor_msgs/msg/Imu"
 
@@ -627,6 +629,10 @@ class ImuRead:
 def _finish_topic(
     stamps: list[int], log_times: list[int], gyro: list[Any], accel: list[Any], stats: ReadStats
 ) -> ImuRead:
+    # imported here: reading needs no scipy (imucal_cli.types imports scipy.spatial), so the
+    # CLI can start the reader before the math's imports
+    from imucal_cli.types import ImuStream
+
     t_ns = np.asarray(stamps, dtype=np.int64)
     log_ns = np.asarray(log_times, dtype=np.int64)
     gyro_arr = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
@@ -921,6 +927,16 @@ class ImuBatches:
             np.array([sample.accel], dtype=np.float64),
             [sample.frame_id],
         )
+
+
+def start_reading(log: str | Path, topics: list[str]) -> tuple[ImuBatches, Iterator[Any]]:
+    """Start reading ``topics`` of ``log`` ahead in a child process, for
+    :func:`imucal_cli.api.stream_log`'s ``reading``. Importing this module needs no scipy, so
+    the CLI starts the reader before the math's imports (about a second)."""
+    from imucal_cli.io.prefetch import read_ahead
+
+    reader = ImuBatches(Path(log), topics)
+    return reader, read_ahead(reader)
 
 
 def read_imu(

@@ -127,7 +127,28 @@ def read_ahead(reader: StatsReader, background: bool = True) -> Iterator[Any]:
     process = context.Process(target=_child, args=(reader, sending), name="imucal-reader", daemon=True)
     process.start()
     sending.close()
-    return _from_child(reader, process, receiving)
+    return _Ahead(_from_child(reader, process, receiving), process, receiving)
+
+
+class _Ahead:
+    """The parent's side of :func:`read_ahead`: an iterator whose ``close()`` also ends a child
+    whose items were never asked for."""
+
+    def __init__(self, items: Iterator[Any], process: Any, receiving: Any) -> None:
+        self._items, self._process, self._receiving = items, process, receiving
+
+    def __iter__(self) -> Iterator[Any]:
+        return self
+
+    def __next__(self) -> Any:
+        return next(self._items)
+
+    def close(self) -> None:
+        self._items.close()  # a started generator ends the child itself (its finally)
+        if self._process.is_alive():
+            self._process.terminate()
+        self._process.join()
+        self._receiving.close()
 
 
 def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[Any]:
