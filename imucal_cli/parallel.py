@@ -13,9 +13,35 @@ callers work inline.
 from __future__ import annotations
 
 import multiprocessing
+import os
+import weakref
 from collections import deque
 from collections.abc import Callable
 from typing import Any, Self
+
+#: The parent's ends of the pipes to this process's children (workers, readers). A forked
+#: child closes them all: holding a copy, it would keep a pipe open after the parent died and
+#: wait on it for ever (and keep its siblings waiting too).
+_PARENT_ENDS: weakref.WeakSet[Any] = weakref.WeakSet()
+
+
+def parent_end(conn: Any) -> Any:
+    """Register ``conn`` as the parent's end of a pipe to a child (see :data:`_PARENT_ENDS`)."""
+    _PARENT_ENDS.add(conn)
+    return conn
+
+
+def _close_parent_ends() -> None:  # pragma: no cover - runs in forked children
+    for conn in list(_PARENT_ENDS):
+        try:
+            conn.close()
+        except OSError:
+            pass
+    _PARENT_ENDS.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_close_parent_ends)
 
 
 class ForkedWorker:
@@ -33,7 +59,8 @@ class ForkedWorker:
 
     def __init__(self) -> None:
         context = multiprocessing.get_context("fork")
-        self._conn, theirs = context.Pipe(duplex=True)
+        mine, theirs = context.Pipe(duplex=True)
+        self._conn = parent_end(mine)
         self._process = context.Process(target=_serve, args=(theirs,), name="imucal-math", daemon=True)
         self._process.start()
         theirs.close()
@@ -41,7 +68,15 @@ class ForkedWorker:
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> _Pending:
         """Send ``fn(*args)`` to the worker (``fn`` and ``args`` must pickle); the returned
-        object's ``done()`` says whether it has finished, ``result()`` waits for it."""
+        object's ``done()`` says whether it has finished, ``result()`` waits for it.
+
+        Jobs run one at a time: this first waits for the results of those sent before (kept
+        for their ``result()``). Two processes that both send a message larger than the pipe
+        holds, each before reading the other's, would wait for each other for ever; so nothing
+        is sent while a result may still be on its way.
+        """
+        while self._waiting:
+            self._receive()
         pending = _Pending(self)
         try:
             self._conn.send((fn, args))
@@ -128,8 +163,12 @@ def _serve(conn: Any) -> None:  # pragma: no cover - runs in the child
                 reply = (False, exc)
             try:
                 conn.send(reply)
+            except OSError:
+                return  # the parent is gone
             except Exception as exc:  # noqa: BLE001 - a result or exception that does not pickle
                 failed = exc if reply[0] else reply[1]
                 conn.send((False, RuntimeError(f"{type(failed).__name__}: {failed}")))
+    except OSError:
+        return  # the parent is gone
     finally:
         conn.close()

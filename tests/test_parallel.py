@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -36,6 +37,23 @@ def test_results_come_back_in_order_and_errors_are_raised_again():
             failing.result()
         assert after.result() != os.getpid()  # it ran in the other process
         assert after.done()
+
+
+def test_jobs_and_results_larger_than_the_pipe_do_not_block_each_other():
+    """Two jobs sent back to back, jobs and results far larger than a pipe holds: the second
+    send waits for the first result instead of both processes waiting on each other."""
+    import faulthandler
+
+    faulthandler.dump_traceback_later(120, exit=True)  # a deadlock ends the run, not hangs it
+    try:
+        big = np.ones(4_000_000)  # 32 MB each way
+        with ForkedWorker() as worker:
+            first = worker.submit(np.multiply, big, 1.0)
+            second = worker.submit(np.multiply, big, 2.0)
+            assert first.done()  # collected before the second was sent
+            assert second.result().sum() == 8_000_000.0 and first.result().sum() == 4_000_000.0
+    finally:
+        faulthandler.cancel_dump_traceback_later()
 
 
 def test_a_worker_that_dies_is_a_clear_error():
@@ -145,3 +163,42 @@ def test_the_cli_ends_the_early_reader_when_the_config_is_bad(tmp_path, monkeypa
     assert "no_such_key" in result.output and "Traceback" not in result.output
     assert len(started) == 1  # the reader was started before the check
     assert not multiprocessing.active_children()
+
+
+def test_children_end_when_the_parent_dies_mid_transfer(tmp_path):
+    """A parent killed while its math worker and its log reader are blocked sending to it: they
+    hold no copy of the parent's pipe ends (nor of each other's), so they see the pipe break and
+    end instead of waiting for ever."""
+    import subprocess
+    import sys
+    import time
+
+    script = f"""
+import os, sys, time
+import numpy as np
+from imucal_cli.io.logs import start_reading
+from imucal_cli.parallel import ForkedWorker
+reader, batches = start_reading({str(SAMPLE)!r}, ["/gnss/imu", "/lidar/front_left_top/imu"])
+worker = ForkedWorker()
+worker.submit(np.ones, 8_000_000)  # a 64 MB result the parent never reads
+time.sleep(1.0)  # both children now blocked sending
+open({str(tmp_path / "pids")!r}, "w").write(f"{{worker._process.pid}} {{batches._process.pid}}")
+os._exit(0)
+"""
+    # no pipes to the script: its orphans would hold them open
+    subprocess.run([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=120, check=True)
+    pids = [int(p) for p in (tmp_path / "pids").read_text().split()]
+    assert len(pids) == 2
+    def running(pid: int) -> bool:  # not gone, and not a zombie waiting for its dead parent's reaper
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+        except OSError:
+            return False
+
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and any(running(p) for p in pids):
+        time.sleep(0.1)
+    alive = [p for p in pids if running(p)]
+    for p in alive:
+        os.kill(p, signal.SIGKILL)
+    assert not alive

@@ -379,7 +379,8 @@ class StreamingCalibrator:
 
     Windows are reduced ``block_windows`` at a time (faster in batch); a live system that wants
     an estimate after every window passes ``block_windows=1``. Memory holds the raw samples of
-    about one block plus two small matrices per window and sensor.
+    about one block plus two small matrices per window and sensor. With an :attr:`executor`,
+    every block it is idle for, and every other sensor's solve, is done there (the same result).
 
     >>> cal = StreamingCalibrator(sensors, base_name="base")        # doctest: +SKIP
     >>> for imu, t_ns, gyro, accel in batches:                      # doctest: +SKIP
@@ -604,15 +605,14 @@ class StreamingCalibrator:
         """The estimate from the windows reduced so far (every sensor; every other one on
         :attr:`executor` when there is one)."""
         self._store(wait=True)
-        pending = {}
+        pending, out = {}, {}
+        # sent and done here in turn, so that each sensor sent runs beside one done here
         for k, (name, setup) in enumerate(self.sensors.items()):
             job = (self.windows[name], setup, self.tau0.get(name, 0.0), self.sigma.get(name), self.lowpass, np.geterr())
             if self.executor is not None and k % 2 == 0:
                 pending[name] = self.executor.submit(_infos_and_estimate, *job)
-        out = {}
-        for name, setup in self.sensors.items():
-            if name not in pending:
-                out[name] = _infos_and_estimate(self.windows[name], setup, self.tau0.get(name, 0.0), self.sigma.get(name), self.lowpass)[1]
+            else:
+                out[name] = _infos_and_estimate(*job)[1]
         for name, result in pending.items():
             infos, out[name] = result.result()
             for window, info in zip(self.windows[name], infos, strict=True):

@@ -104,9 +104,13 @@ def _child(reader: StatsReader, conn: Any) -> None:  # pragma: no cover - runs i
         for item in reader:
             conn.send(item)
         conn.send(_Done((reader.stats, getattr(reader, "losses", None))))
+    except (BrokenPipeError, ConnectionResetError):
+        pass  # the parent is gone, or stopped reading
     except BaseException as exc:  # noqa: BLE001 - handed to the parent
         try:
             conn.send(_Raised(exc))
+        except OSError:
+            pass  # the parent is gone
         except Exception:  # noqa: BLE001 - an exception that does not pickle
             conn.send(_Raised(RuntimeError(f"{type(exc).__name__}: {exc}")))
     finally:
@@ -123,7 +127,10 @@ def read_ahead(reader: StatsReader, background: bool = True) -> Iterator[Any]:
     if not background or "fork" not in multiprocessing.get_all_start_methods():
         return iter(reader)
     context = multiprocessing.get_context("fork")
+    from imucal_cli.parallel import parent_end
+
     receiving, sending = context.Pipe(duplex=False)
+    parent_end(receiving)
     process = context.Process(target=_child, args=(reader, sending), name="imucal-reader", daemon=True)
     process.start()
     sending.close()
