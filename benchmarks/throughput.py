@@ -9,12 +9,17 @@ and ROS 1 (lz4 chunks), and measures per format and length, side by side in one 
   the file's bytes, printed below the table (the fast path reads the pages itself);
 - decode: ``read_imu`` with the fast path, all IMU topics to arrays (messages/s, x floor);
 - naive: the generic path (container reader + rosbags' per-message deserialiser);
-- calibrate: ``imucal calibrate`` end to end in a fresh process, wall time and peak RSS, and the
-  largest error of ``T_base_lidar`` over the four lidars against the simulator's truth.
+- calibrate: ``imucal calibrate`` end to end in a fresh process, wall time, peak RSS and the
+  largest error of ``T_base_lidar`` over the four lidars against the simulator's truth. Peak
+  RSS is the highest sum of the resident sizes of the process and its children (the log reader
+  and the math worker) at one instant, sampled every 10 ms; "sum of peaks" adds each process's
+  own peak (``VmHWM``) instead, an upper bound that counts pages shared after the fork twice and
+  adds peaks that never meet (the reader's, while reading; the solve's, after it).
 
 Floor and decode are run ``--repeat`` times (default 5), alternating, and calibrate
 ``--calibrate-repeat`` times (default 3); the fastest run of each is reported (the machine's
-run-to-run spread is tens of per cent; the minimum is the least disturbed). The naive path,
+run-to-run spread is tens of per cent; the minimum is the least disturbed), and the largest
+peak RSS of the calibrate runs. The naive path,
 minutes long, runs once.
 
 Run: ``python benchmarks/throughput.py [--lengths 15m 1h 4h] [--formats mcap rosbag2-sqlite3
@@ -120,6 +125,12 @@ def decode(log: Path, topics: list[str], fast: bool) -> tuple[float, int]:
 CHILD = """
 import os, resource, sys, threading, time
 peaks = {}  # per child process: the highest VmHWM (its own peak RSS, kB) seen
+together = [0]  # the highest sum of VmRSS of this process and its children at one instant (kB)
+def status(pid, key):
+    for line in open(f"/proc/{pid}/status"):
+        if line.startswith(key):
+            return int(line.split()[1])
+    return 0
 def watch():
     me = os.getpid()
     while True:
@@ -127,13 +138,14 @@ def watch():
             kids = [int(k) for k in open(f"/proc/{me}/task/{me}/children").read().split()]
         except OSError:
             kids = []
+        now = status(me, "VmRSS:")
         for kid in kids:
             try:
-                for line in open(f"/proc/{kid}/status"):
-                    if line.startswith("VmHWM:"):
-                        peaks[kid] = max(peaks.get(kid, 0), int(line.split()[1]))
+                peaks[kid] = max(peaks.get(kid, 0), status(kid, "VmHWM:"))
+                now += status(kid, "VmRSS:")
             except OSError:
                 pass
+        together[0] = max(together[0], now)
         time.sleep(0.01)
 threading.Thread(target=watch, daemon=True).start()
 from imucal_cli.cli import app
@@ -142,8 +154,8 @@ try:
 except SystemExit as exc:
     if exc.code:
         raise
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + sum(peaks.values())
-print(peak, len(peaks), file=open(sys.argv[-1] + ".rss", "w"))
+summed = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + sum(peaks.values())
+print(max(together[0], resource.getrusage(resource.RUSAGE_SELF).ru_maxrss), summed, file=open(sys.argv[-1] + ".rss", "w"))
 """
 
 
@@ -167,15 +179,12 @@ def errors(config: Path) -> tuple[float, float]:
     return worst_r, worst_t
 
 
-def calibrate(log: Path, config: Path) -> tuple[float, float]:
-    """Wall seconds and peak RSS (MB) of ``imucal calibrate`` in a fresh process.
+def calibrate(log: Path, config: Path) -> tuple[float, float, float]:
+    """Wall seconds, peak RSS together and the sum of the processes' peaks (MB) of ``imucal
+    calibrate`` in a fresh process (see the module's docstring).
 
-    The process reports its own peak plus the peaks of its children (the log reader and the
-    math worker; each child's ``VmHWM`` is read every 10 ms while it runs): the sum of the
-    peaks, an upper bound of what they held together, pages shared after the fork counted
-    twice. It is
-    started through a shell that does not ``exec`` it, so it is not forked from this (large)
-    process: Linux keeps a process's pre-``exec`` peak.
+    It is started through a shell that does not ``exec`` it, so it is not forked from this
+    (large) process: Linux keeps a process's pre-``exec`` peak.
     """
     out = CACHE / "estimate.json"
     command = " ".join(
@@ -185,8 +194,8 @@ def calibrate(log: Path, config: Path) -> tuple[float, float]:
     start = time.perf_counter()
     subprocess.run(["/bin/sh", "-c", f"{command}; true"], check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - start
-    rss_kb = float(Path(str(out) + ".rss").read_text().split()[0])
-    return wall, rss_kb / 1024.0
+    together_kb, summed_kb = (float(v) for v in Path(str(out) + ".rss").read_text().split())
+    return wall, together_kb / 1024.0, summed_kb / 1024.0
 
 
 def main() -> None:
@@ -219,21 +228,23 @@ def main() -> None:
             t_naive = None
             if LENGTHS[length] / 60.0 <= args.naive_max_minutes:
                 t_naive, _ = decode(log, topics, fast=False)
-            wall, rss = min(calibrate(log, config_path) for _ in range(args.calibrate_repeat))
+            runs = [calibrate(log, config_path) for _ in range(args.calibrate_repeat)]
+            wall = min(run[0] for run in runs)
+            rss, summed = max(run[1] for run in runs), max(run[2] for run in runs)  # the worst
             worst_r, worst_t = errors(config_path)
             size = sum(p.stat().st_size for p in ([log] if log.is_file() else log.iterdir()))
             if fmt == "rosbag2-sqlite3":
                 fetches.append((length, min(file_read(log) for _ in range(args.repeat)), t_fast))
-            rows.append((length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss, worst_r, worst_t))
+            rows.append((length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss, summed, worst_r, worst_t))
             print(f"measured {length} {fmt}", file=sys.stderr)
 
-    print("| length | format | messages | size MB | floor s | decode s | decode / floor | decode msg/s | naive s | naive / decode | calibrate s | calibrate / floor | peak RSS MB | max dR deg | max abs dt m |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss, worst_r, worst_t in rows:
+    print("| length | format | messages | size MB | floor s | decode s | decode / floor | decode msg/s | naive s | naive / decode | calibrate s | calibrate / floor | peak RSS MB | sum of peaks MB | max dR deg | max abs dt m |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss, summed, worst_r, worst_t in rows:
         naive = f"{t_naive:.1f} | {t_naive / t_fast:.0f}x" if t_naive is not None else "- | -"
         print(
             f"| {length} | {fmt} | {count:,} | {size / 1e6:.0f} | {t_floor:.2f} | {t_fast:.2f} | {t_fast / t_floor:.2f} | "
-            f"{count / t_fast / 1e6:.2f} M | {naive} | {wall:.1f} | {wall / t_floor:.1f} | {rss:.0f} | {worst_r:.4f} | {worst_t:.4f} |"
+            f"{count / t_fast / 1e6:.2f} M | {naive} | {wall:.1f} | {wall / t_floor:.1f} | {rss:.0f} | {summed:.0f} | {worst_r:.4f} | {worst_t:.4f} |"
         )
 
     for length, t_read, t_fast in fetches:

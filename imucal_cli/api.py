@@ -12,7 +12,6 @@ is returned for the caller to report.
 
 from __future__ import annotations
 
-import weakref
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -97,12 +96,6 @@ class StreamedLog:
     losses: list[Loss]  # parts of a damaged log that could not be read
     format_name: str
 
-    def close(self) -> None:
-        """End the math worker process, if any (:func:`estimate` does it when done)."""
-        worker, self.calibrator.executor = self.calibrator.executor, None
-        if worker is not None:
-            worker.close()
-
 
 def stream_log(
     log: str | Path,
@@ -130,11 +123,8 @@ def stream_log(
         reader = reading[0] if reading is not None else ImuBatches(log, names)
         clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
         if background and ForkedWorker.available():
-            # half the blocks' math, and of the sensors' solves, in a second process (forked
-            # while this one has no thread); ended by estimate() or StreamedLog.close(), or here
-            # on an error
-            worker = stack.enter_context(ForkedWorker())
-            calibrator.executor = worker
+            # half the blocks' math in a second process (forked while this one has no thread)
+            calibrator.executor = stack.enter_context(ForkedWorker())
             stack.callback(setattr, calibrator, "executor", None)
         batches = reading[1] if reading is not None else read_ahead(reader, background=background)
         close = getattr(batches, "close", None)
@@ -163,9 +153,6 @@ def stream_log(
             calibrator.process(final=True)
         except ImucalError as exc:
             raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
-        stack.pop_all()  # all went well: the worker lives on for the estimate
-    if calibrator.executor is not None:
-        weakref.finalize(calibrator, calibrator.executor.close)
     duplicates = {topic: calibrator.duplicates(name) for topic, name in names.items()}
     return StreamedLog(log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name)
 
@@ -197,8 +184,6 @@ def estimate(streamed: StreamedLog) -> CalibrationResult:
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         # only data no IMU produces get here (the reader drops what it can recognise)
         raise InputError(f"{streamed.log}: the IMU data are numerically degenerate ({exc}); the log may hold damaged samples") from None
-    finally:
-        streamed.close()
     return CalibrationResult(estimates, streamed.config, dict(streamed.calibrator.rates_hz))
 
 

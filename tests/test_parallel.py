@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import DATA
 
+from imucal_cli import api
 from imucal_cli.api import estimate, stream_log
 from imucal_cli.config import load_config
 from imucal_cli.core.signals import TooLittleData
@@ -75,18 +76,25 @@ def _infos(windows):
     return [(w.info.selected, w.info.rotation_std_deg, w.info.translation_std_m.tobytes()) for w in windows]
 
 
-def test_blocks_reduced_by_the_worker_are_the_blocks_reduced_here():
+def test_blocks_reduced_by_the_worker_are_the_blocks_reduced_here(monkeypatch):
     config = load_config(CONFIG)
     inline = stream_log(SAMPLE, config, background=False).calibrator
     assert inline.executor is None
+    workers = []
+
+    class Recorded(ForkedWorker):
+        def __init__(self) -> None:
+            super().__init__()
+            workers.append(self)
+
+    monkeypatch.setattr(api, "ForkedWorker", Recorded)
     streamed = stream_log(SAMPLE, config)  # the reader and the math worker forked
-    forked, worker = streamed.calibrator, streamed.calibrator.executor
-    assert isinstance(worker, ForkedWorker)
+    forked = streamed.calibrator
+    assert len(workers) == 1 and forked.executor is None  # let go once the log is read
+    assert not workers[0]._process.is_alive()
     assert sum(len(w) for w in inline.windows.values()) > 20
     assert _windows(forked) == _windows(inline)  # bit for bit, in window order
-    # half the sensors are solved by the worker: the same estimates, and the same windows kept
     result = estimate(streamed)
-    assert forked.executor is None and not worker._process.is_alive()  # ended by estimate()
     expected = inline.estimates()
     for name, sensor in expected.items():
         assert np.array_equal(result.estimates[name].T_base_imu.translation, sensor.T_base_imu.translation)
@@ -130,10 +138,8 @@ def test_a_reader_started_early_is_used_when_its_topics_are_the_configs_and_clos
     streamed = stream_log(SAMPLE, config, reading=early)
     assert streamed.calibrator.windows and _windows(streamed.calibrator) == _windows(inline)
     assert streamed.stats.keys() == set(topics)
-    streamed.close()
     wrong = start_reading(SAMPLE, topics[:2])  # not the config's topics: ended, read anew
     streamed = stream_log(SAMPLE, config, reading=wrong)
-    streamed.close()
     assert _windows(streamed.calibrator) == _windows(inline)
     assert not wrong[1]._process.is_alive()
     assert not multiprocessing.active_children()

@@ -360,18 +360,14 @@ def _fill_infos(windows: list[WindowMoments], setup: SensorSetup, sigma: tuple[f
             window.info = info
 
 
-def _infos_and_estimate(
-    windows: list[WindowMoments], setup: SensorSetup, tau0: float, sigma: tuple[float, float] | None,
-    lowpass: Lowpass, errors: dict[str, str] | None = None,
-) -> tuple[list[WindowInfo | None], SensorEstimate]:
-    """One sensor's window observability and estimate, under numpy's error handling
-    ``errors`` (the caller's, when this runs in another process)."""
-    with np.errstate(**(errors or np.geterr())):
-        _fill_infos(windows, setup, sigma or (1.0, 1.0))
-        infos = [w.info for w in windows]
-        if sigma is None or not any(w.info is not None and w.info.selected for w in windows):
-            return infos, unobservable(setup.prior_T_base_imu, [i for i in infos if i is not None], tau0)
-        return infos, solve(windows, setup.prior_T_base_imu, setup.options, tau0, sigma, lowpass)
+def _estimate(
+    windows: list[WindowMoments], setup: SensorSetup, tau0: float, sigma: tuple[float, float] | None, lowpass: Lowpass
+) -> SensorEstimate:
+    """One sensor's estimate, the windows' observability filled in first."""
+    _fill_infos(windows, setup, sigma or (1.0, 1.0))
+    if sigma is None or not any(w.info is not None and w.info.selected for w in windows):
+        return unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info is not None], tau0)
+    return solve(windows, setup.prior_T_base_imu, setup.options, tau0, sigma, lowpass)
 
 
 class StreamingCalibrator:
@@ -380,7 +376,7 @@ class StreamingCalibrator:
     Windows are reduced ``block_windows`` at a time (faster in batch); a live system that wants
     an estimate after every window passes ``block_windows=1``. Memory holds the raw samples of
     about one block plus two small matrices per window and sensor. With an :attr:`executor`,
-    every block it is idle for, and every other sensor's solve, is done there (the same result).
+    every block it is idle for is reduced there (the same result).
 
     >>> cal = StreamingCalibrator(sensors, base_name="base")        # doctest: +SKIP
     >>> for imu, t_ns, gyro, accel in batches:                      # doctest: +SKIP
@@ -413,7 +409,8 @@ class StreamingCalibrator:
         #: Where blocks may be reduced besides here: anything with ``submit(fn, *args)``
         #: returning an object with ``done()`` and ``result()`` (a ``concurrent.futures``
         #: executor, :class:`imucal_cli.parallel.ForkedWorker`). A block goes to it whenever it
-        #: is idle; results are stored in window order.
+        #: is idle; results are stored in window order. (The solves stay here: sending every
+        #: window's moments over would cost memory that grows with the log.)
         self.executor: Any = None
         self._pending: deque[Any] = deque()
         self.block_windows = max(1, int(block_windows))
@@ -602,22 +599,12 @@ class StreamingCalibrator:
         return self.estimates()
 
     def estimates(self) -> dict[str, SensorEstimate]:
-        """The estimate from the windows reduced so far (every sensor; every other one on
-        :attr:`executor` when there is one)."""
+        """The estimate from the windows reduced so far (every sensor)."""
         self._store(wait=True)
-        pending, out = {}, {}
-        # sent and done here in turn, so that each sensor sent runs beside one done here
-        for k, (name, setup) in enumerate(self.sensors.items()):
-            job = (self.windows[name], setup, self.tau0.get(name, 0.0), self.sigma.get(name), self.lowpass, np.geterr())
-            if self.executor is not None and k % 2 == 0:
-                pending[name] = self.executor.submit(_infos_and_estimate, *job)
-            else:
-                out[name] = _infos_and_estimate(*job)[1]
-        for name, result in pending.items():
-            infos, out[name] = result.result()
-            for window, info in zip(self.windows[name], infos, strict=True):
-                window.info = info
-        return {name: out[name] for name in self.sensors}
+        return {
+            name: _estimate(self.windows[name], setup, self.tau0.get(name, 0.0), self.sigma.get(name), self.lowpass)
+            for name, setup in self.sensors.items()
+        }
 
     def window_infos(self, name: str) -> list[WindowInfo]:
         return [w.info for w in self._ensure_infos(name) if w.info is not None]
