@@ -351,13 +351,28 @@ def test_ctrl_c_leaves_no_partial_file_and_keeps_the_old_one(tmp_path):
         [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
     )
-    time.sleep(2.0)  # reading and reducing: several seconds of work remain
+    # interrupted once it reads (its reader forked): seconds of work remain, however fast the
+    # machine (a fixed delay raced the end of the work)
+    children = f"/proc/{process.pid}/task/{process.pid}/children"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and process.poll() is None and not open(children).read().split():  # noqa: SIM115
+        time.sleep(0.01)
+    time.sleep(0.2)
     os.killpg(process.pid, signal.SIGINT)  # what Ctrl-C sends: the whole process group
     _, stderr = process.communicate(timeout=60)
     assert process.returncode == 130, stderr
     assert b"Traceback" not in stderr and b"interrupted" in stderr
     assert out.read_text() == "previous: calibration\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "e.yaml", "long.mcap"]  # no temp files left
+    deadline = time.monotonic() + 10  # and no process of its group left (reader, math worker)
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(process.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    else:
+        raise AssertionError("a child of the interrupted command is still running")
 
 
 def test_damaged_stamp_run_after_a_clock_jump_is_still_found():
