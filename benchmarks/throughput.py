@@ -18,9 +18,8 @@ and ROS 1 (lz4 chunks), and measures per format and length, side by side in one 
 
 Floor and decode are run ``--repeat`` times (default 5), alternating, and calibrate
 ``--calibrate-repeat`` times (default 3); the fastest run of each is reported (the machine's
-run-to-run spread is tens of per cent; the minimum is the least disturbed), and the largest
-peak RSS of the calibrate runs. The naive path,
-minutes long, runs once.
+run-to-run spread is tens of per cent; the minimum is the least disturbed), with the largest
+peak RSS of the calibrate runs. The naive path, minutes long, runs once.
 
 Run: ``python benchmarks/throughput.py [--lengths 15m 1h 4h] [--formats mcap rosbag2-sqlite3
 rosbag1] [--naive-max-minutes 60] [--repeat 5] [--calibrate-repeat 3]``.
@@ -205,7 +204,7 @@ def main() -> None:
     parser.add_argument("--four-hour-formats", nargs="+", default=["mcap"], choices=list(SUFFIX))
     parser.add_argument("--naive-max-minutes", type=float, default=60.0)
     parser.add_argument("--repeat", type=int, default=5, help="runs of floor and decode (the fastest is reported)")
-    parser.add_argument("--calibrate-repeat", type=int, default=3, help="runs of calibrate (the fastest is reported)")
+    parser.add_argument("--calibrate-repeat", type=int, default=3, help="runs of calibrate (the fastest time and the largest peak RSS are reported)")
     args = parser.parse_args()
     from imucal_cli.config import load_config
 

@@ -113,23 +113,24 @@ def stream_log(
     names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
     t0_ns: int | None = None
     count = 0
+    if reading is not None and (reading[0].path != log or reading[0].topics != list(names) or not background):
+        reading[1].close()  # type: ignore[attr-defined]
+        reading = None
+    if reading is None:
+        reader = ImuBatches(log, names)
+        reading = (reader, read_ahead(reader, background=background))
+    reader, batches = reading
     with ExitStack() as stack:
-        if reading is not None:
-            stack.callback(reading[1].close)  # type: ignore[attr-defined]
-            if reading[0].path != log or reading[0].topics != list(names) or not background:
-                reading[1].close()  # type: ignore[attr-defined]
-                reading = None
-        calibrator = make_calibrator(config)
-        reader = reading[0] if reading is not None else ImuBatches(log, names)
-        clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
-        if background and ForkedWorker.available():
-            # half the blocks' math in a second process (forked while this one has no thread)
-            calibrator.executor = stack.enter_context(ForkedWorker())
-            stack.callback(setattr, calibrator, "executor", None)
-        batches = reading[1] if reading is not None else read_ahead(reader, background=background)
         close = getattr(batches, "close", None)
         if close is not None:
             stack.callback(close)
+        calibrator = make_calibrator(config)
+        clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
+        if background and ForkedWorker.available():
+            # half the blocks' math in a second process (forked while this one has no thread:
+            # the reader's receiving thread starts at the first batch)
+            calibrator.executor = stack.enter_context(ForkedWorker())
+            stack.callback(setattr, calibrator, "executor", None)
         for topic, stamps, log_times, gyro, accel in batches:
             clocks.add(topic, stamps, log_times)
             clocks.check(list(names))

@@ -276,7 +276,7 @@ def _load_drive(log: Path, config_path: Path, quiet: bool = False) -> tuple[Any,
     config = load_config(config_path)
     topics = [config.base.topic] + [s.imu_topic for s in config.sensors]
     losses: list[Any] = []
-    with _progress(f"reading {log}", from_first_count=True) as progress:
+    with _progress(f"reading {log}") as progress:
         reads = read_imu(log, topics, progress=progress, losses=losses)
     for topic, read in reads.items():
         if len(read.stream) < 10:

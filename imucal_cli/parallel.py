@@ -3,8 +3,8 @@
 The calibration's per-block work (splines, filters, moments; :mod:`imucal_cli.core.streaming`)
 is plain numpy that holds the GIL too often for a thread to pay, so a block is handed to a
 forked process whenever that process is idle, and the caller reduces the next block meanwhile.
-The worker is forked before any data is read, so it shares the modules already imported and
-holds little memory of its own. Its results come back over a pipe in the order sent; an
+The worker is forked before the calibration holds any data, so it shares the modules already
+imported and holds little memory of its own. Its results come back over a pipe in the order sent; an
 exception raised in it is raised again by ``result()``; a worker that dies is a
 ``RuntimeError``. Where ``fork`` is not available, :func:`ForkedWorker.available` is False and
 callers work inline.

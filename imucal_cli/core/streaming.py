@@ -342,34 +342,6 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     return out
 
 
-def _fill_infos(windows: list[WindowMoments], setup: SensorSetup, sigma: tuple[float, float]) -> None:
-    """The observability (eqs. 18-19) of the windows that lack it, a chunk at a time."""
-    missing = [w for w in windows if w.info is None]
-    opts = setup.options
-    for a in range(0, len(missing), INFO_CHUNK):
-        part = missing[a : a + INFO_CHUNK]
-        infos = window_infos_from_moments(
-            [(w.start_s, w.end_s, w.valid) for w in part],
-            np.array([w.samples for w in part]),
-            assemble_moments(part, "gyro"),
-            assemble_moments(part, "accel"),
-            setup.prior_T_base_imu.translation,
-            sigma[0], sigma[1], opts.max_rotation_std_deg, opts.translation_bound_m,
-        )
-        for window, info in zip(part, infos, strict=True):
-            window.info = info
-
-
-def _estimate(
-    windows: list[WindowMoments], setup: SensorSetup, tau0: float, sigma: tuple[float, float] | None, lowpass: Lowpass
-) -> SensorEstimate:
-    """One sensor's estimate, the windows' observability filled in first."""
-    _fill_infos(windows, setup, sigma or (1.0, 1.0))
-    if sigma is None or not any(w.info is not None and w.info.selected for w in windows):
-        return unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info is not None], tau0)
-    return solve(windows, setup.prior_T_base_imu, setup.options, tau0, sigma, lowpass)
-
-
 class StreamingCalibrator:
     """Feed IMU samples as they are read; ask for the estimate at any time.
 
@@ -585,8 +557,24 @@ class StreamingCalibrator:
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
         """Fill in the observability of windows that lack it (all at once)."""
         self._store(wait=True)
-        _fill_infos(self.windows[name], self.sensors[name], self.sigma.get(name, (1.0, 1.0)))
-        return self.windows[name]
+        windows = self.windows[name]
+        missing = [w for w in windows if w.info is None]
+        setup = self.sensors[name]
+        sigma_gyro, sigma_accel = self.sigma.get(name, (1.0, 1.0))
+        opts = setup.options
+        for a in range(0, len(missing), INFO_CHUNK):
+            part = missing[a : a + INFO_CHUNK]
+            infos = window_infos_from_moments(
+                [(w.start_s, w.end_s, w.valid) for w in part],
+                np.array([w.samples for w in part]),
+                assemble_moments(part, "gyro"),
+                assemble_moments(part, "accel"),
+                setup.prior_T_base_imu.translation,
+                sigma_gyro, sigma_accel, opts.max_rotation_std_deg, opts.translation_bound_m,
+            )
+            for window, info in zip(part, infos, strict=True):
+                window.info = info
+        return windows
 
     # ---------------------------------------------------------------- output
 
@@ -600,11 +588,15 @@ class StreamingCalibrator:
 
     def estimates(self) -> dict[str, SensorEstimate]:
         """The estimate from the windows reduced so far (every sensor)."""
-        self._store(wait=True)
-        return {
-            name: _estimate(self.windows[name], setup, self.tau0.get(name, 0.0), self.sigma.get(name), self.lowpass)
-            for name, setup in self.sensors.items()
-        }
+        out = {}
+        for name, setup in self.sensors.items():
+            windows = self._ensure_infos(name)
+            tau0 = self.tau0.get(name, 0.0)
+            if not any(w.info is not None and w.info.selected for w in windows):
+                out[name] = unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0)
+                continue
+            out[name] = solve(windows, setup.prior_T_base_imu, setup.options, tau0, self.sigma[name], self.lowpass)
+        return out
 
     def window_infos(self, name: str) -> list[WindowInfo]:
         return [w.info for w in self._ensure_infos(name) if w.info is not None]
