@@ -32,6 +32,7 @@ app = typer.Typer(
 )
 
 EXIT_OK, EXIT_CHECK_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_INTERRUPTED = 130
 
 LOG_HELP = "Log: a .mcap file, a rosbag2 directory (sqlite3 or mcap storage) or a ROS 1 .bag."
 PANEL_LOGS = "Logs"
@@ -85,7 +86,7 @@ def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except KeyboardInterrupt:
             typer.echo("imucal: interrupted", err=True)
-            raise typer.Exit(130) from None
+            raise typer.Exit(EXIT_INTERRUPTED) from None
 
     return wrapper
 
@@ -726,7 +727,20 @@ def simulate(
 
 def main() -> None:
     """Console-script entry point (usage errors exit 2, as Typer does)."""
-    app()
+    try:
+        app()
+    except SystemExit as exc:
+        if exc.code == EXIT_INTERRUPTED:
+            # CPython 3.11 takes a Ctrl-C that passed through an exec() of a string (scipy's
+            # imports run some) for an unhandled one even when it was caught, and its
+            # interpreter then ends itself by SIGINT: a caller saw -2, not 130. Everything is
+            # cleaned up by now (children ended, no partial file), so end here.
+            import os
+
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(EXIT_INTERRUPTED)
+        raise
 
 
 if __name__ == "__main__":
