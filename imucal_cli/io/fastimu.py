@@ -16,9 +16,10 @@ from __future__ import annotations
 import os
 import sqlite3
 import struct
+import threading
 import zlib
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO, TypeVar
 
@@ -28,6 +29,8 @@ if TYPE_CHECKING:
     from imucal_cli.io.sqlitepages import MessagePages
 
 T = TypeVar("T")
+
+_SEEK_LOCK = threading.Lock()  # for handles without a file descriptor (no pread)
 
 #: Bytes after the variable-length frame id: orientation (4 f64), its covariance (9),
 #: angular velocity (3), covariance (9), linear acceleration (3), covariance (9).
@@ -42,6 +45,10 @@ _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_
 GROUP_BYTES = 16 << 20
 #: Groups of chunks read and decompressed ahead of the decoding, in a thread.
 READ_AHEAD_GROUPS = 2
+#: Threads that read, decompress, check and decode groups of MCAP and ROS 1 chunks side by
+#: side (zstd, lz4, the CRC, the file reads and numpy's gathers run outside the GIL); 0 reads
+#: them in the consumer's thread.
+DECODE_THREADS = 2
 #: The interpreter's switch interval while reading ahead (s): the reading thread takes the GIL
 #: back after every read, decompression and CRC, and would wait the default 5 ms each time.
 READ_AHEAD_SWITCH_S = 0.0005
@@ -62,6 +69,8 @@ class RawBatch:
     #: The first 16 bytes of every message (``_CDR_HEAD`` or ``_ROS1_HEAD``) when the reader
     #: gathered them with its record headers; only for batches whose messages all hold them.
     head: np.ndarray | None = None
+    #: The batch decoded already, where the reader decodes in its worker threads.
+    decoded: DecodedBatch | None = None
 
     def messages(self) -> Iterator[tuple[str, int, bytes]]:
         """``(topic, log_time_ns, serialized message)`` one at a time (for the generic path)."""
@@ -75,6 +84,43 @@ def _ahead(items: Iterator[T]) -> Iterator[T]:
     from imucal_cli.io.prefetch import queued
 
     return queued(items, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else iter(items)
+
+
+def _decoded_groups(read: Callable[[T], tuple[list[RawBatch], list]], groups: Iterable[T], losses: list | None) -> Iterator[RawBatch]:
+    """The batches of every group, read (decompressed and decoded) by :data:`DECODE_THREADS`
+    threads, in the groups' order; each group's losses are added to ``losses`` at its turn."""
+    from imucal_cli.io.prefetch import ordered_map
+
+    for batches, lost in ordered_map(read, groups, DECODE_THREADS, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S):
+        if losses is not None:
+            losses.extend(lost)
+        yield from batches
+
+
+def _with_decoded(batches: Iterable[RawBatch]) -> list[RawBatch]:
+    return [replace(batch, decoded=decode_imu(batch)) for batch in batches]
+
+
+def _pread(handle: BinaryIO, offset: int, size: int) -> bytes:
+    """``size`` bytes at ``offset`` without moving the handle (threads share it)."""
+    if hasattr(os, "pread"):
+        try:
+            fd = handle.fileno()
+        except (AttributeError, OSError, ValueError):
+            pass
+        else:
+            parts = []
+            while size > 0:
+                part = os.pread(fd, size, offset)
+                if not part:
+                    break
+                parts.append(part)
+                offset += len(part)
+                size -= len(part)
+            return parts[0] if len(parts) == 1 else b"".join(parts)
+    with _SEEK_LOCK:
+        handle.seek(offset)
+        return handle.read(size)
 
 
 def pack_blobs(blobs: Sequence[bytes]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -249,8 +295,7 @@ class McapChunks:
         """The decompressed records of one chunk, written into ``out`` when given (it must hold
         the chunk's uncompressed size), and checked against the chunk's size and CRC."""
         ci = chunk_index
-        self.handle.seek(ci.chunk_start_offset)  # type: ignore[attr-defined]
-        raw = self.handle.read(ci.chunk_length)  # type: ignore[attr-defined]
+        raw = _pread(self.handle, ci.chunk_start_offset, ci.chunk_length)  # type: ignore[attr-defined]
         # opcode(1) length(8) start(8) end(8) uncompressed_size(8) crc(4) compression(str) records(u64 + bytes)
         pos = 1 + 8 + 8 + 8
         uncompressed_size, crc = struct.unpack_from("<QI", raw, pos)
@@ -280,8 +325,7 @@ class McapChunks:
         if not offsets:
             return {}
         start = min(ci.message_index_offsets.values())  # type: ignore[attr-defined]
-        self.handle.seek(start)
-        block = self.handle.read(ci.message_index_length)  # type: ignore[attr-defined]
+        block = _pread(self.handle, start, ci.message_index_length)  # type: ignore[attr-defined]
         out = {}
         for channel, offset in offsets.items():
             pos = offset - start
@@ -302,14 +346,16 @@ class McapChunks:
         over many messages. A chunk that does not decompress or fails its CRC is skipped and
         recorded in ``losses`` with the exact message counts of its index.
         """
-        # reading, decompressing and checking run a group ahead in a thread (zstd and the CRC
-        # release the GIL) while the groups before are decoded here
-        for buffer, pending in _ahead(self._read_groups(wanted, losses, group_bytes or GROUP_BYTES)):
-            yield from self._group(buffer, pending, wanted)
+        def read(group: list[tuple[object, dict[int, np.ndarray]]]) -> tuple[list[RawBatch], list]:
+            lost: list = []
+            buffer, pending = self._read_group(group, wanted, lost if losses is not None else None)
+            return _with_decoded(self._group(buffer, pending, wanted)), lost
 
-    def _read_groups(
-        self, wanted: dict[int, tuple[str, str]], losses: list | None, group_bytes: int
-    ) -> Iterator[tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]]:
+        yield from _decoded_groups(read, self._groups(wanted, group_bytes or GROUP_BYTES), losses)
+
+    def _groups(self, wanted: dict[int, tuple[str, str]], group_bytes: int) -> Iterator[list[tuple[object, dict[int, np.ndarray]]]]:
+        """Consecutive chunks with wanted messages, with their message positions, up to
+        ``group_bytes`` of records a group."""
         assert self.summary is not None
         ids = set(wanted)
         chunks = sorted(self.summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset))
@@ -324,10 +370,10 @@ class McapChunks:
             group.append((ci, positions))
             size += ci.uncompressed_size
             if size >= group_bytes:
-                yield self._read_group(group, wanted, losses)
+                yield group
                 group, size = [], 0
         if group:
-            yield self._read_group(group, wanted, losses)
+            yield group
 
     def _read_group(
         self, group: list[tuple[object, dict[int, np.ndarray]]], wanted: dict[int, tuple[str, str]], losses: list | None
@@ -572,41 +618,65 @@ class Ros1Bag:
         ``group_bytes``, so the vectorised decoder's per-call cost is spread over many messages.
         A chunk that cannot be read is skipped and recorded in ``losses`` (counts from its index)."""
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
-        for buffer, pending in _ahead(self._read_groups(wanted, losses, group_bytes or GROUP_BYTES)):
-            yield from self._group(buffer, pending, wanted)
 
-    def _read_groups(
-        self, wanted: dict[int, str], losses: list | None, group_bytes: int
-    ) -> Iterator[tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]]:
-        from imucal_cli.io.salvage import Loss
+        def read(group: list[int]) -> tuple[list[RawBatch], list]:
+            return self._read_group(group, wanted, losses is not None)
 
-        pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
+        yield from _decoded_groups(read, self._groups(group_bytes or GROUP_BYTES), losses)
+
+    def _groups(self, group_bytes: int) -> Iterator[list[int]]:
+        """Positions of consecutive chunks, up to ``group_bytes`` of records (the sizes their
+        headers give) a group."""
+        group: list[int] = []
         size = 0
         for chunk_pos in self.chunk_positions:
+            group.append(chunk_pos)
+            try:
+                fields, _ = _ros1_header(_pread(self.handle, chunk_pos, 4096), 0)
+                size += struct.unpack("<I", fields["size"])[0]
+            except Exception:  # noqa: BLE001 - damage: met again, and recorded, where it is read
+                pass
+            if size >= group_bytes:
+                yield group
+                group, size = [], 0
+        if group:
+            yield group
+
+    def _read_group(self, group: list[int], wanted: dict[int, str], keep_going: bool) -> tuple[list[RawBatch], list]:
+        """The decoded batches of a group of chunks, and what of it was lost (raised unless
+        ``keep_going``)."""
+        from imucal_cli.io.salvage import Loss
+
+        lost: list = []
+        pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
+        for chunk_pos in group:
             try:
                 chunk = self._read_chunk(chunk_pos, wanted)
                 if chunk is not None:
                     pending.append(chunk)
-                    size += len(chunk[0])
-                    if size >= group_bytes:
-                        yield self._joined(pending)
-                        pending, size = [], 0
-            except _ChunkLost as lost:
-                if losses is None:
-                    raise ValueError(lost.reason) from None
-                losses.append(Loss(f"chunk that cannot be read ({lost.reason})", chunk_pos, lost.nbytes, lost.start_ns, lost.end_ns, lost.counts))
+            except _ChunkLost as exc:
+                if not keep_going:
+                    raise ValueError(exc.reason) from None
+                lost.append(Loss(f"chunk that cannot be read ({exc.reason})", chunk_pos, exc.nbytes, exc.start_ns, exc.end_ns, exc.counts))
             except Exception as exc:  # noqa: BLE001 - a damaged chunk header or index
-                if losses is None:
+                if not keep_going:
                     raise
-                losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
-        if pending:
-            yield self._joined(pending)
+                lost.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
+        if not pending:
+            return [], lost
+        buffer, positions = self._joined(pending)
+        return _with_decoded(self._group(buffer, positions, wanted)), lost
 
     @staticmethod
     def _joined(pending: list[tuple[bytes, dict[int, np.ndarray]]]) -> tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]:
-        buffer = np.frombuffer(b"".join(data for data, _ in pending), dtype=np.uint8)
-        base = np.cumsum([0] + [len(data) for data, _ in pending[:-1]]).tolist()
-        return buffer, [(b, positions) for b, (_, positions) in zip(base, pending, strict=True)]
+        # numpy copies outside the GIL (a bytes join would hold it)
+        buffer = np.empty(sum(len(data) for data, _ in pending), dtype=np.uint8)
+        out, at = [], 0
+        for data, positions in pending:
+            buffer[at : at + len(data)] = np.frombuffer(data, dtype=np.uint8)
+            out.append((at, positions))
+            at += len(data)
+        return buffer, out
 
     @staticmethod
     def _group(buffer: np.ndarray, pending: list[tuple[int, dict[int, np.ndarray]]], wanted: dict[int, str]) -> Iterator[RawBatch]:
@@ -634,20 +704,19 @@ class Ros1Bag:
             yield RawBatch(topic, "ros1", buffer, offset + 8 + header_len, data_len, log_ns)
 
     def _read_chunk(self, chunk_pos: int, wanted: dict[int, str]) -> tuple[bytes, dict[int, np.ndarray]] | None:
-        """One chunk's decompressed records and, per wanted connection, its index entries."""
-        self.handle.seek(chunk_pos)
-        head = self.handle.read(4096)
+        """One chunk's decompressed records and, per wanted connection, its index entries
+        (positioned reads: threads read chunks side by side)."""
+        head = _pread(self.handle, chunk_pos, 4096)
         fields, pos = _ros1_header(head, 0)
         compression = fields["compression"].decode()
         size = struct.unpack("<I", fields["size"])[0]
         (data_len,) = struct.unpack_from("<I", head, pos)
-        self.handle.seek(chunk_pos + pos + 4)
-        compressed = self.handle.read(data_len)
+        compressed = _pread(self.handle, chunk_pos + pos + 4, data_len)
         # index data records follow the chunk, one per connection in it
         positions: dict[int, np.ndarray] = {}
+        start = chunk_pos + pos + 4 + data_len
         while True:
-            start = self.handle.tell()
-            probe = self.handle.read(4096)
+            probe = _pread(self.handle, start, 4096)
             if len(probe) < 8:
                 break
             try:
@@ -659,12 +728,11 @@ class Ros1Bag:
             conn = struct.unpack("<I", fields["conn"])[0]
             count = struct.unpack("<I", fields["count"])[0]
             (dlen,) = struct.unpack_from("<I", probe, pos)
-            self.handle.seek(start + pos + 4)
-            raw = self.handle.read(dlen)
             if conn in wanted:
+                raw = probe[pos + 4 : pos + 4 + dlen] if pos + 4 + dlen <= len(probe) else _pread(self.handle, start + pos + 4, dlen)
                 entries = np.frombuffer(raw, dtype=np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")]), count=count)
                 positions[conn] = entries
-            self.handle.seek(start + pos + 4 + dlen)
+            start += pos + 4 + dlen
         if not positions:
             return None
         try:

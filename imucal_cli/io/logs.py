@@ -874,7 +874,7 @@ class ImuBatches:
             try:
                 for batch in batches:
                     self.stats[batch.topic].messages += len(batch.starts)
-                    decoded = decode_imu(batch)
+                    decoded = batch.decoded if batch.decoded is not None else decode_imu(batch)
                     parts = [(decoded.stamp_ns, decoded.log_time_ns, decoded.gyro, decoded.accel, decoded.frame_ids)]
                     for i in decoded.undecoded:  # what the layout check did not recognise
                         start, length = int(batch.starts[i]), int(batch.lengths[i])

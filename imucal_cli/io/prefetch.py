@@ -15,10 +15,11 @@ import multiprocessing
 import queue
 import sys
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any, Protocol, TypeVar
 
 T = TypeVar("T")
+R = TypeVar("R")
 
 #: Batches that may wait between the reader and the calibration.
 DEPTH = 32
@@ -96,23 +97,62 @@ def queued(items: Iterable[T], depth: int, switch_interval_s: float | None = Non
             sys.setswitchinterval(previous)
 
 
+def ordered_map(
+    func: Callable[[T], R], items: Iterable[T], workers: int, ahead: int, switch_interval_s: float | None = None
+) -> Iterator[R]:
+    """``func(item)`` of every item, computed by ``workers`` threads, at most ``workers + ahead``
+    at once, and yielded in the items' order: worth it where ``func`` spends its time outside
+    the GIL (reading a file, decompressing, checking a CRC, numpy's gathers and reductions).
+    ``items`` is iterated here, in the consumer's thread, as results are taken. An exception
+    of ``func`` is raised at its item's turn; closing the iterator cancels what has not
+    started and waits for what has (so nothing runs on after it, on a closed file say).
+    ``switch_interval_s`` is as for :func:`queued`.
+    """
+    if workers <= 0:
+        yield from map(func, items)
+        return
+    from collections import deque
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="imucal-decode")
+    pending: deque[Future[R]] = deque()
+    previous = sys.getswitchinterval()
+    if switch_interval_s is not None:
+        sys.setswitchinterval(min(previous, switch_interval_s))
+    try:
+        for item in items:
+            pending.append(pool.submit(func, item))
+            if len(pending) >= workers + ahead:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        for future in pending:
+            future.cancel()
+        pool.shutdown(wait=True)
+        if switch_interval_s is not None:
+            sys.setswitchinterval(previous)
+
+
 def _child(reader: StatsReader, conn: Any) -> None:  # pragma: no cover - runs in the child
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it ends us
+    from imucal_cli.parallel import send
+
     try:
         for item in reader:
-            conn.send(item)
-        conn.send(_Done((reader.stats, getattr(reader, "losses", None))))
+            send(conn, item)
+        send(conn, _Done((reader.stats, getattr(reader, "losses", None))))
     except (BrokenPipeError, ConnectionResetError):
         pass  # the parent is gone, or stopped reading
     except BaseException as exc:  # noqa: BLE001 - handed to the parent
         try:
-            conn.send(_Raised(exc))
+            send(conn, _Raised(exc))
         except OSError:
             pass  # the parent is gone
         except Exception:  # noqa: BLE001 - an exception that does not pickle
-            conn.send(_Raised(RuntimeError(f"{type(exc).__name__}: {exc}")))
+            send(conn, _Raised(RuntimeError(f"{type(exc).__name__}: {exc}")))
     finally:
         conn.close()
 
@@ -127,10 +167,10 @@ def read_ahead(reader: StatsReader, background: bool = True) -> Iterator[Any]:
     if not background or "fork" not in multiprocessing.get_all_start_methods():
         return iter(reader)
     context = multiprocessing.get_context("fork")
-    from imucal_cli.parallel import parent_end
+    from imucal_cli.parallel import parent_end, widen
 
     receiving, sending = context.Pipe(duplex=False)
-    parent_end(receiving)
+    parent_end(widen(receiving))
     process = context.Process(target=_child, args=(reader, sending), name="imucal-reader", daemon=True)
     process.start()
     sending.close()
@@ -159,10 +199,12 @@ class _Ahead:
 
 
 def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[Any]:
+    from imucal_cli.parallel import receive as receive_object
+
     def receive() -> Iterator[object]:
         while True:
             try:
-                item = receiving.recv()
+                item = receive_object(receiving)
             except (EOFError, OSError):
                 code = process.exitcode
                 raise RuntimeError(f"the log reader process ended unexpectedly (exit code {code})") from None
