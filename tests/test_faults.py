@@ -383,3 +383,59 @@ def test_damaged_stamp_run_after_a_clock_jump_is_still_found():
     t[600:620] -= 15 * 365 * 86400 * 10**9  # then a damaged run that comes back
     out = _stamp_outliers(t)
     assert np.flatnonzero(out).tolist() == list(range(600, 620))
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag1"])
+def test_threads_read_what_one_thread_reads_and_lose_the_same_chunks_in_order(logs, fmt, monkeypatch):
+    """Chunks read, decompressed and decoded by several threads, small groups so that there
+    are many: the same samples, bit for bit, and the same losses in the same order."""
+    from imucal_cli.io import fastimu
+
+    log, topics, _ = logs[fmt]
+    bad = _copy(log, "corrupt-twice")
+    data = bytearray(bad.read_bytes())
+    for at in (len(data) // 3, 2 * len(data) // 3):  # two chunks damaged, far apart
+        data[at : at + 64] = bytes(64)
+    bad.write_bytes(bytes(data))
+    monkeypatch.setattr(fastimu, "GROUP_BYTES", 64 << 10)
+    results = {}
+    for threads in (0, 1, 3):
+        monkeypatch.setattr(fastimu, "DECODE_THREADS", threads)
+        losses = []
+        got = read_imu(bad, topics, losses=losses)
+        results[threads] = (
+            {t: (r.stream.t_ns.tobytes(), r.stream.gyro.tobytes(), r.stream.accel.tobytes(), r.stats.to_dict()) for t, r in got.items()},
+            [(x.offset, x.reason, x.messages) for x in losses],
+        )
+    assert len(results[0][1]) >= 2
+    assert results[1] == results[0] and results[3] == results[0]
+
+
+def test_a_lively_sensor_past_the_saturation_floors_loses_nothing(tmp_path, short_drive):
+    """Values past the clipping floors (2 rad/s, 1.5 g) that never sit at their extreme for a
+    run are measurements, kept whole; a run at the extreme among them is still dropped."""
+    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.io.writers import TopicData
+
+    topics = short_drive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    n = len(data.stream)
+    gyro, accel = data.stream.gyro.copy(), data.stream.accel.copy()
+    spikes = np.arange(50, n, 97)
+    accel[spikes, 2] += np.linspace(8.0, 9.0, len(spikes))  # past 1.5 g, each value once
+    gyro[spikes[::2], 0] = np.linspace(2.1, 2.6, len(spikes[::2]))  # past 2 rad/s, each once
+    k = spikes[-1]
+    accel[k : k + 2, 2] = 30.0  # the batch's extreme twice in a row: no run
+    topics[name] = TopicData(_with(data.stream, gyro, accel), data.log_time_ns)
+    log = write_imu_log(tmp_path / "lively.mcap", "mcap", topics)
+    reader = ImuBatches(log, list(topics))
+    kept = np.concatenate([t for topic, t, *_ in reader if topic == name])
+    assert reader.stats[name].saturated == 0 and len(kept) == n
+
+    accel[k + 2, 2] = 30.0  # now three in a row at the extreme
+    topics[name] = TopicData(_with(data.stream, gyro, accel), data.log_time_ns)
+    log = write_imu_log(tmp_path / "clipped.mcap", "mcap", topics)
+    reader = ImuBatches(log, list(topics))
+    kept = np.concatenate([t for topic, t, *_ in reader if topic == name])
+    assert reader.stats[name].saturated == 3 and len(kept) == n - 3

@@ -208,3 +208,89 @@ os._exit(0)
     for p in alive:
         os.kill(p, signal.SIGKILL)
     assert not alive
+
+
+def _echo_child(conn_in, conn_out):
+    from imucal_cli.parallel import receive, send
+
+    while (item := receive(conn_in)) is not None:
+        send(conn_out, item)
+    conn_out.close()
+
+
+def test_objects_cross_the_pipe_whole_their_arrays_bit_exact():
+    """Arrays go as raw bytes beside the pickle: every layout, dtype and size (far past what a
+    pipe holds) comes back equal, writable, in order; a closed pipe mid-object is EOFError."""
+    import multiprocessing
+
+    from imucal_cli.parallel import receive, send, widen
+
+    context = multiprocessing.get_context("fork")
+    to_child_r, to_child_w = context.Pipe(duplex=False)
+    from_child_r, from_child_w = context.Pipe(duplex=False)
+    widen(to_child_w)
+    child = context.Process(target=_echo_child, args=(to_child_r, from_child_w), daemon=True)
+    child.start()
+    to_child_r.close()
+    from_child_w.close()
+    rng = np.random.default_rng(7)
+    big = rng.standard_normal((1_500_000, 3))  # 36 MB: many times the pipe
+    objects = [
+        ("/imu", np.arange(5, dtype=np.int64), big, np.asfortranarray(big[:1000]), big[::7]),  # C, F, strided
+        {"empty": np.zeros((0, 3)), "u8": rng.integers(0, 255, 33, dtype=np.uint8), "obj": np.array(["a", None], dtype=object)},
+        [np.float32(1.5), 3, "text", None],
+    ]
+    for obj in objects:
+        send(to_child_w, obj)
+        back = receive(from_child_r)
+        assert type(back) is type(obj)
+        for a, b in zip(obj.values() if isinstance(obj, dict) else obj, back.values() if isinstance(back, dict) else back, strict=True):
+            if isinstance(a, np.ndarray):
+                assert a.dtype == b.dtype and a.shape == b.shape and (a.tobytes() == b.tobytes() if a.dtype != object else list(a) == list(b))
+                b[...] = b  # writable
+            else:
+                assert a == b
+    send(to_child_w, None)
+    child.join(timeout=30)
+    # the other end gone in the middle of an object: the header promised bytes that never come
+    import pickle
+
+    r, w = context.Pipe(duplex=False)
+    w.send_bytes(pickle.dumps((b"", [100]), protocol=5))
+    w.close()
+    with pytest.raises(EOFError):
+        receive(r)
+
+
+def _slow_square(x):
+    import time
+
+    time.sleep(0.02 * (x % 3))  # later items often finish first
+    if x == 7:
+        raise ValueError("seven")
+    return x * x
+
+
+def test_ordered_map_keeps_order_raises_in_turn_and_stops_cleanly():
+    import threading
+
+    from imucal_cli.io.prefetch import ordered_map
+
+    for workers in (0, 1, 3):
+        got = []
+        with pytest.raises(ValueError, match="seven"):
+            for value in ordered_map(_slow_square, range(20), workers, 2):
+                got.append(value)  # noqa: PERF402 - what came before the exception is kept
+        assert got == [x * x for x in range(7)]  # all before the failing item, in order
+
+    started = []
+
+    def record(x):
+        started.append(x)
+        return x
+
+    items = ordered_map(record, range(1000), 2, 2)
+    assert [next(items) for _ in range(3)] == [0, 1, 2]
+    items.close()  # nothing more is started, and what was started has ended
+    assert len(started) <= 3 + 2 + 2
+    assert not [t for t in threading.enumerate() if t.name.startswith("imucal-decode")]

@@ -634,7 +634,7 @@ class Ros1Bag:
             try:
                 fields, _ = _ros1_header(_pread(self.handle, chunk_pos, 4096), 0)
                 size += struct.unpack("<I", fields["size"])[0]
-            except Exception:  # noqa: BLE001 - damage: met again, and recorded, where it is read
+            except Exception:  # noqa: BLE001, S110 - damage: met again, and recorded, where it is read
                 pass
             if size >= group_bytes:
                 yield group

@@ -655,29 +655,42 @@ def _finish_topic(
 
 
 class _TopicColumns:
-    """Decoded samples of one topic, appended batch by batch."""
+    """Decoded samples of one topic, copied batch by batch into columns made for the number of
+    messages the container's index gives (grown when it gave too few): the copies happen while
+    the reader's threads decode the next batches, not all at the end."""
 
-    def __init__(self) -> None:
-        self.stamps: list[np.ndarray] = []
-        self.log_times: list[np.ndarray] = []
-        self.gyro: list[np.ndarray] = []
-        self.accel: list[np.ndarray] = []
+    #: Largest number of samples made room for at once from an index's word (a damaged index
+    #: could claim any number).
+    MAX_PREALLOCATED = 1 << 24
+
+    def __init__(self, expected: int = 0) -> None:
+        self.size = 0
+        n = max(0, min(int(expected), self.MAX_PREALLOCATED))
+        self.stamps = np.empty(n, dtype=np.int64)
+        self.log_times = np.empty(n, dtype=np.int64)
+        self.gyro = np.empty((n, 3))
+        self.accel = np.empty((n, 3))
         self.stats = ReadStats()
 
     def add(self, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        self.stamps.append(stamps)
-        self.log_times.append(log_times)
-        self.gyro.append(gyro)
-        self.accel.append(accel)
+        end = self.size + len(stamps)
+        if end > len(self.stamps):
+            room = max(end, 2 * len(self.stamps), 1024)
+            for name in ("stamps", "log_times", "gyro", "accel"):
+                old = getattr(self, name)
+                grown = np.empty((room, *old.shape[1:]), dtype=old.dtype)
+                grown[: self.size] = old[: self.size]
+                setattr(self, name, grown)
+        self.stamps[self.size : end] = stamps
+        self.log_times[self.size : end] = log_times
+        self.gyro[self.size : end] = gyro
+        self.accel[self.size : end] = accel
+        self.size = end
 
     def finish(self) -> ImuRead:
-        def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-            return np.concatenate(parts) if parts else np.zeros(shape, dtype=dtype)
-
-        log_times = cat(self.log_times, (0,), np.int64)
-        stamps = cat(self.stamps, (0,), np.int64)
-        gyro, accel = cat(self.gyro, (0, 3), np.float64), cat(self.accel, (0, 3), np.float64)
-        if len(log_times) > 1 and np.any(np.diff(log_times) < 0):  # log order, for the backwards count
+        n = self.size
+        stamps, log_times, gyro, accel = self.stamps[:n], self.log_times[:n], self.gyro[:n], self.accel[:n]
+        if n > 1 and np.any(np.diff(log_times) < 0):  # log order, for the backwards count
             order = np.argsort(log_times, kind="stable")
             stamps, log_times, gyro, accel = stamps[order], log_times[order], gyro[order], accel[order]
         return _finish_topic(stamps, log_times, gyro, accel, self.stats)
@@ -757,10 +770,11 @@ def _clipped(values: np.ndarray, floor: float) -> np.ndarray:
     out = np.zeros(len(values), dtype=bool)
     if len(values) < SATURATION_RUN:
         return out
-    magnitude = np.abs(values)
-    extreme = magnitude.max(axis=0)
+    extreme = np.maximum(-values.min(axis=0), values.max(axis=0))  # the largest magnitude per axis
     for axis in np.flatnonzero(extreme >= floor):
-        at = magnitude[:, axis] == extreme[axis]
+        at = np.abs(values[:, axis]) == extreme[axis]
+        if np.count_nonzero(at) < SATURATION_RUN:
+            continue  # too few samples at the extreme for a run
         run = np.convolve(at.astype(np.int64), np.ones(SATURATION_RUN, dtype=np.int64), mode="valid") == SATURATION_RUN
         for k in range(SATURATION_RUN):
             out[k : k + len(run)] |= run
@@ -784,6 +798,8 @@ class ImuBatches:
         self._last_stamp: dict[str, int] = {}
         self._reached: dict[str, int] = {}  # per topic: the latest stamp kept so far
         self._period: dict[str, float] = {}  # per topic: median step between stamps (ns)
+        #: Per topic, the number of messages the container says it has (once iterating).
+        self.expected: dict[str, int] = {}
 
     def _screen(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray):  # noqa: ANN202
         """Drop (and count) samples with non-finite, implausible or clipped values and damaged
@@ -798,15 +814,26 @@ class ImuBatches:
         jump = int(CLOCK_JUMP_S * 1e9)
         reached_before = self._reached.get(topic, -(2**62))
         # whole-array extremes (a NaN anywhere makes them NaN, and the comparisons False)
-        values_ok = bool(
-            -SATURATION_GYRO_RADPS < gyro.min() and gyro.max() < SATURATION_GYRO_RADPS
-            and -SATURATION_ACCEL_MPS2 < accel.min() and accel.max() < SATURATION_ACCEL_MPS2
+        g_lo, g_hi, a_lo, a_hi = float(gyro.min()), float(gyro.max()), float(accel.min()), float(accel.max())
+        values_ok = (
+            -SATURATION_GYRO_RADPS < g_lo and g_hi < SATURATION_GYRO_RADPS
+            and -SATURATION_ACCEL_MPS2 < a_lo and a_hi < SATURATION_ACCEL_MPS2
         )
         low, high = int(stamps.min()), int(stamps.max())
         # no step can leap by more than `jump` when the whole batch spans less than that
-        stamps_ok = high - low <= jump or bool(np.abs(np.diff(stamps)).max() <= jump)
-        stamps_ok = stamps_ok and low >= reached_before - jump
+        narrow = high - low <= jump
+        stamps_ok = (narrow or bool(np.abs(np.diff(stamps)).max() <= jump)) and low >= reached_before - jump
+        quiet = narrow and low >= reached_before - jump  # nothing leaps, nothing falls behind
         if values_ok and stamps_ok:
+            self._reached[topic] = max(reached_before, high)
+            return stamps, log_times, gyro, accel
+        # values past the saturation floors but finite and plausible, stamps quiet (a lively
+        # sensor): only a clipped run could be dropped, and there is none in the usual case
+        plausible = (
+            -IMPLAUSIBLE_GYRO_RADPS <= g_lo and g_hi <= IMPLAUSIBLE_GYRO_RADPS
+            and -IMPLAUSIBLE_ACCEL_MPS2 <= a_lo and a_hi <= IMPLAUSIBLE_ACCEL_MPS2
+        )  # and finite: a NaN anywhere makes the extremes NaN, and the comparisons False
+        if quiet and plausible and not (_clipped(gyro, SATURATION_GYRO_RADPS).any() or _clipped(accel, SATURATION_ACCEL_MPS2).any()):
             self._reached[topic] = max(reached_before, high)
             return stamps, log_times, gyro, accel
         finite = np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1)
@@ -868,6 +895,7 @@ class ImuBatches:
 
     def _read(self, log: LogReader) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         available = _check_topics(log, self.topics)
+        self.expected = {t: available[t].count for t in self.topics}
         decoders = _LazyDecoders({t: available[t].encoding for t in self.topics})
         batches = log.fast_batches(self.topics) if self.fast else None
         if batches is not None:
@@ -959,9 +987,11 @@ def read_imu(
         log has) or a topic is not ``sensor_msgs/Imu``.
     """
     reader = ImuBatches(path, topics, fast=fast)
-    columns = {t: _TopicColumns() for t in reader.topics}
+    columns: dict[str, _TopicColumns] = {}
     count = 0
     for topic, stamps, log_times, gyro, accel in reader:
+        if topic not in columns:  # made once the reader knows the counts its index gives
+            columns[topic] = _TopicColumns(reader.expected.get(topic, 0))
         columns[topic].add(stamps, log_times, gyro, accel)
         count += len(stamps)
         if progress is not None:
@@ -972,8 +1002,9 @@ def read_imu(
     for topic in reader.topics:
         stats = reader.stats[topic]
         stats.backwards = 0  # recounted in log order by finish()
-        columns[topic].stats = stats
-        out[topic] = columns[topic].finish()
+        column = columns.get(topic) or _TopicColumns()
+        column.stats = stats
+        out[topic] = column.finish()
     return out
 
 

@@ -22,7 +22,7 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 #: Batches that may wait between the reader and the calibration.
-DEPTH = 32
+DEPTH = 96
 
 
 class _Raised:
