@@ -3,8 +3,10 @@
 :func:`read_ahead` runs a batch reader (:class:`~imucal_cli.io.logs.ImuBatches`) in a forked
 child process that decompresses and decodes while the parent calibrates, so on a machine with
 two cores reading costs little wall time. (A thread does not pay: the reader's numpy work holds
-the GIL too often.) Batches cross a pipe; a bounded queue keeps at most :data:`DEPTH` of them
-waiting, so memory stays flat whatever the log's length. Errors raised in the child (a damaged
+the GIL too often.) Batches cross a pipe; the child reads at most :data:`DEPTH` of them ahead
+of what it has sent (it reads on while the parent imports the math) and the parent receives at
+most :data:`RECEIVE_DEPTH` ahead of the calibration, so memory stays flat whatever the log's
+length. Errors raised in the child (a damaged
 log, a missing topic) are raised again in the parent, and the reader's statistics are copied
 back when it is done. Where ``fork`` is not available the reader simply runs inline.
 """
@@ -21,8 +23,11 @@ from typing import Any, Protocol, TypeVar
 T = TypeVar("T")
 R = TypeVar("R")
 
-#: Batches that may wait between the reader and the calibration.
+#: Batches the reader process may have read ahead of what it has sent: it reads on while the
+#: parent cannot take them yet (the math's imports, about a second, come after the fork).
 DEPTH = 96
+#: Batches received ahead of the calibration in the parent (the pipe is read in a thread).
+RECEIVE_DEPTH = 8
 
 
 class _Raised:
@@ -141,7 +146,7 @@ def _child(reader: StatsReader, conn: Any) -> None:  # pragma: no cover - runs i
     from imucal_cli.parallel import send
 
     try:
-        for item in reader:
+        for item in queued(reader, DEPTH):  # read ahead in a thread while this one sends
             send(conn, item)
         send(conn, _Done((reader.stats, getattr(reader, "losses", None))))
     except (BrokenPipeError, ConnectionResetError):
@@ -212,7 +217,7 @@ def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[A
             if isinstance(item, (_Done, _Raised)):
                 return
 
-    queued_items = queued(receive(), DEPTH)
+    queued_items = queued(receive(), RECEIVE_DEPTH)
     try:
         for item in queued_items:
             if isinstance(item, _Raised):
