@@ -14,7 +14,10 @@ and ROS 1 (lz4 chunks), and measures per format and length, side by side in one 
   RSS is the highest sum of the resident sizes of the process and its children (the log reader
   and the math worker) at one instant, sampled every 10 ms; "sum of peaks" adds each process's
   own peak (``VmHWM``) instead, an upper bound that counts pages shared after the fork twice and
-  adds peaks that never meet (the reader's, while reading; the solve's, after it).
+  adds peaks that never meet (the reader's, while reading; the solve's, after it). Its CPU
+  seconds (user + system) are given per process: the main one, the log reader and the math
+  worker (sampled from ``/proc`` every 10 ms); wall time is at least their sum over the two
+  cores.
 
 Floor and decode are run ``--repeat`` times (default 5), alternating, and calibrate
 ``--calibrate-repeat`` times (default 3); the fastest run of each is reported (the machine's
@@ -125,11 +128,15 @@ CHILD = """
 import os, resource, sys, threading, time
 peaks = {}  # per child process: the highest VmHWM (its own peak RSS, kB) seen
 together = [0]  # the highest sum of VmRSS of this process and its children at one instant (kB)
+cpu = {}  # per child process, in the order they appeared: its CPU seconds (user + system) so far
 def status(pid, key):
     for line in open(f"/proc/{pid}/status"):
         if line.startswith(key):
             return int(line.split()[1])
     return 0
+def cpu_s(pid):
+    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 def watch():
     me = os.getpid()
     while True:
@@ -142,6 +149,7 @@ def watch():
             try:
                 peaks[kid] = max(peaks.get(kid, 0), status(kid, "VmHWM:"))
                 now += status(kid, "VmRSS:")
+                cpu[kid] = cpu_s(kid)
             except OSError:
                 pass
         together[0] = max(together[0], now)
@@ -153,8 +161,10 @@ try:
 except SystemExit as exc:
     if exc.code:
         raise
-summed = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + sum(peaks.values())
-print(max(together[0], resource.getrusage(resource.RUSAGE_SELF).ru_maxrss), summed, file=open(sys.argv[-1] + ".rss", "w"))
+own = resource.getrusage(resource.RUSAGE_SELF)
+summed = own.ru_maxrss + sum(peaks.values())
+children = list(cpu.values()) + [0.0, 0.0]  # the log reader forked first, then the math worker
+print(max(together[0], own.ru_maxrss), summed, own.ru_utime + own.ru_stime, children[0], sum(children[1:]), file=open(sys.argv[-1] + ".rss", "w"))
 """
 
 
@@ -178,9 +188,10 @@ def errors(config: Path) -> tuple[float, float]:
     return worst_r, worst_t
 
 
-def calibrate(log: Path, config: Path) -> tuple[float, float, float]:
+def calibrate(log: Path, config: Path) -> tuple[float, float, float, tuple[float, float, float]]:
     """Wall seconds, peak RSS together and the sum of the processes' peaks (MB) of ``imucal
-    calibrate`` in a fresh process (see the module's docstring).
+    calibrate`` in a fresh process (see the module's docstring), and the CPU seconds of its
+    main process, its log reader and its math worker.
 
     It is started through a shell that does not ``exec`` it, so it is not forked from this
     (large) process: Linux keeps a process's pre-``exec`` peak.
@@ -193,8 +204,8 @@ def calibrate(log: Path, config: Path) -> tuple[float, float, float]:
     start = time.perf_counter()
     subprocess.run(["/bin/sh", "-c", f"{command}; true"], check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - start
-    together_kb, summed_kb = (float(v) for v in Path(str(out) + ".rss").read_text().split())
-    return wall, together_kb / 1024.0, summed_kb / 1024.0
+    together_kb, summed_kb, *cpu = (float(v) for v in Path(str(out) + ".rss").read_text().split())
+    return wall, together_kb / 1024.0, summed_kb / 1024.0, (cpu[0], cpu[1], cpu[2])
 
 
 def main() -> None:
@@ -228,22 +239,24 @@ def main() -> None:
             if LENGTHS[length] / 60.0 <= args.naive_max_minutes:
                 t_naive, _ = decode(log, topics, fast=False)
             runs = [calibrate(log, config_path) for _ in range(args.calibrate_repeat)]
-            wall = min(run[0] for run in runs)
+            fastest = min(runs, key=lambda run: run[0])
+            wall, cpu = fastest[0], fastest[3]
             rss, summed = max(run[1] for run in runs), max(run[2] for run in runs)  # the worst
             worst_r, worst_t = errors(config_path)
             size = sum(p.stat().st_size for p in ([log] if log.is_file() else log.iterdir()))
             if fmt == "rosbag2-sqlite3":
                 fetches.append((length, min(file_read(log) for _ in range(args.repeat)), t_fast))
-            rows.append((length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss, summed, worst_r, worst_t))
+            rows.append((length, fmt, count, size, t_floor, t_fast, t_naive, wall, cpu, rss, summed, worst_r, worst_t))
             print(f"measured {length} {fmt}", file=sys.stderr)
 
-    print("| length | format | messages | size MB | floor s | decode s | decode / floor | decode msg/s | naive s | naive / decode | calibrate s | calibrate / floor | peak RSS MB | sum of peaks MB | max dR deg | max abs dt m |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for length, fmt, count, size, t_floor, t_fast, t_naive, wall, rss, summed, worst_r, worst_t in rows:
+    print("| length | format | messages | size MB | floor s | decode s | decode / floor | decode msg/s | naive s | naive / decode | calibrate s | calibrate / floor | calibrate CPU s (main + reader + math) | peak RSS MB | sum of peaks MB | max dR deg | max abs dt m |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for length, fmt, count, size, t_floor, t_fast, t_naive, wall, cpu, rss, summed, worst_r, worst_t in rows:
         naive = f"{t_naive:.1f} | {t_naive / t_fast:.0f}x" if t_naive is not None else "- | -"
         print(
             f"| {length} | {fmt} | {count:,} | {size / 1e6:.0f} | {t_floor:.2f} | {t_fast:.2f} | {t_fast / t_floor:.2f} | "
-            f"{count / t_fast / 1e6:.2f} M | {naive} | {wall:.1f} | {wall / t_floor:.1f} | {rss:.0f} | {summed:.0f} | {worst_r:.4f} | {worst_t:.4f} |"
+            f"{count / t_fast / 1e6:.2f} M | {naive} | {wall:.1f} | {wall / t_floor:.1f} | "
+            f"{sum(cpu):.1f} ({cpu[0]:.1f} + {cpu[1]:.1f} + {cpu[2]:.1f}) | {rss:.0f} | {summed:.0f} | {worst_r:.4f} | {worst_t:.4f} |"
         )
 
     for length, t_read, t_fast in fetches:

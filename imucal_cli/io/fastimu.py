@@ -43,11 +43,13 @@ _CDR_HEAD = np.dtype(
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
 #: Bytes of decompressed chunks decoded together.
 GROUP_BYTES = 16 << 20
-#: Groups of chunks read and decompressed ahead of the decoding, in a thread.
+#: Groups of chunks (or of sqlite3 rows) read ahead of the one being consumed, beyond one
+#: a decode thread.
 READ_AHEAD_GROUPS = 2
 #: Threads that read, decompress, check and decode groups of MCAP and ROS 1 chunks side by
 #: side (zstd, lz4, the CRC, the file reads and numpy's gathers run outside the GIL); 0 reads
-#: them in the consumer's thread.
+#: them in the consumer's thread (as the reader process of ``calibrate`` does: see
+#: :mod:`imucal_cli.io.prefetch`).
 DECODE_THREADS = 2
 #: The interpreter's switch interval while reading ahead (s): the reading thread takes the GIL
 #: back after every read, decompression and CRC, and would wait the default 5 ms each time.

@@ -143,8 +143,14 @@ def _child(reader: StatsReader, conn: Any) -> None:  # pragma: no cover - runs i
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it ends us
+    from imucal_cli.io import fastimu
     from imucal_cli.parallel import send
 
+    # This process reads beside the calibration's two, which keep both cores busy: threads
+    # decoding side by side here would only add switching and memory (the 1 h MCAP of
+    # benchmarks/throughput.py: calibrate no faster, the reader's CPU 4.5 s against 3.8 s and
+    # the peak RSS 450 MB against 347 MB). One thread reads; this one sends.
+    fastimu.DECODE_THREADS = 0
     try:
         for item in queued(reader, DEPTH):  # read ahead in a thread while this one sends
             send(conn, item)
