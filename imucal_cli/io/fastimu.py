@@ -88,19 +88,22 @@ def _ahead(items: Iterator[T]) -> Iterator[T]:
     return queued(items, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else iter(items)
 
 
-def _decoded_groups(read: Callable[[T], tuple[list[RawBatch], list]], groups: Iterable[T], losses: list | None) -> Iterator[RawBatch]:
-    """The batches of every group, read (decompressed and decoded) by :data:`DECODE_THREADS`
-    threads, in the groups' order; each group's losses are added to ``losses`` at its turn."""
+def _decoded_groups(
+    read: Callable[[T, list | None], Iterable[RawBatch]], groups: Iterable[T], losses: list | None
+) -> Iterator[RawBatch]:
+    """The batches of every group, read (``read(group, lost)``: what of it cannot be read goes
+    to ``lost``, or raises where that is None) and decoded by :data:`DECODE_THREADS` threads,
+    in the groups' order; each group's losses are added to ``losses`` at its turn."""
     from imucal_cli.io.prefetch import ordered_map
 
-    for batches, lost in ordered_map(read, groups, DECODE_THREADS, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S):
-        if losses is not None:
+    def one(group: T) -> tuple[list[RawBatch], list | None]:
+        lost = None if losses is None else []
+        return [replace(batch, decoded=decode_imu(batch)) for batch in read(group, lost)], lost
+
+    for batches, lost in ordered_map(one, groups, DECODE_THREADS, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S):
+        if losses is not None and lost:
             losses.extend(lost)
         yield from batches
-
-
-def _with_decoded(batches: Iterable[RawBatch]) -> list[RawBatch]:
-    return [replace(batch, decoded=decode_imu(batch)) for batch in batches]
 
 
 def _pread(handle: BinaryIO, offset: int, size: int) -> bytes:
@@ -348,10 +351,8 @@ class McapChunks:
         over many messages. A chunk that does not decompress or fails its CRC is skipped and
         recorded in ``losses`` with the exact message counts of its index.
         """
-        def read(group: list[tuple[object, dict[int, np.ndarray]]]) -> tuple[list[RawBatch], list]:
-            lost: list = []
-            buffer, pending = self._read_group(group, wanted, lost if losses is not None else None)
-            return _with_decoded(self._group(buffer, pending, wanted)), lost
+        def read(group: list[tuple[object, dict[int, np.ndarray]]], lost: list | None) -> Iterator[RawBatch]:
+            return self._group(*self._read_group(group, wanted, lost), wanted)
 
         yield from _decoded_groups(read, self._groups(wanted, group_bytes or GROUP_BYTES), losses)
 
@@ -621,20 +622,21 @@ class Ros1Bag:
         A chunk that cannot be read is skipped and recorded in ``losses`` (counts from its index)."""
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
 
-        def read(group: list[int]) -> tuple[list[RawBatch], list]:
-            return self._read_group(group, wanted, losses is not None)
+        def read(group: list[tuple[int, bytes]], lost: list | None) -> list[RawBatch]:
+            return self._read_group(group, wanted, lost)
 
         yield from _decoded_groups(read, self._groups(group_bytes or GROUP_BYTES), losses)
 
-    def _groups(self, group_bytes: int) -> Iterator[list[int]]:
-        """Positions of consecutive chunks, up to ``group_bytes`` of records (the sizes their
-        headers give) a group."""
-        group: list[int] = []
+    def _groups(self, group_bytes: int) -> Iterator[list[tuple[int, bytes]]]:
+        """Consecutive chunks, each as its position and the first bytes there (its header, read
+        once here), up to ``group_bytes`` of records (the sizes their headers give) a group."""
+        group: list[tuple[int, bytes]] = []
         size = 0
         for chunk_pos in self.chunk_positions:
-            group.append(chunk_pos)
+            head = _pread(self.handle, chunk_pos, 4096)
+            group.append((chunk_pos, head))
             try:
-                fields, _ = _ros1_header(_pread(self.handle, chunk_pos, 4096), 0)
+                fields, _ = _ros1_header(head, 0)
                 size += struct.unpack("<I", fields["size"])[0]
             except Exception:  # noqa: BLE001, S110 - damage: met again, and recorded, where it is read
                 pass
@@ -644,30 +646,28 @@ class Ros1Bag:
         if group:
             yield group
 
-    def _read_group(self, group: list[int], wanted: dict[int, str], keep_going: bool) -> tuple[list[RawBatch], list]:
-        """The decoded batches of a group of chunks, and what of it was lost (raised unless
-        ``keep_going``)."""
+    def _read_group(self, group: list[tuple[int, bytes]], wanted: dict[int, str], losses: list | None) -> list[RawBatch]:
+        """The raw batches of a group of chunks; a chunk that cannot be read is recorded in
+        ``losses`` (raised where that is None)."""
         from imucal_cli.io.salvage import Loss
 
-        lost: list = []
         pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
-        for chunk_pos in group:
+        for chunk_pos, head in group:
             try:
-                chunk = self._read_chunk(chunk_pos, wanted)
+                chunk = self._read_chunk(chunk_pos, wanted, head)
                 if chunk is not None:
                     pending.append(chunk)
             except _ChunkLost as exc:
-                if not keep_going:
+                if losses is None:
                     raise ValueError(exc.reason) from None
-                lost.append(Loss(f"chunk that cannot be read ({exc.reason})", chunk_pos, exc.nbytes, exc.start_ns, exc.end_ns, exc.counts))
+                losses.append(Loss(f"chunk that cannot be read ({exc.reason})", chunk_pos, exc.nbytes, exc.start_ns, exc.end_ns, exc.counts))
             except Exception as exc:  # noqa: BLE001 - a damaged chunk header or index
-                if not keep_going:
+                if losses is None:
                     raise
-                lost.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
+                losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
         if not pending:
-            return [], lost
-        buffer, positions = self._joined(pending)
-        return _with_decoded(self._group(buffer, positions, wanted)), lost
+            return []
+        return list(self._group(*self._joined(pending), wanted))
 
     @staticmethod
     def _joined(pending: list[tuple[bytes, dict[int, np.ndarray]]]) -> tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]:
@@ -705,10 +705,10 @@ class Ros1Bag:
             data_len = _gather(buffer, offset + 4 + header_len, 4, "<u4").ravel().astype(np.int64)
             yield RawBatch(topic, "ros1", buffer, offset + 8 + header_len, data_len, log_ns)
 
-    def _read_chunk(self, chunk_pos: int, wanted: dict[int, str]) -> tuple[bytes, dict[int, np.ndarray]] | None:
+    def _read_chunk(self, chunk_pos: int, wanted: dict[int, str], head: bytes) -> tuple[bytes, dict[int, np.ndarray]] | None:
         """One chunk's decompressed records and, per wanted connection, its index entries
-        (positioned reads: threads read chunks side by side)."""
-        head = _pread(self.handle, chunk_pos, 4096)
+        (positioned reads: threads read chunks side by side); ``head`` is the first 4096 bytes
+        at ``chunk_pos`` (its header), read when the groups were made."""
         fields, pos = _ros1_header(head, 0)
         compression = fields["compression"].decode()
         size = struct.unpack("<I", fields["size"])[0]
