@@ -217,6 +217,9 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=5, help="runs of floor and decode (the fastest is reported)")
     parser.add_argument("--calibrate-repeat", type=int, default=3, help="runs of calibrate (the fastest time and the largest peak RSS are reported)")
     args = parser.parse_args()
+    from imucal_cli.parallel import reuse_freed_memory
+
+    reuse_freed_memory()  # floor and decode run here with the allocator set as `imucal` sets it
     from imucal_cli.config import load_config
 
     rows = []

@@ -69,6 +69,9 @@ def _root(
     ] = False,
 ) -> None:
     """Calibrate the extrinsics of every lidar on a vehicle from raw IMU signals alone."""
+    from imucal_cli.parallel import reuse_freed_memory
+
+    reuse_freed_memory()  # before the log reader and the math worker are forked
 
 
 # --------------------------------------------------------------------------- output helpers

@@ -248,3 +248,60 @@ def test_fast_path_reads_mcap_chunks_of_every_compression(tmp_path, compression,
     with open_log(path) as log:
         assert log.fast_batches(list(topics)) is not None
     _same(read_imu(path, list(topics)), read_imu(path, list(topics), fast=False))
+
+
+def _write_ros1_bag(path, frame_ids_by_topic, count, rng):
+    """A ROS 1 bag (lz4 chunks of about 4 KiB) with ``count`` Imu messages a topic at 100 Hz,
+    topic ``k``'s message ``i`` with frame id ``frame_ids_by_topic[k][i % len(...)]``, and a
+    String topic in between."""
+    from rosbags.rosbag1 import Writer
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    messages = _messages(store, True, rng, count)
+    writer = Writer(path)
+    writer.set_compression(Writer.CompressionFormat.LZ4)
+    writer.chunk_threshold = 4096
+    with writer:
+        imus = [writer.add_connection(f"/imu{k}", IMU, typestore=store) for k in range(len(frame_ids_by_topic))]
+        chatter = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
+        for i, msg in enumerate(messages):
+            msg.header.stamp = store.types["builtin_interfaces/msg/Time"](sec=1 + i // 100, nanosec=10_000_000 * (i % 100))
+            vec = store.types["geometry_msgs/msg/Vector3"]
+            msg.angular_velocity, msg.linear_acceleration = vec(*rng.normal(size=3)), vec(*rng.normal(size=3) * 5.0)  # plausible: kept
+            for k, (connection, frames) in enumerate(zip(imus, frame_ids_by_topic, strict=True)):
+                msg.header.frame_id = frames[i % len(frames)]
+                writer.write(connection, 1_000_000_000 + 10_000_000 * i + k, bytes(store.serialize_ros1(msg, IMU)))
+            writer.write(chatter, 1_000_000_000 + 10_000_000 * i + 5, bytes(store.serialize_ros1(store.types["std_msgs/msg/String"](data="x" * (i % 7)), "std_msgs/msg/String")))
+    return [f"/imu{k}" for k in range(len(frame_ids_by_topic))]
+
+
+@pytest.mark.parametrize("frame_ids", [[["imu"], ["front_left_top_imu"]], [["imu"], ["a", "base_link", ""]]])
+def test_ros1_bags_with_many_small_chunks_equal_the_generic_path(tmp_path, monkeypatch, frame_ids):
+    """Many chunks a group, a String topic between the IMU ones, one frame id a topic or
+    several of different lengths (their records then differ in size): the generic path's
+    result bit for bit, the topic's frame id the first message's."""
+    monkeypatch.setattr("imucal_cli.io.fastimu.GROUP_BYTES", 16384)
+    path = tmp_path / "log.bag"
+    topics = _write_ros1_bag(path, frame_ids, 300, np.random.default_rng(4))
+    fast = read_imu(path, topics)
+    _same(fast, read_imu(path, topics, fast=False))
+    assert [len(fast[t].stream.t_ns) for t in topics] == [300, 300]
+    assert [fast[t].stream.frame_id for t in topics] == [frames[0] for frames in frame_ids]
+
+
+def test_ros1_index_larger_than_expected_is_read_on(tmp_path, monkeypatch):
+    """A chunk's index data is read with the chunk, as much as its chunk info says; where it is
+    longer (or the estimate wrong), the rest is read after: the same messages."""
+    from imucal_cli.io import fastimu
+
+    path = tmp_path / "log.bag"
+    topics = _write_ros1_bag(path, [["imu"], ["lidar_imu"]], 200, np.random.default_rng(6))
+    expected = read_imu(path, topics)
+    init = fastimu.Ros1Bag.__init__
+
+    def no_estimate(self, handle):
+        init(self, handle)
+        self.index_bytes = [0] * len(self.index_bytes)
+
+    monkeypatch.setattr(fastimu.Ros1Bag, "__init__", no_estimate)
+    _same(read_imu(path, topics), expected)

@@ -41,6 +41,8 @@ _CDR_HEAD = np.dtype(
     [("encapsulation", "<u2"), ("options", "<u2"), ("sec", "<i4"), ("nsec", "<u4"), ("frame_len", "<u4")]
 )
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
+#: An entry of a ROS 1 index data record: a message's receive time and offset in its chunk.
+_ROS1_INDEX_ENTRY = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])
 #: Bytes of decompressed chunks decoded together.
 GROUP_BYTES = 16 << 20
 #: Groups of chunks (or of sqlite3 rows) read ahead of the one being consumed, beyond one
@@ -209,27 +211,38 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
         used = head if all_ok else head[index]
         stamp = used["sec"].astype(np.int64) * 1_000_000_000 + used["nsec"]
         at = floats_abs if all_ok else floats_abs[index]
-        gyro = _gather(buf, at + _GYRO_AFTER_FRAME, 24, "<f8")
-        accel = _gather(buf, at + _ACCEL_AFTER_FRAME, 24, "<f8")
+        # one gather from the angular velocity to the end of the acceleration (the 72 bytes of
+        # covariance between them come along) fetches each message's cache lines once, not
+        # twice: a quarter less time than two gathers; the columns are then made contiguous
+        both = _gather(buf, at + _GYRO_AFTER_FRAME, _ACCEL_AFTER_FRAME + 24 - _GYRO_AFTER_FRAME, "<f8")
+        gyro = np.ascontiguousarray(both[:, 0:3])
+        accel = np.ascontiguousarray(both[:, (_ACCEL_AFTER_FRAME - _GYRO_AFTER_FRAME) // 8 :])
         lengths_used = frame_chars if all_ok else frame_chars[index]
         groups = [lengths_used[0]] if lengths_used.min() == lengths_used.max() else np.unique(lengths_used)
+        found: list[tuple[int, np.ndarray]] = []  # (first message seen with it, frame id bytes)
         for length in groups:
             group = index if len(groups) == 1 else index[lengths_used == length]
             if length == 0:
-                rows = [np.zeros(0, dtype=np.uint8)]
+                found.append((int(group[0]), np.zeros(0, dtype=np.uint8)))
+                continue
+            # frame ids are metadata, not measurements: an even sample of the messages is read
+            sample = group[:: max(1, len(group) // FRAME_ID_SAMPLES)]
+            names = _gather(buf, frame_start[sample], int(length), "u1").reshape(len(sample), -1)
+            # one frame id per topic is the rule: check it cheaply, sort only otherwise
+            if np.all(names == names[0]):
+                found.append((int(sample[0]), names[0]))
             else:
-                # frame ids are metadata, not measurements: an even sample of the messages is read
-                sample = group[:: max(1, len(group) // FRAME_ID_SAMPLES)]
-                names = _gather(buf, frame_start[sample], int(length), "u1").reshape(len(sample), -1)
-                # one frame id per topic is the rule: check it cheaply, sort only otherwise
-                rows = [names[0]] if np.all(names == names[0]) else list(np.unique(names, axis=0))
-            for row in rows:
-                try:
-                    name = bytes(row).decode("utf-8")
-                except UnicodeDecodeError:
-                    name = bytes(row).decode("latin-1")
-                if name not in frame_ids:
-                    frame_ids.append(name)
+                unique, first = np.unique(names, axis=0, return_index=True)
+                found.extend(zip(sample[first].tolist(), unique, strict=True))
+        # in the order the messages have them, as the generic path finds them (the first
+        # message is always read: the topic's frame id is its)
+        for _, row in sorted(found, key=lambda item: item[0]):
+            try:
+                name = bytes(row).decode("utf-8")
+            except UnicodeDecodeError:
+                name = bytes(row).decode("latin-1")
+            if name not in frame_ids:
+                frame_ids.append(name)
     return DecodedBatch(
         batch.topic,
         stamp,
@@ -594,6 +607,9 @@ class Ros1Bag:
         self.types: dict[int, str] = {}
         self.counts: dict[int, int] = {}
         self.chunk_positions: list[int] = []
+        #: Per chunk: an upper bound of the bytes of the index data records after it (from
+        #: the message counts of its chunk info), read with the chunk in one go.
+        self.index_bytes: list[int] = []
         while pos < len(index):
             fields, pos = _ros1_header(index, pos)
             (data_len,) = struct.unpack_from("<I", index, pos)
@@ -608,6 +624,8 @@ class Ros1Bag:
             elif op == 0x06:  # chunk info: position, then (connection, count) pairs
                 self.chunk_positions.append(struct.unpack("<Q", fields["chunk_pos"])[0])
                 pairs = np.frombuffer(data, dtype="<u4").reshape(-1, 2)
+                # per connection: its record's header (about 50 bytes), data length, entries
+                self.index_bytes.append(int(pairs[:, 1].astype(np.int64).sum()) * _ROS1_INDEX_ENTRY.itemsize + 128 * len(pairs))
                 for conn, count in pairs.tolist():
                     self.counts[conn] = self.counts.get(conn, 0) + count
         if len(self.topics) != self.conn_count or len(self.chunk_positions) != self.chunk_count:
@@ -627,14 +645,15 @@ class Ros1Bag:
 
         yield from _decoded_groups(read, self._groups(group_bytes or GROUP_BYTES), losses)
 
-    def _groups(self, group_bytes: int) -> Iterator[list[tuple[int, bytes]]]:
-        """Consecutive chunks, each as its position and the first bytes there (its header, read
-        once here), up to ``group_bytes`` of records (the sizes their headers give) a group."""
-        group: list[tuple[int, bytes]] = []
+    def _groups(self, group_bytes: int) -> Iterator[list[tuple[int, bytes, int]]]:
+        """Consecutive chunks, each as its position, the first bytes there (its header, read
+        once here) and the size of its index data, up to ``group_bytes`` of records (the sizes
+        their headers give) a group."""
+        group: list[tuple[int, bytes, int]] = []
         size = 0
-        for chunk_pos in self.chunk_positions:
+        for chunk_pos, index_bytes in zip(self.chunk_positions, self.index_bytes, strict=True):
             head = _pread(self.handle, chunk_pos, 4096)
-            group.append((chunk_pos, head))
+            group.append((chunk_pos, head, index_bytes))
             try:
                 fields, _ = _ros1_header(head, 0)
                 size += struct.unpack("<I", fields["size"])[0]
@@ -646,15 +665,15 @@ class Ros1Bag:
         if group:
             yield group
 
-    def _read_group(self, group: list[tuple[int, bytes]], wanted: dict[int, str], losses: list | None) -> list[RawBatch]:
+    def _read_group(self, group: list[tuple[int, bytes, int]], wanted: dict[int, str], losses: list | None) -> list[RawBatch]:
         """The raw batches of a group of chunks; a chunk that cannot be read is recorded in
         ``losses`` (raised where that is None)."""
         from imucal_cli.io.salvage import Loss
 
         pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
-        for chunk_pos, head in group:
+        for chunk_pos, head, index_bytes in group:
             try:
-                chunk = self._read_chunk(chunk_pos, wanted, head)
+                chunk = self._read_chunk(chunk_pos, wanted, head, index_bytes)
                 if chunk is not None:
                     pending.append(chunk)
             except _ChunkLost as exc:
@@ -705,36 +724,47 @@ class Ros1Bag:
             data_len = _gather(buffer, offset + 4 + header_len, 4, "<u4").ravel().astype(np.int64)
             yield RawBatch(topic, "ros1", buffer, offset + 8 + header_len, data_len, log_ns)
 
-    def _read_chunk(self, chunk_pos: int, wanted: dict[int, str], head: bytes) -> tuple[bytes, dict[int, np.ndarray]] | None:
+    def _read_chunk(self, chunk_pos: int, wanted: dict[int, str], head: bytes, index_bytes: int) -> tuple[bytes, dict[int, np.ndarray]] | None:
         """One chunk's decompressed records and, per wanted connection, its index entries
         (positioned reads: threads read chunks side by side); ``head`` is the first 4096 bytes
-        at ``chunk_pos`` (its header), read when the groups were made."""
+        at ``chunk_pos`` (its header), read when the groups were made; ``index_bytes`` what the
+        index data records after the chunk are expected to take (read with it)."""
         fields, pos = _ros1_header(head, 0)
         compression = fields["compression"].decode()
         size = struct.unpack("<I", fields["size"])[0]
         (data_len,) = struct.unpack_from("<I", head, pos)
-        compressed = _pread(self.handle, chunk_pos + pos + 4, data_len)
+        start = chunk_pos + pos + 4
+        raw = _pread(self.handle, start, data_len + index_bytes)
+
+        def have(end: int) -> bool:
+            """Whether ``raw`` reaches ``end``, read further if it does not yet."""
+            nonlocal raw
+            if end > len(raw) and len(raw) >= data_len:  # an index larger than expected
+                raw += _pread(self.handle, start + len(raw), end - len(raw) + 4096)
+            return end <= len(raw)
+
         # index data records follow the chunk, one per connection in it
         positions: dict[int, np.ndarray] = {}
-        start = chunk_pos + pos + 4 + data_len
-        while True:
-            probe = _pread(self.handle, start, 4096)
-            if len(probe) < 8:
+        at = data_len
+        while have(at + 8):
+            (header_len,) = struct.unpack_from("<I", raw, at)
+            if header_len > 4096 or not have(at + 8 + header_len):
                 break
             try:
-                fields, pos = _ros1_header(probe, 0)
+                fields, pos = _ros1_header(raw, at)
             except struct.error:
                 break
             if fields.get("op", b"\x00")[0] != 0x04:
                 break
             conn = struct.unpack("<I", fields["conn"])[0]
             count = struct.unpack("<I", fields["count"])[0]
-            (dlen,) = struct.unpack_from("<I", probe, pos)
+            (dlen,) = struct.unpack_from("<I", raw, pos)
             if conn in wanted:
-                raw = probe[pos + 4 : pos + 4 + dlen] if pos + 4 + dlen <= len(probe) else _pread(self.handle, start + pos + 4, dlen)
-                entries = np.frombuffer(raw, dtype=np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")]), count=count)
+                have(pos + 4 + dlen)
+                entries = np.frombuffer(raw[pos + 4 : pos + 4 + dlen], dtype=_ROS1_INDEX_ENTRY, count=count)
                 positions[conn] = entries
-            start += pos + 4 + dlen
+            at = pos + 4 + dlen
+        compressed = memoryview(raw)[:data_len]
         if not positions:
             return None
         try:
