@@ -129,3 +129,25 @@ def test_version_and_help():
     assert result.exit_code == 0 and "imucal" in result.stdout
     for command in ("inspect", "simulate", "check-config"):
         assert runner.invoke(app, [command, "--help"]).exit_code == 0
+
+
+def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_whole(tmp_path, short_drive):
+    """``main`` ends the process itself once the command is done (no interpreter teardown):
+    the output file is whole, what was printed reaches a pipe, and the exit code is the
+    command's (0, 2 on bad input)."""
+    import subprocess
+    import sys
+
+    from imucal_cli.io.reports import write_document
+    from imucal_cli.io.writers import write_imu_log
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    write_document(tmp_path / "c.yaml", short_drive.config_document())
+    command = [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml")]
+    written = subprocess.run([*command, "-o", str(tmp_path / "e.json")], capture_output=True, timeout=300)
+    assert written.returncode == 0, written.stderr
+    printed = subprocess.run([*command, "--json"], capture_output=True, timeout=300)
+    assert printed.returncode == 0, printed.stderr
+    assert json.loads(printed.stdout) == json.loads((tmp_path / "e.json").read_text())
+    bad = subprocess.run([*command[:-1], str(tmp_path / "missing.yaml")], capture_output=True, timeout=300)
+    assert bad.returncode == 2 and b"missing.yaml" in bad.stderr and b"Traceback" not in bad.stderr
