@@ -164,7 +164,10 @@ except SystemExit as exc:
 own = resource.getrusage(resource.RUSAGE_SELF)
 summed = own.ru_maxrss + sum(peaks.values())
 children = list(cpu.values()) + [0.0, 0.0]  # the log reader forked first, then the math worker
-print(max(together[0], own.ru_maxrss), summed, own.ru_utime + own.ru_stime, children[0], sum(children[1:]), file=open(sys.argv[-1] + ".rss", "w"))
+with open(sys.argv[-1] + ".rss", "w") as stats:
+    print(max(together[0], own.ru_maxrss), summed, own.ru_utime + own.ru_stime, children[0], sum(children[1:]), file=stats)
+from imucal_cli.cli import _end
+_end(0)  # as the imucal command ends
 """
 
 

@@ -748,8 +748,8 @@ def _end(code: int) -> None:
     The interpreter's own teardown would free every object of numpy, scipy, Rich and the rest
     one by one: 0.2 s of CPU on every run, measured with ``strace`` after ``calibrate`` (from
     the last exit handler to the process's end), that nothing needs. The exit handlers still
-    run (``atexit``: multiprocessing's, logging's), and where some other thread still runs,
-    the interpreter is left to wait for it as usual.
+    run (``atexit``: multiprocessing's, logging's), and where a thread the interpreter would
+    wait for still runs (not a daemon), it is left to wait for it as usual.
 
     It also ends a Ctrl-C (exit 130) that CPython 3.11 would end otherwise: the interpreter
     takes a Ctrl-C that passed through an exec() of a string (scipy's imports run some) for an
@@ -759,7 +759,8 @@ def _end(code: int) -> None:
     import os
     import threading
 
-    if threading.active_count() > 1 and code != EXIT_INTERRUPTED:
+    waited_for = [t for t in threading.enumerate() if not t.daemon and t is not threading.main_thread()]
+    if waited_for and code != EXIT_INTERRUPTED:
         raise SystemExit(code)
     atexit._run_exitfuncs()  # noqa: SLF001 - what the teardown would run first
     for stream in (sys.stdout, sys.stderr):
