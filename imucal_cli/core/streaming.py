@@ -300,30 +300,36 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     Sw, Sdw = skew(w_raw), skew(dw_raw)
     columns = [values, first, ddw_raw, _upper(skew_squared(w_raw)), _upper(Sdw @ Sw + Sw @ Sdw)]
     names = [name for name in job.samples if name != job.base_name]
-    sensors, sensor_columns = {}, []
-    for name in names:
+    # one zero-phase low-pass for every term of every equation (linear filters commute);
+    # the symmetric 3x3 terms are filtered by their upper triangles
+    rows = lp(np.hstack(columns))[n_pad : n_pad + n_block]
+    t_rows = grid[n_pad : n_pad + n_block]
+    # every data vector of the block side by side, so that each window's moments are one
+    # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, 1, u], each
+    # column written once into X (the sensors' columns at the end)
+    n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
+    X = np.empty((n_block, n_g + n_a + 6 * len(names)))
+    w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
+    X[:, 0:3], X[:, 3:6], X[:, 6], X[:, 7] = w, dw, 1.0, 0.0
+    X[:, 8:11], X[:, 11:14], X[:, 32] = f, df, 1.0
+    # vec A = vec([w]x^2 + [dw]x) (column-major), from the symmetric part's upper triangle and
+    # the skew part (eq. 12); vec dA likewise from ([dw]x[w]x + [w]x[dw]x) and [ddw]x
+    for at, packed, spin in ((14, 15, dw), (23, 21, ddw)):
+        skew_part = skew(spin)
+        for r in range(3):
+            for c in range(3):
+                np.add(rows[:, packed + _FROM_UPPER[3 * r + c]], skew_part[:, r, c], out=X[:, at + r + 3 * c])
+    # each window's rows in the block
+    at = [(int(round((start - block_start) * rate)), int(round((end - start) * rate))) for _, start, end in spans]
+    for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
+        X[i0 : i0 + n_win, 7] = (t_rows[i0 : i0 + n_win] - start) / job.window_s
+    X[:, 33] = X[:, 7]
+    sensors = {}
+    for k, name in enumerate(names):
         tau, t_s, both_s = job.samples[name]
         # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
         sensors[name] = _Spline(t_s, both_s, rate, smooth=lp)
-        sensor_columns.append(sensors[name](grid + tau)[0])
-    # one zero-phase low-pass for every term of every equation (linear filters commute);
-    # the symmetric 3x3 terms are filtered by their upper triangles
-    filtered = np.hstack([_unpack_symmetric(lp(np.hstack(columns)), 15), *sensor_columns])
-    # every data vector of the block side by side, so that each window's moments are one
-    # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, 1, u]
-    rows = filtered[n_pad : n_pad + n_block]
-    t_rows = grid[n_pad : n_pad + n_block]
-    w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
-    A = rows[:, 15:24].reshape(-1, 3, 3) + skew(dw)
-    A_dot = rows[:, 24:33].reshape(-1, 3, 3) + skew(ddw)
-    # each window's rows in the block
-    at = [(int(round((start - block_start) * rate)), int(round((end - start) * rate))) for _, start, end in spans]
-    u = np.empty((len(rows), 1))
-    for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
-        u[i0 : i0 + n_win, 0] = (t_rows[i0 : i0 + n_win] - start) / job.window_s
-    ones = np.ones((len(rows), 1))
-    X = np.hstack([w, dw, ones, u, f, df, _vec(A), _vec(A_dot), ones, u, rows[:, 33:]])
-    n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
+        X[:, n_g + n_a + 6 * k : n_g + n_a + 6 * k + 6] = sensors[name](t_rows + tau)[0]
     # where each stream has data (no gap), once for the block
     base_covered = base.covered(t_rows)
     sensor_covered = {name: sensors[name].covered(t_rows + job.samples[name][0]) for name in names}
