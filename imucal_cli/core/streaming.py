@@ -87,6 +87,12 @@ class _Buffer:
     first_ns: int | None = None
     last_ns: int | None = None
     duplicates: int = 0
+    sorted: bool = True  # as cleaned() left it: one array, strictly increasing
+
+    def append(self, t_ns: np.ndarray, both: np.ndarray) -> None:
+        self.t_ns.append(t_ns)
+        self.both.append(both)
+        self.sorted = False
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         if len(self.t_ns) > 1:
@@ -102,10 +108,16 @@ class _Buffer:
         t, both, removed = _clean(t, both)
         self.t_ns, self.both = [t], [both]
         self.duplicates += removed
+        self.sorted = True
         return t, both
 
     def drop_before(self, t_min_ns: int) -> None:
         t, both = self.arrays()
+        if self.sorted:  # what is kept is a slice (views: the next concatenation copies them)
+            first = int(np.searchsorted(t, t_min_ns, side="left"))
+            if first:
+                self.t_ns, self.both = [t[first:]], [both[first:]]
+            return
         keep = t >= t_min_ns
         if not keep.all():
             self.t_ns, self.both = [t[keep]], [both[keep]]
@@ -404,8 +416,7 @@ class StreamingCalibrator:
         t_ns = np.asarray(t_ns, dtype=np.int64)
         buffer.first_ns = int(t_ns.min()) if buffer.first_ns is None else min(buffer.first_ns, int(t_ns.min()))
         buffer.last_ns = int(t_ns.max()) if buffer.last_ns is None else max(buffer.last_ns, int(t_ns.max()))
-        buffer.t_ns.append(t_ns)
-        buffer.both.append(np.hstack([np.asarray(gyro, dtype=np.float64).reshape(-1, 3), np.asarray(accel, dtype=np.float64).reshape(-1, 3)]))
+        buffer.append(t_ns, np.hstack([np.asarray(gyro, dtype=np.float64).reshape(-1, 3), np.asarray(accel, dtype=np.float64).reshape(-1, 3)]))
         if self.t_ref_ns is None and all(b.first_ns is not None for b in self.buffers.values()):
             self.t_ref_ns = max(int(b.first_ns) for b in self.buffers.values())  # type: ignore[arg-type]
         return self.process()
@@ -544,9 +555,9 @@ class StreamingCalibrator:
         samples = {}
         for name, tau in [(self.base_name, 0.0), *((name, self.tau0[name]) for name in self.sensors)]:
             t, both = self.buffers[name].cleaned()
-            t = self._seconds(t)
-            pick = (t >= first_s + tau) & (t <= last_s + tau)
-            samples[name] = (tau, t[pick], both[pick])
+            t = self._seconds(t)  # sorted (cleaned): the samples in the span are a slice
+            a, b = int(np.searchsorted(t, first_s + tau, side="left")), int(np.searchsorted(t, last_s + tau, side="right"))
+            samples[name] = (tau, t[a:b], both[a:b])
         job = _BlockJob(spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after, self.base_name, samples)
         if self.executor is not None and all(pending.done() for pending in self._pending):
             self._pending.append(self.executor.submit(_reduce_block, job))
