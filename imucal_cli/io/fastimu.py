@@ -43,6 +43,8 @@ _CDR_HEAD = np.dtype(
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
 #: An entry of a ROS 1 index data record: a message's receive time and offset in its chunk.
 _ROS1_INDEX_ENTRY = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])
+#: Most bytes of a ROS 1 chunk's index data read together with the chunk.
+_ROS1_MAX_INDEX_READ = 1 << 22
 #: Bytes of decompressed chunks decoded together.
 GROUP_BYTES = 16 << 20
 #: Groups of chunks (or of sqlite3 rows) read ahead of the one being consumed, beyond one
@@ -624,8 +626,10 @@ class Ros1Bag:
             elif op == 0x06:  # chunk info: position, then (connection, count) pairs
                 self.chunk_positions.append(struct.unpack("<Q", fields["chunk_pos"])[0])
                 pairs = np.frombuffer(data, dtype="<u4").reshape(-1, 2)
-                # per connection: its record's header (about 50 bytes), data length, entries
-                self.index_bytes.append(int(pairs[:, 1].astype(np.int64).sum()) * _ROS1_INDEX_ENTRY.itemsize + 128 * len(pairs))
+                # per connection: its record's header (about 50 bytes), data length, entries;
+                # bounded (a damaged count could claim anything: more is read when needed)
+                expected = int(pairs[:, 1].astype(np.int64).sum()) * _ROS1_INDEX_ENTRY.itemsize + 128 * len(pairs)
+                self.index_bytes.append(min(expected, _ROS1_MAX_INDEX_READ))
                 for conn, count in pairs.tolist():
                     self.counts[conn] = self.counts.get(conn, 0) + count
         if len(self.topics) != self.conn_count or len(self.chunk_positions) != self.chunk_count:
