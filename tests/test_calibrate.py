@@ -234,6 +234,31 @@ def test_live_feed_gives_an_estimate_after_every_window_and_the_batch_result():
         assert np.all(np.abs(final[name].T_base_imu.translation - estimate.T_base_imu.translation) < 0.05 * std[3:])
 
 
+def test_a_live_feed_may_reuse_its_buffers_after_each_add():
+    """What add() was given is copied: a caller that refills the same arrays for the next
+    samples (as a driver loop does) gets the estimate of the samples it fed."""
+    from imucal_cli.pipeline import make_calibrator
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=60.0, seed=3))
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    streams = {"base": drive.base.stream, **{m.name: drive.sensors[m.name].stream for m in drive.mounts}}
+    fresh, reused = make_calibrator(config), make_calibrator(config)
+    buffers = {name: (np.empty(50, dtype=np.int64), np.empty((50, 3)), np.empty((50, 3))) for name in streams}
+    for start in range(0, max(len(s.t_ns) for s in streams.values()), 50):
+        for name, s in streams.items():
+            part = slice(start, min(start + 50, len(s.t_ns)))
+            n = part.stop - part.start
+            if n <= 0:
+                continue
+            fresh.add(name, s.t_ns[part].copy(), s.gyro[part].copy(), s.accel[part].copy())
+            t, g, a = buffers[name]
+            t[:n], g[:n], a[:n] = s.t_ns[part], s.gyro[part], s.accel[part]
+            reused.add(name, t[:n], g[:n], a[:n])
+    expected, got = fresh.finish(), reused.finish()
+    for name, estimate in expected.items():
+        assert got[name].T_base_imu.as_matrix().tobytes() == estimate.T_base_imu.as_matrix().tobytes()
+
+
 def test_natural_cubic_spline_interpolates_and_matches_the_b_spline_away_from_the_ends():
     """The tridiagonal natural spline passes through every sample, and where the end conditions
     have died out (a few samples in) it is the not-a-knot B-spline, values and derivatives."""

@@ -413,7 +413,7 @@ class StreamingCalibrator:
         if len(t_ns) == 0:
             return 0
         buffer = self.buffers[imu]
-        t_ns = np.asarray(t_ns, dtype=np.int64)
+        t_ns = np.array(t_ns, dtype=np.int64)  # a copy: a live caller may reuse its buffers
         buffer.first_ns = int(t_ns.min()) if buffer.first_ns is None else min(buffer.first_ns, int(t_ns.min()))
         buffer.last_ns = int(t_ns.max()) if buffer.last_ns is None else max(buffer.last_ns, int(t_ns.max()))
         buffer.append(t_ns, np.hstack([np.asarray(gyro, dtype=np.float64).reshape(-1, 3), np.asarray(accel, dtype=np.float64).reshape(-1, 3)]))
