@@ -178,10 +178,14 @@ def test_planar_motion_leaves_height_unobservable():
         assert np.all(np.abs(estimate.T_base_imu.translation[:2] - mount.T_base_imu.translation[:2]) < 4 * estimate.translation_std_m[:2])
 
 
+def _vec(A):
+    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9), ``A t = (t^T x I) vec A``."""
+    return A.transpose(0, 2, 1).reshape(len(A), 9)
+
+
 def test_window_information_from_moments_equals_the_sample_sums():
     """Segments reduced to moments report the same Fisher information as the sample sums."""
     from imucal_cli.core.segments import window_info, window_infos_from_moments
-    from imucal_cli.core.streaming import _vec
 
     rng = np.random.default_rng(0)
     n = 500
@@ -292,14 +296,18 @@ def test_lowpass_with_a_second_cutoff_is_the_two_filters_in_turn():
 
 
 def test_symmetric_terms_filtered_by_their_upper_triangles_are_the_full_matrices():
+    """What the block reduction builds: vec of (a symmetric term low-passed by its upper
+    triangle, plus a skew part) is vec of the whole matrix low-passed, plus that skew part."""
     from imucal_cli.core.signals import Lowpass
     from imucal_cli.core.so3 import skew, skew_squared
-    from imucal_cli.core.streaming import _unpack_symmetric, _upper
+    from imucal_cli.core.streaming import _upper, _vec_of_sum
 
     rng = np.random.default_rng(7)
     w, dw = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
     Sw, Sdw = skew(w), skew(dw)
-    full = np.hstack([w, skew_squared(w).reshape(-1, 9), (Sdw @ Sw + Sw @ Sdw).reshape(-1, 9), dw])
-    packed = np.hstack([w, _upper(skew_squared(w)), _upper(Sdw @ Sw + Sw @ Sdw), dw])
     lp = Lowpass(5.0, 100.0)
-    np.testing.assert_allclose(_unpack_symmetric(lp(packed), 3), lp(full), rtol=0, atol=1e-12)
+    for term in (skew_squared(w), Sdw @ Sw + Sw @ Sdw):
+        full = lp(term.reshape(-1, 9)).reshape(-1, 3, 3) + skew(dw)
+        got = np.empty((300, 9))
+        _vec_of_sum(lp(_upper(term)), skew(dw), got)
+        np.testing.assert_allclose(got, _vec(full), rtol=0, atol=1e-12)

@@ -258,15 +258,13 @@ def _upper(S: np.ndarray) -> np.ndarray:
     return S[:, _UPPER_3[0], _UPPER_3[1]]
 
 
-def _unpack_symmetric(columns: np.ndarray, at: int) -> np.ndarray:
-    """Columns ``at..at+12`` hold two packed symmetric 3x3 matrices: expand them to 9 each."""
-    head, first, second = columns[:, :at], columns[:, at : at + 6], columns[:, at + 6 : at + 12]
-    return np.hstack([head, first[:, _FROM_UPPER], second[:, _FROM_UPPER], columns[:, at + 12 :]])
-
-
-def _vec(A: np.ndarray) -> np.ndarray:
-    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9), ``A t = (t^T x I) vec A``."""
-    return A.transpose(0, 2, 1).reshape(len(A), 9)
+def _vec_of_sum(upper: np.ndarray, antisymmetric: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (n, 9) = the column-major vec of ``S + K`` (``A t = (t^T x I) vec A``), with
+    ``S`` symmetric given by its upper triangle (n, 6) and ``K`` (n, 3, 3) antisymmetric: one
+    column at a time, straight into ``out``."""
+    for r in range(3):
+        for c in range(3):
+            np.add(upper[:, _FROM_UPPER[3 * r + c]], antisymmetric[:, r, c], out=out[:, r + 3 * c])
 
 
 @dataclass
@@ -326,11 +324,8 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     X[:, 8:11], X[:, 11:14], X[:, 32] = f, df, 1.0
     # vec A = vec([w]x^2 + [dw]x) (column-major), from the symmetric part's upper triangle and
     # the skew part (eq. 12); vec dA likewise from ([dw]x[w]x + [w]x[dw]x) and [ddw]x
-    for at, packed, spin in ((14, 15, dw), (23, 21, ddw)):
-        skew_part = skew(spin)
-        for r in range(3):
-            for c in range(3):
-                np.add(rows[:, packed + _FROM_UPPER[3 * r + c]], skew_part[:, r, c], out=X[:, at + r + 3 * c])
+    _vec_of_sum(rows[:, 15:21], skew(dw), X[:, 14:23])
+    _vec_of_sum(rows[:, 21:27], skew(ddw), X[:, 23:32])
     # each window's rows in the block
     at = [(int(round((start - block_start) * rate)), int(round((end - start) * rate))) for _, start, end in spans]
     for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):

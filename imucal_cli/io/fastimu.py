@@ -644,7 +644,7 @@ class Ros1Bag:
         A chunk that cannot be read is skipped and recorded in ``losses`` (counts from its index)."""
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
 
-        def read(group: list[tuple[int, bytes]], lost: list | None) -> list[RawBatch]:
+        def read(group: list[tuple[int, bytes, int]], lost: list | None) -> list[RawBatch]:
             return self._read_group(group, wanted, lost)
 
         yield from _decoded_groups(read, self._groups(group_bytes or GROUP_BYTES), losses)
