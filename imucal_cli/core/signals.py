@@ -13,6 +13,7 @@ bias even on noise-free data.)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import scipy.fft
@@ -29,6 +30,7 @@ class TooLittleData(ImucalError):
     """Not enough samples to calibrate."""
 
 
+@lru_cache(maxsize=256)
 def _fast_length(n: int) -> int:
     """The smallest 2^a 3^b 5^c >= n (an FFT size numpy transforms quickly)."""
     best = 1 << (n - 1).bit_length()
@@ -79,29 +81,36 @@ class Lowpass:
         pad = min(self.pad, n - 1)
         m = n + 2 * pad
         size = _fast_length(m + pad)
-        # one buffer, time along the last (contiguous) axis: the signal, its point reflections
-        # at both ends (as filtfilt pads), then zeros up to the transform's length
-        extended = np.empty((x[0].size, size))
-        extended[:, pad : pad + n] = x.reshape(n, -1).T
-        first, last = extended[:, pad : pad + 1], extended[:, pad + n - 1 : pad + n]
-        np.subtract(2.0 * first, extended[:, 2 * pad : pad : -1], out=extended[:, :pad])
-        np.subtract(2.0 * last, extended[:, pad + n - 2 : n - 2 : -1], out=extended[:, pad + n : m])
+        columns = x.reshape(n, -1).T  # time along the last axis (a view)
+        # The signal extended by point reflections at both ends (as filtfilt pads) less the line
+        # through the extension's two ends, which the filter passes unchanged: without it the
+        # periodic FFT would see a jump where the ends meet. (Point reflection commutes with
+        # subtracting a line, so the line is taken off the signal first and the reflections
+        # made of what is left.)
+        first = 2.0 * columns[:, 0] - columns[:, pad]  # the extension's ends
+        last = 2.0 * columns[:, n - 1] - columns[:, n - 1 - pad]
+        line = np.multiply.outer(last - first, np.linspace(0.0, 1.0, m)[pad : pad + n])
+        line += first[:, None]  # the line at the signal's own samples
+        # one buffer: the reflections, the signal, the reflections, then zeros up to the
+        # transform's length
+        extended = np.empty((len(columns), size))
+        np.subtract(columns, line, out=extended[:, pad : pad + n])
+        ends = extended[:, pad : pad + 1], extended[:, pad + n - 1 : pad + n]
+        np.subtract(2.0 * ends[0], extended[:, 2 * pad : pad : -1], out=extended[:, :pad])
+        np.subtract(2.0 * ends[1], extended[:, pad + n - 2 : n - 2 : -1], out=extended[:, pad + n : m])
         extended[:, m:] = 0.0
-        # The line through both ends passes the filter unchanged; without it the periodic FFT
-        # sees a jump where the ends meet.
-        line = extended[:, :1] + (extended[:, m - 1 : m] - extended[:, :1]) * np.linspace(0.0, 1.0, m)
-        extended[:, :m] -= line
         spectrum = scipy.fft.rfft(extended, axis=1, overwrite_x=True)
-        spectrum *= self.gain(scipy.fft.rfftfreq(size, d=1.0 / self.rate_hz))
+        spectrum *= _response(self, size)
         filtered = scipy.fft.irfft(spectrum, n=size, axis=1, overwrite_x=True)[:, pad : pad + n]
-        filtered += line[:, pad : pad + n]
-        return np.ascontiguousarray(filtered.T).reshape(shape)
+        out = np.empty((n, len(columns)))
+        np.add(filtered.T, line.T, out=out)  # the line back, time along axis 0 again
+        return out.reshape(shape)
 
     def gain(self, freq_hz: np.ndarray) -> np.ndarray:
         """The filter's (real, zero-phase) frequency response."""
-        gain = 1.0 / (1.0 + (freq_hz / self.cutoff_hz) ** (2 * self.order))
+        gain = 1.0 / (1.0 + _even_power(freq_hz / self.cutoff_hz, self.order))
         if self.second_cutoff_hz is not None:
-            gain /= 1.0 + (freq_hz / self.second_cutoff_hz) ** (2 * self.order)
+            gain /= 1.0 + _even_power(freq_hz / self.second_cutoff_hz, self.order)
         return gain
 
     def white_noise_gain(self) -> float:
@@ -112,6 +121,25 @@ class Lowpass:
         impulse = np.zeros(n)
         impulse[n // 2] = 1.0
         return float(np.sum(self(impulse) ** 2))
+
+
+def _even_power(ratio: np.ndarray, order: int) -> np.ndarray:
+    """``ratio ** (2 order)`` by multiplication (``**`` with a general exponent is several
+    times slower)."""
+    squared = np.square(ratio)
+    power = squared.copy()
+    for _ in range(order - 1):
+        power *= squared
+    return power
+
+
+@lru_cache(maxsize=64)
+def _response(lowpass: Lowpass, size: int) -> np.ndarray:
+    """``lowpass``'s response at the frequencies of a real FFT of ``size`` samples (kept: every
+    block of a calibration filters the same lengths)."""
+    gain = lowpass.gain(scipy.fft.rfftfreq(size, d=1.0 / lowpass.rate_hz))
+    gain.flags.writeable = False
+    return gain
 
 
 def white_noise_std(x: np.ndarray) -> np.ndarray:
