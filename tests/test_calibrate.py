@@ -296,18 +296,24 @@ def test_lowpass_with_a_second_cutoff_is_the_two_filters_in_turn():
 
 
 def test_symmetric_terms_filtered_by_their_upper_triangles_are_the_full_matrices():
-    """What the block reduction builds: vec of (a symmetric term low-passed by its upper
-    triangle, plus a skew part) is vec of the whole matrix low-passed, plus that skew part."""
+    """What the block reduction builds: the upper triangles of ``[w]x^2`` and
+    ``[dw]x[w]x + [w]x[dw]x`` formed element by element are those of the matrix products, and
+    vec of (such a term low-passed by its upper triangle, plus a skew part) is vec of the whole
+    matrix low-passed, plus that skew part."""
     from imucal_cli.core.signals import Lowpass
     from imucal_cli.core.so3 import skew, skew_squared
-    from imucal_cli.core.streaming import _upper, _vec_of_sum
+    from imucal_cli.core.streaming import _upper_symmetric_products, _vec_of_sum
 
     rng = np.random.default_rng(7)
     w, dw = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
     Sw, Sdw = skew(w), skew(dw)
     lp = Lowpass(5.0, 100.0)
-    for term in (skew_squared(w), Sdw @ Sw + Sw @ Sdw):
+    for term, (a, b, half) in ((skew_squared(w), (w, w, 0.5)), (Sdw @ Sw + Sw @ Sdw, (dw, w, 1.0))):
+        upper = np.empty((300, 6))
+        _upper_symmetric_products(a, b, upper)
+        upper *= half
+        np.testing.assert_allclose(upper, term[:, *np.triu_indices(3)], rtol=0, atol=1e-13)
         full = lp(term.reshape(-1, 9)).reshape(-1, 3, 3) + skew(dw)
         got = np.empty((300, 9))
-        _vec_of_sum(lp(_upper(term)), skew(dw), got)
+        _vec_of_sum(lp(upper), dw, got)
         np.testing.assert_allclose(got, _vec(full), rtol=0, atol=1e-12)

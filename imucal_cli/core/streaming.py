@@ -51,7 +51,6 @@ from imucal_cli.core.calibrate import (
 )
 from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
 from imucal_cli.core.signals import Lowpass, TooLittleData, white_noise_std
-from imucal_cli.core.so3 import skew, skew_squared
 from imucal_cli.core.timing import estimate_time_offset
 from imucal_cli.types import Transform
 
@@ -248,23 +247,35 @@ def _noise_density(both: np.ndarray, rate: float) -> tuple[float, float]:
     return g, a
 
 
-_UPPER_3 = np.triu_indices(3)
 #: Column of the packed upper triangle of each entry of a symmetric 3x3 matrix (row-major).
 _FROM_UPPER = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]]).ravel()
+#: Entries of ``[v]x`` off its diagonal: (row, column, sign, component of v).
+_SKEW_ENTRIES = ((0, 1, -1, 2), (0, 2, 1, 1), (1, 0, 1, 2), (1, 2, -1, 0), (2, 0, -1, 1), (2, 1, 1, 0))
 
 
-def _upper(S: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) symmetric -> (n, 6), its upper triangle."""
-    return S[:, _UPPER_3[0], _UPPER_3[1]]
-
-
-def _vec_of_sum(upper: np.ndarray, antisymmetric: np.ndarray, out: np.ndarray) -> None:
-    """``out`` (n, 9) = the column-major vec of ``S + K`` (``A t = (t^T x I) vec A``), with
-    ``S`` symmetric given by its upper triangle (n, 6) and ``K`` (n, 3, 3) antisymmetric: one
-    column at a time, straight into ``out``."""
+def _upper_symmetric_products(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (n, 6) = the upper triangle (row-major: 00 01 02 11 12 22) of
+    ``[a]x[b]x + [b]x[a]x = a b^T + b a^T - 2 (a . b) I`` for stacks (n, 3); with ``a = b``
+    twice ``[a]x^2``. Element by element: no (n, 3, 3) stacks of small products."""
+    dot = np.einsum("ni,ni->n", a, b)
+    k = 0
     for r in range(3):
-        for c in range(3):
-            np.add(upper[:, _FROM_UPPER[3 * r + c]], antisymmetric[:, r, c], out=out[:, r + 3 * c])
+        for c in range(r, 3):
+            np.multiply(a[:, r], b[:, c], out=out[:, k])
+            out[:, k] += a[:, c] * b[:, r]
+            if r == c:
+                out[:, k] -= 2.0 * dot
+            k += 1
+
+
+def _vec_of_sum(upper: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (n, 9) = the column-major vec of ``S + [v]x`` (``A t = (t^T x I) vec A``), with
+    ``S`` symmetric given by its upper triangle (n, 6) and ``v`` (n, 3): one column at a time,
+    straight into ``out``."""
+    for r in range(3):
+        out[:, 4 * r] = upper[:, _FROM_UPPER[4 * r]]  # the diagonal: [v]x has none
+    for r, c, sign, component in _SKEW_ENTRIES:
+        (np.add if sign > 0 else np.subtract)(upper[:, _FROM_UPPER[3 * r + c]], v[:, component], out=out[:, r + 3 * c])
 
 
 @dataclass
@@ -306,13 +317,19 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     _, t_b, both_b = job.samples[job.base_name]
     base = _Spline(t_b, both_b, rate)
     values, first, second = base(grid, 2)
-    w_raw, dw_raw, ddw_raw = values[:, 0:3], first[:, 0:3], second[:, 0:3]
-    Sw, Sdw = skew(w_raw), skew(dw_raw)
-    columns = [values, first, ddw_raw, _upper(skew_squared(w_raw)), _upper(Sdw @ Sw + Sw @ Sdw)]
+    # the terms of the base's side of the equations side by side, each column contiguous (as
+    # the low-pass takes them): [w, f], [dw, df], ddw, and the symmetric 3x3 terms by their
+    # upper triangles, [w]x^2 and [dw]x[w]x + [w]x[dw]x (halved: the sum of a, b and b, a)
+    terms = np.empty((27, len(grid))).T
+    terms[:, 0:6], terms[:, 6:12], terms[:, 12:15] = values, first, second[:, 0:3]
+    w_raw, dw_raw = values[:, 0:3], first[:, 0:3]
+    _upper_symmetric_products(w_raw, w_raw, terms[:, 15:21])
+    terms[:, 15:21] *= 0.5
+    _upper_symmetric_products(dw_raw, w_raw, terms[:, 21:27])
     names = [name for name in job.samples if name != job.base_name]
     # one zero-phase low-pass for every term of every equation (linear filters commute);
     # the symmetric 3x3 terms are filtered by their upper triangles
-    rows = lp(np.hstack(columns))[n_pad : n_pad + n_block]
+    rows = lp(terms)[n_pad : n_pad + n_block]
     t_rows = grid[n_pad : n_pad + n_block]
     # every data vector of the block side by side, so that each window's moments are one
     # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, 1, u], each
@@ -324,8 +341,8 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     X[:, 8:11], X[:, 11:14], X[:, 32] = f, df, 1.0
     # vec A = vec([w]x^2 + [dw]x) (column-major), from the symmetric part's upper triangle and
     # the skew part (eq. 12); vec dA likewise from ([dw]x[w]x + [w]x[dw]x) and [ddw]x
-    _vec_of_sum(rows[:, 15:21], skew(dw), X[:, 14:23])
-    _vec_of_sum(rows[:, 21:27], skew(ddw), X[:, 23:32])
+    _vec_of_sum(rows[:, 15:21], dw, X[:, 14:23])
+    _vec_of_sum(rows[:, 21:27], ddw, X[:, 23:32])
     # each window's rows in the block
     at = [(int(round((start - block_start) * rate)), int(round((end - start) * rate))) for _, start, end in spans]
     for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
