@@ -21,7 +21,8 @@ acceleration is the derivative of the base gyro's interpolating spline, filtered
 Every window is reduced to the second moments of its data vectors (see
 :mod:`imucal_cli.core.streaming`); each window's cost and its Gauss-Newton derivatives are exact
 functions of them, so iterating never revisits the signals. The biases are eliminated by a
-sparse Schur complement, so the remaining 7x7 problem in
+Schur complement (their block of the normal equations is banded: a window couples two knots;
+LAPACK's banded Cholesky), so the remaining 7x7 problem in
 ``(rotation, translation, tau)`` takes the translation box of eq. 16 through
 ``scipy.optimize.lsq_linear``. The covariance is the inverse Fisher information with the
 residual variance estimated from the fit, corrected for the low-pass's correlation of
@@ -34,9 +35,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import sparse
+from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.optimize import lsq_linear
-from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
 from imucal_cli.core.segments import OBSERVABLE_FRACTION_OF_BOUND, WindowInfo
@@ -112,12 +112,37 @@ class SensorEstimate:
         return J @ self.covariance @ J.T
 
 
-def _bias_prior(n_knots: int, spacing_s: float, walk: float, prior_std: float) -> sparse.csr_matrix:
-    """Information of a random walk between knots plus a weak absolute prior, per axis (3K)."""
-    d = sparse.diags([np.ones(n_knots - 1), -np.ones(n_knots - 1)], [0, 1], shape=(n_knots - 1, n_knots))
-    walk_info = (d.T @ d) / (walk**2 * spacing_s)
-    info = walk_info + sparse.identity(n_knots) / prior_std**2
-    return sparse.kron(info, sparse.identity(3)).tocsr()
+#: Bias unknowns per knot: the relative gyro bias (3), then the accelerometer's (3).
+_KNOT = 6
+#: Upper bandwidth of the biases' block of the normal equations: a window couples the biases
+#: of its two knots, at most ``2 _KNOT - 1`` apart.
+_BAND = 2 * _KNOT - 1
+
+
+def _bias_prior(n_knots: int, spacing_s: float, walks: tuple[float, float], prior_stds: tuple[float, float]) -> np.ndarray:
+    """Information of each bias component's random walk between knots plus a weak absolute
+    prior (gyro, then accelerometer), in LAPACK's upper banded storage (``_BAND + 1`` rows,
+    ``6 n_knots`` columns; per knot ``[gyro (3), accel (3)]``)."""
+    band = np.zeros((_BAND + 1, _KNOT * n_knots))
+    for c in range(_KNOT):
+        walk, prior_std = walks[c // 3], prior_stds[c // 3]
+        info = 1.0 / (walk**2 * spacing_s)
+        diagonal = np.full(n_knots, 2.0 * info)  # sum of d^T d: 1 at the ends, 2 inside
+        diagonal[[0, -1]] = info if n_knots > 1 else 0.0
+        band[_BAND, c::_KNOT] = diagonal + 1.0 / prior_std**2
+        band[_BAND - _KNOT, _KNOT + c :: _KNOT] = -info  # between neighbouring knots
+    return band
+
+
+def _band_times(band: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The symmetric matrix held in upper banded storage times ``x``."""
+    u = len(band) - 1
+    y = band[u] * x
+    for d in range(1, u + 1):
+        upper = band[u - d, d:]  # entries (i, i + d)
+        y[:-d] += upper * x[d:]
+        y[d:] += upper * x[:-d]
+    return y
 
 
 def unobservable(prior: Transform, windows: list[WindowInfo], tau: float) -> SensorEstimate:
@@ -198,6 +223,9 @@ def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray
 
 #: Windows whose normal equations are formed together (bounds the estimator's scratch memory).
 SOLVE_CHUNK = 128
+#: The accelerometer's full moments are kept through the iterations up to this size (about 13 h
+#: of 10 s windows); beyond it they are stacked again, a chunk at a time, every iteration.
+SOLVE_CACHE_BYTES = 32 << 20
 
 
 # --------------------------------------------------------------------------- the estimator
@@ -326,15 +354,30 @@ def solve(
     t = prior.translation.copy()
     t_prior, bound = prior.translation, options.translation_bound_m
     dtau = 0.0
-    knots = np.zeros((n_knots, 6))  # [gyro bias, accel bias] per knot
-    prior_info = sparse.block_diag([
-        _bias_prior(n_knots, options.window_s, options.gyro_bias_walk, options.gyro_bias_prior_std),
-        _bias_prior(n_knots, options.window_s, ACCEL_BIAS_WALK, ACCEL_BIAS_PRIOR_STD),
-    ]).tocsr()
-    # prior_info is ordered [all gyro knots (3K), all accel knots (3K)]; reorder to per-knot [g, a]
-    perm = np.concatenate([np.arange(3 * n_knots).reshape(n_knots, 3), 3 * n_knots + np.arange(3 * n_knots).reshape(n_knots, 3)], axis=1).ravel()
-    prior_info = prior_info[perm][:, perm].tocsc()
-    n_bias = 6 * n_knots
+    knots = np.zeros((n_knots, _KNOT))  # [gyro bias, accel bias] per knot
+    prior_band = _bias_prior(
+        n_knots, options.window_s, (options.gyro_bias_walk, ACCEL_BIAS_WALK), (options.gyro_bias_prior_std, ACCEL_BIAS_PRIOR_STD)
+    )
+    n_bias = _KNOT * n_knots
+    # Where each window's normal equations go (the same every iteration). Unknowns: globals
+    # [rot 0-2, t 3-5, dtau 6], then the biases, per knot [gyro 0-2, accel 3-5]. A window's gyro
+    # equations hold [rot, dtau, its two knots' gyro biases], its accelerometer's [rot, t, dtau,
+    # their accel biases]: the globals' rows and columns, and the biases' (bias index).
+    K = len(used)
+    globals_g, globals_a = np.array([0, 1, 2, 6]), np.arange(7)
+    biases_g = _KNOT * numbers[:, None] + np.array([0, 1, 2, 6, 7, 8])
+    biases_a = _KNOT * numbers[:, None] + np.array([3, 4, 5, 9, 10, 11])
+    upper6 = np.triu_indices(6)  # a window's bias indices increase: these are its upper entries
+
+    def band_at(biases: np.ndarray) -> np.ndarray:  # flat index into the (_BAND + 1, n_bias) band
+        i, j = biases[:, upper6[0]], biases[:, upper6[1]]
+        return ((_BAND + i - j) * n_bias + j).ravel()
+
+    band_g, band_a = band_at(biases_g), band_at(biases_a)
+    cross_g = (globals_g[None, :, None] * n_bias + biases_g[:, None, :]).ravel()  # into (7, n_bias)
+    cross_a = (globals_a[None, :, None] * n_bias + biases_a[:, None, :]).ravel()
+    # the accelerometer's moments, stacked once where they are small, else a chunk at a time
+    cached = [S_a_chunk(a) for a in starts] if K * ACCEL_DIM**2 * 8 <= SOLVE_CACHE_BYTES else None
 
     scale_g, scale_a = sigma[0] * np.sqrt(gain), sigma[1] * np.sqrt(gain)
     # A cost from moments is a difference of large sums: below RESOLUTION times the signal's RMS
@@ -348,7 +391,7 @@ def solve(
     converged_once = False
     S_inv = np.zeros((0, 0))
     cost_g = cost_a = np.zeros(len(used))
-    lu = None
+    factor = None
     X = np.zeros((0, 0))
     iterations = 0
     for iterations in range(1, options.max_iterations + 1):  # noqa: B007
@@ -358,42 +401,37 @@ def solve(
         Ca = _C_accel(Rt, t, dtau, bj[:, 3:6], bk[:, 3:6])
         Hg, gg, cost_g = _normal_equations(_derivatives_gyro(Cg, Rt), S_g, Cg)
         parts = []
-        for a in starts:
+        for n, a in enumerate(starts):
             chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 13, 3, 29) in slices
-            parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a_chunk(a), Ca[chunk]))
+            S_a = cached[n] if cached is not None else S_a_chunk(a)
+            parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a, Ca[chunk]))
         Ha, ga, cost_a = (np.concatenate([p[i] for p in parts]) for i in range(3))
         if iterations > 1:  # residual variance from the fit, above what the moments resolve
             scale_g = float(np.sqrt(max(cost_g.sum() / (3 * samples), floor_g)))
             scale_a = float(np.sqrt(max(cost_a.sum() / (3 * samples), floor_a)))
         wg, wa = gain / scale_g**2, gain / scale_a**2
-        # local -> global columns: globals [rot 0-2, t 3-5, dtau 6], knot j: 7 + 6 j + [g 0-2, a 3-5]
-        K = len(used)
-        col_g = np.zeros((K, 10), dtype=np.int32)  # int32: the index arrays are the solve's largest
-        col_g[:, 0:3] = np.arange(3)
-        col_g[:, 3] = 6
-        col_g[:, 4:7] = 7 + 6 * numbers[:, None] + np.arange(3)
-        col_g[:, 7:10] = 7 + 6 * (numbers[:, None] + 1) + np.arange(3)
-        col_a = np.zeros((K, 13), dtype=np.int32)
-        col_a[:, 0:6] = np.arange(6)
-        col_a[:, 6] = 6
-        col_a[:, 7:10] = 7 + 6 * numbers[:, None] + 3 + np.arange(3)
-        col_a[:, 10:13] = 7 + 6 * (numbers[:, None] + 1) + 3 + np.arange(3)
-        size = 7 + n_bias
-        rows = np.concatenate([np.repeat(col_g, 10, axis=1).ravel(), np.repeat(col_a, 13, axis=1).ravel()])
-        cols = np.concatenate([np.tile(col_g, (1, 10)).ravel(), np.tile(col_a, (1, 13)).ravel()])
-        vals = np.concatenate([(wg * Hg).ravel(), (wa * Ha).ravel()])
-        H = sparse.csc_matrix((vals, (rows, cols)), shape=(size, size))
-        grad = -(np.bincount(col_g.ravel(), (wg * gg).ravel(), size) + np.bincount(col_a.ravel(), (wa * ga).ravel(), size))
+        # the normal equations: the globals' 7x7 block, their coupling to the biases, the
+        # biases' banded block (with the prior) and the gradient
+        Hg, Ha, gg, ga = wg * Hg, wa * Ha, wg * gg, wa * ga
+        H_gg_all = np.zeros((7, 7))
+        H_gg_all[np.ix_(globals_g, globals_g)] += Hg[:, :4, :4].sum(axis=0)
+        H_gg_all += Ha[:, :7, :7].sum(axis=0)
+        H_gb_all = (np.bincount(cross_g, Hg[:, :4, 4:].ravel(), 7 * n_bias) + np.bincount(cross_a, Ha[:, :7, 7:].ravel(), 7 * n_bias)).reshape(7, n_bias)
+        size = (_BAND + 1) * n_bias
+        H_bb = (np.bincount(band_g, Hg[:, 4:, 4:][:, upper6[0], upper6[1]].ravel(), size) + np.bincount(band_a, Ha[:, 7:, 7:][:, upper6[0], upper6[1]].ravel(), size)).reshape(_BAND + 1, n_bias)
+        H_bb += prior_band
+        grad_g = -ga[:, :7].sum(axis=0)
+        grad_g[globals_g] -= gg[:, :4].sum(axis=0)
         x_bias = knots.ravel()
-        H_bb = (H[7:, 7:] + prior_info).tocsc()
-        grad_b = grad[7:] - prior_info @ x_bias
+        grad_b = -(np.bincount(biases_g.ravel(), gg[:, 4:].ravel(), n_bias) + np.bincount(biases_a.ravel(), ga[:, 7:].ravel(), n_bias))
+        grad_b -= _band_times(prior_band, x_bias)
         free = np.flatnonzero(free_global & np.concatenate([[True] * 3, observable, [True]]))
-        H_gg = H[:7, :7].toarray()[np.ix_(free, free)]
-        H_gb = H[:7, 7:].toarray()[free]
-        lu = splu(H_bb)
-        X = lu.solve(H_gb.T)
+        H_gg = H_gg_all[np.ix_(free, free)]
+        H_gb = H_gb_all[free]
+        factor = (cholesky_banded(H_bb, lower=False), False)
+        X = cho_solve_banded(factor, H_gb.T)
         S = H_gg - H_gb @ X
-        s = grad[:7][free] - X.T @ grad_b
+        s = grad_g[free] - X.T @ grad_b
         lower, upper = np.full(len(free), -np.inf), np.full(len(free), np.inf)
         for k, col in enumerate(free):
             if 3 <= col < 6:
@@ -403,7 +441,7 @@ def solve(
         step_free = lsq_linear(L.T, np.linalg.solve(L, s), bounds=(lower, upper), method="bvls", tol=1e-12).x
         step = np.zeros(7)
         step[free] = step_free
-        step_bias = lu.solve(grad_b - H_gb.T @ step_free)
+        step_bias = cho_solve_banded(factor, grad_b - H_gb.T @ step_free)
         R = R * Rotation.from_rotvec(step[:3])
         t = t + step[3:6]
         dtau = dtau + step[6]
@@ -434,11 +472,11 @@ def solve(
 
     last = n_knots - 1
     bias_std = None
-    if lu is not None:
-        cols_last = [7 + 6 * last + a - 7 for a in range(6)]
-        E = np.zeros((n_bias, 6))
-        E[cols_last, np.arange(6)] = 1.0
-        Y = lu.solve(E)
+    if factor is not None:
+        cols_last = [_KNOT * last + a for a in range(_KNOT)]
+        E = np.zeros((n_bias, _KNOT))
+        E[cols_last, np.arange(_KNOT)] = 1.0
+        Y = cho_solve_banded(factor, E)
         XtE = X.T @ E
         block = Y[cols_last] + XtE.T @ S_inv @ XtE
         bias_std = np.sqrt(np.clip(np.diag(block), 0.0, None))
