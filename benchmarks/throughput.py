@@ -155,6 +155,8 @@ def watch():
         together[0] = max(together[0], now)
         time.sleep(0.01)
 threading.Thread(target=watch, daemon=True).start()
+from imucal_cli import launch
+launch.begin(sys.argv[1:])  # as the imucal command starts: the log's reader first
 from imucal_cli.cli import app
 try:
     app(sys.argv[1:])

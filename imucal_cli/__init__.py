@@ -4,17 +4,19 @@ The method is Das & Boberg, "IMU-based online multi-lidar calibration without li
 odometry" (Scania/KTH). See README.md for the conventions and the commands.
 """
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("imucal")
-except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0.1.0"
-
 __all__ = ["__version__", "calibrate_log", "export_extrinsics", "load_config"]
 
 
 def __getattr__(name: str):  # noqa: ANN202 - lazy: ``import imucal_cli`` stays light for the CLI
+    if name == "__version__":  # importlib.metadata takes 50 ms to import: not before it is asked
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            value = version("imucal")
+        except PackageNotFoundError:  # running from a source tree that is not installed
+            value = "0.1.0"
+        globals()["__version__"] = value
+        return value
     if name in ("calibrate_log", "export_extrinsics"):
         from imucal_cli import api
 

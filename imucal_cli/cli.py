@@ -299,21 +299,15 @@ def _load_drive(log: Path, config_path: Path, quiet: bool = False) -> tuple[Any,
 
 
 def _start_reading(log: Path, config_path: Path) -> Any:
-    """Start the log's reader before the math's imports (about a second of numpy and scipy),
-    from the config's topics read plainly; None when they cannot be (the config is then loaded
-    and checked as usual, and says what is wrong)."""
-    from imucal_cli.io.reports import load_document
+    """The log's reader, started before the math's imports (about a second of numpy and scipy),
+    from the config's topics read plainly: the one the entry point started before the CLI's
+    imports (:mod:`imucal_cli.launch`) where it guessed this log and config, else one started
+    now; None when the topics cannot be read plainly (the config is then loaded and checked as
+    usual, and says what is wrong)."""
+    from imucal_cli import launch
 
-    try:
-        data = load_document(config_path)
-        topics = [data["base"]["topic"], *(sensor["imu_topic"] for sensor in data["sensors"].values())]
-    except Exception:  # noqa: BLE001 - anything unusual is left to the full check
-        return None
-    if not all(isinstance(topic, str) for topic in topics) or len(set(topics)) != len(topics) or not log.exists():
-        return None
-    from imucal_cli.io.logs import start_reading
-
-    return start_reading(log, topics)
+    reading = launch.take_early(log, config_path)
+    return reading if reading is not None else launch.start_reading(log, config_path)
 
 
 def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:

@@ -132,9 +132,10 @@ def test_version_and_help():
 
 
 def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_whole(tmp_path, short_drive):
-    """``main`` ends the process itself once the command is done (no interpreter teardown):
-    the output file is whole, what was printed reaches a pipe, and the exit code is the
-    command's (0, 2 on bad input)."""
+    """The console script's entry point (:mod:`imucal_cli.launch`: the log's reader started
+    first, then the CLI, whose ``main`` ends the process itself once the command is done, with
+    no interpreter teardown): the output file is whole, what was printed reaches a pipe, and the
+    exit code is the command's (0, 2 on bad input)."""
     import subprocess
     import sys
 
@@ -143,7 +144,7 @@ def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_wh
 
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
     write_document(tmp_path / "c.yaml", short_drive.config_document())
-    command = [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml")]
+    command = [sys.executable, "-m", "imucal_cli.launch", "calibrate", str(log), "-c", str(tmp_path / "c.yaml")]
     written = subprocess.run([*command, "-o", str(tmp_path / "e.json")], capture_output=True, timeout=300)
     assert written.returncode == 0, written.stderr
     printed = subprocess.run([*command, "--json"], capture_output=True, timeout=300)

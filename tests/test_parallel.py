@@ -145,6 +145,53 @@ def test_a_reader_started_early_is_used_when_its_topics_are_the_configs_and_clos
     assert not multiprocessing.active_children()
 
 
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["calibrate", "d.mcap", "-c", "c.yaml"], ("d.mcap", "c.yaml")),
+        (["segments", "-o", "out.json", "--config", "c.yaml", "--json", "d.mcap"], ("d.mcap", "c.yaml")),
+        (["calibrate", "--report", "figs", "d.mcap", "--config=c.yaml", "--require-observable"], ("d.mcap", "c.yaml")),
+        (["calibrate", "d.mcap"], None),  # no config: the CLI will say so
+        (["calibrate", "d.mcap", "-c"], None),
+        (["calibrate", "d.mcap", "-c", "c.yaml", "--help"], None),
+        (["calibrate", "d.mcap", "other.mcap", "-c", "c.yaml"], None),  # a usage error
+        (["biases", "d.mcap", "-c", "c.yaml"], None),  # reads the whole log its own way
+        (["--version"], None),
+        ([], None),
+    ],
+)
+def test_the_entry_point_guesses_the_log_and_config_of_streaming_commands_only(args, expected):
+    from imucal_cli import launch
+
+    found = launch.log_and_config(args)
+    assert found == (None if expected is None else tuple(Path(p) for p in expected))
+
+
+def test_the_entry_point_starts_the_reader_before_the_cli_and_hands_it_over():
+    """``imucal calibrate LOG -c CONFIG`` forks the log's reader before the CLI's imports; the
+    CLI takes it over for that log and config (the same windows as reading inline), and a
+    reading started for another log or config is ended, not used."""
+    import multiprocessing
+
+    from imucal_cli import launch
+
+    config = load_config(CONFIG)
+    inline = stream_log(SAMPLE, config, background=False).calibrator
+    launch.begin(["calibrate", str(SAMPLE), "-c", str(CONFIG), "--json"])
+    early = launch.take_early(SAMPLE, CONFIG)
+    assert early is not None and launch.take_early(SAMPLE, CONFIG) is None  # taken once
+    streamed = stream_log(SAMPLE, config, reading=early)
+    assert streamed.calibrator.windows and _windows(streamed.calibrator) == _windows(inline)
+    assert streamed.stats.keys() == {config.base.topic, *(s.imu_topic for s in config.sensors)}
+    assert sum(s.messages for s in streamed.stats.values()) > 0 and streamed.format_name == "mcap"
+    launch.begin(["segments", str(SAMPLE), "-c", str(CONFIG)])
+    guessed = launch._early
+    assert guessed is not None
+    assert launch.take_early(SAMPLE, CONFIG.with_name("other.yaml")) is None
+    assert not guessed[2][1]._process.is_alive()
+    assert not multiprocessing.active_children()
+
+
 def test_the_cli_ends_the_early_reader_when_the_config_is_bad(tmp_path, monkeypatch):
     """Topics read plainly, then the full check fails: one clear message, exit 2, no process
     left behind."""
@@ -153,12 +200,12 @@ def test_the_cli_ends_the_early_reader_when_the_config_is_bad(tmp_path, monkeypa
     import yaml
     from typer.testing import CliRunner
 
+    from imucal_cli import launch
     from imucal_cli.cli import app
-    from imucal_cli.io import logs
 
     started = []
-    start_reading = logs.start_reading
-    monkeypatch.setattr(logs, "start_reading", lambda *args: started.append(args) or start_reading(*args))
+    start_reading = launch.start_reading
+    monkeypatch.setattr(launch, "start_reading", lambda *args: started.append(args) or start_reading(*args))
 
     document = yaml.safe_load(CONFIG.read_text())
     document["rest"] = {"no_such_key": 1}

@@ -152,9 +152,11 @@ def _child(reader: StatsReader, conn: Any) -> None:  # pragma: no cover - runs i
     # the peak RSS 450 MB against 347 MB). One thread reads; this one sends.
     fastimu.DECODE_THREADS = 0
     try:
+        if isinstance(reader, _Made):
+            reader = reader.make()  # here, after the fork: the parent needs none of its imports
         for item in queued(reader, DEPTH):  # read ahead in a thread while this one sends
             send(conn, item)
-        send(conn, _Done((reader.stats, getattr(reader, "losses", None))))
+        send(conn, _Done((reader.stats, getattr(reader, "losses", None), getattr(reader, "format_name", None))))
     except (BrokenPipeError, ConnectionResetError):
         pass  # the parent is gone, or stopped reading
     except BaseException as exc:  # noqa: BLE001 - handed to the parent
@@ -186,6 +188,32 @@ def read_ahead(reader: StatsReader, background: bool = True) -> Iterator[Any]:
     process.start()
     sending.close()
     return _Ahead(_from_child(reader, process, receiving), process, receiving)
+
+
+class _Made:
+    """A reader to be made in the child process by ``make()``; until the child has read it
+    all, this stands in for it in the parent (``path``, ``topics``; then ``stats``, ``losses``
+    and ``format_name`` as the child's reader found them)."""
+
+    def __init__(self, make: Callable[[], StatsReader], path: Any, topics: list[str]) -> None:
+        self.make, self.path, self.topics = make, path, topics
+        self.stats: Any = {}
+        self.losses: list[Any] = []
+        self.format_name = ""
+
+    def __iter__(self) -> Iterator[Any]:  # where the reading runs inline: made here after all
+        reader = self.make()
+        yield from reader
+        self.stats, self.losses, self.format_name = reader.stats, getattr(reader, "losses", []), getattr(reader, "format_name", "")
+
+
+def read_made_ahead(make: Callable[[], StatsReader], path: Any, topics: list[str]) -> tuple[_Made, Iterator[Any]]:
+    """:func:`read_ahead` of the reader ``make()`` returns, made in the child: the parent
+    forks before importing what reading needs (numpy, the containers' libraries), so the child
+    starts as early as it can and imports them itself beside the parent's imports. Returns the
+    parent's stand-in for the reader (see :class:`_Made`) and the iterator over its items."""
+    made = _Made(make, path, topics)
+    return made, read_ahead(made)
 
 
 class _Ahead:
@@ -229,9 +257,11 @@ def _from_child(reader: StatsReader, process: Any, receiving: Any) -> Iterator[A
             if isinstance(item, _Raised):
                 raise item.exc
             if isinstance(item, _Done):
-                reader.stats, losses = item.stats
+                reader.stats, losses, format_name = item.stats
                 if losses is not None:
                     reader.losses = losses  # type: ignore[attr-defined]
+                if format_name is not None:
+                    reader.format_name = format_name  # type: ignore[attr-defined]
                 return
             yield item
     finally:
