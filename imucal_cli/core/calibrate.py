@@ -264,26 +264,24 @@ def _C_accel(Rt: np.ndarray, t: np.ndarray, dtau: float, aj: np.ndarray, ak: np.
 
 
 def _derivatives_gyro(C: np.ndarray, Rt: np.ndarray) -> np.ndarray:
-    """d C_g / d [rot(3), dtau, b_j(3), b_k(3)]: (K, 10, 3, 11)."""
+    """d C_g / d [rot(3), dtau]: (K, 4, 3, 11); the biases' derivatives, constant, are
+    :func:`_normal_equations`' own."""
     K = len(C)
-    D = np.zeros((K, 10, 3, GYRO_DIM))
+    D = np.zeros((K, 4, 3, GYRO_DIM))
     rotating = C.copy()
     rotating[:, :, 0:3] = 0.0
     rotating[:, :, 9:11] = 0.0
     for m in range(3):  # R^T -> (I - [d]x) R^T
         D[:, m] = -skew(np.eye(3)[m]) @ rotating
     D[:, 3, :, 6:9] = Rt
-    for m in range(3):
-        D[:, 4 + m, m, 9] = -1.0
-        D[:, 4 + m, m, 10] = 1.0
-        D[:, 7 + m, m, 10] = -1.0
     return D
 
 
 def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float) -> np.ndarray:
-    """d C_a / d [rot(3), t(3), dtau, b_j(3), b_k(3)]: (K, 13, 3, 29)."""
+    """d C_a / d [rot(3), t(3), dtau]: (K, 7, 3, 29); the biases' derivatives, constant, are
+    :func:`_normal_equations`' own."""
     K = len(C)
-    D = np.zeros((K, 13, 3, ACCEL_DIM))
+    D = np.zeros((K, 7, 3, ACCEL_DIM))
     rotating = C.copy()
     rotating[:, :, 0:3] = 0.0
     rotating[:, :, 27:29] = 0.0
@@ -294,20 +292,37 @@ def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float
         D[:, 3 + m, :, 18:27] = dtau * Rt @ E
     D[:, 6, :, 6:9] = Rt
     D[:, 6, :, 18:27] = Rt @ _kron_t(t)
-    for m in range(3):
-        D[:, 7 + m, m, 27] = -1.0
-        D[:, 7 + m, m, 28] = 1.0
-        D[:, 10 + m, m, 28] = -1.0
     return D
 
 
 def _normal_equations(D: np.ndarray, S: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per window: GN Hessian ``tr(D_p S D_q^T)``, gradient ``tr(D_p S C^T)``, cost ``tr(C S C^T)``."""
+    """Per window: the GN Hessian ``tr(D_p S D_q^T)``, gradient ``tr(D_p S C^T)`` and cost
+    ``tr(C S C^T)``, over the parameters whose derivatives ``D`` (K, P, 3, dim) gives, then the
+    window's two bias knots (3 + 3): ``(K, P + 6, P + 6)``, ``(K, P + 6)``, ``(K,)``.
+
+    A bias knot's derivative is constant and sparse: the residual's row ``m`` takes ``-b_j`` on
+    the constant column ``a`` of ``x`` and ``-(b_k - b_j)`` on the time column ``b`` (the last
+    two), so its products with ``S`` are entries of ``D S``, ``C S`` and ``S`` itself: only the
+    other parameters' ``D S`` is multiplied out."""
     K, P, rows, dim = D.shape
-    DS = (D.reshape(K, P * rows, dim) @ S).reshape(K, P, rows * dim)
-    H = DS @ D.reshape(K, P, rows * dim).transpose(0, 2, 1)
-    g = (DS @ C.reshape(K, rows * dim, 1))[:, :, 0]
-    cost = np.sum((C @ S) * C, axis=(1, 2))
+    a, b = dim - 2, dim - 1
+    DS = (D.reshape(K, P * rows, dim) @ S).reshape(K, P, rows, dim)
+    CS = C @ S
+    H = np.zeros((K, P + 6, P + 6))
+    H[:, :P, :P] = DS.reshape(K, P, rows * dim) @ D.reshape(K, P, rows * dim).transpose(0, 2, 1)
+    H[:, :P, P : P + 3] = DS[:, :, :, b] - DS[:, :, :, a]  # b_j: -e_a + e_b on row m
+    H[:, :P, P + 3 :] = -DS[:, :, :, b]  # b_k: -e_b on row m
+    H[:, P:, :P] = H[:, :P, P:].transpose(0, 2, 1)
+    S_aa, S_ab, S_bb = S[:, a, a], S[:, a, b], S[:, b, b]
+    for m in range(3):
+        H[:, P + m, P + m] = S_aa - 2.0 * S_ab + S_bb
+        H[:, P + m, P + 3 + m] = H[:, P + 3 + m, P + m] = S_ab - S_bb
+        H[:, P + 3 + m, P + 3 + m] = S_bb
+    g = np.empty((K, P + 6))
+    g[:, :P] = (DS.reshape(K, P, rows * dim) @ C.reshape(K, rows * dim, 1))[:, :, 0]
+    g[:, P : P + 3] = CS[:, :, b] - CS[:, :, a]
+    g[:, P + 3 :] = -CS[:, :, b]
+    cost = np.sum(CS * C, axis=(1, 2))
     return H, g, cost
 
 
