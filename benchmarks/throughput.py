@@ -19,13 +19,14 @@ and ROS 1 (lz4 chunks), and measures per format and length, side by side in one 
   worker (sampled from ``/proc`` every 10 ms); wall time is at least their sum over the two
   cores.
 
-Floor and decode are run ``--repeat`` times (default 5), alternating, and calibrate
-``--calibrate-repeat`` times (default 3); the fastest run of each is reported (the machine's
-run-to-run spread is tens of per cent; the minimum is the least disturbed), with the largest
-peak RSS of the calibrate runs. The naive path, minutes long, runs once.
+Floor and decode are run ``--repeat`` times (default 5) and calibrate ``--calibrate-repeat``
+times (default 5), taking turns (floor, decode, calibrate, floor, ...); the fastest run of each
+is reported (the machine's run-to-run spread is tens of per cent and its speed drifts over
+minutes; the minimum is the least disturbed), with the largest peak RSS of the calibrate runs.
+The naive path, minutes long, runs once, after them.
 
 Run: ``python benchmarks/throughput.py [--lengths 15m 1h 4h] [--formats mcap rosbag2-sqlite3
-rosbag1] [--naive-max-minutes 60] [--repeat 5] [--calibrate-repeat 3]``.
+rosbag1] [--naive-max-minutes 60] [--repeat 5] [--calibrate-repeat 5]``.
 """
 
 from __future__ import annotations
@@ -220,7 +221,7 @@ def main() -> None:
     parser.add_argument("--four-hour-formats", nargs="+", default=["mcap"], choices=list(SUFFIX))
     parser.add_argument("--naive-max-minutes", type=float, default=60.0)
     parser.add_argument("--repeat", type=int, default=5, help="runs of floor and decode (the fastest is reported)")
-    parser.add_argument("--calibrate-repeat", type=int, default=3, help="runs of calibrate (the fastest time and the largest peak RSS are reported)")
+    parser.add_argument("--calibrate-repeat", type=int, default=5, help="runs of calibrate, taking turns with floor and decode (the fastest time and the largest peak RSS are reported)")
     args = parser.parse_args()
     from imucal_cli.parallel import reuse_freed_memory
 
@@ -236,17 +237,20 @@ def main() -> None:
             log, config_path = build(length, fmt)
             config = load_config(config_path)
             topics = [config.base.topic] + [s.imu_topic for s in config.sensors]
-            # floor and decode alternate, so that both see the machine in the same moods
-            floors, fast_runs = [], []
-            for _ in range(args.repeat):
-                floors.append(floor(log, fmt))
-                fast_runs.append(decode(log, topics, fast=True))
+            # floor, decode and calibrate take turns, so that all three see the machine in the
+            # same moods (its speed drifts by tens of per cent over minutes)
+            floors, fast_runs, runs = [], [], []
+            for turn in range(max(args.repeat, args.calibrate_repeat)):
+                if turn < args.repeat:
+                    floors.append(floor(log, fmt))
+                    fast_runs.append(decode(log, topics, fast=True))
+                if turn < args.calibrate_repeat:
+                    runs.append(calibrate(log, config_path))
             t_floor = min(floors)
             t_fast, count = min(fast_runs)
             t_naive = None
             if LENGTHS[length] / 60.0 <= args.naive_max_minutes:
                 t_naive, _ = decode(log, topics, fast=False)
-            runs = [calibrate(log, config_path) for _ in range(args.calibrate_repeat)]
             fastest = min(runs, key=lambda run: run[0])
             wall, cpu = fastest[0], fastest[3]
             rss, summed = max(run[1] for run in runs), max(run[2] for run in runs)  # the worst

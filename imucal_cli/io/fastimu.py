@@ -205,11 +205,10 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     all_ok = bool(ok.all())
     index = np.arange(n) if all_ok else np.flatnonzero(ok)
 
-    stamp = np.zeros(len(index), dtype=np.int64)
-    gyro = np.zeros((len(index), 3))
-    accel = np.zeros((len(index), 3))
     frame_ids: list[str] = []
-    if len(index):
+    if not len(index):
+        stamp, gyro, accel = np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+    else:
         used = head if all_ok else head[index]
         stamp = used["sec"].astype(np.int64) * 1_000_000_000 + used["nsec"]
         at = floats_abs if all_ok else floats_abs[index]
