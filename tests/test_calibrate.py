@@ -317,3 +317,35 @@ def test_symmetric_terms_filtered_by_their_upper_triangles_are_the_full_matrices
         got = np.empty((300, 9))
         _vec_of_sum(lp(upper), dw, got)
         np.testing.assert_allclose(got, _vec(full), rtol=0, atol=1e-12)
+
+
+def test_the_bounded_step_is_the_free_minimiser_inside_the_box_and_the_box_s_own_outside():
+    """The translation box (eq. 16): where the unconstrained minimiser of ``x^T S x / 2 - s^T x``
+    lies inside the box it is the step (to round-off); where it does not, the step is
+    bounded-variable least squares' on the box, and it satisfies the optimality conditions
+    (gradient zero on free coordinates, pointing out of the box on those at a bound)."""
+    from scipy.optimize import lsq_linear
+
+    from imucal_cli.core.calibrate import _bounded_step
+
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        A = rng.normal(size=(7, 7))
+        S = A @ A.T + 0.1 * np.eye(7)
+        s = rng.normal(size=7)
+        L = np.linalg.cholesky(S)
+        free = np.linalg.solve(S, s)
+        wide = np.abs(free).max() + 1.0
+        np.testing.assert_allclose(_bounded_step(L, s, np.full(7, -wide), np.full(7, wide)), free, rtol=1e-12, atol=1e-12)
+        lower, upper = np.full(7, -np.inf), np.full(7, np.inf)
+        lower[3:6], upper[3:6] = -0.3 * np.abs(free[3:6]) - 0.01, 0.3 * np.abs(free[3:6]) + 0.01  # the box cuts it
+        step = _bounded_step(L, s, lower, upper)
+        expected = lsq_linear(L.T, np.linalg.solve(L, s), bounds=(lower, upper), method="bvls", tol=1e-12).x
+        np.testing.assert_allclose(step, expected, rtol=1e-9, atol=1e-12)
+        assert np.all(step >= lower - 1e-12) and np.all(step <= upper + 1e-12)
+        gradient = S @ step - s
+        at_lower, at_upper = np.isclose(step, lower, atol=1e-10), np.isclose(step, upper, atol=1e-10)
+        inside = ~(at_lower | at_upper)
+        assert (at_lower | at_upper).any()
+        np.testing.assert_allclose(gradient[inside], 0.0, atol=1e-8 * np.abs(s).max())
+        assert np.all(gradient[at_lower] >= -1e-8) and np.all(gradient[at_upper] <= 1e-8)

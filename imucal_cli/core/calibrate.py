@@ -24,7 +24,7 @@ functions of them, so iterating never revisits the signals. The biases are elimi
 Schur complement (their block of the normal equations is banded: a window couples two knots;
 LAPACK's banded Cholesky), so the remaining 7x7 problem in
 ``(rotation, translation, tau)`` takes the translation box of eq. 16 through
-``scipy.optimize.lsq_linear``. The covariance is the inverse Fisher information with the
+``scipy.optimize.lsq_linear`` (where the box binds). The covariance is the inverse Fisher information with the
 residual variance estimated from the fit, corrected for the low-pass's correlation of
 neighbouring residuals.
 """
@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
-from scipy.optimize import lsq_linear
 from scipy.spatial.transform import Rotation
 
 from imucal_cli.core.segments import OBSERVABLE_FRACTION_OF_BOUND, WindowInfo
@@ -326,6 +325,19 @@ def _normal_equations(D: np.ndarray, S: np.ndarray, C: np.ndarray) -> tuple[np.n
     return H, g, cost
 
 
+def _bounded_step(L: np.ndarray, s: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The step minimising ``|L^T x - L^-1 s|^2`` (``x^T S x / 2 - s^T x`` with ``S = L L^T``)
+    inside the box ``[lower, upper]``. The cost is strictly convex, so where the unconstrained
+    minimiser ``S^-1 s`` lies in the box it is the answer; otherwise the box is taken by
+    ``scipy.optimize.lsq_linear`` (bounded-variable least squares; imported only then)."""
+    free = np.linalg.solve(L.T, np.linalg.solve(L, s))
+    if np.all(free >= lower) and np.all(free <= upper):
+        return free
+    from scipy.optimize import lsq_linear
+
+    return lsq_linear(L.T, np.linalg.solve(L, s), bounds=(lower, upper), method="bvls", tol=1e-12).x
+
+
 def kabsch_rotation(S_gyro: np.ndarray, samples: np.ndarray) -> Rotation:
     """``R_base_imu`` minimising ``sum |R^T w_B - w_I|^2`` over windows, each centred (eq. 10).
 
@@ -453,7 +465,7 @@ def solve(
                 lower[k] = t_prior[col - 3] - bound - t[col - 3]
                 upper[k] = t_prior[col - 3] + bound - t[col - 3]
         L = np.linalg.cholesky(S)
-        step_free = lsq_linear(L.T, np.linalg.solve(L, s), bounds=(lower, upper), method="bvls", tol=1e-12).x
+        step_free = _bounded_step(L, s, lower, upper)
         step = np.zeros(7)
         step[free] = step_free
         step_bias = cho_solve_banded(factor, grad_b - H_gb.T @ step_free)
