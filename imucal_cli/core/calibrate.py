@@ -22,11 +22,10 @@ Every window is reduced to the second moments of its data vectors (see
 :mod:`imucal_cli.core.streaming`); each window's cost and its Gauss-Newton derivatives are exact
 functions of them, so iterating never revisits the signals. The biases are eliminated by a
 Schur complement (their block of the normal equations is banded: a window couples two knots;
-LAPACK's banded Cholesky), so the remaining 7x7 problem in
-``(rotation, translation, tau)`` takes the translation box of eq. 16 through
-``scipy.optimize.lsq_linear`` (where the box binds). The covariance is the inverse Fisher information with the
-residual variance estimated from the fit, corrected for the low-pass's correlation of
-neighbouring residuals.
+LAPACK's banded Cholesky), so the remaining 7x7 problem in ``(rotation, translation, tau)``
+takes the translation box of eq. 16 through ``scipy.optimize.lsq_linear`` (where the box
+binds). The covariance is the inverse Fisher information with the residual variance estimated
+from the fit, corrected for the low-pass's correlation of neighbouring residuals.
 """
 
 from __future__ import annotations
