@@ -21,9 +21,8 @@ residual of the model is linear in ``x`` with coefficients that depend on the pa
 derivatives are exact for any rotation, lever arm and bias. The raw samples are dropped once a
 window is reduced; what is kept per window and sensor is two small matrices. The joint estimate
 (:func:`solve`) is the one of :mod:`imucal_cli.core.calibrate`: relative biases piecewise linear
-with a knot per window, eliminated by a sparse Schur complement, the lever arm inside its box
-(eq. 16) by ``scipy.optimize.lsq_linear``, covariance from the Fisher information scaled by the
-residual variance.
+with a knot per window, eliminated by a banded Schur complement, the lever arm inside its box
+(eq. 16), covariance from the Fisher information scaled by the residual variance.
 """
 
 from __future__ import annotations
