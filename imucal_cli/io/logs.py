@@ -962,7 +962,8 @@ class ImuBatches:
 def start_reading(log: str | Path, topics: list[str]) -> tuple[ImuBatches, Iterator[Any]]:
     """Start reading ``topics`` of ``log`` ahead in a child process, for
     :func:`imucal_cli.api.stream_log`'s ``reading``. Importing this module needs no scipy, so
-    the CLI starts the reader before the math's imports (about a second)."""
+    a caller can start the reader before the math's imports (about a second); the ``imucal``
+    command starts it earlier still, before numpy (:mod:`imucal_cli.launch`)."""
     from imucal_cli.io.prefetch import read_ahead
 
     reader = ImuBatches(Path(log), topics)
