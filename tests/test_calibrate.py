@@ -349,3 +349,53 @@ def test_the_bounded_step_is_the_free_minimiser_inside_the_box_and_the_box_s_own
         assert (at_lower | at_upper).any()
         np.testing.assert_allclose(gradient[inside], 0.0, atol=1e-8 * np.abs(s).max())
         assert np.all(gradient[at_lower] >= -1e-8) and np.all(gradient[at_upper] <= 1e-8)
+
+
+def test_the_bias_prior_in_banded_storage_is_the_random_walk_information():
+    """The biases' prior, held as LAPACK's upper banded storage, is per component the random
+    walk's information ``d^T d / (walk^2 dt)`` plus ``I / prior^2`` (knot order [gyro, accel]),
+    and the banded product is the dense one; the banded Cholesky solves it."""
+    from scipy.linalg import cho_solve_banded, cholesky_banded
+
+    from imucal_cli.core.calibrate import _BAND, _KNOT, _band_times, _bias_prior
+
+    n_knots, dt, walks, priors = 7, 10.0, (0.002, 0.01), (0.005, 1.0)
+    band = _bias_prior(n_knots, dt, walks, priors)
+    d = np.diff(np.eye(n_knots), axis=0)  # (K - 1, K) differences between neighbouring knots
+    dense = np.zeros((_KNOT * n_knots, _KNOT * n_knots))
+    for c in range(_KNOT):
+        walk, prior = walks[c // 3], priors[c // 3]
+        idx = np.arange(c, _KNOT * n_knots, _KNOT)
+        dense[np.ix_(idx, idx)] = d.T @ d / (walk**2 * dt) + np.eye(n_knots) / prior**2
+    rebuilt = np.zeros_like(dense)
+    for i in range(len(dense)):
+        for j in range(i, min(len(dense), i + _BAND + 1)):
+            rebuilt[i, j] = rebuilt[j, i] = band[_BAND + i - j, j]
+    np.testing.assert_allclose(rebuilt, dense, rtol=1e-14, atol=0)
+    x = np.random.default_rng(3).normal(size=len(dense))
+    np.testing.assert_allclose(_band_times(band, x), dense @ x, rtol=1e-12)
+    np.testing.assert_allclose(cho_solve_banded((cholesky_banded(band), False), x), np.linalg.solve(dense, x), rtol=1e-10)
+
+
+@pytest.mark.parametrize("dim", [11, 29])
+def test_the_normal_equations_read_the_bias_blocks_off_the_moments(dim):
+    """Each window's ``tr(D_p S D_q^T)``, ``tr(D_p S C^T)`` and ``tr(C S C^T)``, with the bias
+    knots' constant derivatives (row m: -1 on the constant column, +1 on the time column for
+    b_j; -1 on the time column for b_k) read off ``D S``, ``C S`` and ``S``, equal the products
+    multiplied out with those derivatives written down in full."""
+    from imucal_cli.core.calibrate import _normal_equations
+
+    rng = np.random.default_rng(dim)
+    K, P = 5, 4
+    X = rng.normal(size=(K, 50, dim))
+    S = np.einsum("kna,knb->kab", X, X)
+    C, D = rng.normal(size=(K, 3, dim)), rng.normal(size=(K, P, 3, dim))
+    bias = np.zeros((K, 6, 3, dim))
+    for m in range(3):
+        bias[:, m, m, dim - 2], bias[:, m, m, dim - 1] = -1.0, 1.0
+        bias[:, 3 + m, m, dim - 1] = -1.0
+    full = np.concatenate([D, bias], axis=1)
+    H, g, cost = _normal_equations(D, S, C)
+    np.testing.assert_allclose(H, np.einsum("kpra,kab,kqrb->kpq", full, S, full), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(g, np.einsum("kpra,kab,krb->kp", full, S, C), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(cost, np.einsum("kra,kab,krb->k", C, S, C), rtol=1e-12)
