@@ -35,13 +35,19 @@ def main() -> None:
 
 def begin(args: list[str]) -> None:
     """Start reading the log of a ``calibrate`` or ``segments`` command line ``args`` (the
-    arguments after the program's name), for the CLI to take over; nothing for other commands."""
+    arguments after the program's name), for the CLI to take over; nothing for other commands,
+    nor where anything goes wrong here (the CLI then reads as it would anyway, and says what
+    is wrong)."""
     global _early
     found = log_and_config(args)
-    if found is not None:
+    if found is None:
+        return
+    try:
         reading = start_reading(*found)
-        if reading is not None:
-            _early = (*found, reading)
+    except Exception:  # noqa: BLE001 - a guess only: never the reason a command fails
+        return
+    if reading is not None:
+        _early = (*found, reading)
 
 
 def log_and_config(args: list[str]) -> tuple[Path, Path] | None:
