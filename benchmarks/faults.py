@@ -11,7 +11,9 @@
    more than one line or without naming the file, or left an output file behind on failure.
 
 Run: ``python benchmarks/faults.py [--cases 1000] [--seed 1]``. Everything runs in-process
-through Typer's CliRunner (a traceback shows as an exception that is not SystemExit).
+through Typer's CliRunner (a traceback shows as an exception that is not SystemExit), each
+command line first through the entry point's early start of the log's reader
+(:func:`imucal_cli.launch.begin`), as the ``imucal`` command runs it.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from typer.testing import CliRunner
 
+from imucal_cli import launch
 from imucal_cli.cli import app
 from imucal_cli.io.logs import read_imu
 from imucal_cli.io.reports import write_document
@@ -173,6 +176,7 @@ def main() -> None:
 def run(argv: list[str], out: Path | None) -> dict:
     if out is not None and out.exists():
         out.unlink()
+    launch.begin(argv)  # as the imucal command starts: calibrate's and segments' reader first
     result = runner.invoke(app, argv)
     traceback = result.exception is not None and not isinstance(result.exception, SystemExit)
     lines = [line for line in result.stderr.splitlines() if line.strip()]
