@@ -341,3 +341,17 @@ def test_ordered_map_keeps_order_raises_in_turn_and_stops_cleanly():
     items.close()  # nothing more is started, and what was started has ended
     assert len(started) <= 3 + 2 + 2
     assert not [t for t in threading.enumerate() if t.name.startswith("imucal-decode")]
+
+
+def test_the_command_runs_one_blas_thread_a_process_unless_the_environment_says(tmp_path):
+    """``calibrate``'s processes keep the cores busy themselves: the entry point sets OpenBLAS to
+    one thread before numpy is imported, and leaves a count the environment gives alone."""
+    import subprocess
+    import sys
+
+    probe = "import os, sys; from imucal_cli import launch; launch.begin(sys.argv[1:]); print(os.environ.get('OPENBLAS_NUM_THREADS'), os.environ.get('OMP_NUM_THREADS'))"
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "OMP_NUM_THREADS")}
+    plain = subprocess.run([sys.executable, "-c", probe, "inspect", "x.mcap"], env=env, capture_output=True, text=True, check=True)
+    assert plain.stdout.split() == ["1", "None"]
+    given = subprocess.run([sys.executable, "-c", probe, "inspect", "x.mcap"], env=env | {"OMP_NUM_THREADS": "4"}, capture_output=True, text=True, check=True)
+    assert given.stdout.split() == ["None", "4"]
