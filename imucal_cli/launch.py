@@ -129,7 +129,7 @@ def start_reading(log: Path, config: Path) -> Any:
 
 
 def take_early(log: Path, config: Path) -> Any:
-    """The reading :func:`main` started for ``(log, config)``, or None; one started for
+    """The reading :func:`begin` started for ``(log, config)``, or None; one started for
     anything else is ended."""
     global _early
     early, _early = _early, None

@@ -329,12 +329,13 @@ def _bounded_step(L: np.ndarray, s: np.ndarray, lower: np.ndarray, upper: np.nda
     inside the box ``[lower, upper]``. The cost is strictly convex, so where the unconstrained
     minimiser ``S^-1 s`` lies in the box it is the answer; otherwise the box is taken by
     ``scipy.optimize.lsq_linear`` (bounded-variable least squares; imported only then)."""
-    free = np.linalg.solve(L.T, np.linalg.solve(L, s))
+    target = np.linalg.solve(L, s)
+    free = np.linalg.solve(L.T, target)
     if np.all(free >= lower) and np.all(free <= upper):
         return free
     from scipy.optimize import lsq_linear
 
-    return lsq_linear(L.T, np.linalg.solve(L, s), bounds=(lower, upper), method="bvls", tol=1e-12).x
+    return lsq_linear(L.T, target, bounds=(lower, upper), method="bvls", tol=1e-12).x
 
 
 def kabsch_rotation(S_gyro: np.ndarray, samples: np.ndarray) -> Rotation:
@@ -428,7 +429,7 @@ def solve(
         Hg, gg, cost_g = _normal_equations(_derivatives_gyro(Cg, Rt), S_g, Cg)
         parts = []
         for n, a in enumerate(starts):
-            chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 13, 3, 29) in slices
+            chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 7, 3, 29) in slices
             S_a = cached[n] if cached is not None else S_a_chunk(a)
             parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a, Ca[chunk]))
         Ha, ga, cost_a = (np.concatenate([p[i] for p in parts]) for i in range(3))
