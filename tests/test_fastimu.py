@@ -305,3 +305,24 @@ def test_ros1_index_larger_than_expected_is_read_on(tmp_path, monkeypatch):
 
     monkeypatch.setattr(fastimu.Ros1Bag, "__init__", no_estimate)
     _same(read_imu(path, topics), expected)
+
+
+@pytest.mark.parametrize("fmt", ["rosbag1", "mcap"])
+def test_lz4_chunks_read_alike_without_liblz4(tmp_path, monkeypatch, fmt):
+    """LZ4 chunks decompressed in place through liblz4 or, where it cannot be loaded, through
+    python-lz4 and a copy: the same samples, and the generic path's."""
+    from imucal_cli.io import lz4frames
+    from imucal_cli.io.writers import _write_mcap
+
+    monkeypatch.setattr("imucal_cli.io.fastimu.GROUP_BYTES", 16384)
+    if fmt == "rosbag1":
+        path = tmp_path / "log.bag"
+        topics = _write_ros1_bag(path, [["imu"], ["lidar_imu"]], 300, np.random.default_rng(8))
+    else:
+        path = tmp_path / "log.mcap"
+        topics = list(_sample_streams(np.random.default_rng(8)))
+        _write_mcap(path, _sample_streams(np.random.default_rng(8)), ros1=False, compression="lz4", chunk_size=4096)
+    with_lib = read_imu(path, topics)
+    monkeypatch.setattr(lz4frames, "_liblz4", lambda: None)
+    _same(read_imu(path, topics), with_lib)
+    _same(with_lib, read_imu(path, topics, fast=False))

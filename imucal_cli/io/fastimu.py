@@ -45,6 +45,8 @@ _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_
 _ROS1_INDEX_ENTRY = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])
 #: Most bytes of a ROS 1 chunk's index data read together with the chunk.
 _ROS1_MAX_INDEX_READ = 1 << 22
+#: Largest decompressed ROS 1 chunk believed (bytes): a bigger size in its header is damage.
+_ROS1_MAX_CHUNK = 1 << 30
 #: Bytes of decompressed chunks decoded together.
 GROUP_BYTES = 16 << 20
 #: Groups of chunks (or of sqlite3 rows) read ahead of the one being consumed, beyond one
@@ -272,7 +274,7 @@ def _copy_into(records: bytes | memoryview, out: memoryview) -> int:
 
 def _decompress_into(compression: str, data: bytes | memoryview, out: memoryview) -> int:
     """Decompress ``data`` into ``out``; returns the size decompressed (more than ``len(out)``
-    when it does not fit). zstd writes in place; the others are copied."""
+    when it does not fit). zstd and lz4 write in place; the others are copied."""
     if compression == "":
         return _copy_into(data, out)
     if compression == "zstd":
@@ -289,9 +291,9 @@ def _decompress_into(compression: str, data: bytes | memoryview, out: memoryview
             return done + 1  # more than the header says
         return done
     if compression == "lz4":
-        import lz4.frame
+        from imucal_cli.io.lz4frames import decompress_into
 
-        return _copy_into(lz4.frame.decompress(data), out)
+        return decompress_into(data, np.frombuffer(out, dtype=np.uint8))
     raise ValueError(f"unsupported chunk compression {compression!r}")
 
 
@@ -669,38 +671,44 @@ class Ros1Bag:
             yield group
 
     def _read_group(self, group: list[tuple[int, bytes, int]], wanted: dict[int, str], losses: list | None) -> list[RawBatch]:
-        """The raw batches of a group of chunks; a chunk that cannot be read is recorded in
-        ``losses`` (raised where that is None)."""
+        """The raw batches of a group of chunks, decompressed side by side into one buffer; a
+        chunk that cannot be read is recorded in ``losses`` (raised where that is None)."""
         from imucal_cli.io.salvage import Loss
 
-        pending: list[tuple[bytes, dict[int, np.ndarray]]] = []
+        def lose(chunk_pos: int, exc: Exception) -> None:
+            if losses is None:
+                if isinstance(exc, _ChunkLost):
+                    raise ValueError(exc.reason) from None
+                raise exc
+            if isinstance(exc, _ChunkLost):
+                losses.append(Loss(f"chunk that cannot be read ({exc.reason})", chunk_pos, exc.nbytes, exc.start_ns, exc.end_ns, exc.counts))
+            else:  # a damaged chunk header or index
+                losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
+
+        chunks: list[tuple[int, _StoredChunk]] = []
         for chunk_pos, head, index_bytes in group:
             try:
                 chunk = self._read_chunk(chunk_pos, wanted, head, index_bytes)
+                if chunk is not None and chunk.size > _ROS1_MAX_CHUNK:  # before making room for it
+                    raise chunk.lost("chunk size mismatch", wanted)
                 if chunk is not None:
-                    pending.append(chunk)
-            except _ChunkLost as exc:
-                if losses is None:
-                    raise ValueError(exc.reason) from None
-                losses.append(Loss(f"chunk that cannot be read ({exc.reason})", chunk_pos, exc.nbytes, exc.start_ns, exc.end_ns, exc.counts))
-            except Exception as exc:  # noqa: BLE001 - a damaged chunk header or index
-                if losses is None:
-                    raise
-                losses.append(Loss(f"chunk that cannot be read ({type(exc).__name__}: {exc})", chunk_pos, 0))
-        if not pending:
+                    chunks.append((chunk_pos, chunk))
+            except Exception as exc:  # noqa: BLE001 - recorded (or raised) by lose
+                lose(chunk_pos, exc)
+        if not chunks:
             return []
-        return list(self._group(*self._joined(pending), wanted))
-
-    @staticmethod
-    def _joined(pending: list[tuple[bytes, dict[int, np.ndarray]]]) -> tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]:
-        # numpy copies outside the GIL (a bytes join would hold it)
-        buffer = np.empty(sum(len(data) for data, _ in pending), dtype=np.uint8)
-        out, at = [], 0
-        for data, positions in pending:
-            buffer[at : at + len(data)] = np.frombuffer(data, dtype=np.uint8)
-            out.append((at, positions))
-            at += len(data)
-        return buffer, out
+        buffer = np.empty(sum(chunk.size for _, chunk in chunks), dtype=np.uint8)
+        pending: list[tuple[int, dict[int, np.ndarray]]] = []
+        at = 0
+        for chunk_pos, chunk in chunks:
+            try:
+                chunk.decompress_into(buffer[at : at + chunk.size], wanted)
+            except Exception as exc:  # noqa: BLE001 - recorded (or raised) by lose
+                lose(chunk_pos, exc)
+                continue  # its room is taken by the next chunk
+            pending.append((at, chunk.positions))
+            at += chunk.size
+        return list(self._group(buffer[:at], pending, wanted))
 
     @staticmethod
     def _group(buffer: np.ndarray, pending: list[tuple[int, dict[int, np.ndarray]]], wanted: dict[int, str]) -> Iterator[RawBatch]:
@@ -727,9 +735,9 @@ class Ros1Bag:
             data_len = _gather(buffer, offset + 4 + header_len, 4, "<u4").ravel().astype(np.int64)
             yield RawBatch(topic, "ros1", buffer, offset + 8 + header_len, data_len, log_ns)
 
-    def _read_chunk(self, chunk_pos: int, wanted: dict[int, str], head: bytes, index_bytes: int) -> tuple[bytes, dict[int, np.ndarray]] | None:
-        """One chunk's decompressed records and, per wanted connection, its index entries
-        (positioned reads: threads read chunks side by side); ``head`` is the first 4096 bytes
+    def _read_chunk(self, chunk_pos: int, wanted: dict[int, str], head: bytes, index_bytes: int) -> _StoredChunk | None:
+        """One chunk as stored and, per wanted connection, its index entries; None where it
+        holds none of them (positioned reads: threads read chunks side by side); ``head`` is the first 4096 bytes
         at ``chunk_pos`` (its header), read when the groups were made; ``index_bytes`` what the
         index data records after the chunk are expected to take (read with it)."""
         fields, pos = _ros1_header(head, 0)
@@ -767,32 +775,51 @@ class Ros1Bag:
                 entries = np.frombuffer(raw[pos + 4 : pos + 4 + dlen], dtype=_ROS1_INDEX_ENTRY, count=count)
                 positions[conn] = entries
             at = pos + 4 + dlen
-        compressed = memoryview(raw)[:data_len]
         if not positions:
             return None
+        return _StoredChunk(compression, memoryview(raw)[:data_len], data_len, size, positions)
+
+
+@dataclass(frozen=True)
+class _StoredChunk:
+    """A ROS 1 chunk as stored (``compressed``, ``data_len`` bytes by its record) and, per
+    wanted connection, its index entries."""
+
+    compression: str
+    compressed: memoryview
+    data_len: int
+    size: int  # decompressed, by its header
+    positions: dict[int, np.ndarray]
+
+    def decompress_into(self, out: np.ndarray, wanted: dict[int, str]) -> None:
+        """The chunk's records written into ``out`` (``size`` bytes); raises :class:`_ChunkLost`
+        (with what its index says is lost) where it cannot be read or its index points out of it."""
         try:
-            if len(compressed) != data_len:
+            if len(self.compressed) != self.data_len:
                 raise ValueError("chunk cut off")
-            if compression == "none":
-                data = compressed
-            elif compression == "bz2":
+            if self.compression == "none":
+                done = _copy_into(self.compressed, memoryview(out))
+            elif self.compression == "bz2":
                 import bz2
 
-                data = bz2.decompress(compressed)
-            elif compression == "lz4":
-                import lz4.frame
+                done = _copy_into(bz2.decompress(self.compressed), memoryview(out))
+            elif self.compression == "lz4":
+                from imucal_cli.io.lz4frames import decompress_into
 
-                data = lz4.frame.decompress(compressed)
+                done = decompress_into(self.compressed, out)
             else:
-                raise ValueError(f"unsupported chunk compression {compression!r}")
-            if len(data) != size:
+                raise ValueError(f"unsupported chunk compression {self.compression!r}")
+            if done != self.size:
                 raise ValueError("chunk size mismatch")
         except Exception as exc:  # noqa: BLE001 - a damaged chunk: its index says what is lost
-            counts = {wanted[c]: len(e) for c, e in positions.items()}
-            times = [int(e["sec"][k]) * 1_000_000_000 + int(e["nsec"][k]) for e in positions.values() if len(e) for k in (0, -1)]
-            raise _ChunkLost(str(exc), data_len, min(times, default=None), max(times, default=None), counts) from None
+            raise self.lost(str(exc), wanted) from None
         # every index offset must lie inside the chunk, or the chunk is damaged
-        if any(len(e) and int(e["offset"].max()) + 8 > len(data) for e in positions.values()):
-            counts = {wanted[c]: len(e) for c, e in positions.items()}
-            raise _ChunkLost("index offsets past the chunk's end", data_len, None, None, counts)
-        return data, positions
+        if any(len(e) and int(e["offset"].max()) + 8 > self.size for e in self.positions.values()):
+            raise self.lost("index offsets past the chunk's end", wanted, times=False)
+
+    def lost(self, reason: str, wanted: dict[int, str], times: bool = True) -> _ChunkLost:
+        """The chunk lost for ``reason``: its bytes, and from its index the messages a topic
+        and (with ``times``) the span of their times."""
+        counts = {wanted[c]: len(e) for c, e in self.positions.items()}
+        stamps = [int(e["sec"][k]) * 1_000_000_000 + int(e["nsec"][k]) for e in self.positions.values() if len(e) for k in (0, -1)] if times else []
+        return _ChunkLost(reason, self.data_len, min(stamps, default=None), max(stamps, default=None), counts)
