@@ -326,3 +326,21 @@ def test_lz4_chunks_read_alike_without_liblz4(tmp_path, monkeypatch, fmt):
     monkeypatch.setattr(lz4frames, "_liblz4", lambda: None)
     _same(read_imu(path, topics), with_lib)
     _same(with_lib, read_imu(path, topics, fast=False))
+
+
+@pytest.mark.parametrize("order", [("op", "ver", "conn", "count"), ("count", "conn", "ver", "op"), ("conn", "op", "count", "extra", "ver")])
+def test_ros1_index_headers_read_as_the_generic_header_parser_reads_them(order):
+    """The index data records' header (read once a connection a chunk) in any field order,
+    with fields it does not know: what the general record header parser finds."""
+    import struct
+
+    from imucal_cli.io.fastimu import _ros1_header, _ros1_index_header
+
+    values = {"op": b"\x04", "ver": struct.pack("<I", 1), "conn": struct.pack("<I", 7), "count": struct.pack("<I", 123456), "extra": b"op=\x05"}
+    fields = b"".join(struct.pack("<I", len(name) + 1 + len(values[name])) + name.encode() + b"=" + values[name] for name in order)
+    record = b"junk" + struct.pack("<I", len(fields)) + fields + b"data"
+    generic, end = _ros1_header(record, 4)
+    assert _ros1_index_header(record, 4) == (generic["op"][0], struct.unpack("<I", generic["conn"])[0], struct.unpack("<I", generic["count"])[0], end)
+    with pytest.raises(KeyError):  # an index record without its connection
+        missing = b"".join(struct.pack("<I", len(n) + 1 + len(values[n])) + n.encode() + b"=" + values[n] for n in order if n != "conn")
+        _ros1_index_header(struct.pack("<I", len(missing)) + missing, 0)

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 
 T = TypeVar("T")
 
+_U32 = struct.Struct("<I")
 _SEEK_LOCK = threading.Lock()  # for handles without a file descriptor (no pread)
 
 #: Bytes after the variable-length frame id: orientation (4 f64), its covariance (9),
@@ -582,6 +583,31 @@ def _ros1_header(data: bytes, pos: int) -> tuple[dict[str, bytes], int]:
     return fields, end
 
 
+def _ros1_index_header(data: bytes, pos: int) -> tuple[int, int, int, int]:
+    """The op, connection and count of an index data record's header at ``pos`` (op 0 where
+    it has none: not such a record), and the position after it; :func:`_ros1_header` for the
+    three fields it needs, without a dict (a chunk's index has one record a connection)."""
+    (length,) = _U32.unpack_from(data, pos)
+    pos += 4
+    end = pos + length
+    op, conn, count = 0, None, None
+    while pos < end:
+        (flen,) = _U32.unpack_from(data, pos)
+        name_at = pos + 4
+        pos = name_at + flen
+        if data[name_at : name_at + 3] == b"op=":
+            if flen <= 3:
+                raise IndexError("op field without a value")
+            op = data[name_at + 3]
+        elif data[name_at : name_at + 5] == b"conn=" and flen == 9:
+            (conn,) = _U32.unpack_from(data, name_at + 5)
+        elif data[name_at : name_at + 6] == b"count=" and flen == 10:
+            (count,) = _U32.unpack_from(data, name_at + 6)
+    if op == 0x04 and (conn is None or count is None):
+        raise KeyError("conn" if conn is None else "count")
+    return op, conn or 0, count or 0, end
+
+
 class _ChunkLost(Exception):  # internal signal: a chunk that cannot be read
     def __init__(self, reason: str, nbytes: int, start_ns: int | None, end_ns: int | None, counts: dict[str, int]) -> None:
         super().__init__(reason)
@@ -762,13 +788,11 @@ class Ros1Bag:
             if header_len > 4096 or not have(at + 8 + header_len):
                 break
             try:
-                fields, pos = _ros1_header(raw, at)
+                op, conn, count, pos = _ros1_index_header(raw, at)
             except struct.error:
                 break
-            if fields.get("op", b"\x00")[0] != 0x04:
+            if op != 0x04:
                 break
-            conn = struct.unpack("<I", fields["conn"])[0]
-            count = struct.unpack("<I", fields["count"])[0]
             (dlen,) = struct.unpack_from("<I", raw, pos)
             if conn in wanted:
                 have(pos + 4 + dlen)
