@@ -439,3 +439,29 @@ def test_a_lively_sensor_past_the_saturation_floors_loses_nothing(tmp_path, shor
     reader = ImuBatches(log, list(topics))
     kept = np.concatenate([t for topic, t, *_ in reader if topic == name])
     assert reader.stats[name].saturated == 3 and len(kept) == n - 3
+
+
+def test_rosbag1_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
+    """An index entry whose offset lies past its chunk's end: the group's check finds it, and
+    only that chunk is lost (its messages counted from its index), the rest read bit for bit."""
+    from imucal_cli.io.fastimu import Ros1Bag, _ros1_header, _ros1_index_header
+
+    log, topics, full = logs["rosbag1"]
+    bad = _copy(log, "index-past-end")
+    data = bytearray(bad.read_bytes())
+    with bad.open("rb") as handle:
+        bag = Ros1Bag(handle)
+        chunk_pos = bag.chunk_positions[len(bag.chunk_positions) // 2]
+    fields, pos = _ros1_header(bytes(data), chunk_pos)
+    (data_len,) = struct.unpack_from("<I", data, pos)
+    first_index = pos + 4 + data_len  # the chunk's first index data record
+    _, conn, count, at = _ros1_index_header(bytes(data), first_index)
+    entry = at + 4 + (count // 2) * 12  # (sec, nsec, offset): the offset of its middle entry
+    struct.pack_into("<I", data, entry + 8, struct.unpack("<I", fields["size"])[0] + 100)
+    bad.write_bytes(bytes(data))
+    losses = []
+    got = read_imu(bad, topics, losses=losses)
+    _assert_subset_exact(full, got)
+    assert [(x.offset, x.reason) for x in losses] == [(chunk_pos, "chunk that cannot be read (index offsets past the chunk's end)")]
+    lost = sum(len(full[t].stream) - len(got[t].stream) for t in topics)
+    assert lost == sum(losses[0].messages.values()) > count

@@ -724,7 +724,7 @@ class Ros1Bag:
         if not chunks:
             return []
         buffer = np.empty(sum(chunk.size for _, chunk in chunks), dtype=np.uint8)
-        pending: list[tuple[int, dict[int, np.ndarray]]] = []
+        read: list[tuple[int, _StoredChunk, int]] = []
         at = 0
         for chunk_pos, chunk in chunks:
             try:
@@ -732,9 +732,19 @@ class Ros1Bag:
             except Exception as exc:  # noqa: BLE001 - recorded (or raised) by lose
                 lose(chunk_pos, exc)
                 continue  # its room is taken by the next chunk
-            pending.append((at, chunk.positions))
+            read.append((chunk_pos, chunk, at))
             at += chunk.size
-        return list(self._group(buffer[:at], pending, wanted))
+        # every index offset must lie inside its chunk, or the chunk is damaged: checked for
+        # the whole group at once, and chunk by chunk only where that finds one outside
+        if read and not _offsets_inside([(chunk.positions, chunk.size) for _, chunk, _ in read]):
+            inside = []
+            for chunk_pos, chunk, begins in read:
+                if _offsets_inside([(chunk.positions, chunk.size)]):
+                    inside.append((chunk_pos, chunk, begins))
+                else:
+                    lose(chunk_pos, chunk.lost("index offsets past the chunk's end", wanted, times=False))
+            read = inside
+        return list(self._group(buffer[:at], [(begins, chunk.positions) for _, chunk, begins in read], wanted))
 
     @staticmethod
     def _group(buffer: np.ndarray, pending: list[tuple[int, dict[int, np.ndarray]]], wanted: dict[int, str]) -> Iterator[RawBatch]:
@@ -742,7 +752,8 @@ class Ros1Bag:
             parts = [(e, b) for b, positions in pending if len(e := positions.get(conn, ()))]
             if not parts:
                 continue
-            offset = np.concatenate([e["offset"].astype(np.int64) + b for e, b in parts])
+            offset = np.concatenate([e["offset"] for e, _ in parts]).astype(np.int64)
+            offset += np.repeat([b for _, b in parts], [len(e) for e, _ in parts])  # where its chunk begins
             sec = np.concatenate([e["sec"] for e, _ in parts]).astype(np.int64)
             nsec = np.concatenate([e["nsec"] for e, _ in parts]).astype(np.int64)
             log_ns = sec * 1_000_000_000 + nsec
@@ -804,6 +815,17 @@ class Ros1Bag:
         return _StoredChunk(compression, memoryview(raw)[:data_len], data_len, size, positions)
 
 
+def _offsets_inside(chunks: list[tuple[dict[int, np.ndarray], int]]) -> bool:
+    """Whether every index entry of the chunks (their entries a connection, and their
+    decompressed sizes) points at a record whose first 8 bytes lie inside its chunk."""
+    entries = [(e["offset"], size) for positions, size in chunks for e in positions.values() if len(e)]
+    if not entries:
+        return True
+    offsets = np.concatenate([offset for offset, _ in entries]).astype(np.int64)
+    sizes = np.repeat([size for _, size in entries], [len(offset) for offset, _ in entries])
+    return bool(np.all(offsets + 8 <= sizes))
+
+
 @dataclass(frozen=True)
 class _StoredChunk:
     """A ROS 1 chunk as stored (``compressed``, ``data_len`` bytes by its record) and, per
@@ -817,7 +839,7 @@ class _StoredChunk:
 
     def decompress_into(self, out: np.ndarray, wanted: dict[int, str]) -> None:
         """The chunk's records written into ``out`` (``size`` bytes); raises :class:`_ChunkLost`
-        (with what its index says is lost) where it cannot be read or its index points out of it."""
+        (with what its index says is lost) where it cannot be read."""
         try:
             if len(self.compressed) != self.data_len:
                 raise ValueError("chunk cut off")
@@ -837,9 +859,6 @@ class _StoredChunk:
                 raise ValueError("chunk size mismatch")
         except Exception as exc:  # noqa: BLE001 - a damaged chunk: its index says what is lost
             raise self.lost(str(exc), wanted) from None
-        # every index offset must lie inside the chunk, or the chunk is damaged
-        if any(len(e) and int(e["offset"].max()) + 8 > self.size for e in self.positions.values()):
-            raise self.lost("index offsets past the chunk's end", wanted, times=False)
 
     def lost(self, reason: str, wanted: dict[int, str], times: bool = True) -> _ChunkLost:
         """The chunk lost for ``reason``: its bytes, and from its index the messages a topic
