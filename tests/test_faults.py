@@ -455,7 +455,7 @@ def test_rosbag1_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
     fields, pos = _ros1_header(bytes(data), chunk_pos)
     (data_len,) = struct.unpack_from("<I", data, pos)
     first_index = pos + 4 + data_len  # the chunk's first index data record
-    _, conn, count, at = _ros1_index_header(bytes(data), first_index)
+    _, _, count, at = _ros1_index_header(bytes(data), first_index)
     entry = at + 4 + (count // 2) * 12  # (sec, nsec, offset): the offset of its middle entry
     struct.pack_into("<I", data, entry + 8, struct.unpack("<I", fields["size"])[0] + 100)
     bad.write_bytes(bytes(data))
