@@ -344,37 +344,3 @@ def test_ros1_index_headers_read_as_the_generic_header_parser_reads_them(order):
     with pytest.raises(KeyError):  # an index record without its connection
         missing = b"".join(struct.pack("<I", len(n) + 1 + len(values[n])) + n.encode() + b"=" + values[n] for n in order if n != "conn")
         _ros1_index_header(struct.pack("<I", len(missing)) + missing, 0)
-
-
-def test_decoded_groups_give_their_buffer_back_only_when_every_message_was_decoded(monkeypatch):
-    """A group whose messages were all decoded lets go of its buffer, which is used again for
-    a later group; a group with a message left to the generic decoder keeps it, readable."""
-    from imucal_cli.io import fastimu
-
-    monkeypatch.setattr(fastimu, "DECODE_THREADS", 0)  # one group after the other
-
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    (msg,) = _messages(store, False, np.random.default_rng(2), 1)
-    little = bytes(store.serialize_cdr(msg, IMU))
-    big = bytes(store.serialize_cdr(msg, IMU, little_endian=False))
-    buffers = fastimu.GroupBuffers(keep=2)
-    made = []
-
-    def read(blobs, lost):
-        data = b"".join(blobs)
-        buffer = buffers.take(len(data))
-        buffer[:] = np.frombuffer(data, np.uint8)
-        made.append(buffer.base)
-        lengths = np.array([len(b) for b in blobs])
-        return [RawBatch("/imu", "cdr", buffer, np.concatenate([[0], np.cumsum(lengths)[:-1]]), lengths, np.arange(len(blobs)))]
-
-    groups = [[little, little], [little, big], [little, little]]
-    got = list(fastimu._decoded_groups(read, groups, None, buffers))
-    assert [len(b.log_time_ns) for b in got] == [2, 2, 2]
-    assert len(got[0].buffer) == 0 and len(got[2].buffer) == 0  # let go of
-    assert made[1] is made[0]  # the first group's buffer, used again by the second
-    assert made[2] is not made[0]  # which keeps it
-    assert got[1].decoded.undecoded.tolist() == [1]
-    assert [data for _, _, data in got[1].messages()] == [little, big]  # kept, readable
-    with pytest.raises(ValueError, match="let go"):
-        list(got[0].messages())

@@ -78,22 +78,14 @@ class RawBatch:
     #: The first 16 bytes of every message (``_CDR_HEAD`` or ``_ROS1_HEAD``) when the reader
     #: gathered them with its record headers; only for batches whose messages all hold them.
     head: np.ndarray | None = None
-    #: The batch decoded already, where the reader decodes in its worker threads. Where it
-    #: decoded every message, the reader may let go of the serialized messages (``buffer``,
-    #: ``starts`` and ``lengths`` then empty; ``log_time_ns`` still counts the messages).
+    #: The batch decoded already, where the reader decodes in its worker threads.
     decoded: DecodedBatch | None = None
 
     def messages(self) -> Iterator[tuple[str, int, bytes]]:
         """``(topic, log_time_ns, serialized message)`` one at a time (for the generic path)."""
-        if len(self.starts) != len(self.log_time_ns):
-            raise ValueError(f"{self.topic}: the batch was decoded and its serialized messages let go")
         buf = self.buffer
         for start, length, log_ns in zip(self.starts.tolist(), self.lengths.tolist(), self.log_time_ns.tolist(), strict=True):
             yield self.topic, int(log_ns), bytes(buf[start : start + length])
-
-
-_NO_BYTES = np.zeros(0, dtype=np.uint8)
-_NO_POSITIONS = np.zeros(0, dtype=np.int64)
 
 
 def _ahead(items: Iterator[T]) -> Iterator[T]:
@@ -103,57 +95,17 @@ def _ahead(items: Iterator[T]) -> Iterator[T]:
     return queued(items, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S) if READ_AHEAD_GROUPS > 0 else iter(items)
 
 
-class GroupBuffers:
-    """Buffers for groups of decompressed chunks, used again once a group is decoded: the
-    kernel zeroes fresh memory on its first touch (huge pages of 2 MiB, as numpy asks for),
-    which took 4-6% of the CPU of reading a ROS 1 bag. :meth:`take` gives a buffer (a new one
-    where none kept is large enough), :meth:`give` takes it back; a few are kept, for the
-    threads that decode."""
-
-    def __init__(self, keep: int) -> None:
-        self.keep = keep
-        self._free: list[np.ndarray] = []
-        self._lock = threading.Lock()
-
-    def take(self, size: int) -> np.ndarray:
-        """A buffer of ``size`` bytes (uninitialised)."""
-        with self._lock:
-            for k, buffer in enumerate(self._free):
-                if len(buffer) >= size:
-                    return self._free.pop(k)[:size]
-        # room for a somewhat larger group next time (groups end on a chunk's boundary)
-        return np.empty(size + size // 4, dtype=np.uint8)[:size]
-
-    def give(self, buffer: np.ndarray) -> None:
-        """Take back a buffer :meth:`take` gave (or a view of it) that nothing reads any more."""
-        whole = buffer if buffer.base is None else buffer.base
-        if isinstance(whole, np.ndarray) and whole.base is None:
-            with self._lock:
-                if len(self._free) < self.keep:
-                    self._free.append(whole)
-
-
 def _decoded_groups(
-    read: Callable[[T, list | None], Iterable[RawBatch]], groups: Iterable[T], losses: list | None, buffers: GroupBuffers | None = None
+    read: Callable[[T, list | None], Iterable[RawBatch]], groups: Iterable[T], losses: list | None
 ) -> Iterator[RawBatch]:
     """The batches of every group, read (``read(group, lost)``: what of it cannot be read goes
     to ``lost``, or raises where that is None) and decoded by :data:`DECODE_THREADS` threads,
-    in the groups' order; each group's losses are added to ``losses`` at its turn.
-
-    Where every message of a group was decoded, its batches let go of the group's buffer
-    (their serialized messages are not needed any more), and the buffer goes back to
-    ``buffers`` to be used again."""
+    in the groups' order; each group's losses are added to ``losses`` at its turn."""
     from imucal_cli.io.prefetch import ordered_map
 
     def one(group: T) -> tuple[list[RawBatch], list | None]:
         lost = None if losses is None else []
-        batches = [replace(batch, decoded=decode_imu(batch)) for batch in read(group, lost)]
-        if buffers is not None and batches and all(not len(batch.decoded.undecoded) for batch in batches):  # type: ignore[union-attr]
-            held = {id(batch.buffer.base if batch.buffer.base is not None else batch.buffer) for batch in batches}
-            if len(held) == 1:  # the group's one buffer
-                buffers.give(batches[0].buffer)
-                batches = [replace(batch, buffer=_NO_BYTES, starts=_NO_POSITIONS, lengths=_NO_POSITIONS) for batch in batches]
-        return batches, lost
+        return [replace(batch, decoded=decode_imu(batch)) for batch in read(group, lost)], lost
 
     for batches, lost in ordered_map(one, groups, DECODE_THREADS, READ_AHEAD_GROUPS, READ_AHEAD_SWITCH_S):
         if losses is not None and lost:
@@ -416,12 +368,10 @@ class McapChunks:
         over many messages. A chunk that does not decompress or fails its CRC is skipped and
         recorded in ``losses`` with the exact message counts of its index.
         """
-        buffers = GroupBuffers(DECODE_THREADS + 1)
-
         def read(group: list[tuple[object, dict[int, np.ndarray]]], lost: list | None) -> Iterator[RawBatch]:
-            return self._group(*self._read_group(group, wanted, lost, buffers), wanted)
+            return self._group(*self._read_group(group, wanted, lost), wanted)
 
-        yield from _decoded_groups(read, self._groups(wanted, group_bytes or GROUP_BYTES), losses, buffers)
+        yield from _decoded_groups(read, self._groups(wanted, group_bytes or GROUP_BYTES), losses)
 
     def _groups(self, wanted: dict[int, tuple[str, str]], group_bytes: int) -> Iterator[list[tuple[object, dict[int, np.ndarray]]]]:
         """Consecutive chunks with wanted messages, with their message positions, up to
@@ -446,17 +396,12 @@ class McapChunks:
             yield group
 
     def _read_group(
-        self,
-        group: list[tuple[object, dict[int, np.ndarray]]],
-        wanted: dict[int, tuple[str, str]],
-        losses: list | None,
-        buffers: GroupBuffers | None = None,
+        self, group: list[tuple[object, dict[int, np.ndarray]]], wanted: dict[int, tuple[str, str]], losses: list | None
     ) -> tuple[np.ndarray, list[tuple[int, dict[int, np.ndarray]]]]:
         from imucal_cli.io.salvage import Loss
 
         sizes = [ci.uncompressed_size for ci, _ in group]  # type: ignore[attr-defined]
-        size = sum(n for n in sizes if n <= _MCAP_MAX_CHUNK)
-        buffer = buffers.take(size) if buffers is not None else np.empty(size, dtype=np.uint8)
+        buffer = np.empty(sum(n for n in sizes if n <= _MCAP_MAX_CHUNK), dtype=np.uint8)
         view = memoryview(buffer)
         pending: list[tuple[int, dict[int, np.ndarray]]] = []
         at = 0
@@ -726,12 +671,10 @@ class Ros1Bag:
         A chunk that cannot be read is skipped and recorded in ``losses`` (counts from its index)."""
         wanted = {c: t for c, t in self.topics.items() if t in set(topics)}
 
-        buffers = GroupBuffers(DECODE_THREADS + 1)
-
         def read(group: list[tuple[int, bytes, int]], lost: list | None) -> list[RawBatch]:
-            return self._read_group(group, wanted, lost, buffers)
+            return self._read_group(group, wanted, lost)
 
-        yield from _decoded_groups(read, self._groups(group_bytes or GROUP_BYTES), losses, buffers)
+        yield from _decoded_groups(read, self._groups(group_bytes or GROUP_BYTES), losses)
 
     def _groups(self, group_bytes: int) -> Iterator[list[tuple[int, bytes, int]]]:
         """Consecutive chunks, each as its position, the first bytes there (its header, read
@@ -753,9 +696,7 @@ class Ros1Bag:
         if group:
             yield group
 
-    def _read_group(
-        self, group: list[tuple[int, bytes, int]], wanted: dict[int, str], losses: list | None, buffers: GroupBuffers | None = None
-    ) -> list[RawBatch]:
+    def _read_group(self, group: list[tuple[int, bytes, int]], wanted: dict[int, str], losses: list | None) -> list[RawBatch]:
         """The raw batches of a group of chunks, decompressed side by side into one buffer; a
         chunk that cannot be read is recorded in ``losses`` (raised where that is None)."""
         from imucal_cli.io.salvage import Loss
@@ -782,8 +723,7 @@ class Ros1Bag:
                 lose(chunk_pos, exc)
         if not chunks:
             return []
-        size = sum(chunk.size for _, chunk in chunks)
-        buffer = buffers.take(size) if buffers is not None else np.empty(size, dtype=np.uint8)
+        buffer = np.empty(sum(chunk.size for _, chunk in chunks), dtype=np.uint8)
         read: list[tuple[int, _StoredChunk, int]] = []
         at = 0
         for chunk_pos, chunk in chunks:

@@ -903,7 +903,7 @@ class ImuBatches:
         if batches is not None:
             try:
                 for batch in batches:
-                    self.stats[batch.topic].messages += len(batch.log_time_ns)
+                    self.stats[batch.topic].messages += len(batch.starts)
                     decoded = batch.decoded if batch.decoded is not None else decode_imu(batch)
                     parts = [(decoded.stamp_ns, decoded.log_time_ns, decoded.gyro, decoded.accel, decoded.frame_ids)]
                     for i in decoded.undecoded:  # what the layout check did not recognise
