@@ -420,7 +420,7 @@ def calibrate(
     ] = False,
     report: Annotated[
         Path | None,
-        typer.Option("--report", help="Also write figures (PNG) and report.html into this folder (needs imucal[report])."),
+        typer.Option("--report", help="Also write figures (PNG) and report.html into this folder (needs imucal\\[report])."),
     ] = None,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
@@ -532,7 +532,7 @@ def batch(
     out_dir: Annotated[Path, typer.Option("--out-dir", help="Folder for each log's calibration and the summary.")] = Path("imucal-batch"),
     manifest: Annotated[Path | None, typer.Option("--manifest", help="CSV with columns log[, config, truth, reference].")] = None,
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Local worker processes.")] = 1,
-    scheduler: Annotated[str | None, typer.Option("--scheduler", help="Dask scheduler address (tcp://host:port); needs imucal[fleet].")] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help="Dask scheduler address (tcp://host:port); needs imucal\\[fleet].")] = None,
     truth_dir: Annotated[Path | None, typer.Option("--truth-dir", help="Folder of STEM.truth.yaml files to compare against.")] = None,
     reference: Annotated[Path | None, typer.Option("--reference", help="The vehicle's previous calibration: sensors past the thresholds are flagged as moved.")] = None,
     max_rotation_deg: Annotated[float | None, typer.Option("--max-rotation-deg", help="Pass threshold on the rotation error (deg).")] = None,

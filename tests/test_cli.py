@@ -131,6 +131,14 @@ def test_version_and_help():
         assert runner.invoke(app, [command, "--help"]).exit_code == 0
 
 
+@pytest.mark.parametrize(("command", "extra"), [("calibrate", "imucal[report]"), ("batch", "imucal[fleet]")])
+def test_help_names_the_extras_to_install(command, extra):
+    """Square brackets in help text are rich markup unless escaped: the extra's name shows."""
+    result = runner.invoke(app, [command, "--help"], env={"COLUMNS": "240"})
+    assert result.exit_code == 0
+    assert f"needs {extra}" in result.output
+
+
 def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_whole(tmp_path, short_drive):
     """The console script's entry point (:mod:`imucal_cli.launch`: the log's reader started
     first, then the CLI, whose ``main`` ends the process itself once the command is done, with
