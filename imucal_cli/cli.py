@@ -97,8 +97,10 @@ def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
 def _stdout_console() -> Any:
     from rich.console import Console
 
-    # Piped output is read by people too: do not squeeze tables into 80 columns.
-    return Console(highlight=False, width=None if sys.stdout.isatty() else 160)
+    # Piped output is read by people too: do not squeeze tables into 80 columns. No markup:
+    # what is printed holds the user's names and paths (``lidar[front]``), to be shown as they
+    # are; colours are given as styles.
+    return Console(highlight=False, markup=False, width=None if sys.stdout.isatty() else 160)
 
 
 @contextmanager
@@ -443,6 +445,7 @@ def calibrate(
 
     def render(doc: dict[str, Any]) -> None:
         from rich.table import Table
+        from rich.text import Text
 
         table = Table(title=f"T_{doc['base_frame']}_lidar from {log}")
         for column in ("sensor", "status", "xyz m", "rpy deg", "std xyz mm", "std rpy deg", "time offset ms", "windows"):
@@ -452,7 +455,7 @@ def calibrate(
             std_t = None if s["translation_std_m"] is None else [v * 1000 for v in s["translation_std_m"]]
             colour = {"ok": "green", "partial": "yellow"}.get(s["status"], "red")
             table.add_row(
-                name, f"[{colour}]{s['status']}[/{colour}]", _fmt(T["translation"], 4), _fmt(T["rpy_deg"], 3),
+                name, Text(s["status"], style=colour), _fmt(T["translation"], 4), _fmt(T["rpy_deg"], 3),
                 _fmt(std_t, 2), _fmt(s["rotation_std_deg"], 4), f"{s['time_offset_s'] * 1000:.2f}",
                 f"{s['segments']['selected']}/{s['segments']['total']}",
             )
@@ -622,7 +625,7 @@ def evaluate(
                           f"{row['translation_error_eq20_m']:.4f}")
         console = _stdout_console()
         console.print(table)
-        console.print("[green]pass[/green]" if doc["pass"] else "[red]fail[/red]")
+        console.print("pass" if doc["pass"] else "fail", style="green" if doc["pass"] else "red")
 
     _emit(document, out, as_json, render)
     if not document["pass"]:
@@ -713,9 +716,11 @@ def simulate(
     write_document(config_path, drive.config_document())
     counts = {topic: len(data.stream) for topic, data in drive.topics().items()}
     console = _stdout_console()
-    console.print(f"[bold]{out}[/bold] ({fmt}, {scenario.value}, seed {seed}): " + ", ".join(
+    from rich.text import Text
+
+    console.print(Text.assemble((str(out), "bold"), f" ({fmt}, {scenario.value}, seed {seed}): " + ", ".join(
         f"{topic} {count:,}" for topic, count in counts.items()
-    ))
+    )))
     console.print(f"truth:  {truth_path}\nconfig: {config_path}")
 
 

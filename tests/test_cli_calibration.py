@@ -155,3 +155,17 @@ def test_calibrate_too_short_log_is_a_clear_error(tmp_path):
     assert result.exit_code == 2
     assert "short.mcap" in result.stderr and "too little data" in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "e.yaml").exists()
+
+
+def test_names_and_paths_are_printed_as_they_are(tmp_path):
+    """Sensor names and paths with square brackets (rich markup, were it read as such) come
+    out whole in the tables; the verdict keeps its word."""
+    folder = tmp_path / "[night]"
+    folder.mkdir()
+    doc = "sensors: {'lidar[front]': {T_base_lidar: {translation: [1, 0, 0], rotation: [0, 0, 0, 1]}}}\n"
+    (folder / "a.yaml").write_text(doc)
+    (folder / "b.yaml").write_text(doc.replace("[1, 0, 0]", "[1, 0, 0.5]"))
+    result = runner.invoke(app, ["evaluate", str(folder / "a.yaml"), str(folder / "b.yaml"), "--max-translation-m", "0.1"], env={"COLUMNS": "240"})
+    assert result.exit_code == 1, result.output  # a failed check
+    assert "lidar[front]" in result.stdout and "[night]" in result.stdout
+    assert result.stdout.rstrip().endswith("fail")
