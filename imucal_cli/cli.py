@@ -117,7 +117,7 @@ def _progress(description: str, from_first_count: bool = False) -> Iterator[Any]
 
     progress = Progress(
         SpinnerColumn(),
-        TextColumn("{task.description}"),
+        TextColumn("{task.description}", markup=False),  # a path, as it is
         TextColumn("{task.completed:>10,.0f} messages"),
         TimeElapsedColumn(),
         console=Console(stderr=True),
