@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import struct
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -465,3 +466,32 @@ def test_rosbag1_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
     assert [(x.offset, x.reason) for x in losses] == [(chunk_pos, "chunk that cannot be read (index offsets past the chunk's end)")]
     lost = sum(len(full[t].stream) - len(got[t].stream) for t in topics)
     assert lost == sum(losses[0].messages.values()) > count
+
+
+@pytest.mark.parametrize("claimed", ["huge", "small"])
+def test_rosbag1_chunk_claiming_a_wrong_size_is_lost_alone(logs, claimed):
+    """A chunk header whose decompressed size is damaged (past what LZ4 can expand to, or too
+    small for its records): that chunk is lost, counted from its index, before any room is
+    made for it; the others are read bit for bit."""
+    from imucal_cli.io.fastimu import Ros1Bag
+
+    log, topics, full = logs["rosbag1"]
+    bad = _copy(log, f"size-{claimed}")
+    data = bytearray(bad.read_bytes())
+    with bad.open("rb") as handle:
+        chunk_pos = Ros1Bag(handle).chunk_positions[1]
+    at = data.index(b"size=", chunk_pos) + len(b"size=")
+    size = struct.unpack_from("<I", data, at)[0]
+    struct.pack_into("<I", data, at, 0xFFFFFFF0 if claimed == "huge" else size // 2)
+    bad.write_bytes(bytes(data))
+    losses = []
+    tracemalloc.start()  # numpy's buffers are traced too
+    try:
+        got = read_imu(bad, topics, losses=losses)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 256 << 20  # no room made for the claimed 4 GiB
+    _assert_subset_exact(full, got)
+    assert [(x.offset, x.reason) for x in losses] == [(chunk_pos, "chunk that cannot be read (chunk size mismatch)")]
+    assert sum(len(full[t].stream) - len(got[t].stream) for t in topics) == sum(losses[0].messages.values()) > 0

@@ -715,7 +715,7 @@ class Ros1Bag:
         for chunk_pos, head, index_bytes in group:
             try:
                 chunk = self._read_chunk(chunk_pos, wanted, head, index_bytes)
-                if chunk is not None and chunk.size > _ROS1_MAX_CHUNK:  # before making room for it
+                if chunk is not None and not chunk.size_plausible():  # before making room for it
                     raise chunk.lost("chunk size mismatch", wanted)
                 if chunk is not None:
                     chunks.append((chunk_pos, chunk))
@@ -836,6 +836,17 @@ class _StoredChunk:
     data_len: int
     size: int  # decompressed, by its header
     positions: dict[int, np.ndarray]
+
+    def size_plausible(self) -> bool:
+        """Whether its header's decompressed size can be true (a damaged one could claim any,
+        and room is made for it before decompressing): at most :data:`_ROS1_MAX_CHUNK`, the
+        stored size when stored as it is, at most 255 times it (and a frame's few bytes) from
+        LZ4, whose longest match adds 255 bytes a byte."""
+        if self.compression == "none":
+            return self.size == self.data_len
+        if self.compression == "lz4":
+            return self.size <= min(_ROS1_MAX_CHUNK, 255 * self.data_len + 4096)
+        return self.size <= _ROS1_MAX_CHUNK
 
     def decompress_into(self, out: np.ndarray, wanted: dict[int, str]) -> None:
         """The chunk's records written into ``out`` (``size`` bytes); raises :class:`_ChunkLost`
