@@ -4,9 +4,9 @@ python-lz4 (the binding rosbags and mcap use) returns a new ``bytes`` object for
 a reader that wants the chunks of a log side by side in one buffer then copies each of them
 once more (a quarter of a second for an hour of IMU messages). liblz4's ``LZ4F_decompress``
 writes into memory the caller gives. Its frame API is stable since liblz4 1.8 (2017); the
-library is loaded from the system (``liblz4.so.1``, as python-lz4 and every distribution
-ship it), and where it cannot be loaded :func:`decompress_into` falls back to python-lz4 and a
-copy, with the same result.
+library is loaded from the system (``liblz4.so.1``, part of the base system of the common Linux
+distributions; python-lz4 carries its own copy, built in), and where it cannot be loaded
+:func:`decompress_into` falls back to python-lz4 and a copy, with the same result.
 """
 
 from __future__ import annotations
