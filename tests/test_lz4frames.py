@@ -72,3 +72,15 @@ def test_damaged_frames_are_refused(binding, damage):
         lz4.frame.decompress(bytes(frame))
     with pytest.raises(ValueError):
         decompress_into(bytes(frame), np.zeros(len(DATA), dtype=np.uint8))
+
+
+@pytest.mark.parametrize("room", ["read-only", "strided", "float"])
+def test_only_writable_contiguous_bytes_are_written_into(binding, room):
+    frame = lz4.frame.compress(DATA)
+    out = {
+        "read-only": np.frombuffer(bytes(len(DATA)), dtype=np.uint8),
+        "strided": np.zeros(2 * len(DATA), dtype=np.uint8)[::2],
+        "float": np.zeros(len(DATA) // 8, dtype=np.float64),
+    }[room]
+    with pytest.raises(ValueError, match="writable, contiguous uint8"):
+        decompress_into(frame, out)

@@ -55,6 +55,8 @@ def decompress_into(frame: bytes | memoryview, out: np.ndarray) -> int:
     array); returns the size it decompresses to, more than ``len(out)`` where it does not fit
     (then only ``len(out)`` bytes are written). Raises ValueError for a damaged or cut-off
     frame (its checksums are checked where the frame has them), as python-lz4 does."""
+    if out.dtype != np.uint8 or out.ndim != 1 or not (out.flags.c_contiguous and out.flags.writeable):
+        raise ValueError("decompress_into needs a writable, contiguous uint8 array")
     lib = _liblz4()
     if lib is None:
         return _copied(frame, out)
