@@ -495,3 +495,27 @@ def test_rosbag1_chunk_claiming_a_wrong_size_is_lost_alone(logs, claimed):
     _assert_subset_exact(full, got)
     assert [(x.offset, x.reason) for x in losses] == [(chunk_pos, "chunk that cannot be read (chunk size mismatch)")]
     assert sum(len(full[t].stream) - len(got[t].stream) for t in topics) == sum(losses[0].messages.values()) > 0
+
+
+def test_mcap_message_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
+    """A message index entry whose offset lies past its chunk's end: the group's check finds
+    it, and only that chunk is lost (counted from its index), the rest read bit for bit."""
+    from imucal_cli.io.fastimu import McapChunks
+
+    log, topics, full = logs["mcap"]
+    bad = _copy(log, "mcap-index-past-end")
+    data = bytearray(bad.read_bytes())
+    with bad.open("rb") as handle:
+        chunk = McapChunks(handle).summary.chunk_indexes[2]
+    channel, at = next(iter(chunk.message_index_offsets.items()))
+    assert data[at] == 0x07  # a message index record: op, length, channel, then its entries
+    (nbytes,) = struct.unpack_from("<I", data, at + 1 + 8 + 2)
+    entry = at + 1 + 8 + 2 + 4 + (nbytes // 16 // 2) * 16  # (log time, offset) of its middle one
+    struct.pack_into("<Q", data, entry + 8, chunk.uncompressed_size + 100)
+    bad.write_bytes(bytes(data))
+    losses = []
+    got = read_imu(bad, topics, losses=losses)
+    _assert_subset_exact(full, got)
+    assert [(x.offset, x.reason) for x in losses] == [(chunk.chunk_start_offset, "chunk that cannot be read (message index offsets past the chunk's end)")]
+    lost = sum(len(full[t].stream) - len(got[t].stream) for t in topics)
+    assert lost == sum(losses[0].messages.values()) > 0

@@ -403,13 +403,16 @@ class McapChunks:
         sizes = [ci.uncompressed_size for ci, _ in group]  # type: ignore[attr-defined]
         buffer = np.empty(sum(n for n in sizes if n <= _MCAP_MAX_CHUNK), dtype=np.uint8)
         view = memoryview(buffer)
+        # every message index offset must lie inside its chunk: checked for the whole group at
+        # once, and chunk by chunk only where that finds one outside
+        inside = _mcap_offsets_inside([(positions, n) for (_, positions), n in zip(group, sizes, strict=True)])
         pending: list[tuple[int, dict[int, np.ndarray]]] = []
         at = 0
         for (ci, positions), n in zip(group, sizes, strict=True):
             try:
                 if n > _MCAP_MAX_CHUNK:
                     raise ValueError(f"implausible uncompressed size {n}")
-                if any(len(p) and int(p[:, 1].max()) + _MCAP_MESSAGE_HEADER > n for p in positions.values()):
+                if not inside and not _mcap_offsets_inside([(positions, n)]):
                     raise ValueError("message index offsets past the chunk's end")
                 self.read_chunk(ci, view[at : at + n])
             except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
@@ -443,6 +446,18 @@ class McapChunks:
             if head is not None and not np.all(data_len >= 16):
                 head = None
             yield RawBatch(topic, encoding, buffer, offset + _MCAP_MESSAGE_HEADER, data_len, log_ns, head)
+
+
+def _mcap_offsets_inside(chunks: list[tuple[dict[int, np.ndarray], int]]) -> bool:
+    """Whether every message index entry of the chunks (their (log time, offset) rows a
+    channel, and their uncompressed sizes) points at a message record header inside its chunk."""
+    entries = [(p[:, 1], size) for positions, size in chunks for p in positions.values() if len(p)]
+    if not entries:
+        return True
+    offsets = np.concatenate([offset for offset, _ in entries])  # uint64: no negative offsets
+    sizes = np.repeat(np.array([size for _, size in entries], dtype=np.uint64), [len(offset) for offset, _ in entries])
+    # as the chunk by chunk check: offset + header <= size, without uint64's wrap past 2**64
+    return bool(np.all(offsets <= sizes - np.minimum(sizes, _MCAP_MESSAGE_HEADER)) and np.all(sizes >= _MCAP_MESSAGE_HEADER))
 
 
 def mcap_batches(path: Path, topics: Iterable[str], losses: list | None = None) -> Iterator[RawBatch] | None:
