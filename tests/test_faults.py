@@ -507,7 +507,7 @@ def test_mcap_message_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
     data = bytearray(bad.read_bytes())
     with bad.open("rb") as handle:
         chunk = McapChunks(handle).summary.chunk_indexes[2]
-    channel, at = next(iter(chunk.message_index_offsets.items()))
+    at = next(iter(chunk.message_index_offsets.values()))
     assert data[at] == 0x07  # a message index record: op, length, channel, then its entries
     (nbytes,) = struct.unpack_from("<I", data, at + 1 + 8 + 2)
     entry = at + 1 + 8 + 2 + 4 + (nbytes // 16 // 2) * 16  # (log time, offset) of its middle one
