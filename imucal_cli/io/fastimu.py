@@ -44,10 +44,13 @@ _CDR_HEAD = np.dtype(
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
 #: An entry of a ROS 1 index data record: a message's receive time and offset in its chunk.
 _ROS1_INDEX_ENTRY = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])
+#: Bytes of a ROS 1 message record that must lie inside its chunk at its index's offset.
+_ROS1_RECORD_START = 8
 #: Most bytes of a ROS 1 chunk's index data read together with the chunk.
 _ROS1_MAX_INDEX_READ = 1 << 22
-#: Largest decompressed ROS 1 chunk believed (bytes): a bigger size in its header is damage.
-_ROS1_MAX_CHUNK = 1 << 30
+#: Largest decompressed chunk believed (bytes; MCAP or ROS 1): a bigger size in an index or a
+#: chunk's header is damage.
+_MAX_CHUNK = 1 << 30
 #: Bytes of decompressed chunks decoded together.
 GROUP_BYTES = 16 << 20
 #: Groups of chunks (or of sqlite3 rows) read ahead of the one being consumed, beyond one
@@ -258,12 +261,23 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     )
 
 
+def _records_inside(chunks: list[tuple[list[np.ndarray], int]], header: int) -> bool:
+    """Whether every record offset of the chunks (per chunk: its index's offsets, an array a
+    channel, and its decompressed size) leaves the record's first ``header`` bytes inside its
+    chunk: ``offset + header <= size``."""
+    parts = [(offsets, size) for arrays, size in chunks for offsets in arrays if len(offsets)]
+    if not parts:
+        return True
+    offsets = np.concatenate([offsets for offsets, _ in parts]).astype(np.uint64)
+    sizes = np.repeat(np.array([size for _, size in parts], dtype=np.uint64), [len(offsets) for offsets, _ in parts])
+    # in uint64 (MCAP's offsets): the sum could wrap past 2**64, the difference cannot
+    return bool(np.all(sizes >= header)) and bool(np.all(offsets <= sizes - np.uint64(header)))
+
+
 # --------------------------------------------------------------------------- MCAP
 
 _MCAP_MESSAGE_HEADER = 1 + 8 + 2 + 4 + 8 + 8  # opcode, length, channel, sequence, log, publish
 _MCAP_OP_MESSAGE_INDEX = 0x07
-#: Largest uncompressed chunk believed (bytes): a bigger size in an index is damage.
-_MCAP_MAX_CHUNK = 1 << 30
 
 
 def _copy_into(records: bytes | memoryview, out: memoryview) -> int:
@@ -401,18 +415,18 @@ class McapChunks:
         from imucal_cli.io.salvage import Loss
 
         sizes = [ci.uncompressed_size for ci, _ in group]  # type: ignore[attr-defined]
-        buffer = np.empty(sum(n for n in sizes if n <= _MCAP_MAX_CHUNK), dtype=np.uint8)
+        buffer = np.empty(sum(n for n in sizes if n <= _MAX_CHUNK), dtype=np.uint8)
         view = memoryview(buffer)
         # every message index offset must lie inside its chunk: checked for the whole group at
         # once, and chunk by chunk only where that finds one outside
-        inside = _mcap_offsets_inside([(positions, n) for (_, positions), n in zip(group, sizes, strict=True)])
+        inside = _records_inside([(_mcap_offsets(positions), n) for (_, positions), n in zip(group, sizes, strict=True)], _MCAP_MESSAGE_HEADER)
         pending: list[tuple[int, dict[int, np.ndarray]]] = []
         at = 0
         for (ci, positions), n in zip(group, sizes, strict=True):
             try:
-                if n > _MCAP_MAX_CHUNK:
+                if n > _MAX_CHUNK:
                     raise ValueError(f"implausible uncompressed size {n}")
-                if not inside and not _mcap_offsets_inside([(positions, n)]):
+                if not inside and not _records_inside([(_mcap_offsets(positions), n)], _MCAP_MESSAGE_HEADER):
                     raise ValueError("message index offsets past the chunk's end")
                 self.read_chunk(ci, view[at : at + n])
             except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
@@ -448,16 +462,9 @@ class McapChunks:
             yield RawBatch(topic, encoding, buffer, offset + _MCAP_MESSAGE_HEADER, data_len, log_ns, head)
 
 
-def _mcap_offsets_inside(chunks: list[tuple[dict[int, np.ndarray], int]]) -> bool:
-    """Whether every message index entry of the chunks (their (log time, offset) rows a
-    channel, and their uncompressed sizes) points at a message record header inside its chunk."""
-    entries = [(p[:, 1], size) for positions, size in chunks for p in positions.values() if len(p)]
-    if not entries:
-        return True
-    offsets = np.concatenate([offset for offset, _ in entries])  # uint64: no negative offsets
-    sizes = np.repeat(np.array([size for _, size in entries], dtype=np.uint64), [len(offset) for offset, _ in entries])
-    # as the chunk by chunk check: offset + header <= size, without uint64's wrap past 2**64
-    return bool(np.all(offsets <= sizes - np.minimum(sizes, _MCAP_MESSAGE_HEADER)) and np.all(sizes >= _MCAP_MESSAGE_HEADER))
+def _mcap_offsets(positions: dict[int, np.ndarray]) -> list[np.ndarray]:
+    """The record offsets of a chunk's message index entries ((log time, offset) rows), a channel each."""
+    return [entries[:, 1] for entries in positions.values()]
 
 
 def mcap_batches(path: Path, topics: Iterable[str], losses: list | None = None) -> Iterator[RawBatch] | None:
@@ -751,10 +758,10 @@ class Ros1Bag:
             at += chunk.size
         # every index offset must lie inside its chunk, or the chunk is damaged: checked for
         # the whole group at once, and chunk by chunk only where that finds one outside
-        if read and not _offsets_inside([(chunk.positions, chunk.size) for _, chunk, _ in read]):
+        if read and not _records_inside([chunk.offsets_and_size() for _, chunk, _ in read], _ROS1_RECORD_START):
             inside = []
             for chunk_pos, chunk, begins in read:
-                if _offsets_inside([(chunk.positions, chunk.size)]):
+                if _records_inside([chunk.offsets_and_size()], _ROS1_RECORD_START):
                     inside.append((chunk_pos, chunk, begins))
                 else:
                     lose(chunk_pos, chunk.lost("index offsets past the chunk's end", wanted, times=False))
@@ -830,17 +837,6 @@ class Ros1Bag:
         return _StoredChunk(compression, memoryview(raw)[:data_len], data_len, size, positions)
 
 
-def _offsets_inside(chunks: list[tuple[dict[int, np.ndarray], int]]) -> bool:
-    """Whether every index entry of the chunks (their entries a connection, and their
-    decompressed sizes) points at a record whose first 8 bytes lie inside its chunk."""
-    entries = [(e["offset"], size) for positions, size in chunks for e in positions.values() if len(e)]
-    if not entries:
-        return True
-    offsets = np.concatenate([offset for offset, _ in entries]).astype(np.int64)
-    sizes = np.repeat([size for _, size in entries], [len(offset) for offset, _ in entries])
-    return bool(np.all(offsets + 8 <= sizes))
-
-
 @dataclass(frozen=True)
 class _StoredChunk:
     """A ROS 1 chunk as stored (``compressed``, ``data_len`` bytes by its record) and, per
@@ -852,16 +848,20 @@ class _StoredChunk:
     size: int  # decompressed, by its header
     positions: dict[int, np.ndarray]
 
+    def offsets_and_size(self) -> tuple[list[np.ndarray], int]:
+        """Its records' offsets (an array a wanted connection) and its decompressed size."""
+        return [entries["offset"] for entries in self.positions.values()], self.size
+
     def size_plausible(self) -> bool:
         """Whether its header's decompressed size can be true (a damaged one could claim any,
-        and room is made for it before decompressing): at most :data:`_ROS1_MAX_CHUNK`, the
+        and room is made for it before decompressing): at most :data:`_MAX_CHUNK`, the
         stored size when stored as it is, at most 255 times it (and a frame's few bytes) from
         LZ4, whose longest match adds 255 bytes a byte."""
         if self.compression == "none":
             return self.size == self.data_len
         if self.compression == "lz4":
-            return self.size <= min(_ROS1_MAX_CHUNK, 255 * self.data_len + 4096)
-        return self.size <= _ROS1_MAX_CHUNK
+            return self.size <= min(_MAX_CHUNK, 255 * self.data_len + 4096)
+        return self.size <= _MAX_CHUNK
 
     def decompress_into(self, out: np.ndarray, wanted: dict[int, str]) -> None:
         """The chunk's records written into ``out`` (``size`` bytes); raises :class:`_ChunkLost`
