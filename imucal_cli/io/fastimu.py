@@ -51,7 +51,10 @@ _ROS1_MAX_INDEX_READ = 1 << 22
 #: Largest decompressed chunk believed (bytes; MCAP or ROS 1): a bigger size in an index or a
 #: chunk's header is damage.
 _MAX_CHUNK = 1 << 30
-#: Bytes of decompressed chunks decoded together.
+#: Bytes of decompressed chunks decoded together. Smaller groups pay the decoder's per-call
+#: cost (about 400 numpy calls a group) more often, larger ones gather from memory that has
+#: left the caches (the 1 h ROS 1 bag of ``benchmarks/throughput.py``, two threads, fastest of
+#: 8 alternating runs: 1 MiB 5.3 s, 4 MiB 1.8 s, 16 MiB 0.90 s, 32 MiB 1.11 s, 64 MiB 1.03 s).
 GROUP_BYTES = 16 << 20
 #: Groups of chunks (or of sqlite3 rows) read ahead of the one being consumed, beyond one
 #: a decode thread.
@@ -60,6 +63,14 @@ READ_AHEAD_GROUPS = 2
 #: side (zstd, lz4, the CRC, the file reads and numpy's gathers run outside the GIL); 0 reads
 #: them in the consumer's thread (as the reader process of ``calibrate`` does: see
 #: :mod:`imucal_cli.io.prefetch`).
+#:
+#: The threads hand the GIL to each other at numpy steps (about 10 000 context switches an
+#: hour of log, and 30-40% more CPU than one thread), yet are the fastest arrangement measured
+#: on two cores (the 1 h ROS 1 bag, fastest of 8 alternating runs): a forked second process
+#: taking groups from a shared counter, its arrays sent over a pipe, was no faster (1.15 s
+#: against 1.13 s; the MCAP 2.03 s against 1.70 s: this process, which also consumes, and the
+#: copy-on-write faults after the fork bound it), nor were decompression-only threads feeding
+#: the decoding in this thread (1.17-1.32 s against 0.97 s: this thread bounds it).
 DECODE_THREADS = 2
 #: The interpreter's switch interval while reading ahead (s): the reading thread takes the GIL
 #: back after every read, decompression and CRC, and would wait the default 5 ms each time.
