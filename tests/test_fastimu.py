@@ -344,3 +344,94 @@ def test_ros1_index_headers_read_as_the_generic_header_parser_reads_them(order):
     with pytest.raises(KeyError):  # an index record without its connection
         missing = b"".join(struct.pack("<I", len(n) + 1 + len(values[n])) + n.encode() + b"=" + values[n] for n in order if n != "conn")
         _ros1_index_header(struct.pack("<I", len(missing)) + missing, 0)
+
+
+def _write_two_imus(path, fmt, count, rng, short_at=None):
+    """A ROS 1 bag (lz4 chunks of about 4 KiB) or an MCAP (zstd chunks of 4 KiB, CDR) with two
+    Imu topics at 100 Hz; message ``short_at`` of ``/imu1`` cut to 40 bytes (no layout holds
+    it: the generic decoder rejects it too)."""
+    ros1 = fmt == "rosbag1"
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+    messages = _messages(store, ros1, rng, count)
+    vec = store.types["geometry_msgs/msg/Vector3"]
+
+    def blobs():
+        for i, msg in enumerate(messages):
+            msg.header.stamp = store.types["builtin_interfaces/msg/Time"](sec=1 + i // 100, nanosec=10_000_000 * (i % 100))
+            msg.angular_velocity, msg.linear_acceleration = vec(*rng.normal(size=3)), vec(*rng.normal(size=3) * 5.0)
+            for k, frame in enumerate(["base_link", "front_left_top_imu"]):
+                msg.header.frame_id = frame
+                blob = bytes(serialize(msg, IMU))
+                yield k, 1_000_000_000 + 10_000_000 * i + k, blob[:40] if (k, i) == (1, short_at) else blob
+
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        writer = Writer(path)
+        writer.set_compression(Writer.CompressionFormat.LZ4)
+        writer.chunk_threshold = 4096
+        with writer:
+            connections = [writer.add_connection(f"/imu{k}", IMU, typestore=store) for k in range(2)]
+            for k, log_ns, blob in blobs():
+                writer.write(connections[k], log_ns, blob)
+    else:
+        from mcap.writer import CompressionType, Writer
+
+        from imucal_cli.io.writers import _msgdef
+
+        with path.open("wb") as handle:
+            writer = Writer(handle, compression=CompressionType.ZSTD, chunk_size=4096)
+            writer.start(profile="ros2", library="imucal tests")
+            schema = writer.register_schema(name=IMU, encoding="ros2msg", data=_msgdef(False)[0].encode())
+            channels = [writer.register_channel(topic=f"/imu{k}", message_encoding="cdr", schema_id=schema) for k in range(2)]
+            for k, log_ns, blob in blobs():
+                writer.add_message(channel_id=channels[k], log_time=log_ns, data=blob, publish_time=log_ns)
+            writer.finish()
+    return ["/imu0", "/imu1"]
+
+
+def _counting_decode_imu(monkeypatch):
+    """Count the batches decoded by decode_imu (the topic-by-topic path), not chunk by chunk."""
+    from imucal_cli.io import fastimu
+
+    calls = []
+    decode = fastimu.decode_imu
+
+    def counted(batch):
+        calls.append(batch.topic)
+        return decode(batch)
+
+    monkeypatch.setattr(fastimu, "decode_imu", counted)
+    return calls
+
+
+@pytest.mark.parametrize("fmt", ["rosbag1", "mcap"])
+def test_chunks_are_decoded_as_they_are_decompressed(tmp_path, monkeypatch, fmt):
+    """A log of the common layout: every group decoded chunk by chunk, none topic by topic,
+    and the generic path's result bit for bit."""
+    monkeypatch.setattr("imucal_cli.io.fastimu.GROUP_BYTES", 16384)
+    path = tmp_path / ("log.bag" if fmt == "rosbag1" else "log.mcap")
+    topics = _write_two_imus(path, fmt, 400, np.random.default_rng(8))
+    calls = _counting_decode_imu(monkeypatch)
+    fast = read_imu(path, topics)
+    assert calls == []
+    _same(fast, read_imu(path, topics, fast=False))
+    assert [len(fast[t].stream.t_ns) for t in topics] == [400, 400]
+    assert [fast[t].stream.frame_id for t in topics] == ["base_link", "front_left_top_imu"]
+
+
+@pytest.mark.parametrize("fmt", ["rosbag1", "mcap"])
+def test_a_group_with_a_message_of_another_layout_is_decoded_topic_by_topic(tmp_path, monkeypatch, fmt):
+    """One message no layout holds: its group is decoded topic by topic (decode_imu leaves the
+    message to the generic decoder, which rejects it too), the others chunk by chunk; the
+    generic path's result and counts bit for bit."""
+    monkeypatch.setattr("imucal_cli.io.fastimu.GROUP_BYTES", 16384)
+    path = tmp_path / ("log.bag" if fmt == "rosbag1" else "log.mcap")
+    topics = _write_two_imus(path, fmt, 400, np.random.default_rng(9), short_at=250)
+    calls = _counting_decode_imu(monkeypatch)
+    fast = read_imu(path, topics)
+    assert sorted(set(calls)) == topics and len(calls) == 2  # one group, both its topics
+    _same(fast, read_imu(path, topics, fast=False))
+    assert fast["/imu1"].stats.decode_errors == 1
+    assert [len(fast[t].stream.t_ns) for t in topics] == [400, 399]
