@@ -55,6 +55,9 @@ _MAX_CHUNK = 1 << 30
 #: cost (about 400 numpy calls a group) more often, larger ones gather from memory that has
 #: left the caches (the 1 h ROS 1 bag of ``benchmarks/throughput.py``, two threads, fastest of
 #: 8 alternating runs: 1 MiB 5.3 s, 4 MiB 1.8 s, 16 MiB 0.90 s, 32 MiB 1.11 s, 64 MiB 1.03 s).
+#: Since chunks are gathered as they are decompressed (:class:`_WarmDecode`), the size only
+#: spreads the per-group and per-batch costs: 8-64 MiB within the machine's noise (on another,
+#: faster machine; fastest of 5: 0.55-0.77 s in one thread, 0.65-0.73 s in two).
 GROUP_BYTES = 16 << 20
 #: Groups of chunks (or of sqlite3 rows) read ahead of the one being consumed, beyond one
 #: a decode thread.
@@ -71,6 +74,10 @@ READ_AHEAD_GROUPS = 2
 #: against 1.13 s; the MCAP 2.03 s against 1.70 s: this process, which also consumes, and the
 #: copy-on-write faults after the fork bound it), nor were decompression-only threads feeding
 #: the decoding in this thread (1.17-1.32 s against 0.97 s: this thread bounds it).
+#: With the chunks gathered as they are decompressed, the ROS 1 bag decodes about as fast in
+#: one thread as in two (0.53-0.58 s against 0.51-0.66 s, the two using 0.9-1.1 s of CPU
+#: against 0.55); the MCAP, whose zstd runs outside the GIL, is faster in two (0.70-0.84 s
+#: against 1.12-1.37 s).
 DECODE_THREADS = 2
 #: The interpreter's switch interval while reading ahead (s): the reading thread takes the GIL
 #: back after every read, decompression and CRC, and would wait the default 5 ms each time.
