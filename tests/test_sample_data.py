@@ -34,11 +34,28 @@ def test_sample_log_is_small_and_complete(name):
 
 
 def test_sample_data_is_reproducible():
-    """The aggressive sample is exactly what `imucal simulate --scenario aggressive --seed 1` makes."""
+    """The aggressive sample is what `imucal simulate --scenario aggressive --seed 1` makes.
+
+    The simulator computes in double precision through BLAS, whose kernel is chosen per processor
+    (and by OPENBLAS_CORETYPE) and rounds differently (here up to 1e-9 m/s^2 on the base's
+    specific force, against 5e-3 m/s^2 of sensor noise); its sensors then round their output to
+    what they publish (the base to float32, the lidar IMUs to a fixed LSB), where such a
+    difference can land a value on the next output step. So the sample agrees with the
+    simulation to the resolution each sensor publishes at (one float32 step at the largest value
+    of a base axis; one LSB for a lidar IMU), and its stamps, integers, exactly."""
     drive = simulate_drive(DriveOptions(scenario="aggressive", seed=1))
+    options = drive.options
     config = load_config(SAMPLE_DATA / "aggressive.config.yaml")
     reads = read_imu(SAMPLE_DATA / "aggressive.mcap", [config.base.topic, config.sensors[0].imu_topic])
-    assert np.array_equal(reads[config.base.topic].stream.accel, drive.base.stream.accel)
-    simulated = drive.sensors[config.sensors[0].name].stream
-    assert np.array_equal(reads[config.sensors[0].imu_topic].stream.gyro, simulated.gyro)
-    assert np.array_equal(reads[config.sensors[0].imu_topic].stream.t_ns, simulated.t_ns)
+
+    base_read, base_sim = reads[config.base.topic].stream, drive.base.stream
+    assert options.base_model.float32_output
+    float32_step = np.spacing(np.abs(base_sim.accel).max(axis=0).astype(np.float32)).astype(np.float64)
+    assert np.all(np.abs(base_read.accel - base_sim.accel) <= float32_step)
+    assert np.array_equal(base_read.t_ns, base_sim.t_ns)
+
+    lidar_read, lidar_sim = reads[config.sensors[0].imu_topic].stream, drive.sensors[config.sensors[0].name].stream
+    lsb = options.lidar_model.gyro_lsb
+    assert lsb > 0
+    assert np.all(np.abs(lidar_read.gyro - lidar_sim.gyro) <= lsb * (1 + 1e-9))
+    assert np.array_equal(lidar_read.t_ns, lidar_sim.t_ns)
