@@ -19,6 +19,12 @@ and ROS 1 (lz4 chunks), and measures per format and length, side by side in one 
   worker (sampled from ``/proc`` every 10 ms); wall time is at least their sum over the two
   cores.
 
+Below the table: per format measured at several lengths, ``calibrate``'s scaling (wall time
+and peak RSS against the shorter log's, and the wall time each added hour of log costs: linear
+in length means the same cost per added hour, while the plain ratio of wall times also carries
+the fixed start-up, imports and forks, which a longer log spreads thinner); then each figure
+of issue 4's "must show" from this run against its bound.
+
 Floor and decode are run ``--repeat`` times (default 5) and calibrate ``--calibrate-repeat``
 times (default 5), taking turns (floor, decode, calibrate, floor, ...); the fastest run of each
 is reported (the machine's run-to-run spread is tens of per cent and its speed drifts over
@@ -273,6 +279,62 @@ def main() -> None:
 
     for length, t_read, t_fast in fetches:
         print(f"\n{length} rosbag2-sqlite3: reading the file's bytes {t_read:.2f} s; decode / that = {t_fast / t_read:.1f}")
+
+    measured = {(row[0], row[1]): row for row in rows}
+    print_scaling(measured)
+    print_checks(measured)
+
+
+def print_scaling(measured: dict[tuple[str, str], tuple]) -> None:
+    """Per format measured at several lengths: ``calibrate``'s wall time and peak RSS against
+    the shortest length's, and its marginal cost per hour of log between consecutive lengths
+    (linear in length: the same marginal cost whatever the length; the ratio of wall times
+    also carries the fixed start-up, which a longer log spreads thinner)."""
+    lines = []
+    for fmt in SUFFIX:
+        lengths = [length for length in LENGTHS if (length, fmt) in measured]
+        for shorter, longer in zip(lengths, lengths[1:]):
+            short, long_ = measured[(shorter, fmt)], measured[(longer, fmt)]
+            hours_s, hours_l = LENGTHS[shorter] / 3600.0, LENGTHS[longer] / 3600.0
+            scale = hours_l / hours_s
+            per_hour_l = (long_[7] - short[7]) / (hours_l - hours_s)
+            per_hour_s = short[7] / hours_s
+            lines.append(
+                f"| {fmt} | {shorter} -> {longer} | {short[7]:.2f} -> {long_[7]:.2f} | {long_[7] / (scale * short[7]):.2f} | "
+                f"{per_hour_s:.2f} | {per_hour_l:.2f} | {short[9]:.0f} -> {long_[9]:.0f} | {long_[9] / short[9]:.2f} |"
+            )
+    if lines:
+        print("\n| format | lengths | calibrate s | longer / (scale x shorter) | s per hour, shorter (incl. start-up) | s per hour added | peak RSS MB | RSS longer / shorter |")
+        print("|---|---|---|---|---|---|---|---|")
+        print("\n".join(lines))
+
+
+def print_checks(measured: dict[tuple[str, str], tuple]) -> None:
+    """The figures of issue 4's "must show", each against its bound, from this run."""
+    checks = []
+    for (length, fmt), row in measured.items():
+        t_floor, t_fast, t_naive = row[4], row[5], row[6]
+        bound = 1.5 if fmt == "mcap" else 3.0
+        checks.append((f"{length} {fmt} decode / floor", t_fast / t_floor, f"<= {bound}", t_fast / t_floor <= bound))
+        if t_naive is not None:
+            checks.append((f"{length} {fmt} naive / decode", t_naive / t_fast, ">= 10", t_naive / t_fast >= 10.0))
+    if ("1h", "mcap") in measured:
+        row = measured[("1h", "mcap")]
+        checks.append(("1h mcap calibrate / floor", row[7] / row[4], "<= 3", row[7] / row[4] <= 3.0))
+        checks.append(("1h mcap calibrate peak RSS MB", row[9], "<= 1000", row[9] <= 1000.0))
+    for fmt in SUFFIX:
+        if ("1h", fmt) in measured and ("4h", fmt) in measured:
+            one, four = measured[("1h", fmt)], measured[("4h", fmt)]
+            rss = four[9] / one[9]
+            checks.append((f"4h / 1h {fmt} peak RSS", rss, "within 20%", abs(rss - 1.0) <= 0.2))
+            wall = four[7] / (4.0 * one[7])
+            checks.append((f"4h / (4 x 1h) {fmt} calibrate wall", wall, "within 20%", abs(wall - 1.0) <= 0.2))
+    if checks:
+        print("\n| must show (issue 4) | measured | bound | met |")
+        print("|---|---|---|---|")
+        for name, value, bound, met in checks:
+            shown = f"{value:.0f}" if name.endswith("MB") else f"{value:.2f}"
+            print(f"| {name} | {shown} | {bound} | {'yes' if met else 'NO'} |")
 
 
 if __name__ == "__main__":
