@@ -306,8 +306,8 @@ def _records_inside(chunks: list[tuple[list[np.ndarray], int]], header: int) -> 
 class _WarmDecode:
     """Decodes the messages of a group of chunks chunk by chunk, each chunk right after it is
     decompressed, while its bytes are still in the core's cache: the messages of all wanted
-    sources (connections or channels) of a chunk are gathered together, a dozen numpy calls a
-    chunk, and joined source by source at the group's end.
+    sources (connections or channels) of a chunk are gathered together, then copied to their
+    source's arrays, so a chunk costs a couple of dozen numpy calls.
 
     Gathering from a group's buffer once it is all decompressed (16 MiB, larger than a core's
     cache) costs 45-60 ns a message and field from memory, against 6-14 ns from the cache (the
@@ -319,17 +319,20 @@ class _WarmDecode:
 
     ``container`` is ``"ros1"`` (message data records) or ``"mcap"`` (message records);
     ``sources`` the wanted connections or channels with their topics, in the order their
-    batches are given.
+    batches are given; ``counts`` the most messages each has in the group (from the indexes).
     """
 
-    def __init__(self, container: str, encoding: str, sources: dict[int, str]) -> None:
+    def __init__(self, container: str, encoding: str, sources: dict[int, str], counts: dict[int, int]) -> None:
         self.container, self.encoding = container, encoding
-        self.sources = list(sources.items())
+        self.sources = [(source, topic) for source, topic in sources.items() if counts.get(source)]
+        self.counts = [counts[source] for source, _ in self.sources]
         self.prefix: np.dtype | None = None  # a record's first bytes, to the message's 16th
         self.data_at = 0  # bytes from a record's start to its message's first byte
-        #: per source, chunk by chunk: its messages' record prefixes (bytes), their floats from
-        #: the angular velocity to the acceleration, their index entries, where the chunk begins
-        self.pieces: list[list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]] = [[] for _ in self.sources]
+        self.raw: list[np.ndarray] = []  # per source: each message's record prefix, as bytes
+        self.gyro = [np.empty((n, 3)) for n in self.counts]
+        self.accel = [np.empty((n, 3)) for n in self.counts]
+        self.pieces: list[list[tuple[np.ndarray, int]]] = [[] for _ in self.counts]  # (index entries, chunk start)
+        self.filled = [0] * len(self.counts)
         self.failed = False
 
     def _layout(self, buffer: np.ndarray, first: int) -> bool:
@@ -347,7 +350,12 @@ class _WarmDecode:
             fields = [("op", "u1"), ("length", "<u8"), ("rest", f"V{_MCAP_MESSAGE_HEADER - 9}"), ("head", head)]
             self.data_at = _MCAP_MESSAGE_HEADER
         self.prefix = np.dtype(fields)
+        self.raw = [np.empty((n, self.prefix.itemsize), dtype=np.uint8) for n in self.counts]
         return True
+
+    def _offsets(self, entries: np.ndarray) -> np.ndarray:
+        """The record offsets in their chunk of index entries (ROS 1's, or MCAP's rows)."""
+        return entries["offset"] if self.container == "ros1" else entries[:, 1]
 
     def add(self, buffer: np.ndarray, begins: int, positions: dict[int, np.ndarray]) -> None:
         """The messages of the chunk just decompressed into ``buffer`` at ``begins``, by its
@@ -357,10 +365,11 @@ class _WarmDecode:
         parts = [(k, entries) for k, (source, _) in enumerate(self.sources) if len(entries := positions.get(source, ()))]
         if not parts:
             return
-        ros1 = self.container == "ros1"
-        offset = np.concatenate([entries["offset"] if ros1 else entries[:, 1] for _, entries in parts]).astype(np.int64)
+        offset = np.concatenate([self._offsets(entries) for _, entries in parts]).astype(np.int64)
         offset += begins
         try:
+            if any(self.filled[k] + len(entries) > self.counts[k] for k, entries in parts):
+                raise ValueError("more messages than the group's indexes say")
             if self.prefix is None and not self._layout(buffer, int(offset[0])):
                 raise ValueError("not the common record layout")
             assert self.prefix is not None
@@ -376,12 +385,16 @@ class _WarmDecode:
         except (IndexError, ValueError):  # past the buffer's end, or another layout
             self.failed = True
             return
+        accel_at = (_ACCEL_AFTER_FRAME - _GYRO_AFTER_FRAME) // 8
         at = 0
         for k, entries in parts:
-            n = len(entries)
+            lo, n = self.filled[k], len(entries)
+            self.raw[k][lo : lo + n] = raw[at : at + n]
+            self.gyro[k][lo : lo + n] = both[at : at + n, 0:3]
+            self.accel[k][lo : lo + n] = both[at : at + n, accel_at:]
             # the entries' plain view (ROS 1's three uint32 a message): joined faster than fields
-            plain = entries.view("<u4").reshape(n, 3) if ros1 else entries
-            self.pieces[k].append((raw[at : at + n], both[at : at + n], plain, begins))
+            self.pieces[k].append((entries.view("<u4").reshape(n, 3) if self.container == "ros1" else entries, begins))
+            self.filled[k] = lo + n
             at += n
 
     def batches(self, buffer: np.ndarray) -> list[RawBatch] | None:
@@ -389,18 +402,16 @@ class _WarmDecode:
         decoded as before (see the class's docstring)."""
         if self.failed:
             return None
-        accel_at = (_ACCEL_AFTER_FRAME - _GYRO_AFTER_FRAME) // 8
         out = []
-        for (_, topic), pieces in zip(self.sources, self.pieces, strict=True):
-            if not pieces:
+        for k, (_, topic) in enumerate(self.sources):
+            n = self.filled[k]
+            if not n:
                 continue
             assert self.prefix is not None
-            raw = pieces[0][0] if len(pieces) == 1 else np.concatenate([piece[0] for piece in pieces])
-            records = raw.view(self.prefix).ravel()
-            gyro = np.concatenate([piece[1][:, 0:3] for piece in pieces])
-            accel = np.concatenate([piece[1][:, accel_at:] for piece in pieces])
-            entries = pieces[0][2] if len(pieces) == 1 else np.concatenate([piece[2] for piece in pieces])
-            begins = np.repeat(np.array([piece[3] for piece in pieces], dtype=np.int64), [len(piece[2]) for piece in pieces])
+            records = self.raw[k][:n].view(self.prefix).ravel()
+            pieces = self.pieces[k]
+            entries = pieces[0][0] if len(pieces) == 1 else np.concatenate([entries for entries, _ in pieces])
+            begins = np.repeat(np.array([b for _, b in pieces], dtype=np.int64), [len(e) for e, _ in pieces])
             starts = entries[:, -1].astype(np.int64) + begins + self.data_at  # (offset: the last column)
             if self.container == "ros1":  # (sec, nsec, offset)
                 if not np.all(records["header_len"] == self.data_at - 8):
@@ -423,7 +434,7 @@ class _WarmDecode:
                 return None
             stamp = head["sec"].astype(np.int64) * 1_000_000_000 + head["nsec"]
             decoded = DecodedBatch(
-                topic, stamp, log_ns, gyro, accel,
+                topic, stamp, log_ns, self.gyro[k][:n], self.accel[k][:n],
                 _frame_ids(buffer, starts + 16, frame_chars, None), np.zeros(0, dtype=np.int64),
             )
             out.append(RawBatch(topic, self.encoding, buffer, starts, lengths, log_ns, decoded=decoded))
@@ -583,7 +594,11 @@ class McapChunks:
         encodings = {encoding for _, encoding in wanted.values()}
         warm = None
         if inside and len(encodings) == 1:
-            warm = _WarmDecode("mcap", encodings.pop(), {c: topic for c, (topic, _) in wanted.items()})
+            counts: dict[int, int] = {}
+            for _, positions in group:
+                for channel, entries in positions.items():
+                    counts[channel] = counts.get(channel, 0) + len(entries)
+            warm = _WarmDecode("mcap", encodings.pop(), {c: topic for c, (topic, _) in wanted.items()}, counts)
         pending: list[tuple[int, dict[int, np.ndarray]]] = []
         at = 0
         for (ci, positions), n in zip(group, sizes, strict=True):
@@ -916,7 +931,11 @@ class Ros1Bag:
         # right after it is decompressed (see _WarmDecode)
         warm = None
         if _records_inside([chunk.offsets_and_size() for _, chunk in chunks], _ROS1_RECORD_START):
-            warm = _WarmDecode("ros1", "ros1", wanted)
+            counts: dict[int, int] = {}
+            for _, chunk in chunks:
+                for conn, entries in chunk.positions.items():
+                    counts[conn] = counts.get(conn, 0) + len(entries)
+            warm = _WarmDecode("ros1", "ros1", wanted, counts)
         read: list[tuple[int, _StoredChunk, int]] = []
         at = 0
         for chunk_pos, chunk in chunks:
