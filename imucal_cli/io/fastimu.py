@@ -236,12 +236,7 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
         used = head if all_ok else head[index]
         stamp = used["sec"].astype(np.int64) * 1_000_000_000 + used["nsec"]
         at = floats_abs if all_ok else floats_abs[index]
-        # one gather from the angular velocity to the end of the acceleration (the 72 bytes of
-        # covariance between them come along) fetches each message's cache lines once, not
-        # twice: a quarter less time than two gathers; the columns are then made contiguous
-        both = _gather(buf, at + _GYRO_AFTER_FRAME, _ACCEL_AFTER_FRAME + 24 - _GYRO_AFTER_FRAME, "<f8")
-        gyro = np.ascontiguousarray(both[:, 0:3])
-        accel = np.ascontiguousarray(both[:, (_ACCEL_AFTER_FRAME - _GYRO_AFTER_FRAME) // 8 :])
+        gyro, accel = _vectors(buf, at)
         frame_ids = _frame_ids(buf, frame_start, frame_chars, index)
     return DecodedBatch(
         batch.topic,
@@ -252,6 +247,16 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
         frame_ids,
         np.zeros(0, dtype=np.int64) if all_ok else np.flatnonzero(~ok),
     )
+
+
+def _vectors(buffer: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The angular velocities and accelerations, (n, 3) each and contiguous, of the messages
+    whose floats begin at ``at`` (the orientation's first byte): a gather each. One gather
+    from the angular velocity to the end of the acceleration (the 72 bytes of covariance
+    between them coming along) reads a message's cache lines once, but its columns must then
+    be copied out, strided: for the 2 800 messages of a chunk, 22 us in two gathers against
+    34 us in one and the two copies."""
+    return _gather(buffer, at + _GYRO_AFTER_FRAME, 24, "<f8"), _gather(buffer, at + _ACCEL_AFTER_FRAME, 24, "<f8")
 
 
 def _frame_ids(buf: np.ndarray, frame_start: np.ndarray, frame_chars: np.ndarray, index: np.ndarray | None) -> list[str]:
@@ -376,22 +381,20 @@ class _WarmDecode:
             raw = _gather(buffer, offset, self.prefix.itemsize, "u1")
             frame_len = raw[:, -4:].view("<u4")[:, 0].astype(np.int64)  # the head's last field
             if self.encoding == "cdr":  # after the body's 12 bytes and the frame id, to 8
-                floats = (frame_len + 19) // 8 * 8 + (4 + _GYRO_AFTER_FRAME + self.data_at)
+                floats = (frame_len + 19) // 8 * 8 + (4 + self.data_at)
             else:
-                floats = frame_len + (16 + _GYRO_AFTER_FRAME + self.data_at)
+                floats = frame_len + (16 + self.data_at)
             floats += offset
-            # as decode_imu: one gather from the angular velocity to the end of the acceleration
-            both = _gather(buffer, floats, _ACCEL_AFTER_FRAME + 24 - _GYRO_AFTER_FRAME, "<f8")
+            gyro, accel = _vectors(buffer, floats)  # as decode_imu
         except (IndexError, ValueError):  # past the buffer's end, or another layout
             self.failed = True
             return
-        accel_at = (_ACCEL_AFTER_FRAME - _GYRO_AFTER_FRAME) // 8
         at = 0
         for k, entries in parts:
             lo, n = self.filled[k], len(entries)
             self.raw[k][lo : lo + n] = raw[at : at + n]
-            self.gyro[k][lo : lo + n] = both[at : at + n, 0:3]
-            self.accel[k][lo : lo + n] = both[at : at + n, accel_at:]
+            self.gyro[k][lo : lo + n] = gyro[at : at + n]
+            self.accel[k][lo : lo + n] = accel[at : at + n]
             # the entries' plain view (ROS 1's three uint32 a message): joined faster than fields
             self.pieces[k].append((entries.view("<u4").reshape(n, 3) if self.container == "ros1" else entries, begins))
             self.filled[k] = lo + n
