@@ -327,16 +327,16 @@ def print_checks(measured: dict[tuple[str, str], tuple]) -> None:
         row = measured[("1h", "mcap")]
         checks.append(("1h mcap calibrate / floor", row[7] / row[4], "<= 3", row[7] / row[4] <= 3.0))
         checks.append(("1h mcap calibrate peak RSS MB", row[9], "<= 1000", row[9] <= 1000.0))
+    hours = {length: seconds / 3600.0 for length, seconds in LENGTHS.items()}
     for fmt in SUFFIX:
         if ("1h", fmt) in measured and ("4h", fmt) in measured:
             one, four = measured[("1h", fmt)], measured[("4h", fmt)]
             rss = four[9] / one[9]
             checks.append((f"4h / 1h {fmt} peak RSS", rss, "within 20%", abs(rss - 1.0) <= 0.2))
-            wall = four[7] / (4.0 * one[7])
+            wall = four[7] / (hours["4h"] / hours["1h"] * one[7])
             checks.append((f"4h / (4 x 1h) {fmt} calibrate wall (start-up counted 4 times)", wall, "within 20%", abs(wall - 1.0) <= 0.2))
             if ("15m", fmt) in measured:  # the line through 15 min and 1 h, carried on to 4 h
                 quarter = measured[("15m", fmt)]
-                hours = {length: LENGTHS[length] / 3600.0 for length in ("15m", "1h", "4h")}
                 line = one[7] + (hours["4h"] - hours["1h"]) * (one[7] - quarter[7]) / (hours["1h"] - hours["15m"])
                 checks.append((f"4h {fmt} calibrate wall / the line through 15m and 1h", four[7] / line, "within 20%", abs(four[7] / line - 1.0) <= 0.2))
     if checks:
