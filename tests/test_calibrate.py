@@ -336,10 +336,10 @@ def test_the_bounded_step_is_the_free_minimiser_inside_the_box_and_the_box_s_own
         L = np.linalg.cholesky(S)
         free = np.linalg.solve(S, s)
         wide = np.abs(free).max() + 1.0
-        np.testing.assert_allclose(_bounded_step(L, s, np.full(7, -wide), np.full(7, wide)), free, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(_bounded_step(L, s, np.full(7, -wide), np.full(7, wide))[0], free, rtol=1e-12, atol=1e-12)
         lower, upper = np.full(7, -np.inf), np.full(7, np.inf)
         lower[3:6], upper[3:6] = -0.3 * np.abs(free[3:6]) - 0.01, 0.3 * np.abs(free[3:6]) + 0.01  # the box cuts it
-        step = _bounded_step(L, s, lower, upper)
+        step = _bounded_step(L, s, lower, upper)[0]
         expected = lsq_linear(L.T, np.linalg.solve(L, s), bounds=(lower, upper), method="bvls", tol=1e-12).x
         np.testing.assert_allclose(step, expected, rtol=1e-9, atol=1e-12)
         assert np.all(step >= lower - 1e-12) and np.all(step <= upper + 1e-12)

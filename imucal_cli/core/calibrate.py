@@ -22,16 +22,23 @@ Every window is reduced to the second moments of its data vectors (see
 :mod:`imucal_cli.core.streaming`); each window's cost and its Gauss-Newton derivatives are exact
 functions of them, so iterating never revisits the signals. The biases are eliminated by a
 Schur complement (their block of the normal equations is banded: a window couples two knots;
-LAPACK's banded Cholesky), so the remaining 7x7 problem in ``(rotation, translation, tau)``
+LAPACK's banded Cholesky), so the remaining small problem in ``(rotation, translation, tau)``
 takes the translation box of eq. 16 through ``scipy.optimize.lsq_linear`` (where the box
-binds). The covariance is the inverse Fisher information with the residual variance estimated
-from the fit, corrected for the low-pass's correlation of neighbouring residuals.
+binds).
+
+A number is only as good as the model behind it, so :func:`solve` also tests the model on the
+data (the gyro's rotation against the accelerometer's, a mount that tilts with the vehicle's
+acceleration, the residual level) and makes the covariance honest: the inverse Fisher
+information (residual variance from the fit, corrected for the low-pass's correlation of
+neighbouring residuals), inflated per axis to a delete-a-group jackknife over the windows, by
+the checks that fail, and by the distance to where the data pull an axis that rests on its box.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
@@ -40,6 +47,7 @@ from scipy.spatial.transform import Rotation
 from imucal_cli.core.segments import OBSERVABLE_FRACTION_OF_BOUND, WindowInfo
 from imucal_cli.core.signals import LOWPASS_HZ, Lowpass
 from imucal_cli.core.so3 import skew
+from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S
 from imucal_cli.types import Transform
 
 #: Random walk of the accelerometer bias allowed between knots (m/s^2/sqrt(s)): loose, a few
@@ -63,13 +71,16 @@ class CalibrationOptions:
     gyro_bias_prior_std: float = np.radians(0.3)  # rad/s, config gyro_bias.initial_std_dps
     lowpass_hz: float = LOWPASS_HZ
     max_iterations: int = 12
+    consistency_alpha: float = 0.001  # false-alarm rate of each model-consistency check
+    rotation_floor_deg: float = 0.0  # systematic std the data cannot see, added to the result's
+    translation_floor_m: float = 0.0
 
 
 @dataclass(frozen=True)
 class SensorEstimate:
     """The estimate for one sensor IMU and how well the drive determines it."""
 
-    status: str  # ok | partial | unobservable
+    status: str  # ok | partial | inconsistent | unobservable
     T_base_imu: Transform
     covariance: np.ndarray | None  # 6x6 of [rotation (rad, about base axes), t_base_imu (m)]
     translation_observable: np.ndarray  # (3,) bool
@@ -87,6 +98,11 @@ class SensorEstimate:
     residual_rms_accel: float | None
     iterations: int = 0
     noise_std: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    #: The model-consistency checks (SPEC ``checks``): name -> figures and ``pass``.
+    checks: dict[str, dict[str, Any]] = field(default_factory=dict)
+    time_offset_observable: bool = False
+    tilt_rad_per_mps2: np.ndarray | None = None  # the mount's, where the rigid-mount check estimated it
 
     @property
     def rotation_std_deg(self) -> np.ndarray | None:
@@ -161,11 +177,12 @@ def unobservable(prior: Transform, windows: list[WindowInfo], tau: float) -> Sen
         windows=windows,
         residual_rms_gyro=None,
         residual_rms_accel=None,
+        warnings=["no window carried enough motion: the prior is returned"],
     )
 
 
 GYRO_DIM = 11
-ACCEL_DIM = 29
+ACCEL_DIM = 33
 #: Relative resolution of a residual computed from second moments (double precision squares).
 RESOLUTION = 1e-7
 
@@ -175,7 +192,7 @@ class BaseMoments:
     """The base IMU's block of a window's moments, shared by every sensor (upper triangles)."""
 
     packed_gyro: np.ndarray  # of the (8, 8) block of x_g's base part [w_B, dw_B, 1, u]
-    packed_accel: np.ndarray  # of the (26, 26) block of x_a's base part
+    packed_accel: np.ndarray  # of the (30, 30) block of x_a's base part
 
 
 @dataclass
@@ -189,7 +206,7 @@ class WindowMoments:
     valid: bool  # no gap in either stream
     base: BaseMoments
     rows_gyro: np.ndarray  # (3, 11): w_I^T x_g
-    rows_accel: np.ndarray  # (3, 29): f_I^T x_a
+    rows_accel: np.ndarray  # (3, 33): f_I^T x_a
     samples: int
     info: WindowInfo | None = None  # observability, filled in (in bulk) when first needed
 
@@ -199,7 +216,7 @@ _UPPER = {dim: np.triu_indices(dim - 3) for dim in (GYRO_DIM, ACCEL_DIM)}
 
 def base_moments(G_gyro: np.ndarray, G_accel: np.ndarray) -> BaseMoments:
     """The base block from the Gram matrices ``X^T X`` of the base part of the data vectors,
-    (8, 8) for the gyro and (26, 26) for the accelerometer."""
+    (8, 8) for the gyro and (30, 30) for the accelerometer."""
     return BaseMoments(G_gyro[_UPPER[GYRO_DIM]], G_accel[_UPPER[ACCEL_DIM]])
 
 
@@ -219,6 +236,13 @@ def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray
     return full
 
 
+#: ``vec([n]x) = VEC_SKEW n`` (column-major vec): how the angular acceleration's noise enters
+#: the ``vec A`` columns of x_a.
+VEC_SKEW = np.zeros((9, 3))
+for _column, _row, _component, _sign in ((0, 1, 2, 1), (0, 2, 1, -1), (1, 0, 2, -1), (1, 2, 0, 1), (2, 0, 1, 1), (2, 1, 0, -1)):
+    VEC_SKEW[3 * _column + _row, _component] = _sign
+
+
 #: Windows whose normal equations are formed together (bounds the estimator's scratch memory).
 SOLVE_CHUNK = 128
 #: The accelerometer's full moments are kept through the iterations up to this size (about 13 h
@@ -226,7 +250,17 @@ SOLVE_CHUNK = 128
 SOLVE_CACHE_BYTES = 32 << 20
 
 
-# --------------------------------------------------------------------------- the estimator
+# --------------------------------------------------------------------------- the model
+
+#: The estimate's global unknowns: a rotation step (3, right-multiplied onto ``R_base_imu``:
+#: IMU axes), ``t_base_imu`` (3), the clock-offset step (1) and the mount's tilt (2: roll per
+#: lateral and pitch per longitudinal specific force, rad per m/s^2; estimated by the rigid-mount
+#: check only).
+N_GLOBAL = 9
+TAU = 6
+TILT = slice(7, 9)
+#: The globals the gyro equations hold.
+_GYRO_GLOBALS = np.array([0, 1, 2, TAU])
 
 
 def _C_gyro(Rt: np.ndarray, dtau: float, bj: np.ndarray, bk: np.ndarray) -> np.ndarray:
@@ -246,8 +280,18 @@ def _kron_t(t: np.ndarray) -> np.ndarray:
     return np.hstack([t[0] * np.eye(3), t[1] * np.eye(3), t[2] * np.eye(3)])
 
 
-def _C_accel(Rt: np.ndarray, t: np.ndarray, dtau: float, aj: np.ndarray, ak: np.ndarray) -> np.ndarray:
-    """Coefficients of ``r_a = C x_a`` per window: (K, 3, 29)."""
+def _tilt_columns(Rt: np.ndarray, tilt: np.ndarray) -> np.ndarray:
+    """Coefficients (3, 4) of the tilt columns ``q = [f_y f_z, f_y^2, f_x f_z, f_x^2]`` of x_a.
+
+    A mount leaning by ``theta = (k_roll f_y, k_pitch f_x, 0)`` (base axes) turns the specific
+    force it sees into ``R^T exp(-[theta]x) f ~ R^T (f + f x theta)``, and
+    ``f x theta = k_roll (0, q1, -q2) + k_pitch (-q3, 0, q4)``."""
+    k_roll, k_pitch = tilt
+    return np.stack([-k_roll * Rt[:, 1], k_roll * Rt[:, 2], k_pitch * Rt[:, 0], -k_pitch * Rt[:, 2]], axis=-1)
+
+
+def _C_accel(Rt: np.ndarray, t: np.ndarray, dtau: float, tilt: np.ndarray, aj: np.ndarray, ak: np.ndarray) -> np.ndarray:
+    """Coefficients of ``r_a = C x_a`` per window: (K, 3, 33)."""
     K = len(aj)
     T = _kron_t(t)
     C = np.zeros((K, 3, ACCEL_DIM))
@@ -256,8 +300,9 @@ def _C_accel(Rt: np.ndarray, t: np.ndarray, dtau: float, aj: np.ndarray, ak: np.
     C[:, :, 6:9] = dtau * Rt
     C[:, :, 9:18] = -Rt @ T
     C[:, :, 18:27] = dtau * Rt @ T
-    C[:, :, 27] = -aj
-    C[:, :, 28] = -(ak - aj)
+    C[:, :, 27:31] = _tilt_columns(Rt, tilt)
+    C[:, :, 31] = -aj
+    C[:, :, 32] = -(ak - aj)
     return C
 
 
@@ -276,20 +321,22 @@ def _derivatives_gyro(C: np.ndarray, Rt: np.ndarray) -> np.ndarray:
 
 
 def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float) -> np.ndarray:
-    """d C_a / d [rot(3), t(3), dtau]: (K, 7, 3, 29); the biases' derivatives, constant, are
-    :func:`_normal_equations`' own."""
+    """d C_a / d [rot(3), t(3), dtau, tilt(2)]: (K, 9, 3, 33); the biases' derivatives,
+    constant, are :func:`_normal_equations`' own."""
     K = len(C)
-    D = np.zeros((K, 7, 3, ACCEL_DIM))
+    D = np.zeros((K, N_GLOBAL, 3, ACCEL_DIM))
     rotating = C.copy()
     rotating[:, :, 0:3] = 0.0
-    rotating[:, :, 27:29] = 0.0
+    rotating[:, :, 31:33] = 0.0
     for m in range(3):
         D[:, m] = -skew(np.eye(3)[m]) @ rotating
         E = _kron_t(np.eye(3)[m])
         D[:, 3 + m, :, 9:18] = -Rt @ E
         D[:, 3 + m, :, 18:27] = dtau * Rt @ E
-    D[:, 6, :, 6:9] = Rt
-    D[:, 6, :, 18:27] = Rt @ _kron_t(t)
+    D[:, TAU, :, 6:9] = Rt
+    D[:, TAU, :, 18:27] = Rt @ _kron_t(t)
+    D[:, 7, :, 27:31] = _tilt_columns(Rt, np.array([1.0, 0.0]))
+    D[:, 8, :, 27:31] = _tilt_columns(Rt, np.array([0.0, 1.0]))
     return D
 
 
@@ -324,18 +371,19 @@ def _normal_equations(D: np.ndarray, S: np.ndarray, C: np.ndarray) -> tuple[np.n
     return H, g, cost
 
 
-def _bounded_step(L: np.ndarray, s: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+def _bounded_step(L: np.ndarray, s: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The step minimising ``|L^T x - L^-1 s|^2`` (``x^T S x / 2 - s^T x`` with ``S = L L^T``)
-    inside the box ``[lower, upper]``. The cost is strictly convex, so where the unconstrained
-    minimiser ``S^-1 s`` lies in the box it is the answer; otherwise the box is taken by
-    ``scipy.optimize.lsq_linear`` (bounded-variable least squares; imported only then)."""
+    inside the box ``[lower, upper]``, and the unconstrained minimiser ``S^-1 s``. The cost is
+    strictly convex, so where the unconstrained minimiser lies in the box it is the answer;
+    otherwise the box is taken by ``scipy.optimize.lsq_linear`` (bounded-variable least
+    squares; imported only then)."""
     target = np.linalg.solve(L, s)
     free = np.linalg.solve(L.T, target)
     if np.all(free >= lower) and np.all(free <= upper):
-        return free
+        return free, free
     from scipy.optimize import lsq_linear
 
-    return lsq_linear(L.T, target, bounds=(lower, upper), method="bvls", tol=1e-12).x
+    return lsq_linear(L.T, target, bounds=(lower, upper), method="bvls", tol=1e-12).x, free
 
 
 def kabsch_rotation(S_gyro: np.ndarray, samples: np.ndarray) -> Rotation:
@@ -354,6 +402,290 @@ def kabsch_rotation(S_gyro: np.ndarray, samples: np.ndarray) -> Rotation:
     return Rotation.from_matrix(R_imu_base.T)
 
 
+# --------------------------------------------------------------------------- one fit
+
+
+@dataclass
+class _Fit:
+    """One Gauss-Newton solution of the joint problem and its Fisher information."""
+
+    R: Rotation
+    t: np.ndarray
+    dtau: float
+    tilt: np.ndarray  # (2,)
+    knots: np.ndarray  # (n_knots, 6): [gyro bias, accel bias] per knot
+    free: np.ndarray  # (N_GLOBAL,) bool: the globals estimated
+    scale_g: float  # residual std per grid sample (rad/s, m/s^2), from the fit
+    scale_a: float
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((N_GLOBAL, N_GLOBAL)))  # free globals (rotation: IMU axes)
+    unconstrained_t: np.ndarray = field(default_factory=lambda: np.zeros(3))  # where the box did not stop t
+    cost_g: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per window
+    cost_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    bias_std: np.ndarray | None = None  # (6,) of the last knot
+    iterations: int = 0
+
+    def std(self) -> np.ndarray:
+        """(N_GLOBAL,) standard deviations; inf where not estimated."""
+        return np.where(self.free, np.sqrt(np.clip(np.diag(self.covariance), 0.0, None)), np.inf)
+
+    def rotation_covariance_base(self) -> np.ndarray:
+        """3x3 covariance of the rotation about the base axes."""
+        Rm = self.R.as_matrix()
+        return Rm @ self.covariance[:3, :3] @ Rm.T
+
+
+class _Problem:
+    """The normal equations' parts of one sensor's selected windows that stay fixed over
+    iterations (see the module docstring): moments, where each window's entries go, the bias
+    prior. :meth:`fit` solves it for any set of free globals, either equation alone, and any
+    subset of windows (the jackknife)."""
+
+    def __init__(
+        self, windows: list[WindowMoments], prior: Transform, options: CalibrationOptions, sigma: tuple[float, float], lowpass: Lowpass, dw_noise_var: float
+    ) -> None:
+        used = [w for w in windows if w.info is not None and w.info.selected]
+        self.used, self.prior, self.options, self.sigma = used, prior, options, sigma
+        self.dw_noise_var = dw_noise_var
+        self.numbers = np.array([w.number for w in used])
+        self.n_knots = int(max(w.number for w in windows)) + 2
+        self.S_g = assemble_moments(used, "gyro")  # (K, 11, 11): small
+        self.starts = range(0, len(used), SOLVE_CHUNK)
+        K = len(used)
+        # the accelerometer's moments, stacked once where they are small, else a chunk at a time
+        self.cached = [self._S_a(a) for a in self.starts] if K * ACCEL_DIM**2 * 8 <= SOLVE_CACHE_BYTES else None
+        self.samples_per_window = np.array([w.samples for w in used], dtype=float)
+        self.samples = float(self.samples_per_window.sum())
+        self.gain = lowpass.white_noise_gain()
+        # A cost from moments is a difference of large sums: below RESOLUTION times the signal's
+        # RMS the residual is round-off, not noise (noise-free data).
+        trace_f = float(sum(np.trace(w.rows_accel[:, 0:3]) for w in used))
+        self.floor_g = (RESOLUTION**2) * np.trace(self.S_g[:, 0:3, 0:3].sum(axis=0)) / (3 * self.samples)
+        self.floor_a = (RESOLUTION**2) * trace_f / (3 * self.samples)
+        self.prior_band = _bias_prior(
+            self.n_knots, options.window_s, (options.gyro_bias_walk, ACCEL_BIAS_WALK), (options.gyro_bias_prior_std, ACCEL_BIAS_PRIOR_STD)
+        )
+        n_bias = self.n_bias = _KNOT * self.n_knots
+        # Where each window's normal equations go (the same every iteration). Unknowns: the
+        # globals, then the biases, per knot [gyro 0-2, accel 3-5]. A window's gyro equations
+        # hold [rot, dtau, its two knots' gyro biases], its accelerometer's [the globals, their
+        # accel biases].
+        self.biases_g = _KNOT * self.numbers[:, None] + np.array([0, 1, 2, 6, 7, 8])
+        self.biases_a = _KNOT * self.numbers[:, None] + np.array([3, 4, 5, 9, 10, 11])
+        upper6 = self.upper6 = np.triu_indices(6)  # a window's bias indices increase: its upper entries
+
+        def band_at(biases: np.ndarray) -> np.ndarray:  # flat index into the (_BAND + 1, n_bias) band
+            i, j = biases[:, upper6[0]], biases[:, upper6[1]]
+            return ((_BAND + i - j) * n_bias + j).ravel()
+
+        self.band_g, self.band_a = band_at(self.biases_g), band_at(self.biases_a)
+        globals_a = np.arange(N_GLOBAL)
+        self.cross_g = (_GYRO_GLOBALS[None, :, None] * n_bias + self.biases_g[:, None, :]).ravel()
+        self.cross_a = (globals_a[None, :, None] * n_bias + self.biases_a[:, None, :]).ravel()
+
+    def _S_a(self, a: int) -> np.ndarray:
+        """The accelerometer's moments of a chunk of windows, less what the angular
+        acceleration's noise adds to the ``vec A`` block (errors in variables: uncorrected,
+        it counts as lever-arm information and pulls the lever arm towards the origin)."""
+        windows = self.used[a : a + SOLVE_CHUNK]
+        S = assemble_moments(windows, "accel")
+        noise = self.dw_noise_var * VEC_SKEW @ VEC_SKEW.T
+        S[:, 9:18, 9:18] -= np.array([w.samples for w in windows], dtype=float)[:, None, None] * noise
+        return S
+
+    def translation_information_diagonal(self) -> np.ndarray:
+        """Per axis, the lever arm's information ``sum (A - mean A)^T (A - mean A)`` over the
+        windows (each centred), less the angular acceleration's noise (unit residual)."""
+        total = np.zeros(3)
+        for a in self.starts:
+            S = self.cached[self.starts.index(a)] if self.cached is not None else self._S_a(a)
+            n = S[:, ACCEL_DIM - 2, ACCEL_DIM - 2]
+            mean = S[:, 9:18, ACCEL_DIM - 2] / n[:, None]
+            centred = S[:, 9:18, 9:18] - n[:, None, None] * mean[:, :, None] * mean[:, None, :]
+            blocks = centred.sum(axis=0).reshape(3, 3, 3, 3)  # (j, a, l, b) of vec A = A[a, j]
+            total += np.einsum("jaja->j", blocks)
+        return total
+
+    def eiv_variance(self, t: np.ndarray) -> float:
+        """Per-axis variance the angular acceleration's noise adds to the accelerometer's
+        residual at lever arm ``t``: ``E |n x t|^2 / 3``."""
+        return 2.0 / 3.0 * self.dw_noise_var * float(t @ t)
+
+    def start(self) -> _Fit:
+        """The starting point: Kabsch/Horn over the windows (eq. 10), the prior's translation."""
+        R = kabsch_rotation(self.S_g, self.samples_per_window)
+        scale_g, scale_a = (s * np.sqrt(self.gain) for s in self.sigma)
+        free = np.ones(N_GLOBAL, dtype=bool)
+        free[TILT] = False
+        return _Fit(R, self.prior.translation.copy(), 0.0, np.zeros(2), np.zeros((self.n_knots, _KNOT)), free, scale_g, scale_a)
+
+    def fit(
+        self,
+        start: _Fit,
+        free: np.ndarray,
+        use: tuple[bool, bool] = (True, True),
+        window_weights: np.ndarray | None = None,
+        estimate_scale: bool = False,
+        max_iterations: int | None = None,
+        rotation_prior_std: float | None = None,
+    ) -> _Fit:
+        """Gauss-Newton from ``start`` over the ``free`` globals (and every bias knot), with the
+        gyro and accelerometer equations as ``use`` says, each window weighted by
+        ``window_weights`` (0 leaves it out). The residual scales are re-estimated from the
+        fit where ``estimate_scale``, else kept from ``start``. ``rotation_prior_std`` (rad)
+        keeps a rotation that one equation alone leaves free defined."""
+        options, t_prior, bound = self.options, self.prior.translation, self.options.translation_bound_m
+        R, t, dtau, tilt, knots = start.R, start.t.copy(), start.dtau, start.tilt.copy(), start.knots.copy()
+        scale_g, scale_a = start.scale_g, start.scale_a
+        n_bias, numbers = self.n_bias, self.numbers
+        weights = np.ones(len(self.used)) if window_weights is None else window_weights
+        samples = float(np.sum(weights * self.samples_per_window))
+        free_idx = np.flatnonzero(free)
+        cost_g = cost_a = np.zeros(len(self.used))
+        S_inv = np.zeros((len(free_idx), len(free_idx)))
+        unconstrained = t.copy()
+        factor = X = None
+        iterations = 0
+        for iterations in range(1, (max_iterations or options.max_iterations) + 1):  # noqa: B007
+            Rt = R.inv().as_matrix()
+            bj, bk = knots[numbers], knots[numbers + 1]
+            Cg = _C_gyro(Rt, dtau, bj[:, 0:3], bk[:, 0:3])
+            Ca = _C_accel(Rt, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
+            Hg, gg, cost_g = _normal_equations(_derivatives_gyro(Cg, Rt), self.S_g, Cg)
+            parts = []
+            for n, a in enumerate(self.starts):
+                chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 9, 3, 33) in slices
+                S_a = self.cached[n] if self.cached is not None else self._S_a(a)
+                parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a, Ca[chunk]))
+            Ha, ga, cost_a = (np.concatenate([p[i] for p in parts]) for i in range(3))
+            if estimate_scale and iterations > 1:  # residual variance from the fit, above what the moments resolve
+                scale_g = float(np.sqrt(max(np.dot(weights, cost_g) / (3 * samples), self.floor_g)))
+                scale_a = float(np.sqrt(max(np.dot(weights, cost_a) / (3 * samples) + self.eiv_variance(t), self.floor_a)))
+            wg = self.gain / scale_g**2 * use[0] * weights
+            wa = self.gain / scale_a**2 * use[1] * weights
+            # the normal equations: the globals' block, their coupling to the biases, the
+            # biases' banded block (with the prior) and the gradient
+            Hg, gg = wg[:, None, None] * Hg, wg[:, None] * gg
+            Ha, ga = wa[:, None, None] * Ha, wa[:, None] * ga
+            H_gg_all = np.zeros((N_GLOBAL, N_GLOBAL))
+            H_gg_all[np.ix_(_GYRO_GLOBALS, _GYRO_GLOBALS)] += Hg[:, :4, :4].sum(axis=0)
+            H_gg_all += Ha[:, :N_GLOBAL, :N_GLOBAL].sum(axis=0)
+            H_gb_all = (
+                np.bincount(self.cross_g, Hg[:, :4, 4:].ravel(), N_GLOBAL * n_bias)
+                + np.bincount(self.cross_a, Ha[:, :N_GLOBAL, N_GLOBAL:].ravel(), N_GLOBAL * n_bias)
+            ).reshape(N_GLOBAL, n_bias)
+            size = (_BAND + 1) * n_bias
+            u6 = self.upper6
+            H_bb = (
+                np.bincount(self.band_g, Hg[:, 4:, 4:][:, u6[0], u6[1]].ravel(), size)
+                + np.bincount(self.band_a, Ha[:, N_GLOBAL:, N_GLOBAL:][:, u6[0], u6[1]].ravel(), size)
+            ).reshape(_BAND + 1, n_bias)
+            H_bb += self.prior_band
+            grad_g = -ga[:, :N_GLOBAL].sum(axis=0)
+            grad_g[_GYRO_GLOBALS] -= gg[:, :4].sum(axis=0)
+            grad_b = -(np.bincount(self.biases_g.ravel(), gg[:, 4:].ravel(), n_bias) + np.bincount(self.biases_a.ravel(), ga[:, N_GLOBAL:].ravel(), n_bias))
+            grad_b -= _band_times(self.prior_band, knots.ravel())
+            H_gg = H_gg_all[np.ix_(free_idx, free_idx)]
+            H_gb = H_gb_all[free_idx]
+            factor = (cholesky_banded(H_bb, lower=False), False)
+            X = cho_solve_banded(factor, H_gb.T)
+            S = H_gg - H_gb @ X
+            s = grad_g[free_idx] - X.T @ grad_b
+            if rotation_prior_std is not None:
+                rotation = free_idx < 3
+                S[rotation, rotation] += 1.0 / rotation_prior_std**2
+            lower, upper = np.full(len(free_idx), -np.inf), np.full(len(free_idx), np.inf)
+            for k, col in enumerate(free_idx):
+                if 3 <= col < 6:
+                    lower[k] = t_prior[col - 3] - bound - t[col - 3]
+                    upper[k] = t_prior[col - 3] + bound - t[col - 3]
+            L = np.linalg.cholesky(S)
+            step_free, unbounded = _bounded_step(L, s, lower, upper)
+            step = np.zeros(N_GLOBAL)
+            step[free_idx] = step_free
+            unconstrained = t.copy()
+            for k, col in enumerate(free_idx):
+                if 3 <= col < 6:
+                    unconstrained[col - 3] += unbounded[k]
+            step_bias = cho_solve_banded(factor, grad_b - H_gb.T @ step_free)
+            R = R * Rotation.from_rotvec(step[:3])
+            t = t + step[3:6]
+            dtau = dtau + step[TAU]
+            tilt = tilt + step[TILT]
+            knots = knots + step_bias.reshape(self.n_knots, _KNOT)
+            S_inv = np.linalg.inv(S)
+            small = np.max(np.abs(step[:3])) < 1e-10 and np.max(np.abs(step[3:])) < 1e-8
+            if small and (iterations > 2 or not estimate_scale):
+                break
+
+        covariance = np.zeros((N_GLOBAL, N_GLOBAL))
+        covariance[np.ix_(free_idx, free_idx)] = S_inv
+        bias_std = None
+        if factor is not None and X is not None:
+            last = self.n_knots - 1
+            cols_last = [_KNOT * last + a for a in range(_KNOT)]
+            E = np.zeros((n_bias, _KNOT))
+            E[cols_last, np.arange(_KNOT)] = 1.0
+            Y = cho_solve_banded(factor, E)
+            XtE = X.T @ E
+            block = Y[cols_last] + XtE.T @ S_inv @ XtE
+            bias_std = np.sqrt(np.clip(np.diag(block), 0.0, None))
+        return _Fit(R, t, dtau, tilt, knots, free.copy(), scale_g, scale_a, covariance, unconstrained, cost_g, cost_a, bias_std, iterations)
+
+
+# --------------------------------------------------------------------------- checks and covariance
+
+#: Delete-a-group jackknife: at most this many groups of consecutive windows.
+JACKKNIFE_GROUPS = 10
+#: Residual std over the noise the data imply, above which the model does not explain the data.
+RESIDUAL_LEVEL_MAX = 2.0
+#: What the checks take as numerically zero (rad, and rad per m/s^2): on noise-free data the
+#: Fisher std is round-off, and so is any difference the checks see.
+NUMERICAL_ZERO = 1e-6
+
+
+def _chi2_limit(dof: int, alpha: float) -> float:
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(1.0 - alpha, dof))
+
+
+def _rotation_difference(a: Rotation, b: Rotation) -> np.ndarray:
+    """Rotation vector of ``a b^-1`` (about the base axes)."""
+    return (a * b.inv()).as_rotvec()
+
+
+def _jackknife(problem: _Problem, fit: _Fit) -> np.ndarray | None:
+    """Delete-a-group jackknife covariance (7x7: rotation about the base axes, t, tau) of the
+    fit's free globals over groups of consecutive windows, or None with fewer than 3 windows.
+    It sees what the Fisher information cannot: residuals correlated over seconds, and errors
+    that differ from window to window."""
+    K = len(problem.used)
+    if K < 3:
+        return None
+    groups = np.array_split(np.arange(K), min(K, JACKKNIFE_GROUPS))
+    replicates = []
+    for group in groups:
+        weights = np.ones(K)
+        weights[group] = 0.0
+        rep = problem.fit(fit, fit.free, window_weights=weights)
+        replicates.append(np.concatenate([_rotation_difference(rep.R, fit.R), rep.t - fit.t, [rep.dtau - fit.dtau]]))
+    reps = np.array(replicates)
+    G = len(reps)
+    centred = reps - reps.mean(axis=0)
+    return (G - 1) / G * centred.T @ centred
+
+
+@dataclass(frozen=True)
+class Check:
+    """One model-consistency test of the estimate (SPEC ``checks``)."""
+
+    name: str
+    passed: bool
+    figures: dict[str, Any]
+    #: Variance inflation the failed check calls for (1 where it passed).
+    inflation: float = 1.0
+
+
 def solve(
     windows: list[WindowMoments],
     prior: Transform,
@@ -361,170 +693,167 @@ def solve(
     tau0: float,
     sigma: tuple[float, float],
     lowpass: Lowpass,
+    time_offset_shown: bool = True,
+    time_offset_reason: str = "",
+    dw_noise_var: float = 0.0,
 ) -> SensorEstimate:
-    """Joint Gauss-Newton estimate from the selected windows' moments (see module docstring)."""
-    used = [w for w in windows if w.info is not None and w.info.selected]
-    numbers = np.array([w.number for w in used])
-    n_knots = int(max(w.number for w in windows)) + 2
-    S_g = assemble_moments(used, "gyro")  # (K, 11, 11): small
-    # the accelerometer's moments are stacked a chunk at a time (memory bounded by the chunk)
-    starts = range(0, len(used), SOLVE_CHUNK)
+    """The estimate from the selected windows' moments, with its checks and honest covariance.
 
-    def S_a_chunk(a: int) -> np.ndarray:
-        return assemble_moments(used[a : a + SOLVE_CHUNK], "accel")
+    1. The joint Gauss-Newton fit (module docstring); translation axes the drive does not
+       determine are kept at the prior; a clock offset whose std exceeds
+       :data:`TIME_OFFSET_MAX_STD_S` (or that ``time_offset_shown`` says the correlation could
+       not place) is not estimated.
+    2. Checks (each a test at ``options.consistency_alpha``): the rotation from the gyro alone
+       against the rotation from the accelerometer alone (chi-square, 3 dof); the mount's tilt
+       with the vehicle's specific force (chi-square, 2 dof; failing, the tilt is estimated
+       with everything else and the rotation is the mount's at rest); the residual levels
+       against the noise the data imply.
+    3. The covariance: the Fisher information's, each axis inflated to the delete-a-group
+       jackknife's spread where that is larger, then by the failed checks, then the box's
+       and the config's systematic floors added.
+    """
+    problem = _Problem(windows, prior, options, sigma, lowpass, dw_noise_var)
+    bound = options.translation_bound_m
+    warnings: list[str] = []
+    start = problem.start()
+    start.free[TAU] = options.max_time_offset_s > 0 and time_offset_shown
+    start.free[3:6] = problem.translation_information_diagonal() > 0  # above the noise floor
+    try:
+        fit = problem.fit(start, start.free, estimate_scale=True)
+    except np.linalg.LinAlgError:  # the lever arm's information, noise taken off, is not positive
+        start.free[3:6] = False
+        fit = problem.fit(start, start.free, estimate_scale=True)
+    weak = fit.free[3:6] & (fit.std()[3:6] >= OBSERVABLE_FRACTION_OF_BOUND * bound)
+    if weak.any():  # kept at the prior: the drive does not determine them
+        free = fit.free.copy()
+        free[3:6] &= ~weak
+        fit = problem.fit(replace(fit, t=np.where(weak, prior.translation, fit.t)), free)
+    time_offset_observable = options.max_time_offset_s <= 0 or time_offset_shown
+    if not time_offset_shown and options.max_time_offset_s > 0:
+        warnings.append(f"clock offset not observable ({time_offset_reason or 'the drive does not show it'}): not estimated, kept at 0")
+    elif fit.free[TAU] and fit.std()[TAU] > TIME_OFFSET_MAX_STD_S:
+        warnings.append(
+            f"clock offset not observable: std {fit.std()[TAU] * 1e3:.1f} ms > {TIME_OFFSET_MAX_STD_S * 1e3:g} ms; "
+            f"kept at the correlation's {tau0 * 1e3:.1f} ms"
+        )
+        time_offset_observable = False
+        free = fit.free.copy()
+        free[TAU] = False
+        fit = problem.fit(replace(fit, dtau=0.0), free)
 
-    trace_f = float(sum(np.trace(w.rows_accel[:, 0:3]) for w in used))
-    samples = sum(w.samples for w in used)
-    gain = lowpass.white_noise_gain()
+    checks: list[Check] = []
+    alpha = options.consistency_alpha
+    # the mount's tilt with the vehicle's specific force
+    tilted = problem.fit(fit, fit.free | np.isin(np.arange(N_GLOBAL), [7, 8]))
+    k, cov_k = tilted.tilt, tilted.covariance[TILT, TILT]
+    chi2_tilt = float(k @ np.linalg.solve(cov_k + NUMERICAL_ZERO**2 * np.eye(2), k))
+    rigid = chi2_tilt <= _chi2_limit(2, alpha)
+    checks.append(Check("rigid_mount", rigid, {
+        "tilt_deg_per_mps2": np.degrees(k).tolist(), "std": np.degrees(np.sqrt(np.diag(cov_k))).tolist(),
+        "chi2": chi2_tilt, "dof": 2,
+    }, max(1.0, chi2_tilt / 2)))
+    if not rigid:
+        warnings.append(
+            f"the mount is not rigid: it tilts {np.degrees(k[0]):.3f} deg (roll) and {np.degrees(k[1]):.3f} deg (pitch) "
+            f"per m/s^2 of the vehicle's lateral and longitudinal specific force (chi2 {chi2_tilt:.1f}, 2 dof); "
+            "the rotation given is the mount's at rest"
+        )
+        fit = tilted
+    # the rotation from the gyro alone against the one from the accelerometer alone
+    rotation_only = np.zeros(N_GLOBAL, dtype=bool)
+    rotation_only[:3] = True
+    # (one linear step each from the joint solution: a direction one equation alone leaves
+    # free stays put, with its large covariance, instead of wandering off)
+    by_gyro = problem.fit(fit, rotation_only, use=(True, False), max_iterations=1, rotation_prior_std=1.0)
+    by_accel = problem.fit(fit, fit.free & ~np.isin(np.arange(N_GLOBAL), [TAU]), use=(False, True), max_iterations=1, rotation_prior_std=1.0)
+    delta = _rotation_difference(by_accel.R, by_gyro.R)
+    cov_delta = by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base() + NUMERICAL_ZERO**2 * np.eye(3)
+    chi2_rot = float(delta @ np.linalg.solve(cov_delta, delta))
+    agree = chi2_rot <= _chi2_limit(3, alpha)
+    checks.append(Check("gyro_vs_accel_rotation", agree, {"chi2": chi2_rot, "dof": 3, "difference_deg": float(np.degrees(np.linalg.norm(delta)))}, max(1.0, chi2_rot / 3)))
+    if not agree:
+        warnings.append(
+            f"the gyro and the accelerometer disagree on the rotation by {np.degrees(np.linalg.norm(delta)):.3f} deg "
+            f"(chi2 {chi2_rot:.1f}, 3 dof): their axes are misaligned differently, or the mount moves"
+        )
+    # the residual levels against the noise the data imply
+    expected = np.array(sigma) * np.sqrt(problem.gain)
+    levels = np.array([fit.scale_g, np.sqrt(max(fit.scale_a**2 - problem.eiv_variance(fit.t), 0.0))]) / expected
+    level_ok = bool(np.all(levels <= RESIDUAL_LEVEL_MAX))
+    checks.append(Check("residual_level", level_ok, {"gyro": float(levels[0]), "accel": float(levels[1])}, float(max(1.0, np.max(levels) ** 2))))
+    if not level_ok:
+        warnings.append(
+            f"residuals {levels[0]:.1f}x (gyro) and {levels[1]:.1f}x (accelerometer) the noise the data imply: "
+            "the model does not explain the data (units, a moving mount, a time-varying offset?)"
+        )
 
-    R = kabsch_rotation(S_g, np.array([w.samples for w in used], dtype=float))
-    t = prior.translation.copy()
-    t_prior, bound = prior.translation, options.translation_bound_m
-    dtau = 0.0
-    knots = np.zeros((n_knots, _KNOT))  # [gyro bias, accel bias] per knot
-    prior_band = _bias_prior(
-        n_knots, options.window_s, (options.gyro_bias_walk, ACCEL_BIAS_WALK), (options.gyro_bias_prior_std, ACCEL_BIAS_PRIOR_STD)
-    )
-    n_bias = _KNOT * n_knots
-    # Where each window's normal equations go (the same every iteration). Unknowns: globals
-    # [rot 0-2, t 3-5, dtau 6], then the biases, per knot [gyro 0-2, accel 3-5]. A window's gyro
-    # equations hold [rot, dtau, its two knots' gyro biases], its accelerometer's [rot, t, dtau,
-    # their accel biases]: the globals' rows and columns, and the biases' (bias index).
-    K = len(used)
-    globals_g, globals_a = np.array([0, 1, 2, 6]), np.arange(7)
-    biases_g = _KNOT * numbers[:, None] + np.array([0, 1, 2, 6, 7, 8])
-    biases_a = _KNOT * numbers[:, None] + np.array([3, 4, 5, 9, 10, 11])
-    upper6 = np.triu_indices(6)  # a window's bias indices increase: these are its upper entries
-
-    def band_at(biases: np.ndarray) -> np.ndarray:  # flat index into the (_BAND + 1, n_bias) band
-        i, j = biases[:, upper6[0]], biases[:, upper6[1]]
-        return ((_BAND + i - j) * n_bias + j).ravel()
-
-    band_g, band_a = band_at(biases_g), band_at(biases_a)
-    cross_g = (globals_g[None, :, None] * n_bias + biases_g[:, None, :]).ravel()  # into (7, n_bias)
-    cross_a = (globals_a[None, :, None] * n_bias + biases_a[:, None, :]).ravel()
-    # the accelerometer's moments, stacked once where they are small, else a chunk at a time
-    cached = [S_a_chunk(a) for a in starts] if K * ACCEL_DIM**2 * 8 <= SOLVE_CACHE_BYTES else None
-
-    scale_g, scale_a = sigma[0] * np.sqrt(gain), sigma[1] * np.sqrt(gain)
-    # A cost from moments is a difference of large sums: below RESOLUTION times the signal's RMS
-    # the residual is round-off, not noise (noise-free data).
-    floor_g = (RESOLUTION**2) * np.trace(S_g[:, 0:3, 0:3].sum(axis=0)) / (3 * samples)
-    floor_a = (RESOLUTION**2) * trace_f / (3 * samples)
-    free_global = np.ones(7, dtype=bool)
-    if options.max_time_offset_s <= 0:
-        free_global[6] = False
-    observable = np.ones(3, dtype=bool)
-    converged_once = False
-    S_inv = np.zeros((0, 0))
-    cost_g = cost_a = np.zeros(len(used))
-    factor = None
-    X = np.zeros((0, 0))
-    iterations = 0
-    for iterations in range(1, options.max_iterations + 1):  # noqa: B007
-        Rt = R.inv().as_matrix()
-        bj, bk = knots[numbers], knots[numbers + 1]
-        Cg = _C_gyro(Rt, dtau, bj[:, 0:3], bk[:, 0:3])
-        Ca = _C_accel(Rt, t, dtau, bj[:, 3:6], bk[:, 3:6])
-        Hg, gg, cost_g = _normal_equations(_derivatives_gyro(Cg, Rt), S_g, Cg)
-        parts = []
-        for n, a in enumerate(starts):
-            chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 7, 3, 29) in slices
-            S_a = cached[n] if cached is not None else S_a_chunk(a)
-            parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a, Ca[chunk]))
-        Ha, ga, cost_a = (np.concatenate([p[i] for p in parts]) for i in range(3))
-        if iterations > 1:  # residual variance from the fit, above what the moments resolve
-            scale_g = float(np.sqrt(max(cost_g.sum() / (3 * samples), floor_g)))
-            scale_a = float(np.sqrt(max(cost_a.sum() / (3 * samples), floor_a)))
-        wg, wa = gain / scale_g**2, gain / scale_a**2
-        # the normal equations: the globals' 7x7 block, their coupling to the biases, the
-        # biases' banded block (with the prior) and the gradient
-        Hg, Ha, gg, ga = wg * Hg, wa * Ha, wg * gg, wa * ga
-        H_gg_all = np.zeros((7, 7))
-        H_gg_all[np.ix_(globals_g, globals_g)] += Hg[:, :4, :4].sum(axis=0)
-        H_gg_all += Ha[:, :7, :7].sum(axis=0)
-        H_gb_all = (np.bincount(cross_g, Hg[:, :4, 4:].ravel(), 7 * n_bias) + np.bincount(cross_a, Ha[:, :7, 7:].ravel(), 7 * n_bias)).reshape(7, n_bias)
-        size = (_BAND + 1) * n_bias
-        H_bb = (np.bincount(band_g, Hg[:, 4:, 4:][:, upper6[0], upper6[1]].ravel(), size) + np.bincount(band_a, Ha[:, 7:, 7:][:, upper6[0], upper6[1]].ravel(), size)).reshape(_BAND + 1, n_bias)
-        H_bb += prior_band
-        grad_g = -ga[:, :7].sum(axis=0)
-        grad_g[globals_g] -= gg[:, :4].sum(axis=0)
-        x_bias = knots.ravel()
-        grad_b = -(np.bincount(biases_g.ravel(), gg[:, 4:].ravel(), n_bias) + np.bincount(biases_a.ravel(), ga[:, 7:].ravel(), n_bias))
-        grad_b -= _band_times(prior_band, x_bias)
-        free = np.flatnonzero(free_global & np.concatenate([[True] * 3, observable, [True]]))
-        H_gg = H_gg_all[np.ix_(free, free)]
-        H_gb = H_gb_all[free]
-        factor = (cholesky_banded(H_bb, lower=False), False)
-        X = cho_solve_banded(factor, H_gb.T)
-        S = H_gg - H_gb @ X
-        s = grad_g[free] - X.T @ grad_b
-        lower, upper = np.full(len(free), -np.inf), np.full(len(free), np.inf)
-        for k, col in enumerate(free):
-            if 3 <= col < 6:
-                lower[k] = t_prior[col - 3] - bound - t[col - 3]
-                upper[k] = t_prior[col - 3] + bound - t[col - 3]
-        L = np.linalg.cholesky(S)
-        step_free = _bounded_step(L, s, lower, upper)
-        step = np.zeros(7)
-        step[free] = step_free
-        step_bias = cho_solve_banded(factor, grad_b - H_gb.T @ step_free)
-        R = R * Rotation.from_rotvec(step[:3])
-        t = t + step[3:6]
-        dtau = dtau + step[6]
-        knots = knots + step_bias.reshape(n_knots, 6)
-        S_inv = np.linalg.inv(S)
-        small = np.max(np.abs(step[:3])) < 1e-10 and np.max(np.abs(step[3:])) < 1e-8
-        if small and iterations > 2:
-            t_std = np.full(3, np.inf)
-            for k, col in enumerate(free):
-                if 3 <= col < 6:
-                    t_std[col - 3] = np.sqrt(S_inv[k, k])
-            weak = observable & (t_std >= OBSERVABLE_FRACTION_OF_BOUND * bound)
-            if weak.any() and not converged_once:
-                observable &= ~weak
-                t[~observable] = t_prior[~observable]
-                converged_once = True
-                continue
-            break
-
-    cov = np.zeros((7, 7))
-    cov[np.ix_(free, free)] = S_inv
+    # the covariance: Fisher, inflated per axis to the jackknife's spread, then by failed checks
+    Rm = fit.R.as_matrix()
+    to_base = np.eye(7)
+    to_base[:3, :3] = Rm
+    free7 = fit.free[:7]
+    fisher = to_base @ fit.covariance[:7, :7] @ to_base.T
+    fisher_std = np.sqrt(np.clip(np.diag(fisher), 0.0, None))
+    jackknife = _jackknife(problem, fit)
+    inflation = np.ones(7)
+    if jackknife is None:
+        warnings.append(f"only {len(problem.used)} window(s) with enough motion: too few to check the std against the data's spread")
+    else:
+        jk_std = np.sqrt(np.clip(np.diag(jackknife), 0.0, None))
+        inflation[free7] = np.maximum(1.0, jk_std[free7] / np.where(fisher_std[free7] > 0, fisher_std[free7], np.inf))
+    cov7 = inflation[:, None] * fisher * inflation[None, :]
+    failed = [c for c in checks if not c.passed]
+    if failed:
+        cov7 *= max(c.inflation for c in failed)
+    # translation axes on the box: the std covers the distance to where the data pull them
+    on_box = fit.free[3:6] & (np.abs(fit.t - prior.translation) >= bound * (1.0 - 1e-6))
+    for axis in np.flatnonzero(on_box):
+        pull = fit.unconstrained_t[axis] - fit.t[axis]
+        cov7[3 + axis, 3 + axis] += pull**2
+        warnings.append(
+            f"translation {'xyz'[axis]} rests on its box (prior {prior.translation[axis]:+.3f} +- {bound:g} m): "
+            f"the data pull it {abs(pull):.3f} m further; the prior may be wrong"
+        )
     for axis in range(3):
-        if not observable[axis]:
-            cov[3 + axis, 3 + axis] = bound**2 / 3.0
-    rot = np.eye(6)
-    rot[:3, :3] = R.as_matrix()
-    cov6 = rot @ cov[:6, :6] @ rot.T
+        if not fit.free[3 + axis]:
+            cov7[3 + axis, 3 + axis] = bound**2 / 3.0
+    cov6 = cov7[:6, :6].copy()
+    cov6[:3, :3] += np.radians(options.rotation_floor_deg) ** 2 * np.eye(3)
+    cov6[3:, 3:] += options.translation_floor_m**2 * np.eye(3)
+    observable = fit.free[3:6].copy()
+    if not observable.all():
+        warnings.append("translation " + ", ".join("xyz"[a] for a in np.flatnonzero(~observable)) + " not determined by the drive: kept at the prior")
 
-    last = n_knots - 1
-    bias_std = None
-    if factor is not None:
-        cols_last = [_KNOT * last + a for a in range(_KNOT)]
-        E = np.zeros((n_bias, _KNOT))
-        E[cols_last, np.arange(_KNOT)] = 1.0
-        Y = cho_solve_banded(factor, E)
-        XtE = X.T @ E
-        block = Y[cols_last] + XtE.T @ S_inv @ XtE
-        bias_std = np.sqrt(np.clip(np.diag(block), 0.0, None))
-    n_total = 3 * samples
+    if failed:
+        status = "inconsistent"
+    elif not observable.all() or on_box.any() or not time_offset_observable or jackknife is None:
+        status = "partial"
+    else:
+        status = "ok"
+    last = problem.n_knots - 1
+    n_total = 3 * problem.samples
+    bias_std = fit.bias_std
     return SensorEstimate(
-        status="ok" if observable.all() else "partial",
-        T_base_imu=Transform(R, t),
+        status=status,
+        T_base_imu=Transform(fit.R, fit.t),
         covariance=cov6,
-        translation_observable=observable.copy(),
-        time_offset_s=float(tau0 + dtau),
-        time_offset_std_s=float(np.sqrt(cov[6, 6])) if free_global[6] else None,
-        gyro_bias=knots[last, 0:3].copy(),
+        translation_observable=observable,
+        time_offset_s=float(tau0 + fit.dtau) if time_offset_shown else 0.0,
+        time_offset_std_s=float(np.sqrt(cov7[6, 6])) if fit.free[TAU] else None,
+        gyro_bias=fit.knots[last, 0:3].copy(),
         gyro_bias_std=bias_std[0:3] if bias_std is not None else None,
-        accel_bias=knots[last, 3:6].copy(),
+        accel_bias=fit.knots[last, 3:6].copy(),
         accel_bias_std=bias_std[3:6] if bias_std is not None else None,
-        bias_knots_s=np.arange(n_knots) * options.window_s,
-        gyro_bias_knots=knots[:, 0:3].copy(),
-        accel_bias_knots=knots[:, 3:6].copy(),
+        bias_knots_s=np.arange(problem.n_knots) * options.window_s,
+        gyro_bias_knots=fit.knots[:, 0:3].copy(),
+        accel_bias_knots=fit.knots[:, 3:6].copy(),
         windows=[w.info for w in windows if w.info is not None],
-        residual_rms_gyro=float(np.sqrt(max(cost_g.sum(), 0.0) / n_total)),
-        residual_rms_accel=float(np.sqrt(max(cost_a.sum(), 0.0) / n_total)),
-        iterations=iterations,
+        residual_rms_gyro=float(np.sqrt(max(fit.cost_g.sum(), 0.0) / n_total)),
+        residual_rms_accel=float(np.sqrt(max(fit.cost_a.sum(), 0.0) / n_total)),
+        iterations=fit.iterations,
         noise_std={"gyro_radps": sigma[0], "accel_mps2": sigma[1]},
+        warnings=warnings,
+        checks={c.name: {**c.figures, "pass": c.passed} for c in checks},
+        time_offset_observable=time_offset_observable,
+        tilt_rad_per_mps2=fit.tilt.copy(),
     )

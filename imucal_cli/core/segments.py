@@ -63,8 +63,8 @@ def translation_information(A: np.ndarray, accel_noise_std: float) -> np.ndarray
 def _std_from_information(info: np.ndarray) -> np.ndarray:
     """Standard deviations from a 3x3 information matrix, or a stack of them (..., 3, 3);
     infinite where it is singular."""
-    s = np.linalg.svd(info, compute_uv=False)
-    singular = (s[..., -1] <= s[..., 0] * 1e-12) | (s[..., -1] <= 0)
+    s = np.linalg.eigvalsh(info)  # ascending; negative where noise was taken off (not positive definite)
+    singular = (s[..., 0] <= np.abs(s[..., -1]) * 1e-12) | (s[..., 0] <= 0)
     out = np.full(info.shape[:-1], np.inf)
     if not np.all(singular):
         regular = ~singular
@@ -120,9 +120,10 @@ def window_infos_from_moments(
     accel_noise_std: float,
     max_rotation_std_deg: float,
     translation_bound_m: float,
+    dw_noise_var: float = 0.0,
 ) -> list[WindowInfo]:
     """:func:`window_info_from_moments` for K windows at once: ``spans`` (start, end, valid),
-    ``samples`` (K,), ``S_gyro`` (K, 11, 11), ``S_accel`` (K, 29, 29)."""
+    ``samples`` (K,), ``S_gyro`` (K, 11, 11), ``S_accel`` (K, 33, 33)."""
     n = samples.astype(np.float64)[:, None, None]
 
     def centred(S: np.ndarray, P: np.ndarray | slice, one: int) -> np.ndarray:
@@ -138,16 +139,19 @@ def window_infos_from_moments(
         trace = np.trace(C, axis1=1, axis2=2)[:, None, None]
         return (trace * np.eye(3) - C) / std**2
 
+    one_a = S_accel.shape[1] - 2  # the constant column of x_a
     P_w = slice(3, 6)  # w in the gyro data vector
     P_v = np.zeros((3, S_accel.shape[1]))
     P_v[:, 3:6] = np.eye(3)
     P_v[:, 9:18] = np.hstack([lever_arm[0] * np.eye(3), lever_arm[1] * np.eye(3), lever_arm[2] * np.eye(3)])
-    info = rotation_info(centred(S_gyro, P_w, 9), gyro_noise_std) + rotation_info(centred(S_accel, P_v, 27), accel_noise_std)
+    info = rotation_info(centred(S_gyro, P_w, 9), gyro_noise_std) + rotation_info(centred(S_accel, P_v, one_a), accel_noise_std)
     sigma_min = np.clip(np.linalg.eigvalsh(info)[:, 0], 0.0, None)
     with np.errstate(divide="ignore"):
         std_deg = np.where(sigma_min > 0, np.degrees(1.0 / np.sqrt(sigma_min)), np.inf)
-    C_A = centred(S_accel, slice(9, 18), 27).reshape(-1, 3, 3, 3, 3)  # blocks (j, k) of vec A
-    t_info = np.einsum("kjala->kjl", C_A) / accel_noise_std**2  # trace of each 3x3 block
+    C_A = centred(S_accel, slice(9, 18), one_a).reshape(-1, 3, 3, 3, 3)  # blocks (j, k) of vec A
+    # sum A^T A, less what the angular acceleration's noise adds (E [n]x^T [n]x = 2 s^2 I):
+    # information the noise fakes is none
+    t_info = (np.einsum("kjala->kjl", C_A) - n * 2.0 * dw_noise_var * np.eye(3)) / accel_noise_std**2
     t_stds = _std_from_information(t_info)
     out = []
     for k, (start, end, valid) in enumerate(spans):

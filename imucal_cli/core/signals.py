@@ -143,6 +143,14 @@ def _response(lowpass: Lowpass, size: int) -> np.ndarray:
     return gain
 
 
+def derivative_noise_variance(lowpass: Lowpass, density: float) -> float:
+    """Variance of one sample of the low-passed time derivative of white noise of ``density``
+    (per sqrt(Hz)): ``density^2 int |H(f)|^2 (2 pi f)^2 df``. The angular acceleration is the
+    base gyro's derivative, so its noise is this, not the gyro's (errors in variables)."""
+    f = np.linspace(0.0, 20.0 * lowpass.cutoff_hz, 8001)
+    return float(2.0 * density**2 * np.trapezoid(lowpass.gain(f) ** 2 * (2 * np.pi * f) ** 2, f))
+
+
 def white_noise_std(x: np.ndarray) -> np.ndarray:
     """Per-axis white-noise standard deviation of a sampled signal (N, 3).
 

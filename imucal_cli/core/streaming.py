@@ -8,9 +8,11 @@ observability is analysed (eqs. 18-19), and it is reduced to *sufficient statist
 moments ``S = sum x x^T`` of the data vectors
 
 - gyro (eq. 10): ``x_g = [w_I, w_B, dw_B, 1, u]``
-- accelerometer (eq. 11): ``x_a = [f_I, f_B, df_B, vec A, vec dA, 1, u]``
+- accelerometer (eq. 11): ``x_a = [f_I, f_B, df_B, vec A, vec dA, q, 1, u]``
 
-with ``A = [w_B]x^2 + [dw_B]x`` (eq. 12) and ``u`` the time within the window (0..1). Every
+with ``A = [w_B]x^2 + [dw_B]x`` (eq. 12), ``q`` the products of the base's specific force a
+tilting mount adds (:func:`imucal_cli.core.calibrate._tilt_columns`) and ``u`` the time within
+the window (0..1). Every
 residual of the model is linear in ``x`` with coefficients that depend on the parameters:
 
 - ``r_g = w_I(t + tau0) - R^T (w_B - dtau dw_B) - b_g(t)``
@@ -49,8 +51,9 @@ from imucal_cli.core.calibrate import (
     unobservable,
 )
 from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
-from imucal_cli.core.signals import Lowpass, TooLittleData, white_noise_std
-from imucal_cli.core.timing import estimate_time_offset
+from imucal_cli.core.signals import Lowpass, TooLittleData, derivative_noise_variance, white_noise_std
+from imucal_cli.core.timing import TimeOffset, time_offset_shown
+from imucal_cli.errors import ImucalError
 from imucal_cli.types import Transform
 
 #: Padding on each side of a window for the spline and the low-pass (s). The filter's impulse
@@ -60,6 +63,8 @@ PAD_S = 2.0
 BOOT_S = 60.0
 #: Longest wait for enough motion to find the clock offset (s).
 MAX_BOOT_S = 600.0
+#: While waiting for that motion, the boot is tried again after this much more data (s).
+BOOT_RETRY_S = 10.0
 #: Stamps may arrive this much out of order (s): windows wait for it.
 REORDER_S = 0.5
 #: Windows conditioned together (one spline and one filter pass per IMU and block).
@@ -74,6 +79,23 @@ class SensorSetup:
     name: str
     prior_T_base_imu: Transform
     options: CalibrationOptions
+    gyro_units: str = "auto"  # auto | radps | dps
+    accel_units: str = "auto"  # auto | mps2 | g
+
+
+#: Degrees per radian: how much larger a gyro's numbers are in deg/s.
+DPS = float(np.degrees(1.0))
+STANDARD_GRAVITY = 9.80665
+#: The base's |w| must vary by this much (rad/s std) before a gyro's units can be told.
+MIN_UNIT_MOTION_RADPS = 0.005
+
+
+class UnitsError(ImucalError):
+    """An IMU's units cannot be told from its data: names the IMU and the config key."""
+
+    def __init__(self, imu: str, key: str, detail: str) -> None:
+        self.imu, self.key = imu, key
+        super().__init__(f"{imu}: {detail}; set {key}")
 
 
 @dataclass
@@ -319,25 +341,31 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     # the terms of the base's side of the equations side by side, each column contiguous (as
     # the low-pass takes them): [w, f], [dw, df], ddw, and the symmetric 3x3 terms by their
     # upper triangles, [w]x^2 and [dw]x[w]x + [w]x[dw]x (halved: the sum of a, b and b, a)
-    terms = np.empty((27, len(grid))).T
+    terms = np.empty((31, len(grid))).T
     terms[:, 0:6], terms[:, 6:12], terms[:, 12:15] = values, first, second[:, 0:3]
-    w_raw, dw_raw = values[:, 0:3], first[:, 0:3]
+    w_raw, dw_raw, f_raw = values[:, 0:3], first[:, 0:3], values[:, 3:6]
     _upper_symmetric_products(w_raw, w_raw, terms[:, 15:21])
     terms[:, 15:21] *= 0.5
     _upper_symmetric_products(dw_raw, w_raw, terms[:, 21:27])
+    # the tilt columns of a mount leaning with the specific force (calibrate._tilt_columns):
+    # [f_y f_z, f_y^2, f_x f_z, f_x^2]
+    np.multiply(f_raw[:, 1], f_raw[:, 2], out=terms[:, 27])
+    np.multiply(f_raw[:, 1], f_raw[:, 1], out=terms[:, 28])
+    np.multiply(f_raw[:, 0], f_raw[:, 2], out=terms[:, 29])
+    np.multiply(f_raw[:, 0], f_raw[:, 0], out=terms[:, 30])
     names = [name for name in job.samples if name != job.base_name]
     # one zero-phase low-pass for every term of every equation (linear filters commute);
     # the symmetric 3x3 terms are filtered by their upper triangles
     rows = lp(terms)[n_pad : n_pad + n_block]
     t_rows = grid[n_pad : n_pad + n_block]
     # every data vector of the block side by side, so that each window's moments are one
-    # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, 1, u], each
+    # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, q, 1, u], each
     # column written once into X (the sensors' columns at the end)
     n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
     X = np.empty((n_block, n_g + n_a + 6 * len(names)))
     w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
     X[:, 0:3], X[:, 3:6], X[:, 6], X[:, 7] = w, dw, 1.0, 0.0
-    X[:, 8:11], X[:, 11:14], X[:, 32] = f, df, 1.0
+    X[:, 8:11], X[:, 11:14], X[:, 32:36], X[:, 36] = f, df, rows[:, 27:31], 1.0
     # vec A = vec([w]x^2 + [dw]x) (column-major), from the symmetric part's upper triangle and
     # the skew part (eq. 12); vec dA likewise from ([dw]x[w]x + [w]x[dw]x) and [ddw]x
     _vec_of_sum(rows[:, 15:21], dw, X[:, 14:23])
@@ -346,7 +374,7 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     at = [(int(round((start - block_start) * rate)), int(round((end - start) * rate))) for _, start, end in spans]
     for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
         X[i0 : i0 + n_win, 7] = (t_rows[i0 : i0 + n_win] - start) / job.window_s
-    X[:, 33] = X[:, 7]
+    X[:, 37] = X[:, 7]
     sensors = {}
     for k, name in enumerate(names):
         tau, t_s, both_s = job.samples[name]
@@ -386,7 +414,11 @@ class StreamingCalibrator:
     """
 
     def __init__(
-        self, sensors: Sequence[SensorSetup], base_name: str = "base", block_windows: int = BLOCK_WINDOWS
+        self,
+        sensors: Sequence[SensorSetup],
+        base_name: str = "base",
+        block_windows: int = BLOCK_WINDOWS,
+        base_units: tuple[str, str] = ("auto", "auto"),
     ) -> None:
         if not sensors:
             raise ValueError("no sensors")
@@ -402,6 +434,14 @@ class StreamingCalibrator:
         self.next_window = 0
         self.windows: dict[str, list[WindowMoments]] = {name: [] for name in self.sensors}
         self.tau0: dict[str, float] = {}
+        #: Each sensor's clock offset as the boot's correlation placed it (None: not estimated).
+        self.time_offsets: dict[str, TimeOffset | None] = {}
+        #: Per IMU, the factors (gyro, accelerometer) that made its samples SI, from the boot on.
+        self.scales: dict[str, tuple[float, float]] = {}
+        self.unit_warnings: dict[str, list[str]] = {}
+        self.base_units = base_units
+        self.dw_noise_var = 0.0
+        self._boot_tried_s = -np.inf
         self.noise: dict[str, tuple[float, float]] = {}
         self.sigma: dict[str, tuple[float, float]] = {}
         #: Median sample rate of every IMU (Hz), measured at boot.
@@ -427,7 +467,11 @@ class StreamingCalibrator:
         t_ns = np.array(t_ns, dtype=np.int64)  # a copy: a live caller may reuse its buffers
         buffer.first_ns = int(t_ns.min()) if buffer.first_ns is None else min(buffer.first_ns, int(t_ns.min()))
         buffer.last_ns = int(t_ns.max()) if buffer.last_ns is None else max(buffer.last_ns, int(t_ns.max()))
-        buffer.append(t_ns, np.hstack([np.asarray(gyro, dtype=np.float64).reshape(-1, 3), np.asarray(accel, dtype=np.float64).reshape(-1, 3)]))
+        both = np.hstack([np.asarray(gyro, dtype=np.float64).reshape(-1, 3), np.asarray(accel, dtype=np.float64).reshape(-1, 3)])
+        if imu in self.scales:  # after boot: in SI, as the boot found the units
+            both[:, :3] *= self.scales[imu][0]
+            both[:, 3:] *= self.scales[imu][1]
+        buffer.append(t_ns, both)
         if self.t_ref_ns is None and all(b.first_ns is not None for b in self.buffers.values()):
             self.t_ref_ns = max(int(b.first_ns) for b in self.buffers.values())  # type: ignore[arg-type]
         return self.process()
@@ -449,7 +493,8 @@ class StreamingCalibrator:
         return min((int(b.last_ns) - self.t_ref_ns) * 1e-9 for b in self.buffers.values())  # type: ignore[arg-type]
 
     def _boot(self, final: bool) -> bool:
-        """Estimate each sensor's clock offset and noise once enough data is buffered."""
+        """Once enough data is buffered: each IMU's units and noise, each sensor's clock offset
+        (where the drive shows it) and the residuals' noise levels."""
         if self.tau0:
             return True
         covered = self._covered_until() if self.t_ref_ns is not None else 0.0
@@ -464,31 +509,88 @@ class StreamingCalibrator:
                     f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window"
                 )
             return False
-        t_b, both_b = self.buffers[self.base_name].cleaned()
-        base = _Spline(self._seconds(t_b), both_b, self.rate)
-        speed_base = np.linalg.norm(self.lowpass(base.gyro(grid)), axis=1)
-        candidates: dict[str, tuple[float, float]] = {}
-        for name, setup in self.sensors.items():
-            t_s, both_s = self.buffers[name].cleaned()
-            sensor = _Spline(self._seconds(t_s), both_s, self.rate)
-            tau, peak = 0.0, 1.0
-            if setup.options.max_time_offset_s > 0:
-                speed = np.linalg.norm(self.lowpass(sensor.gyro(grid)), axis=1)
-                tau, peak = estimate_time_offset(grid, speed_base, speed, setup.options.max_time_offset_s)
-            candidates[name] = (tau, peak)
-            self.noise[name] = _noise_density(both_s, 1.0 / sensor.period)
-            self.rates_hz[name] = 1.0 / sensor.period
-        weak = min(peak for _, peak in candidates.values()) < 0.5
-        if weak and not final and covered < MAX_BOOT_S:
-            return False  # not enough motion yet to trust the offset
-        self.noise[self.base_name] = _noise_density(both_b, 1.0 / base.period)
-        self.rates_hz[self.base_name] = 1.0 / base.period
+        patient = not final and covered < MAX_BOOT_S  # may wait for more motion
+        if patient and covered < self._boot_tried_s + BOOT_RETRY_S:
+            return False  # tried lately: wait for more data before trying again
+        self._boot_tried_s = covered
+        samples = {name: buffer.cleaned() for name, buffer in self.buffers.items()}
+        unit_warnings: dict[str, list[str]] = {}
+        raw_speeds = {name: np.linalg.norm(self.lowpass(_Spline(self._seconds(t), both, self.rate).gyro(grid)), axis=1) for name, (t, both) in samples.items()}
+        scales = self._units(samples, raw_speeds, unit_warnings, final=not patient)
+        if scales is None:
+            return False  # not enough motion yet to tell the gyros' units
+        splines, speeds = {}, {}
+        for name, (t, both) in samples.items():
+            converted = both * np.repeat(scales[name], 3)
+            splines[name] = _Spline(self._seconds(t), converted, self.rate)
+            speeds[name] = raw_speeds[name] * scales[name][0]
+            self.noise[name] = _noise_density(converted, 1.0 / splines[name].period)
+            self.rates_hz[name] = 1.0 / splines[name].period
         gb, ab = self.noise[self.base_name]
-        for name, (tau, _) in candidates.items():
-            self.tau0[name] = tau
+        sigma = {}
+        for name in self.sensors:
             gs, as_ = self.noise[name]
-            self.sigma[name] = (float(np.sqrt((gs**2 + gb**2) * self.rate)), float(np.sqrt((as_**2 + ab**2) * self.rate)))
+            sigma[name] = (float(np.sqrt((gs**2 + gb**2) * self.rate)), float(np.sqrt((as_**2 + ab**2) * self.rate)))
+        offsets = {}
+        gain = self.lowpass.white_noise_gain()
+        for name, setup in self.sensors.items():
+            if setup.options.max_time_offset_s > 0:
+                offsets[name] = time_offset_shown(grid, speeds[self.base_name], speeds[name], setup.options.max_time_offset_s, sigma[name][0], gain)
+        if patient and not all(o.shown for o in offsets.values()):
+            return False  # not enough motion yet to place every clock offset
+        # booted: the buffers from now on in SI
+        for name, (t, both) in samples.items():
+            if scales[name] != (1.0, 1.0):
+                both *= np.repeat(scales[name], 3)  # the stored samples, in place
+        self.scales, self.unit_warnings, self.sigma = scales, unit_warnings, sigma
+        self.dw_noise_var = derivative_noise_variance(self.lowpass, gb)
+        for name in self.sensors:
+            offset = offsets.get(name)
+            self.time_offsets[name] = offset
+            self.tau0[name] = offset.tau_s if offset is not None and offset.shown else 0.0
         return True
+
+    def _units(
+        self, samples: dict[str, tuple[np.ndarray, np.ndarray]], speeds: dict[str, np.ndarray], notes: dict[str, list[str]], final: bool
+    ) -> dict[str, tuple[float, float]] | None:
+        """Per IMU, the factors (gyro, accelerometer) that make its samples SI: as its setup
+        says, or, for ``auto``, an accelerometer whose ``|f|`` averages about 1 publishes g and
+        a gyro whose ``|w|`` varies 57.3 times as much as the base's (or the base's as much as
+        a sensor's / 57.3) publishes deg/s. None while the base has not moved enough to tell."""
+        units = {self.base_name: self.base_units, **{name: (s.gyro_units, s.accel_units) for name, s in self.sensors.items()}}
+        scales: dict[str, list[float]] = {}
+        for name, (_, accel_units) in units.items():
+            both = samples[name][1]
+            accel = 1.0
+            if accel_units == "g":
+                accel = STANDARD_GRAVITY
+            elif accel_units == "auto":
+                mean = float(np.mean(np.linalg.norm(both[:, 3:], axis=1)))
+                if 0.5 <= mean <= 2.0:
+                    accel = STANDARD_GRAVITY
+                    notes.setdefault(name, []).append(f"accelerometer publishes g (mean |f| {mean:.3f}): converted to m/s^2")
+                elif not 5.0 <= mean <= 20.0:
+                    raise UnitsError(name, "accel_units", f"the accelerometer's mean |f| is {mean:.3g}: neither m/s^2 (about 9.8) nor g (about 1)")
+            scales[name] = [{"dps": np.radians(1.0)}.get(units[name][0], 1.0), accel]
+        auto = [name for name, (gyro_units, _) in units.items() if gyro_units == "auto"]
+        if auto:
+            spread = {name: float(np.std(speed)) * scales[name][0] for name, speed in speeds.items()}
+            if not spread[self.base_name] >= MIN_UNIT_MOTION_RADPS:
+                return None if not final else {n: (g, a) for n, (g, a) in scales.items()}  # no motion: taken as declared
+            ratios = {name: spread[name] / spread[self.base_name] for name in self.sensors}
+            if self.base_name in auto and any(abs(np.log(r * DPS)) < np.log(2.0) for r in ratios.values()):
+                scales[self.base_name][0] = np.radians(1.0)
+                notes.setdefault(self.base_name, []).append("gyro publishes deg/s (the sensors' |w| varies 57.3 times less): converted to rad/s")
+                ratios = {name: r * DPS for name, r in ratios.items()}
+            for name, ratio in ratios.items():
+                if name not in auto:
+                    continue
+                if abs(np.log(ratio / DPS)) < np.log(2.0):
+                    scales[name][0] = np.radians(1.0)
+                    notes.setdefault(name, []).append(f"gyro publishes deg/s (|w| varies {ratio:.1f} times the base's): converted to rad/s")
+                elif abs(np.log(ratio)) >= np.log(2.0):
+                    raise UnitsError(name, "gyro_units", f"the gyro's |w| varies {ratio:.3g} times the base's: neither rad/s (1) nor deg/s (57.3)")
+        return {name: (g, a) for name, (g, a) in scales.items()}
 
     def process(self, final: bool = False) -> int:
         """Reduce every window all IMUs now cover, ``block_windows`` at a time (one spline and
@@ -599,6 +701,7 @@ class StreamingCalibrator:
                 assemble_moments(part, "accel"),
                 setup.prior_T_base_imu.translation,
                 sigma_gyro, sigma_accel, opts.max_rotation_std_deg, opts.translation_bound_m,
+                self.dw_noise_var,
             )
             for window, info in zip(part, infos, strict=True):
                 window.info = info
@@ -621,10 +724,22 @@ class StreamingCalibrator:
             windows = self._ensure_infos(name)
             tau0 = self.tau0.get(name, 0.0)
             if not any(w.info is not None and w.info.selected for w in windows):
-                out[name] = unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0)
+                estimate = unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0)
+                out[name] = replace(estimate, warnings=self._unit_notes(name) + estimate.warnings)
                 continue
-            out[name] = solve(windows, setup.prior_T_base_imu, setup.options, tau0, self.sigma[name], self.lowpass)
+            offset = self.time_offsets.get(name)
+            estimate = solve(
+                windows, setup.prior_T_base_imu, setup.options, tau0, self.sigma[name], self.lowpass,
+                time_offset_shown=offset is None or offset.shown,
+                time_offset_reason=offset.reason if offset is not None else "",
+                dw_noise_var=self.dw_noise_var,
+            )
+            out[name] = replace(estimate, warnings=self._unit_notes(name) + estimate.warnings)
         return out
+
+    def _unit_notes(self, name: str) -> list[str]:
+        """The units converted on the way, the base's first."""
+        return [f"base: {w}" for w in self.unit_warnings.get(self.base_name, [])] + self.unit_warnings.get(name, [])
 
     def window_infos(self, name: str) -> list[WindowInfo]:
         return [w.info for w in self._ensure_infos(name) if w.info is not None]

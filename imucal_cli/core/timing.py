@@ -8,7 +8,51 @@ refines it below one sample. (The joint calibration then refines it further.)
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+#: A clock offset counts as shown by the drive when its std is below this (s).
+TIME_OFFSET_MAX_STD_S = 0.002
+
+
+@dataclass(frozen=True)
+class TimeOffset:
+    """The correlation's clock offset and whether the drive shows it."""
+
+    tau_s: float
+    peak: float  # correlation coefficient at the peak
+    std_s: float  # Cramer-Rao std of the delay of the base's |w| in the sensor's noise
+    shown: bool  # a peak inside the search, sharper than TIME_OFFSET_MAX_STD_S
+    reason: str = ""  # why not, where not
+
+
+def time_offset_shown(
+    grid_s: np.ndarray,
+    speed_base: np.ndarray,
+    speed_sensor: np.ndarray,
+    max_offset_s: float,
+    noise_std: float,
+    noise_gain: float,
+) -> TimeOffset:
+    """:func:`estimate_time_offset` with a uniqueness test.
+
+    The delay of a signal ``a(t)`` seen in white noise of ``noise_std`` per sample (low-passed,
+    ``noise_gain`` its variance gain) has the Cramer-Rao std
+    ``noise_std sqrt(noise_gain / sum a'(t_k)^2)``: a drive whose ``|w|`` hardly changes (a
+    straight highway) does not show the offset, whatever the correlation's peak says. A peak on
+    the search's edge is no peak either.
+    """
+    tau, peak = estimate_time_offset(grid_s, speed_base, speed_sensor, max_offset_s)
+    dt = float(grid_s[1] - grid_s[0])
+    slope = np.gradient(speed_base, dt)
+    energy = float(np.sum(slope**2))
+    std = float(noise_std * np.sqrt(noise_gain / energy)) if energy > 0 else float("inf")
+    if abs(tau) >= max_offset_s - 1.5 * dt:
+        return TimeOffset(tau, peak, std, False, f"the |w| correlation peaks at the edge of the search (+-{max_offset_s:g} s)")
+    if not std <= TIME_OFFSET_MAX_STD_S:
+        return TimeOffset(tau, peak, std, False, f"|w| changes too little: std {std * 1e3:.1f} ms")
+    return TimeOffset(tau, peak, std, True)
 
 
 def estimate_time_offset(

@@ -38,6 +38,45 @@ class DriveOptions:
     mounts: tuple[LidarMount, ...] = field(default=DEFAULT_MOUNTS)
     dynamics: VehicleDynamics | None = None  # None: a bus/truck on its suspension
     t0_ns: int = DEFAULT_T0_NS
+    #: The lidar mounts lean with the vehicle's specific force (roll per lateral, pitch per
+    #: longitudinal; rad per m/s^2), like a truck cab on its own suspension.
+    mount_tilt_rad_per_mps2: tuple[float, float] = (0.0, 0.0)
+    #: Added to every CAD prior's translation (m): a prior further off than the search box.
+    prior_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: Units the base IMU's driver publishes (the lidar IMUs': ``lidar_model``).
+    base_accel_units: str = "mps2"
+    base_gyro_units: str = "radps"
+
+
+#: Realistic MEMS errors of a lidar's IMU beyond noise and bias: 0.5% scale factors, 0.2 deg
+#: non-orthogonality, 0.1 deg/s/g gyro g-sensitivity, a 20-60 Hz mount vibration.
+MEMS_ERRORS = {
+    "scale_factor_std": 0.005,
+    "nonorthogonality_std_rad": np.radians(0.2),
+    "g_sensitivity_std": np.radians(0.1) / 9.80665,
+    "vibration_accel_mps2": 0.5,
+    "vibration_gyro_radps": 0.01,
+}
+
+#: Error classes (``imucal simulate --errors``): what each changes in a drive's options.
+ERROR_CLASSES: dict[str, dict[str, Any]] = {
+    "none": {},
+    "mems": {"lidar": MEMS_ERRORS},
+    "misaligned": {"lidar": {"misalignment_std_rad": np.radians(0.2)}},
+    "tilting-mount": {"drive": {"mount_tilt_rad_per_mps2": (np.radians(0.2), np.radians(0.2))}},
+    "clock-offsets": {"drive": {"max_time_offset_s": 0.04}},
+    "prior-off": {"drive": {"prior_offset_m": (0.5, 0.0, 0.0)}},
+    "accel-g": {"lidar": {"accel_units": "g"}},
+    "gyro-dps": {"lidar": {"gyro_units": "dps"}},
+}
+
+
+def with_errors(options: DriveOptions, error_class: str) -> DriveOptions:
+    """``options`` with the error class ``error_class`` (:data:`ERROR_CLASSES`) applied."""
+    if error_class not in ERROR_CLASSES:
+        raise ValueError(f"unknown error class {error_class!r} (expected one of: {', '.join(ERROR_CLASSES)})")
+    change = ERROR_CLASSES[error_class]
+    return replace(options, lidar_model=replace(options.lidar_model, **change.get("lidar", {})), **change.get("drive", {}))
 
 
 @dataclass(frozen=True)
@@ -92,6 +131,7 @@ class SimulatedDrive:
             "duration_s": self.trajectory.t_end_s - self.trajectory.t_start_s,
             "seed": o.seed,
             "noise_scale": o.noise_scale,
+            "mount_tilt_deg_per_mps2": np.degrees(o.mount_tilt_rad_per_mps2).tolist(),
             "t0_ns": o.t0_ns,
             "base": {"topic": BASE_TOPIC, "frame": BASE_FRAME, **biases(self.base)},
             "sensors": sensors,
@@ -137,7 +177,8 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
 
     trajectory = make_scenario(o.scenario, o.duration_s, seed=o.seed, dynamics=o.dynamics)
     rng = np.random.default_rng([o.seed, 7919])
-    base = simulate_imu(trajectory, Transform.identity(), o.base_model.scaled(o.noise_scale), rng, o.t0_ns, BASE_FRAME)
+    base_model = replace(o.base_model.scaled(o.noise_scale), accel_units=o.base_accel_units, gyro_units=o.base_gyro_units)
+    base = simulate_imu(trajectory, Transform.identity(), base_model, rng, o.t0_ns, BASE_FRAME)
 
     offsets: dict[str, float] = {}
     sensors: dict[str, SimulatedImu] = {}
@@ -151,6 +192,9 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         model = replace(o.lidar_model.scaled(o.noise_scale), time_offset_s=offset)
         if o.lidar_rate_hz is not None:
             model = replace(model, rate_hz=o.lidar_rate_hz)
-        sensors[mount.name] = simulate_imu(trajectory, mount.T_base_imu, model, rng, o.t0_ns, mount.imu_frame)
-        priors[mount.name] = cad_prior(mount.T_base_imu, rng)
+        sensors[mount.name] = simulate_imu(
+            trajectory, mount.T_base_imu, model, rng, o.t0_ns, mount.imu_frame, o.mount_tilt_rad_per_mps2
+        )
+        prior = cad_prior(mount.T_base_imu, rng)
+        priors[mount.name] = Transform(prior.rotation, prior.translation + np.asarray(o.prior_offset_m))
     return SimulatedDrive(o, trajectory, mounts, base, sensors, offsets, priors)

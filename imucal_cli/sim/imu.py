@@ -10,7 +10,8 @@ from imucal_cli.sim.trajectory import Trajectory
 from imucal_cli.types import ImuStream, Transform
 
 DEG = np.pi / 180.0
-MICRO_G = 9.80665e-6
+STANDARD_GRAVITY = 9.80665
+MICRO_G = STANDARD_GRAVITY * 1e-6
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,16 @@ class ImuErrorModel:
     gyro_lsb: float = 0.0  # output resolution (rad/s); 0: none
     accel_lsb: float = 0.0  # output resolution (m/s^2); 0: none
     float32_output: bool = False  # the driver publishes single-precision values
+    # Deterministic sensor errors (drawn once per IMU), none by default:
+    scale_factor_std: float = 0.0  # per-axis scale-factor error (fraction), gyro and accel apart
+    nonorthogonality_std_rad: float = 0.0  # symmetric coupling of the axes (the IMU frame stays defined)
+    misalignment_std_rad: float = 0.0  # each triad (gyro, accel) rotated apart by this much per axis
+    g_sensitivity_std: float = 0.0  # gyro error per unit specific force, rad/s per m/s^2, per entry
+    vibration_band_hz: tuple[float, float] = (20.0, 60.0)  # the mount's vibration frequency is drawn here
+    vibration_accel_mps2: float = 0.0  # amplitude of the mount's vibration (each axis)
+    vibration_gyro_radps: float = 0.0
+    accel_units: str = "mps2"  # what the driver publishes: mps2 | g
+    gyro_units: str = "radps"  # radps | dps
 
     def scaled(self, noise_scale: float) -> ImuErrorModel:
         """Noise, biases, jitter and drop rate multiplied by ``noise_scale`` (0: an ideal sensor)."""
@@ -52,6 +63,12 @@ class ImuErrorModel:
             gyro_lsb=self.gyro_lsb if noise_scale > 0 else 0.0,
             accel_lsb=self.accel_lsb if noise_scale > 0 else 0.0,
             float32_output=self.float32_output and noise_scale > 0,
+            scale_factor_std=self.scale_factor_std * noise_scale,
+            nonorthogonality_std_rad=self.nonorthogonality_std_rad * noise_scale,
+            misalignment_std_rad=self.misalignment_std_rad * noise_scale,
+            g_sensitivity_std=self.g_sensitivity_std * noise_scale,
+            vibration_accel_mps2=self.vibration_accel_mps2 * noise_scale,
+            vibration_gyro_radps=self.vibration_gyro_radps * noise_scale,
         )
 
     def gyro_noise_std(self) -> float:
@@ -93,19 +110,61 @@ MEMS_LIDAR = ImuErrorModel(
 )
 
 
+def mount_tilt(f_base: np.ndarray, tilt_rad_per_mps2: tuple[float, float]) -> np.ndarray:
+    """Tilt (rotation vector about the base axes, (N, 3) rad) of a mount that leans with the
+    vehicle's specific force like a truck cab on its suspension: roll ``k_roll f_y``, pitch
+    ``k_pitch f_x``."""
+    k_roll, k_pitch = tilt_rad_per_mps2
+    return np.stack([k_roll * f_base[:, 1], k_pitch * f_base[:, 0], np.zeros(len(f_base))], axis=1)
+
+
+def _has_intrinsic_errors(model: ImuErrorModel) -> bool:
+    return any(
+        v > 0
+        for v in (
+            model.scale_factor_std, model.nonorthogonality_std_rad, model.misalignment_std_rad,
+            model.g_sensitivity_std, model.vibration_accel_mps2, model.vibration_gyro_radps,
+        )
+    )
+
+
 def ideal_imu(
-    trajectory: Trajectory, T_base_imu: Transform, t_s: np.ndarray
+    trajectory: Trajectory,
+    T_base_imu: Transform,
+    t_s: np.ndarray,
+    tilt_rad_per_mps2: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free gyro and specific force of an IMU rigidly mounted at ``T_base_imu``.
+    """Noise-free gyro and specific force of an IMU mounted at ``T_base_imu``.
 
     ``w_I = R_B_I^T w_B`` and ``f_I = R_B_I^T (f_B + dw_B x t_B_I + w_B x (w_B x t_B_I))``.
+    With a tilting mount, ``R_B_I(t) = exp([theta(t)]x) R_B_I`` (:func:`mount_tilt`, pivoting
+    about the IMU) and the gyro also sees ``d theta / dt``.
     Returns two (N, 3) arrays: rad/s and m/s^2, in the IMU frame.
     """
+    from scipy.spatial.transform import Rotation
+
     state = trajectory.state(t_s)
+    w_base = state.w_base
     R_imu_base = T_base_imu.rotation.inv()
-    gyro = R_imu_base.apply(state.w_base)
+    if any(tilt_rad_per_mps2):
+        h = 1e-4  # the trajectory is a quintic spline: a central difference is exact to ~h^2
+        theta = mount_tilt(state.f_base, tilt_rad_per_mps2)
+        rate = (mount_tilt(trajectory.state(t_s + h).f_base, tilt_rad_per_mps2) - mount_tilt(trajectory.state(t_s - h).f_base, tilt_rad_per_mps2)) / (2 * h)
+        R_imu_base = T_base_imu.rotation.inv() * Rotation.from_rotvec(-theta)
+        w_base = w_base + rate
+    gyro = R_imu_base.apply(w_base)
     accel = R_imu_base.apply(state.specific_force_at(T_base_imu.translation))
     return np.atleast_2d(gyro), np.atleast_2d(accel)
+
+
+def _axis_errors(model: ImuErrorModel, rng: np.random.Generator) -> np.ndarray:
+    """``M`` with ``measured = M true`` for one triad: scale factors, symmetric
+    non-orthogonality, then a small misalignment of the triad."""
+    from scipy.spatial.transform import Rotation
+
+    coupling = np.triu(rng.normal(0.0, model.nonorthogonality_std_rad, (3, 3)), 1)
+    M = np.eye(3) + np.diag(rng.normal(0.0, model.scale_factor_std, 3)) + coupling + coupling.T
+    return Rotation.from_rotvec(rng.normal(0.0, model.misalignment_std_rad, 3)).as_matrix() @ M
 
 
 @dataclass(frozen=True)
@@ -126,17 +185,32 @@ def simulate_imu(
     rng: np.random.Generator,
     t0_ns: int,
     frame_id: str,
+    tilt_rad_per_mps2: tuple[float, float] = (0.0, 0.0),
 ) -> SimulatedImu:
     """Sample an IMU over the trajectory's span.
 
     Samples are taken at ``t_k = phase + k / rate`` (true time, seconds from the trajectory
-    start) with a random phase; stamps are ``t0_ns + (t_k + time_offset + jitter)``.
+    start) with a random phase; stamps are ``t0_ns + (t_k + time_offset + jitter)``. The
+    deterministic errors (axis errors, g-sensitivity, vibration) are drawn from a generator of
+    their own, so a model without them leaves every other draw as it was.
     """
     period = 1.0 / model.rate_hz
     phase = rng.uniform(0.0, period)
     t_true = np.arange(trajectory.t_start_s + phase, trajectory.t_end_s, period)
     n = len(t_true)
-    gyro, accel = ideal_imu(trajectory, T_base_imu, t_true)
+    gyro, accel = ideal_imu(trajectory, T_base_imu, t_true, tilt_rad_per_mps2)
+    intrinsic = rng.spawn(1)[0] if _has_intrinsic_errors(model) else None  # spawning draws nothing
+    if intrinsic is not None:
+        if model.vibration_accel_mps2 > 0 or model.vibration_gyro_radps > 0:
+            # a mount resonance, sampled at the output's instants as a real IMU samples it
+            # (no anti-alias filter): what lies above Nyquist folds back
+            freq = intrinsic.uniform(*model.vibration_band_hz)
+            phases = intrinsic.uniform(0.0, 2 * np.pi, 6)
+            wave = np.sin(2 * np.pi * freq * t_true[:, None] + phases)
+            accel = accel + model.vibration_accel_mps2 * wave[:, :3]
+            gyro = gyro + model.vibration_gyro_radps * wave[:, 3:]
+        gyro = gyro @ _axis_errors(model, intrinsic).T + accel @ intrinsic.normal(0.0, model.g_sensitivity_std, (3, 3)).T
+        accel = accel @ _axis_errors(model, intrinsic).T
 
     def bias(turn_on: float, walk: float) -> np.ndarray:
         b = rng.normal(0.0, 1.0, 3) * turn_on
@@ -149,6 +223,10 @@ def simulate_imu(
     gyro = gyro + gyro_bias + rng.normal(0.0, 1.0, (n, 3)) * model.gyro_noise_std()
     accel = accel + accel_bias + rng.normal(0.0, 1.0, (n, 3)) * model.accel_noise_std()
 
+    if model.gyro_units == "dps":
+        gyro = np.degrees(gyro)  # the resolution below is then in deg/s
+    if model.accel_units == "g":
+        accel = accel / STANDARD_GRAVITY
     if model.gyro_lsb > 0:
         gyro = np.round(gyro / model.gyro_lsb) * model.gyro_lsb
     if model.accel_lsb > 0:
