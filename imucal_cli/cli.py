@@ -454,13 +454,17 @@ def calibrate(
             T = s["T_base_lidar"]
             std_t = None if s["translation_std_m"] is None else [v * 1000 for v in s["translation_std_m"]]
             colour = {"ok": "green", "partial": "yellow"}.get(s["status"], "red")
+            offset = f"{s['time_offset_s'] * 1000:.2f}" if s["time_offset_observable"] else "not shown"
             table.add_row(
                 name, Text(s["status"], style=colour), _fmt(T["translation"], 4), _fmt(T["rpy_deg"], 3),
-                _fmt(std_t, 2), _fmt(s["rotation_std_deg"], 4), f"{s['time_offset_s'] * 1000:.2f}",
+                _fmt(std_t, 2), _fmt(s["rotation_std_deg"], 4), offset,
                 f"{s['segments']['selected']}/{s['segments']['total']}",
             )
         console = _stdout_console()
         console.print(table)
+        for name, s in doc["sensors"].items():
+            for warning in s["warnings"]:
+                console.print(Text(f"{name}: {warning}", style="yellow"))
         for pair, T in doc["pairs"].items():
             console.print(f"{pair}: xyz {_fmt(T['translation'], 4)} m, rpy {_fmt(T['rpy_deg'], 3)} deg")
 

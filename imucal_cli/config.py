@@ -26,6 +26,8 @@ class BaseConfig:
 
     topic: str
     frame: str = "base_link"
+    accel_units: str = "auto"  # auto | mps2 | g
+    gyro_units: str = "auto"  # auto | radps | dps
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,10 @@ class SensorConfig:
     prior_T_base_imu: Transform
     lidar_frame: str = ""
     translation_bound_m: float = 0.3
+    accel_units: str = "auto"  # auto | mps2 | g
+    gyro_units: str = "auto"  # auto | radps | dps
+    rotation_floor_deg: float = 0.0  # systematic std the data cannot see, added to the result's
+    translation_floor_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -69,6 +75,15 @@ class SegmentsConfig:
 class CalibrationConfig:
     resample_hz: float = 100.0
     max_time_offset_s: float = 0.1
+    consistency_alpha: float = 0.001  # false-alarm rate of each model-consistency check
+
+
+@dataclass(frozen=True)
+class StopConfig:
+    """When ``calibrate --until-converged`` may stop: every sensor ``ok`` within these stds."""
+
+    max_rotation_std_deg: float = 0.1
+    max_translation_std_m: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -79,6 +94,7 @@ class Config:
     gyro_bias: GyroBiasConfig = field(default_factory=GyroBiasConfig)
     segments: SegmentsConfig = field(default_factory=SegmentsConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    stop: StopConfig = field(default_factory=StopConfig)
     source: str = "<config>"
 
     def sensor(self, name: str) -> SensorConfig:
@@ -97,6 +113,10 @@ class Config:
                 "T_imu_lidar": s.T_imu_lidar.to_dict(),
                 "prior_T_base_imu": s.prior_T_base_imu.to_dict(),
                 "translation_bound_m": s.translation_bound_m,
+                "accel_units": s.accel_units,
+                "gyro_units": s.gyro_units,
+                "rotation_floor_deg": s.rotation_floor_deg,
+                "translation_floor_m": s.translation_floor_m,
             }
         return {
             "base": asdict(self.base),
@@ -105,6 +125,7 @@ class Config:
             "gyro_bias": asdict(self.gyro_bias),
             "segments": asdict(self.segments),
             "calibration": asdict(self.calibration),
+            "stop": asdict(self.stop),
         }
 
 
@@ -181,6 +202,19 @@ def _number(source: str, positive: bool = True, allow_zero: bool = False) -> Cal
     return parse
 
 
+ACCEL_UNITS = ("auto", "mps2", "g")
+GYRO_UNITS = ("auto", "radps", "dps")
+
+
+def _choice(source: str, choices: tuple[str, ...]) -> Callable[[Any, str], str]:
+    def parse(value: Any, key: str) -> str:
+        if value not in choices:
+            raise ConfigError(source, key, f"expected one of {', '.join(choices)}, got {_describe(value)}")
+        return value
+
+    return parse
+
+
 def _transform(source: str) -> Callable[[Any, str], Transform]:
     def parse(value: Any, key: str) -> Transform:
         return Transform.from_dict(value, source, key)
@@ -192,11 +226,15 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     """Validate a config mapping (as loaded from YAML) into a :class:`Config`."""
     top = _Section(data, source, "")
     string, positive, transform = _string(source), _number(source), _transform(source)
+    non_negative = _number(source, allow_zero=True)
 
     base_section = top.section("base", required=True)
+    accel_units, gyro_units = _choice(source, ACCEL_UNITS), _choice(source, GYRO_UNITS)
     base = BaseConfig(
         topic=base_section.get("topic", string),
         frame=base_section.get("frame", string, BaseConfig.frame),
+        accel_units=base_section.get("accel_units", accel_units, BaseConfig.accel_units),
+        gyro_units=base_section.get("gyro_units", gyro_units, BaseConfig.gyro_units),
     )
     base_section.reject_unknown()
 
@@ -215,6 +253,10 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
             translation_bound_m=s.get(
                 "translation_bound_m", positive, SensorConfig.translation_bound_m
             ),
+            accel_units=s.get("accel_units", accel_units, SensorConfig.accel_units),
+            gyro_units=s.get("gyro_units", gyro_units, SensorConfig.gyro_units),
+            rotation_floor_deg=s.get("rotation_floor_deg", non_negative, SensorConfig.rotation_floor_deg),
+            translation_floor_m=s.get("translation_floor_m", non_negative, SensorConfig.translation_floor_m),
         )
         s.reject_unknown()
         sensors.append(sensor)
@@ -266,8 +308,18 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         max_time_offset_s=c.get(
             "max_time_offset_s", _number(source, allow_zero=True), CalibrationConfig.max_time_offset_s
         ),
+        consistency_alpha=c.get("consistency_alpha", positive, CalibrationConfig.consistency_alpha),
     )
+    if not calibration.consistency_alpha < 0.5:
+        raise ConfigError(source, "calibration.consistency_alpha", f"a false-alarm rate below 0.5, got {calibration.consistency_alpha!r}")
     c.reject_unknown()
+
+    st = top.section("stop")
+    stop = StopConfig(
+        max_rotation_std_deg=st.get("max_rotation_std_deg", positive, StopConfig.max_rotation_std_deg),
+        max_translation_std_m=st.get("max_translation_std_m", positive, StopConfig.max_translation_std_m),
+    )
+    st.reject_unknown()
     top.reject_unknown()
 
     return Config(
@@ -277,6 +329,7 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         gyro_bias=gyro_bias,
         segments=segments,
         calibration=calibration,
+        stop=stop,
         source=source,
     )
 

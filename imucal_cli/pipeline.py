@@ -43,14 +43,22 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
         translation_bound_m=sensor.translation_bound_m,
         gyro_bias_walk=np.radians(config.gyro_bias.process_noise_dps),
         gyro_bias_prior_std=np.radians(config.gyro_bias.initial_std_dps),
+        consistency_alpha=config.calibration.consistency_alpha,
+        rotation_floor_deg=sensor.rotation_floor_deg,
+        translation_floor_m=sensor.translation_floor_m,
     )
 
 
 def make_calibrator(config: Config) -> StreamingCalibrator:
     """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names."""
     return StreamingCalibrator(
-        [SensorSetup(s.name, s.prior_T_base_imu, options_for(config, s)) for s in config.sensors],
+        [
+            SensorSetup(s.name, s.prior_T_base_imu, options_for(config, s), s.gyro_units, s.accel_units, s.imu_topic, f"sensors.{s.name}")
+            for s in config.sensors
+        ],
         base_name="base",
+        base_units=(config.base.gyro_units, config.base.accel_units),
+        base_label=(config.base.topic, "base"),
     )
 
 
@@ -180,14 +188,30 @@ def _rate(result: CalibrationResult, name: str) -> float | None:
     return None if rate is None else round(float(rate), 6)
 
 
+def _checks(checks: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The checks as plain numbers, in the SPEC's order of keys."""
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        if isinstance(value, (list, tuple, np.ndarray)):
+            return [plain(v) for v in value]
+        if isinstance(value, (np.integer, int)):
+            return int(value)
+        return float(value)
+
+    return {name: {key: plain(value) for key, value in figures.items()} for name, figures in checks.items()}
+
+
 def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
     config = result.config
     sensors: dict[str, Any] = {}
     for sensor in config.sensors:
         est = result.estimates[sensor.name]
-        cov = est.lidar_covariance(sensor.T_imu_lidar)
+        cov = est.covariance
         sensors[sensor.name] = {
             "status": est.status,
+            "warnings": list(est.warnings),
             "imu_topic": sensor.imu_topic,
             "lidar_frame": sensor.lidar_frame,
             "imu_rate_hz": _rate(result, sensor.name),
@@ -195,9 +219,18 @@ def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
             "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
             "rotation_std_deg": _std_list(None if cov is None else np.degrees(np.sqrt(np.diag(cov)[:3]))),
             "translation_std_m": _std_list(None if cov is None else np.sqrt(np.diag(cov)[3:])),
+            "covariance": None if cov is None else {
+                "of": "T_base_imu",
+                "order": ["rx", "ry", "rz", "tx", "ty", "tz"],
+                "rotation_axes": "base",
+                "units": ["rad", "rad", "rad", "m", "m", "m"],
+                "matrix": [[float(v) for v in row] for row in cov],
+            },
             "translation_observable": [bool(v) for v in est.translation_observable],
             "time_offset_s": est.time_offset_s,
             "time_offset_std_s": est.time_offset_std_s,
+            "time_offset_observable": bool(est.time_offset_observable),
+            "checks": _checks(est.checks),
             "gyro_bias_radps": est.gyro_bias,
             "accel_bias_mps2": est.accel_bias,
             "segments": {"total": len(est.windows), "selected": sum(w.selected for w in est.windows)},

@@ -81,6 +81,8 @@ class SensorSetup:
     options: CalibrationOptions
     gyro_units: str = "auto"  # auto | radps | dps
     accel_units: str = "auto"  # auto | mps2 | g
+    topic: str = ""  # where its samples come from, and its config's key path: for messages
+    key: str = ""
 
 
 #: Degrees per radian: how much larger a gyro's numbers are in deg/s.
@@ -91,11 +93,11 @@ MIN_UNIT_MOTION_RADPS = 0.005
 
 
 class UnitsError(ImucalError):
-    """An IMU's units cannot be told from its data: names the IMU and the config key."""
+    """An IMU's units cannot be told from its data: names the topic and the config key."""
 
-    def __init__(self, imu: str, key: str, detail: str) -> None:
-        self.imu, self.key = imu, key
-        super().__init__(f"{imu}: {detail}; set {key}")
+    def __init__(self, topic: str, key: str, detail: str) -> None:
+        self.topic, self.key = topic, key
+        super().__init__(f"{topic}: {detail}; set {key} in the config")
 
 
 @dataclass
@@ -419,6 +421,7 @@ class StreamingCalibrator:
         base_name: str = "base",
         block_windows: int = BLOCK_WINDOWS,
         base_units: tuple[str, str] = ("auto", "auto"),
+        base_label: tuple[str, str] = ("", ""),
     ) -> None:
         if not sensors:
             raise ValueError("no sensors")
@@ -440,6 +443,8 @@ class StreamingCalibrator:
         self.scales: dict[str, tuple[float, float]] = {}
         self.unit_warnings: dict[str, list[str]] = {}
         self.base_units = base_units
+        #: Per IMU, (topic, config key path) for messages.
+        self.labels = {base_name: base_label, **{s.name: (s.topic, s.key) for s in sensors}}
         self.dw_noise_var = 0.0
         self._boot_tried_s = -np.inf
         self.noise: dict[str, tuple[float, float]] = {}
@@ -550,6 +555,10 @@ class StreamingCalibrator:
             self.tau0[name] = offset.tau_s if offset is not None and offset.shown else 0.0
         return True
 
+    def _label(self, name: str, key: str) -> tuple[str, str]:
+        topic, path = self.labels.get(name, ("", ""))
+        return topic or name, f"{path or name}.{key}"
+
     def _units(
         self, samples: dict[str, tuple[np.ndarray, np.ndarray]], speeds: dict[str, np.ndarray], notes: dict[str, list[str]], final: bool
     ) -> dict[str, tuple[float, float]] | None:
@@ -570,7 +579,7 @@ class StreamingCalibrator:
                     accel = STANDARD_GRAVITY
                     notes.setdefault(name, []).append(f"accelerometer publishes g (mean |f| {mean:.3f}): converted to m/s^2")
                 elif not 5.0 <= mean <= 20.0:
-                    raise UnitsError(name, "accel_units", f"the accelerometer's mean |f| is {mean:.3g}: neither m/s^2 (about 9.8) nor g (about 1)")
+                    raise UnitsError(*self._label(name, "accel_units"), f"the accelerometer's mean |f| is {mean:.3g}: neither m/s^2 (about 9.8) nor g (about 1)")
             scales[name] = [{"dps": np.radians(1.0)}.get(units[name][0], 1.0), accel]
         auto = [name for name, (gyro_units, _) in units.items() if gyro_units == "auto"]
         if auto:
@@ -589,7 +598,7 @@ class StreamingCalibrator:
                     scales[name][0] = np.radians(1.0)
                     notes.setdefault(name, []).append(f"gyro publishes deg/s (|w| varies {ratio:.1f} times the base's): converted to rad/s")
                 elif abs(np.log(ratio)) >= np.log(2.0):
-                    raise UnitsError(name, "gyro_units", f"the gyro's |w| varies {ratio:.3g} times the base's: neither rad/s (1) nor deg/s (57.3)")
+                    raise UnitsError(*self._label(name, "gyro_units"), f"the gyro's |w| varies {ratio:.3g} times the base's: neither rad/s (1) nor deg/s (57.3)")
         return {name: (g, a) for name, (g, a) in scales.items()}
 
     def process(self, final: bool = False) -> int:
