@@ -545,7 +545,7 @@ class _Problem:
         unconstrained = t.copy()
         factor = X = None
         iterations = 0
-        for iterations in range(1, (max_iterations or options.max_iterations) + 1):  # noqa: B007
+        for iterations in range(1, (max_iterations or options.max_iterations) + 1):
             Rt = R.inv().as_matrix()
             bj, bk = knots[numbers], knots[numbers + 1]
             Cg = _C_gyro(Rt, dtau, bj[:, 0:3], bk[:, 0:3])

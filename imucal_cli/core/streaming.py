@@ -51,7 +51,12 @@ from imucal_cli.core.calibrate import (
     unobservable,
 )
 from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
-from imucal_cli.core.signals import Lowpass, TooLittleData, derivative_noise_variance, white_noise_std
+from imucal_cli.core.signals import (
+    Lowpass,
+    TooLittleData,
+    derivative_noise_variance,
+    white_noise_std,
+)
 from imucal_cli.core.timing import TimeOffset, time_offset_shown
 from imucal_cli.errors import ImucalError
 from imucal_cli.types import Transform

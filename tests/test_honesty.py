@@ -1,0 +1,218 @@
+"""`ok` means right: the checks, the units, the clock offset and the box on drives that do not
+match the estimator's model (the error classes of ``imucal simulate --errors``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imucal_cli.config import parse_config
+from imucal_cli.core.signals import Lowpass, derivative_noise_variance
+from imucal_cli.core.streaming import UnitsError
+from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S, time_offset_shown
+from imucal_cli.errors import ConfigError, ImucalError
+from imucal_cli.pipeline import DriveStreams, calibration_document, run_calibrate
+from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
+from imucal_cli.types import ImuStream
+
+
+def calibrate(drive):
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    streams = DriveStreams(
+        base=drive.base.stream,
+        sensors={m.name: drive.sensors[m.name].stream for m in drive.mounts},
+        t0_ns=int(drive.base.stream.t_ns[0]),
+    )
+    return run_calibrate(streams, config)
+
+
+def normalized_errors(drive, result, name):
+    """Error over the reported std per axis (rotation about the base axes, then xyz)."""
+    mount = next(m for m in drive.mounts if m.name == name)
+    T = result.T_base_lidar(name)
+    error = np.concatenate([(mount.T_base_lidar.rotation * T.rotation.inv()).as_rotvec(), T.translation - mount.T_base_lidar.translation])
+    return error / np.sqrt(np.diag(result.estimates[name].lidar_covariance(mount.T_imu_lidar)))
+
+
+def drive_with(errors, scenario="aggressive", seed=3, **options):
+    return simulate_drive(with_errors(DriveOptions(scenario=scenario, seed=seed, **options), errors))
+
+
+@pytest.fixture(scope="module")
+def si_twin():
+    drive = drive_with("none")
+    return drive, calibrate(drive)
+
+
+@pytest.mark.parametrize(("errors", "words"), [("accel-g", "accelerometer publishes g"), ("gyro-dps", "gyro publishes deg/s")])
+def test_units_are_detected_and_calibrate_as_the_si_twin(si_twin, errors, words):
+    """The same drive published in g or deg/s: a warning naming the conversion, the same
+    status, and an estimate within a small fraction of its std of the SI twin's (the output
+    resolution differs between the units, nothing else)."""
+    _, twin = si_twin
+    drive = drive_with(errors)
+    result = calibrate(drive)
+    for mount in drive.mounts:
+        estimate, reference = result.estimates[mount.name], twin.estimates[mount.name]
+        assert any(words in w for w in estimate.warnings), estimate.warnings
+        assert estimate.status == reference.status == "ok"
+        std = np.sqrt(np.diag(reference.covariance))
+        delta_rot = (estimate.T_base_imu.rotation * reference.T_base_imu.rotation.inv()).as_rotvec()
+        delta_t = estimate.T_base_imu.translation - reference.T_base_imu.translation
+        assert np.all(np.abs(delta_rot) < 0.5 * std[:3]) and np.all(np.abs(delta_t) < 0.5 * std[3:])
+
+
+def test_a_base_gyro_in_deg_per_s_is_detected():
+    drive = simulate_drive(DriveOptions(scenario="aggressive", seed=3, base_gyro_units="dps"))
+    result = calibrate(drive)
+    for mount in drive.mounts:
+        estimate = result.estimates[mount.name]
+        assert any(w.startswith("base: gyro publishes deg/s") for w in estimate.warnings)
+        assert estimate.status == "ok" and np.all(np.abs(normalized_errors(drive, result, mount.name)) < 4)
+
+
+def test_declared_units_are_taken_as_declared():
+    """``gyro_units: dps`` in the config converts without guessing (and without a warning)."""
+    drive = drive_with("gyro-dps")
+    document = drive.config_document()
+    for sensor in document["sensors"].values():
+        sensor["gyro_units"] = "dps"
+    config = parse_config(document, "sim.config.yaml")
+    streams = DriveStreams(drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0)
+    result = run_calibrate(streams, config)
+    for mount in drive.mounts:
+        assert result.estimates[mount.name].status == "ok"
+        assert not any("publishes" in w for w in result.estimates[mount.name].warnings)
+
+
+def test_units_that_cannot_be_told_are_an_error_naming_topic_and_key():
+    drive = drive_with("none", sensors=1)
+    mount = drive.mounts[0]
+    stream = drive.sensors[mount.name].stream
+    odd = ImuStream(stream.t_ns, stream.gyro, stream.accel * 3.0, stream.frame_id)  # |f| about 29
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    with pytest.raises(UnitsError) as error:
+        run_calibrate(DriveStreams(drive.base.stream, {mount.name: odd}, 0), config)
+    assert mount.imu_topic in str(error.value) and f"sensors.{mount.name}.accel_units" in str(error.value)
+    assert isinstance(error.value, ImucalError)
+
+
+def test_a_tilting_mount_is_inconsistent_and_its_tilt_measured():
+    """A mount leaning 0.2 deg per m/s^2: not ok, the tilt within 30% (and within 4 of its
+    std) of the simulated one, the rotation given the mount's at rest and covered by its std."""
+    drive = drive_with("tilting-mount", scenario="urban", duration_s=150.0)
+    truth = np.degrees(drive.options.mount_tilt_rad_per_mps2)
+    result = calibrate(drive)
+    for mount in drive.mounts:
+        estimate = result.estimates[mount.name]
+        rigid = estimate.checks["rigid_mount"]
+        assert estimate.status == "inconsistent" and not rigid["pass"]
+        tilt, std = np.array(rigid["tilt_deg_per_mps2"]), np.array(rigid["std"])
+        assert np.all(np.abs(tilt - truth) <= 0.3 * truth) and np.all(np.abs(tilt - truth) < 4 * std)
+        assert any("not rigid" in w for w in estimate.warnings)
+        assert np.all(np.abs(normalized_errors(drive, result, mount.name)) < 3)
+
+
+def test_gyro_and_accelerometer_misaligned_apart_fail_the_rotation_check():
+    drive = drive_with("misaligned", scenario="urban", duration_s=150.0)
+    result = calibrate(drive)
+    for mount in drive.mounts:
+        estimate = result.estimates[mount.name]
+        assert estimate.status == "inconsistent" and not estimate.checks["gyro_vs_accel_rotation"]["pass"]
+        assert np.all(np.abs(normalized_errors(drive, result, mount.name)) < 3)
+
+
+def test_a_prior_off_by_more_than_the_box_is_never_ok():
+    """The truth 0.5 m from the prior, the box +-0.3 m: x rests on the box, the warning says
+    how far the data pull it (about the 0.2 m left), and the std covers the error."""
+    drive = drive_with("prior-off", scenario="urban", duration_s=150.0)
+    result = calibrate(drive)
+    for mount in drive.mounts:
+        estimate = result.estimates[mount.name]
+        assert estimate.status != "ok"
+        box = [w for w in estimate.warnings if "rests on its box" in w]
+        assert box and box[0].startswith("translation x")
+        assert np.all(np.abs(normalized_errors(drive, result, mount.name)) < 3)
+
+
+def test_clean_drives_pass_every_check(si_twin):
+    drive, result = si_twin
+    document = calibration_document(result, "sim.mcap")
+    for mount in drive.mounts:
+        sensor = document["sensors"][mount.name]
+        assert sensor["status"] == "ok" and sensor["warnings"] == []
+        assert all(check["pass"] for check in sensor["checks"].values())
+        assert sensor["time_offset_observable"] is True
+        cov = np.array(sensor["covariance"]["matrix"])
+        assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+        assert np.allclose(np.sqrt(np.diag(cov)), [*np.radians(sensor["rotation_std_deg"]), *sensor["translation_std_m"]])
+
+
+def test_floors_of_the_config_are_added_to_the_std(si_twin):
+    drive, plain = si_twin
+    document = drive.config_document()
+    for sensor in document["sensors"].values():
+        sensor["rotation_floor_deg"], sensor["translation_floor_m"] = 0.05, 0.01
+    config = parse_config(document, "sim.config.yaml")
+    streams = DriveStreams(drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0)
+    floored = run_calibrate(streams, config)
+    for mount in drive.mounts:
+        a, b = plain.estimates[mount.name], floored.estimates[mount.name]
+        np.testing.assert_allclose(b.rotation_std_deg**2, a.rotation_std_deg**2 + 0.05**2, rtol=1e-9)
+        np.testing.assert_allclose(b.translation_std_m**2, a.translation_std_m**2 + 0.01**2, rtol=1e-9)
+
+
+def test_a_flat_or_edge_correlation_does_not_place_the_clock_offset():
+    rate, gain = 100.0, Lowpass(5.0, 100.0).white_noise_gain()
+    grid = np.arange(0, 60, 1 / rate)
+    rng = np.random.default_rng(1)
+    freqs, phases = rng.uniform(0.1, 2.0, 8), rng.uniform(0, 2 * np.pi, 8)
+
+    def speed(t, amplitude):
+        return 0.3 + np.sum(amplitude * np.sin(2 * np.pi * freqs[:, None] * t[None, :] + phases[:, None]), axis=0)
+
+    rich = time_offset_shown(grid, speed(grid, 0.05), speed(grid - 0.02, 0.05), 0.1, 1e-3, gain)
+    assert rich.shown and abs(rich.tau_s - 0.02) < 3 * rich.std_s and rich.std_s < TIME_OFFSET_MAX_STD_S
+    flat = time_offset_shown(grid, speed(grid, 1e-5), speed(grid - 0.02, 1e-5) + rng.normal(0, 1e-3, len(grid)), 0.1, 1e-3, gain)
+    assert not flat.shown and flat.std_s > TIME_OFFSET_MAX_STD_S
+    edge = time_offset_shown(grid, speed(grid, 0.05), speed(grid - 0.3, 0.05), 0.1, 1e-3, gain)
+    assert not edge.shown and "edge" in edge.reason
+
+
+def test_the_angular_acceleration_noise_variance_is_the_filtered_derivative_s():
+    """Monte Carlo: white noise of a given density, differentiated and low-passed as the base
+    gyro is, has the variance :func:`derivative_noise_variance` says (within its sampling
+    error, about 2% for this many independent stretches)."""
+    lowpass, rate, density = Lowpass(5.0, 100.0), 100.0, 1e-3
+    rng = np.random.default_rng(2)
+    x = rng.normal(0.0, density * np.sqrt(rate), (200_000, 1))
+    derivative = lowpass(np.gradient(x[:, 0], 1 / rate))
+    expected = derivative_noise_variance(lowpass, density)
+    assert np.var(derivative[1000:-1000]) == pytest.approx(expected, rel=0.05)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "problem"),
+    [
+        ("accel_units", "mg", "expected one of auto, mps2, g"),
+        ("gyro_units", "rpm", "expected one of auto, radps, dps"),
+        ("rotation_floor_deg", -1.0, "must be >= 0"),
+    ],
+)
+def test_new_sensor_keys_are_checked(key, value, problem):
+    drive = drive_with("none", sensors=1)
+    document = drive.config_document()
+    name = drive.mounts[0].name
+    document["sensors"][name][key] = value
+    with pytest.raises(ConfigError, match=problem) as error:
+        parse_config(document, "v.yaml")
+    assert f"sensors.{name}.{key}" in str(error.value)
+
+
+def test_consistency_alpha_must_be_a_rate():
+    document = drive_with("none", sensors=1).config_document()
+    document["calibration"]["consistency_alpha"] = 0.7
+    with pytest.raises(ConfigError, match="calibration.consistency_alpha"):
+        parse_config(document, "v.yaml")
+    document["calibration"]["consistency_alpha"] = 0.01
+    assert parse_config(document, "v.yaml").calibration.consistency_alpha == 0.01
