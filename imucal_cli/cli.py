@@ -683,11 +683,20 @@ def simulate(
     lidar_rate_hz: Annotated[
         float | None, typer.Option(help="Rate of the lidar IMUs (default 100 Hz).", min=1.0)
     ] = None,
+    errors: Annotated[
+        str,
+        typer.Option(
+            "--errors",
+            help="Sensor or mount errors beyond the estimator's model: none, mems (scale factors, "
+            "non-orthogonality, g-sensitivity, vibration), misaligned (gyro and accelerometer triads "
+            "apart), tilting-mount, clock-offsets (+-40 ms), prior-off (0.5 m), accel-g, gyro-dps.",
+        ),
+    ] = "none",
 ) -> None:
     """Simulate a drive: a log OUT with STEM.truth.yaml and STEM.config.yaml beside it."""
     from imucal_cli.io.reports import write_document
     from imucal_cli.io.writers import write_imu_log
-    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
 
     fmt = log_format.value if log_format is not None else _infer_format(out)
     suffix = out.suffix.lower()
@@ -708,7 +717,7 @@ def simulate(
         lidar_rate_hz=lidar_rate_hz,
     )
     try:
-        drive = simulate_drive(options)
+        drive = simulate_drive(with_errors(options, errors))
     except ValueError as exc:
         raise InputError(str(exc)) from None
     stem = _stem(out)

@@ -46,6 +46,7 @@ class DriveOptions:
     #: Units the base IMU's driver publishes (the lidar IMUs': ``lidar_model``).
     base_accel_units: str = "mps2"
     base_gyro_units: str = "radps"
+    errors: str = "none"  # the error class applied (:func:`with_errors`), for the truth file
 
 
 #: Realistic MEMS errors of a lidar's IMU beyond noise and bias: 0.5% scale factors, 0.2 deg
@@ -76,7 +77,9 @@ def with_errors(options: DriveOptions, error_class: str) -> DriveOptions:
     if error_class not in ERROR_CLASSES:
         raise ValueError(f"unknown error class {error_class!r} (expected one of: {', '.join(ERROR_CLASSES)})")
     change = ERROR_CLASSES[error_class]
-    return replace(options, lidar_model=replace(options.lidar_model, **change.get("lidar", {})), **change.get("drive", {}))
+    return replace(
+        options, lidar_model=replace(options.lidar_model, **change.get("lidar", {})), errors=error_class, **change.get("drive", {})
+    )
 
 
 @dataclass(frozen=True)
@@ -131,6 +134,7 @@ class SimulatedDrive:
             "duration_s": self.trajectory.t_end_s - self.trajectory.t_start_s,
             "seed": o.seed,
             "noise_scale": o.noise_scale,
+            "errors": o.errors,
             "mount_tilt_deg_per_mps2": np.degrees(o.mount_tilt_rad_per_mps2).tolist(),
             "t0_ns": o.t0_ns,
             "base": {"topic": BASE_TOPIC, "frame": BASE_FRAME, **biases(self.base)},
