@@ -25,9 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imucal_cli.config import parse_config
 from imucal_cli.core.so3 import rotation_angle_deg
-from imucal_cli.pipeline import DriveStreams, run_calibrate
+from imucal_cli.pipeline import run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
 
 #: (scenario, error class): the clean drives of the first round, then every new error class.
@@ -83,12 +82,7 @@ class DriveRun:
 
 def run_one(scenario: str, errors: str, seed: int) -> DriveRun:
     drive = simulate_drive(with_errors(DriveOptions(scenario=scenario, seed=seed, sensors=4), errors))
-    config = parse_config(drive.config_document(), "sim")
-    streams = DriveStreams(
-        base=drive.base.stream,
-        sensors={m.name: drive.sensors[m.name].stream for m in drive.mounts},
-        t0_ns=int(drive.base.stream.t_ns[0]),
-    )
+    streams, config = drive.streams(), drive.config()
     start = time.perf_counter()
     result = run_calibrate(streams, config)
     seconds = time.perf_counter() - start

@@ -15,13 +15,7 @@ from imucal_cli.sim import DriveOptions, simulate_drive
 
 
 def calibrate(drive):
-    config = parse_config(drive.config_document(), "sim.config.yaml")
-    streams = DriveStreams(
-        base=drive.base.stream,
-        sensors={m.name: drive.sensors[m.name].stream for m in drive.mounts},
-        t0_ns=int(drive.base.stream.t_ns[0]),
-    )
-    return run_calibrate(streams, config)
+    return run_calibrate(drive.streams(), drive.config())
 
 
 def errors(drive, result, name):

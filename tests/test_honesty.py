@@ -17,13 +17,7 @@ from imucal_cli.types import ImuStream
 
 
 def calibrate(drive):
-    config = parse_config(drive.config_document(), "sim.config.yaml")
-    streams = DriveStreams(
-        base=drive.base.stream,
-        sensors={m.name: drive.sensors[m.name].stream for m in drive.mounts},
-        t0_ns=int(drive.base.stream.t_ns[0]),
-    )
-    return run_calibrate(streams, config)
+    return run_calibrate(drive.streams(), drive.config())
 
 
 def normalized_errors(drive, result, name):
@@ -74,12 +68,12 @@ def test_a_base_gyro_in_deg_per_s_is_detected():
 def test_declared_units_are_taken_as_declared():
     """``gyro_units: dps`` in the config converts without guessing (and without a warning)."""
     drive = drive_with("gyro-dps")
-    document = drive.config_document()
-    for sensor in document["sensors"].values():
-        sensor["gyro_units"] = "dps"
-    config = parse_config(document, "sim.config.yaml")
-    streams = DriveStreams(drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0)
-    result = run_calibrate(streams, config)
+
+    def declare(document):
+        for sensor in document["sensors"].values():
+            sensor["gyro_units"] = "dps"
+
+    result = run_calibrate(drive.streams(), drive.config(declare))
     for mount in drive.mounts:
         assert result.estimates[mount.name].status == "ok"
         assert not any("publishes" in w for w in result.estimates[mount.name].warnings)
@@ -90,9 +84,8 @@ def test_units_that_cannot_be_told_are_an_error_naming_topic_and_key():
     mount = drive.mounts[0]
     stream = drive.sensors[mount.name].stream
     odd = ImuStream(stream.t_ns, stream.gyro, stream.accel * 3.0, stream.frame_id)  # |f| about 29
-    config = parse_config(drive.config_document(), "sim.config.yaml")
     with pytest.raises(UnitsError) as error:
-        run_calibrate(DriveStreams(drive.base.stream, {mount.name: odd}, 0), config)
+        run_calibrate(DriveStreams(drive.base.stream, {mount.name: odd}, 0), drive.config())
     assert mount.imu_topic in str(error.value) and f"sensors.{mount.name}.accel_units" in str(error.value)
     assert isinstance(error.value, ImucalError)
 
@@ -150,12 +143,12 @@ def test_clean_drives_pass_every_check(si_twin):
 
 def test_floors_of_the_config_are_added_to_the_std(si_twin):
     drive, plain = si_twin
-    document = drive.config_document()
-    for sensor in document["sensors"].values():
-        sensor["rotation_floor_deg"], sensor["translation_floor_m"] = 0.05, 0.01
-    config = parse_config(document, "sim.config.yaml")
-    streams = DriveStreams(drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0)
-    floored = run_calibrate(streams, config)
+
+    def floors(document):
+        for sensor in document["sensors"].values():
+            sensor["rotation_floor_deg"], sensor["translation_floor_m"] = 0.05, 0.01
+
+    floored = run_calibrate(drive.streams(), drive.config(floors))
     for mount in drive.mounts:
         a, b = plain.estimates[mount.name], floored.estimates[mount.name]
         np.testing.assert_allclose(b.rotation_std_deg**2, a.rotation_std_deg**2 + 0.05**2, rtol=1e-9)

@@ -496,8 +496,8 @@ class _Problem:
         """Per axis, the lever arm's information ``sum (A - mean A)^T (A - mean A)`` over the
         windows (each centred), less the angular acceleration's noise (unit residual)."""
         total = np.zeros(3)
-        for a in self.starts:
-            S = self.cached[self.starts.index(a)] if self.cached is not None else self._S_a(a)
+        for n, a in enumerate(self.starts):
+            S = self.cached[n] if self.cached is not None else self._S_a(a)
             n = S[:, ACCEL_DIM - 2, ACCEL_DIM - 2]
             mean = S[:, 9:18, ACCEL_DIM - 2] / n[:, None]
             centred = S[:, 9:18, 9:18] - n[:, None, None] * mean[:, :, None] * mean[:, None, :]
@@ -744,7 +744,9 @@ def solve(
     checks: list[Check] = []
     alpha = options.consistency_alpha
     # the mount's tilt with the vehicle's specific force
-    tilted = problem.fit(fit, fit.free | np.isin(np.arange(N_GLOBAL), [7, 8]))
+    with_tilt = fit.free.copy()
+    with_tilt[TILT] = True
+    tilted = problem.fit(fit, with_tilt)
     k, cov_k = tilted.tilt, tilted.covariance[TILT, TILT]
     chi2_tilt = float(k @ np.linalg.solve(cov_k + NUMERICAL_ZERO**2 * np.eye(2), k))
     rigid = chi2_tilt <= _chi2_limit(2, alpha)
@@ -768,7 +770,9 @@ def solve(
     # (one linear step each from the joint solution: a direction one equation alone leaves
     # free stays put, with its large covariance, instead of wandering off)
     by_gyro = problem.fit(fit, rotation_only, use=(True, False), max_iterations=1, rotation_prior_std=1.0)
-    by_accel = problem.fit(fit, fit.free & ~np.isin(np.arange(N_GLOBAL), [TAU]), use=(False, True), max_iterations=1, rotation_prior_std=1.0)
+    without_tau = fit.free.copy()
+    without_tau[TAU] = False
+    by_accel = problem.fit(fit, without_tau, use=(False, True), max_iterations=1, rotation_prior_std=1.0)
     delta = _rotation_difference(by_accel.R, by_gyro.R)
     cov_delta = by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base() + NUMERICAL_ZERO**2 * np.eye(3)
     chi2_rot = float(delta @ np.linalg.solve(cov_delta, delta))

@@ -529,13 +529,12 @@ class StreamingCalibrator:
         scales = self._units(samples, raw_speeds, unit_warnings, final=not patient)
         if scales is None:
             return False  # not enough motion yet to tell the gyros' units
-        splines, speeds = {}, {}
+        speeds = {}
         for name, (t, both) in samples.items():
-            converted = both * np.repeat(scales[name], 3)
-            splines[name] = _Spline(self._seconds(t), converted, self.rate)
-            speeds[name] = raw_speeds[name] * scales[name][0]
-            self.noise[name] = _noise_density(converted, 1.0 / splines[name].period)
-            self.rates_hz[name] = 1.0 / splines[name].period
+            rate = 1.0 / (float(np.median(np.diff(t))) * 1e-9)  # the IMU's own, as _Spline takes it
+            speeds[name] = raw_speeds[name] * scales[name][0]  # |w| scales with the gyro
+            self.noise[name] = _noise_density(both * np.repeat(scales[name], 3), rate)
+            self.rates_hz[name] = rate
         gb, ab = self.noise[self.base_name]
         sigma = {}
         for name in self.sensors:
@@ -587,10 +586,11 @@ class StreamingCalibrator:
                     raise UnitsError(*self._label(name, "accel_units"), f"the accelerometer's mean |f| is {mean:.3g}: neither m/s^2 (about 9.8) nor g (about 1)")
             scales[name] = [{"dps": np.radians(1.0)}.get(units[name][0], 1.0), accel]
         auto = [name for name, (gyro_units, _) in units.items() if gyro_units == "auto"]
-        if auto:
-            spread = {name: float(np.std(speed)) * scales[name][0] for name, speed in speeds.items()}
-            if not spread[self.base_name] >= MIN_UNIT_MOTION_RADPS:
-                return None if not final else {n: (g, a) for n, (g, a) in scales.items()}  # no motion: taken as declared
+        spread = {name: float(np.std(speed)) * scales[name][0] for name, speed in speeds.items()}
+        moving = spread[self.base_name] >= MIN_UNIT_MOTION_RADPS
+        if auto and not moving and not final:
+            return None
+        if auto and moving:  # (never moving: taken as declared)
             ratios = {name: spread[name] / spread[self.base_name] for name in self.sensors}
             if self.base_name in auto and any(abs(np.log(r * DPS)) < np.log(2.0) for r in ratios.values()):
                 scales[self.base_name][0] = np.radians(1.0)
@@ -737,17 +737,16 @@ class StreamingCalibrator:
         for name, setup in self.sensors.items():
             windows = self._ensure_infos(name)
             tau0 = self.tau0.get(name, 0.0)
+            offset = self.time_offsets.get(name)
             if not any(w.info is not None and w.info.selected for w in windows):
                 estimate = unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0)
-                out[name] = replace(estimate, warnings=self._unit_notes(name) + estimate.warnings)
-                continue
-            offset = self.time_offsets.get(name)
-            estimate = solve(
-                windows, setup.prior_T_base_imu, setup.options, tau0, self.sigma[name], self.lowpass,
-                time_offset_shown=offset is None or offset.shown,
-                time_offset_reason=offset.reason if offset is not None else "",
-                dw_noise_var=self.dw_noise_var,
-            )
+            else:
+                estimate = solve(
+                    windows, setup.prior_T_base_imu, setup.options, tau0, self.sigma[name], self.lowpass,
+                    time_offset_shown=offset is None or offset.shown,
+                    time_offset_reason=offset.reason if offset is not None else "",
+                    dw_noise_var=self.dw_noise_var,
+                )
             out[name] = replace(estimate, warnings=self._unit_notes(name) + estimate.warnings)
         return out
 

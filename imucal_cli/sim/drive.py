@@ -2,14 +2,23 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Any
 
 import numpy as np
 
-from imucal_cli.config import CalibrationConfig, GyroBiasConfig, RestConfig, SegmentsConfig
+from imucal_cli.config import (
+    CalibrationConfig,
+    Config,
+    GyroBiasConfig,
+    RestConfig,
+    SegmentsConfig,
+    parse_config,
+)
 from imucal_cli.io.writers import TopicData
+from imucal_cli.pipeline import DriveStreams
 from imucal_cli.sim.imu import MEMS_LIDAR, TACTICAL_BASE, ImuErrorModel, SimulatedImu, simulate_imu
 from imucal_cli.sim.rig import DEFAULT_MOUNTS, LidarMount, cad_prior
 from imucal_cli.sim.scenarios import SCENARIOS, VehicleDynamics, make_scenario
@@ -91,6 +100,22 @@ class SimulatedDrive:
     sensors: dict[str, SimulatedImu]
     time_offsets_s: dict[str, float]
     priors: dict[str, Transform]
+
+    def streams(self) -> DriveStreams:
+        """What the drive's log holds, as :func:`imucal_cli.pipeline.run_calibrate` takes it."""
+        return DriveStreams(
+            base=self.base.stream,
+            sensors={m.name: self.sensors[m.name].stream for m in self.mounts},
+            t0_ns=int(self.base.stream.t_ns[0]),
+        )
+
+    def config(self, changes: Callable[[dict[str, Any]], None] | None = None) -> Config:
+        """The drive's calibration config (:meth:`config_document`), ``changes`` made to its
+        document first."""
+        document = self.config_document()
+        if changes is not None:
+            changes(document)
+        return parse_config(document, "sim.config.yaml")
 
     def topics(self) -> dict[str, TopicData]:
         """The IMU topics to write, with their log (receive) times."""
