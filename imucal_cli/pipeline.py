@@ -188,19 +188,18 @@ def _rate(result: CalibrationResult, name: str) -> float | None:
     return None if rate is None else round(float(rate), 6)
 
 
-def _checks(checks: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
-    """The checks as plain numbers, in the SPEC's order of keys."""
-
-    def plain(value: Any) -> Any:
-        if isinstance(value, (bool, np.bool_)):
-            return bool(value)
-        if isinstance(value, (list, tuple, np.ndarray)):
-            return [plain(v) for v in value]
-        if isinstance(value, (np.integer, int)):
-            return int(value)
-        return float(value)
-
-    return {name: {key: plain(value) for key, value in figures.items()} for name, figures in checks.items()}
+def _plain(value: Any) -> Any:
+    """Figures (checks, intrinsics) as plain YAML/JSON values; NaN (not estimated) as null."""
+    if isinstance(value, Mapping):
+        return {key: _plain(v) for key, v in value.items()}
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (np.integer, int)):
+        return int(value)
+    number = float(value)
+    return number if np.isfinite(number) else None
 
 
 def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
@@ -230,7 +229,8 @@ def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
             "time_offset_s": est.time_offset_s,
             "time_offset_std_s": est.time_offset_std_s,
             "time_offset_observable": bool(est.time_offset_observable),
-            "checks": _checks(est.checks),
+            "checks": _plain(est.checks),
+            "accel_intrinsics": _plain(est.accel_intrinsics) if est.accel_intrinsics else None,
             "gyro_bias_radps": est.gyro_bias,
             "accel_bias_mps2": est.accel_bias,
             "segments": {"total": len(est.windows), "selected": sum(w.selected for w in est.windows)},

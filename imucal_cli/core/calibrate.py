@@ -103,6 +103,8 @@ class SensorEstimate:
     checks: dict[str, dict[str, Any]] = field(default_factory=dict)
     time_offset_observable: bool = False
     tilt_rad_per_mps2: np.ndarray | None = None  # the mount's, where the rigid-mount check estimated it
+    #: The accelerometer's scale factors and non-orthogonality where the drive shows them.
+    accel_intrinsics: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rotation_std_deg(self) -> np.ndarray | None:
@@ -253,12 +255,18 @@ SOLVE_CACHE_BYTES = 32 << 20
 # --------------------------------------------------------------------------- the model
 
 #: The estimate's global unknowns: a rotation step (3, right-multiplied onto ``R_base_imu``:
-#: IMU axes), ``t_base_imu`` (3), the clock-offset step (1) and the mount's tilt (2: roll per
+#: IMU axes), ``t_base_imu`` (3), the clock-offset step (1), the mount's tilt (2: roll per
 #: lateral and pitch per longitudinal specific force, rad per m/s^2; estimated by the rigid-mount
-#: check only).
-N_GLOBAL = 9
+#: check only) and the accelerometer's axis errors (6, :data:`INTRINSICS`).
+N_GLOBAL = 15
 TAU = 6
 TILT = slice(7, 9)
+#: The accelerometer's axis errors: ``f_measured = (I + E) f`` with ``E`` symmetric (scale
+#: factors on the diagonal, non-orthogonality off it), as :data:`SYMMETRIC` spans it.
+INTRINSICS = slice(9, 15)
+SYMMETRIC = np.zeros((6, 3, 3))
+for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+    SYMMETRIC[_k, _i, _j] = SYMMETRIC[_k, _j, _i] = 1.0
 #: The globals the gyro equations hold.
 _GYRO_GLOBALS = np.array([0, 1, 2, TAU])
 
@@ -290,8 +298,14 @@ def _tilt_columns(Rt: np.ndarray, tilt: np.ndarray) -> np.ndarray:
     return np.stack([-k_roll * Rt[:, 1], k_roll * Rt[:, 2], k_pitch * Rt[:, 0], -k_pitch * Rt[:, 2]], axis=-1)
 
 
+def _axes(intrinsics: np.ndarray) -> np.ndarray:
+    """``I + E``: the accelerometer's axes (:data:`INTRINSICS`)."""
+    return np.eye(3) + np.tensordot(intrinsics, SYMMETRIC, axes=1)
+
+
 def _C_accel(Rt: np.ndarray, t: np.ndarray, dtau: float, tilt: np.ndarray, aj: np.ndarray, ak: np.ndarray) -> np.ndarray:
-    """Coefficients of ``r_a = C x_a`` per window: (K, 3, 33)."""
+    """Coefficients of ``r_a = C x_a`` per window: (K, 3, 33); ``Rt`` is the accelerometer's
+    ``(I + E) R^T``."""
     K = len(aj)
     T = _kron_t(t)
     C = np.zeros((K, 3, ACCEL_DIM))
@@ -320,16 +334,22 @@ def _derivatives_gyro(C: np.ndarray, Rt: np.ndarray) -> np.ndarray:
     return D
 
 
-def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float) -> np.ndarray:
-    """d C_a / d [rot(3), t(3), dtau, tilt(2)]: (K, 9, 3, 33); the biases' derivatives,
-    constant, are :func:`_normal_equations`' own."""
+def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float, axes: np.ndarray) -> np.ndarray:
+    """d C_a / d [rot(3), t(3), dtau, tilt(2), intrinsics(6)]: (K, 15, 3, 33), with ``Rt`` the
+    accelerometer's ``(I + E) R^T`` and ``axes`` its ``I + E``; the biases' derivatives,
+    constant, are :func:`_normal_equations`' own.
+
+    Every column but ``f_I``'s and the biases' is ``-(I + E) R^T K`` (``K`` data-free), so a
+    rotation step (``R^T -> (I - [d]x) R^T``) takes ``-(I + E) [d]x (I + E)^-1`` of them and an
+    intrinsic ``E_b`` takes ``S_b (I + E)^-1`` of them."""
     K = len(C)
     D = np.zeros((K, N_GLOBAL, 3, ACCEL_DIM))
     rotating = C.copy()
     rotating[:, :, 0:3] = 0.0
     rotating[:, :, 31:33] = 0.0
+    inverse = np.linalg.inv(axes)
     for m in range(3):
-        D[:, m] = -skew(np.eye(3)[m]) @ rotating
+        D[:, m] = -(axes @ skew(np.eye(3)[m]) @ inverse) @ rotating
         E = _kron_t(np.eye(3)[m])
         D[:, 3 + m, :, 9:18] = -Rt @ E
         D[:, 3 + m, :, 18:27] = dtau * Rt @ E
@@ -337,6 +357,8 @@ def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float
     D[:, TAU, :, 18:27] = Rt @ _kron_t(t)
     D[:, 7, :, 27:31] = _tilt_columns(Rt, np.array([1.0, 0.0]))
     D[:, 8, :, 27:31] = _tilt_columns(Rt, np.array([0.0, 1.0]))
+    for b in range(6):
+        D[:, INTRINSICS.start + b] = (SYMMETRIC[b] @ inverse) @ rotating
     return D
 
 
@@ -423,6 +445,7 @@ class _Fit:
     cost_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bias_std: np.ndarray | None = None  # (6,) of the last knot
     iterations: int = 0
+    intrinsics: np.ndarray = field(default_factory=lambda: np.zeros(6))  # the accelerometer's E (INTRINSICS)
 
     def std(self) -> np.ndarray:
         """(N_GLOBAL,) standard deviations; inf where not estimated."""
@@ -461,6 +484,14 @@ class _Problem:
         trace_f = float(sum(np.trace(w.rows_accel[:, 0:3]) for w in used))
         self.floor_g = (RESOLUTION**2) * np.trace(self.S_g[:, 0:3, 0:3].sum(axis=0)) / (3 * self.samples)
         self.floor_a = (RESOLUTION**2) * trace_f / (3 * self.samples)
+        # the sensor's signal about each window's mean, per axis (RMS)
+        def spread(rows: np.ndarray, n: int) -> float:  # sum |x - mean|^2 from x^T [x, ..., 1, u]
+            return float(np.trace(rows[:, 0:3]) - rows[:, -2] @ rows[:, -2] / n)
+
+        self.signal_rms = (
+            float(np.sqrt(sum(spread(w.rows_gyro, w.samples) for w in used) / (3 * self.samples))),
+            float(np.sqrt(sum(spread(w.rows_accel, w.samples) for w in used) / (3 * self.samples))),
+        )
         self.prior_band = _bias_prior(
             self.n_knots, options.window_s, (options.gyro_bias_walk, ACCEL_BIAS_WALK), (options.gyro_bias_prior_std, ACCEL_BIAS_PRIOR_STD)
         )
@@ -516,6 +547,7 @@ class _Problem:
         scale_g, scale_a = (s * np.sqrt(self.gain) for s in self.sigma)
         free = np.ones(N_GLOBAL, dtype=bool)
         free[TILT] = False
+        free[INTRINSICS] = False
         return _Fit(R, self.prior.translation.copy(), 0.0, np.zeros(2), np.zeros((self.n_knots, _KNOT)), free, scale_g, scale_a)
 
     def fit(
@@ -535,6 +567,7 @@ class _Problem:
         keeps a rotation that one equation alone leaves free defined."""
         options, t_prior, bound = self.options, self.prior.translation, self.options.translation_bound_m
         R, t, dtau, tilt, knots = start.R, start.t.copy(), start.dtau, start.tilt.copy(), start.knots.copy()
+        intrinsics = start.intrinsics.copy()
         scale_g, scale_a = start.scale_g, start.scale_a
         n_bias, numbers = self.n_bias, self.numbers
         weights = np.ones(len(self.used)) if window_weights is None else window_weights
@@ -549,13 +582,14 @@ class _Problem:
             Rt = R.inv().as_matrix()
             bj, bk = knots[numbers], knots[numbers + 1]
             Cg = _C_gyro(Rt, dtau, bj[:, 0:3], bk[:, 0:3])
-            Ca = _C_accel(Rt, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
+            axes = _axes(intrinsics)
+            Ca = _C_accel(axes @ Rt, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
             Hg, gg, cost_g = _normal_equations(_derivatives_gyro(Cg, Rt), self.S_g, Cg)
             parts = []
             for n, a in enumerate(self.starts):
-                chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 9, 3, 33) in slices
+                chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 15, 3, 33) in slices
                 S_a = self.cached[n] if self.cached is not None else self._S_a(a)
-                parts.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt, t, dtau), S_a, Ca[chunk]))
+                parts.append(_normal_equations(_derivatives_accel(Ca[chunk], axes @ Rt, t, dtau, axes), S_a, Ca[chunk]))
             Ha, ga, cost_a = (np.concatenate([p[i] for p in parts]) for i in range(3))
             if estimate_scale and iterations > 1:  # residual variance from the fit, above what the moments resolve
                 scale_g = float(np.sqrt(max(np.dot(weights, cost_g) / (3 * samples), self.floor_g)))
@@ -611,6 +645,7 @@ class _Problem:
             t = t + step[3:6]
             dtau = dtau + step[TAU]
             tilt = tilt + step[TILT]
+            intrinsics = intrinsics + step[INTRINSICS]
             knots = knots + step_bias.reshape(self.n_knots, _KNOT)
             S_inv = np.linalg.inv(S)
             small = np.max(np.abs(step[:3])) < 1e-10 and np.max(np.abs(step[3:])) < 1e-8
@@ -629,7 +664,7 @@ class _Problem:
             XtE = X.T @ E
             block = Y[cols_last] + XtE.T @ S_inv @ XtE
             bias_std = np.sqrt(np.clip(np.diag(block), 0.0, None))
-        return _Fit(R, t, dtau, tilt, knots, free.copy(), scale_g, scale_a, covariance, unconstrained, cost_g, cost_a, bias_std, iterations)
+        return _Fit(R, t, dtau, tilt, knots, free.copy(), scale_g, scale_a, covariance, unconstrained, cost_g, cost_a, bias_std, iterations, intrinsics)
 
 
 # --------------------------------------------------------------------------- checks and covariance
@@ -638,6 +673,12 @@ class _Problem:
 JACKKNIFE_GROUPS = 10
 #: Residual std over the noise the data imply, above which the model does not explain the data.
 RESIDUAL_LEVEL_MAX = 2.0
+#: What the grid's interpolation and filtering leave of a signal, relative to its RMS about each
+#: window's mean: a residual level counts only above it. (Noise-free drives leave 1e-4 of the
+#: gyro's and 3e-4 of the accelerometer's.)
+PIPELINE_FLOOR = 1e-3
+#: The accelerometer's axis errors are estimated where the drive determines them this well.
+INTRINSICS_MAX_STD = 0.01
 #: What the checks take as numerically zero (rad, and rad per m/s^2): on noise-free data the
 #: Fisher std is round-off, and so is any difference the checks see.
 NUMERICAL_ZERO = 1e-6
@@ -728,19 +769,6 @@ def solve(
         free = fit.free.copy()
         free[3:6] &= ~weak
         fit = problem.fit(replace(fit, t=np.where(weak, prior.translation, fit.t)), free)
-    time_offset_observable = options.max_time_offset_s <= 0 or time_offset_shown
-    if not time_offset_shown and options.max_time_offset_s > 0:
-        warnings.append(f"clock offset not observable ({time_offset_reason or 'the drive does not show it'}): not estimated, kept at 0")
-    elif fit.free[TAU] and fit.std()[TAU] > TIME_OFFSET_MAX_STD_S:
-        warnings.append(
-            f"clock offset not observable: std {fit.std()[TAU] * 1e3:.1f} ms > {TIME_OFFSET_MAX_STD_S * 1e3:g} ms; "
-            f"kept at the correlation's {tau0 * 1e3:.1f} ms"
-        )
-        time_offset_observable = False
-        free = fit.free.copy()
-        free[TAU] = False
-        fit = problem.fit(replace(fit, dtau=0.0), free)
-
     checks: list[Check] = []
     alpha = options.consistency_alpha
     # the mount's tilt with the vehicle's specific force
@@ -764,6 +792,45 @@ def solve(
             "the rotation given is the mount's at rest"
         )
         fit = tilted
+    # the accelerometer's axis errors, where the drive determines them and they are there
+    # (estimated always, they would cost clean drives a good part of their lever-arm std)
+    free = fit.free.copy()
+    free[INTRINSICS] = True
+    with_axes = problem.fit(fit, free)
+    shown = with_axes.std()[INTRINSICS] <= INTRINSICS_MAX_STD
+    intrinsics: dict[str, Any] = {"estimated": False}
+    if shown.any():
+        free[INTRINSICS] = shown
+        with_axes = problem.fit(replace(with_axes, intrinsics=np.where(shown, with_axes.intrinsics, 0.0)), free)
+        E, cov_E = with_axes.intrinsics[shown], with_axes.covariance[INTRINSICS, INTRINSICS][np.ix_(shown, shown)]
+        chi2_E = float(E @ np.linalg.solve(cov_E + NUMERICAL_ZERO**2 * np.eye(len(E)), E))
+        present = chi2_E > _chi2_limit(len(E), options.consistency_alpha)
+        std_E = np.where(shown, with_axes.std()[INTRINSICS], np.nan)
+        intrinsics = {
+            "estimated": bool(present), "chi2": chi2_E, "dof": len(E),
+            "scale": with_axes.intrinsics[:3].tolist(), "nonorthogonality_deg": np.degrees(with_axes.intrinsics[3:]).tolist(),
+            "scale_std": std_E[:3].tolist(), "nonorthogonality_std_deg": np.degrees(std_E[3:]).tolist(),
+        }
+        if present:
+            fit = with_axes
+            warnings.append(
+                "accelerometer axis errors estimated with the extrinsics: scale "
+                + ", ".join(f"{100 * v:+.2f}%" for v in fit.intrinsics[:3])
+                + "; non-orthogonality " + ", ".join(f"{v:+.3f}" for v in np.degrees(fit.intrinsics[3:])) + f" deg (chi2 {chi2_E:.0f}, {len(E)} dof)"
+            )
+    time_offset_observable = options.max_time_offset_s <= 0 or time_offset_shown
+    if not time_offset_shown and options.max_time_offset_s > 0:
+        warnings.append(f"clock offset not observable ({time_offset_reason or 'the drive does not show it'}): not estimated, kept at 0")
+    elif fit.free[TAU] and fit.std()[TAU] > TIME_OFFSET_MAX_STD_S:
+        warnings.append(
+            f"clock offset not observable: std {fit.std()[TAU] * 1e3:.1f} ms > {TIME_OFFSET_MAX_STD_S * 1e3:g} ms; "
+            f"kept at the correlation's {tau0 * 1e3:.1f} ms"
+        )
+        time_offset_observable = False
+        free = fit.free.copy()
+        free[TAU] = False
+        fit = problem.fit(replace(fit, dtau=0.0), free)
+
     # the rotation from the gyro alone against the one from the accelerometer alone
     rotation_only = np.zeros(N_GLOBAL, dtype=bool)
     rotation_only[:3] = True
@@ -784,7 +851,7 @@ def solve(
             f"(chi2 {chi2_rot:.1f}, 3 dof): their axes are misaligned differently, or the mount moves"
         )
     # the residual levels against the noise the data imply
-    expected = np.array(sigma) * np.sqrt(problem.gain)
+    expected = np.hypot(np.array(sigma) * np.sqrt(problem.gain), PIPELINE_FLOOR * np.array(problem.signal_rms))
     levels = np.array([fit.scale_g, np.sqrt(max(fit.scale_a**2 - problem.eiv_variance(fit.t), 0.0))]) / expected
     level_ok = bool(np.all(levels <= RESIDUAL_LEVEL_MAX))
     checks.append(Check("residual_level", level_ok, {"gyro": float(levels[0]), "accel": float(levels[1])}, float(max(1.0, np.max(levels) ** 2))))
@@ -863,4 +930,5 @@ def solve(
         checks={c.name: {**c.figures, "pass": c.passed} for c in checks},
         time_offset_observable=time_offset_observable,
         tilt_rad_per_mps2=fit.tilt.copy(),
+        accel_intrinsics=intrinsics,
     )

@@ -151,6 +151,29 @@ def derivative_noise_variance(lowpass: Lowpass, density: float) -> float:
     return float(2.0 * density**2 * np.trapezoid(lowpass.gain(f) ** 2 * (2 * np.pi * f) ** 2, f))
 
 
+def white_noise_density(x: np.ndarray, rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:
+    """Per-axis white-noise density (per sqrt(Hz), two-sided: a sample's std is
+    ``density sqrt(rate)``) of a sampled signal (N, 3), from the median of its periodogram in
+    ``band_hz``: above the motion, where a vibration line or two only moves the median by a few
+    bins (second differences, :func:`white_noise_std`, count a 20-60 Hz mount vibration as
+    noise). The periodogram is of the second differences, the signal's motion thereby
+    suppressed by ``(2 sin(pi f / rate))^4`` before the window's leakage can spread it, and
+    corrected back."""
+    from scipy.signal import welch
+
+    d2 = np.diff(np.asarray(x, dtype=np.float64), n=2, axis=0)
+    nperseg = int(min(len(d2), 2 ** np.ceil(np.log2(4.0 * rate_hz))))  # about 4 s segments
+    lo, hi = band_hz[0], min(band_hz[1], 0.8 * rate_hz / 2)
+    if nperseg < 16 or lo >= hi:
+        return white_noise_std(x) / np.sqrt(rate_hz)
+    f, psd = welch(d2, fs=rate_hz, nperseg=nperseg, axis=0)
+    inside = (f >= lo) & (f <= hi)
+    if np.count_nonzero(inside) < 3:
+        return white_noise_std(x) / np.sqrt(rate_hz)
+    response = (2.0 * np.sin(np.pi * f[inside] / rate_hz)) ** 4
+    return np.sqrt(np.median(psd[inside] / response[:, None], axis=0) / 2.0)  # one-sided to two-sided
+
+
 def white_noise_std(x: np.ndarray) -> np.ndarray:
     """Per-axis white-noise standard deviation of a sampled signal (N, 3).
 

@@ -55,7 +55,7 @@ from imucal_cli.core.signals import (
     Lowpass,
     TooLittleData,
     derivative_noise_variance,
-    white_noise_std,
+    white_noise_density,
 )
 from imucal_cli.core.timing import TimeOffset, time_offset_shown
 from imucal_cli.errors import ImucalError
@@ -72,6 +72,9 @@ MAX_BOOT_S = 600.0
 BOOT_RETRY_S = 10.0
 #: Stamps may arrive this much out of order (s): windows wait for it.
 REORDER_S = 0.5
+#: Where each IMU's white noise is measured (Hz): above the motion the low-pass keeps, below
+#: the internal filters of MEMS parts.
+NOISE_BAND_HZ = (10.0, 20.0)
 #: Windows conditioned together (one spline and one filter pass per IMU and block).
 BLOCK_WINDOWS = 6
 #: Windows whose observability is computed together (bounds scratch memory).
@@ -269,10 +272,8 @@ def _natural_cubic(t: np.ndarray, y: np.ndarray) -> _NaturalCubic:
 
 def _noise_density(both: np.ndarray, rate: float) -> tuple[float, float]:
     """White-noise densities of the gyro and the accelerometer (columns 0-2 and 3-5)."""
-    std = white_noise_std(both)
-    g = float(np.sqrt(np.mean(std[:3] ** 2)) / np.sqrt(rate))
-    a = float(np.sqrt(np.mean(std[3:] ** 2)) / np.sqrt(rate))
-    return g, a
+    density = white_noise_density(both, rate, NOISE_BAND_HZ)
+    return float(np.sqrt(np.mean(density[:3] ** 2))), float(np.sqrt(np.mean(density[3:] ** 2)))
 
 
 #: Column of the packed upper triangle of each entry of a symmetric 3x3 matrix (row-major).

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -176,6 +176,8 @@ class SimulatedImu:
     true_time_s: np.ndarray  # the instant each sample measured
     gyro_bias: np.ndarray  # (N, 3) true gyro bias at each sample
     accel_bias: np.ndarray  # (N, 3) true accelerometer bias at each sample
+    gyro_axes: np.ndarray = field(default_factory=lambda: np.eye(3))  # measured = axes @ true
+    accel_axes: np.ndarray = field(default_factory=lambda: np.eye(3))
 
 
 def simulate_imu(
@@ -199,6 +201,7 @@ def simulate_imu(
     t_true = np.arange(trajectory.t_start_s + phase, trajectory.t_end_s, period)
     n = len(t_true)
     gyro, accel = ideal_imu(trajectory, T_base_imu, t_true, tilt_rad_per_mps2)
+    gyro_axes = accel_axes = np.eye(3)
     intrinsic = rng.spawn(1)[0] if _has_intrinsic_errors(model) else None  # spawning draws nothing
     if intrinsic is not None:
         if model.vibration_accel_mps2 > 0 or model.vibration_gyro_radps > 0:
@@ -209,8 +212,10 @@ def simulate_imu(
             wave = np.sin(2 * np.pi * freq * t_true[:, None] + phases)
             accel = accel + model.vibration_accel_mps2 * wave[:, :3]
             gyro = gyro + model.vibration_gyro_radps * wave[:, 3:]
-        gyro = gyro @ _axis_errors(model, intrinsic).T + accel @ intrinsic.normal(0.0, model.g_sensitivity_std, (3, 3)).T
-        accel = accel @ _axis_errors(model, intrinsic).T
+        gyro_axes = _axis_errors(model, intrinsic)
+        gyro = gyro @ gyro_axes.T + accel @ intrinsic.normal(0.0, model.g_sensitivity_std, (3, 3)).T
+        accel_axes = _axis_errors(model, intrinsic)
+        accel = accel @ accel_axes.T
 
     def bias(turn_on: float, walk: float) -> np.ndarray:
         b = rng.normal(0.0, 1.0, 3) * turn_on
@@ -244,4 +249,4 @@ def simulate_imu(
     t_ns = t0_ns + np.round(stamp_s * 1e9).astype(np.int64)
     log_ns = t0_ns + np.round((t_true + model.latency_s) * 1e9).astype(np.int64)
     stream = ImuStream(t_ns[keep], gyro[keep], accel[keep], frame_id)
-    return SimulatedImu(stream, log_ns[keep], t_true[keep], gyro_bias[keep], accel_bias[keep])
+    return SimulatedImu(stream, log_ns[keep], t_true[keep], gyro_bias[keep], accel_bias[keep], gyro_axes, accel_axes)
