@@ -626,7 +626,9 @@ class StreamingCalibrator:
                 end = start + self.window_s
                 if covered < self._need(number, final):
                     if final:
-                        end = min(end, covered - self.max_offset - 1.0 / self.rate)
+                        # (with the padding after it that every other window has: the
+                        # filters, each of its own samples, part at their ends)
+                        end = min(end, covered - self.max_offset - PAD_S)
                         if end - start >= self.window_s / 2:
                             spans.append((number, start, end))
                             partial = end < start + self.window_s
