@@ -59,8 +59,8 @@ SUFFIX = {"mcap": ".mcap", "rosbag2-sqlite3": "", "rosbag1": ".bag"}
 
 def build(length: str, fmt: str) -> tuple[Path, Path]:
     """The cached log and its config (made with the simulator's writer)."""
-    from imucal_cli.io.reports import write_document
-    from imucal_cli.io.writers import write_imu_log
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim.writers import write_imu_log
     from imucal_cli.sim import DriveOptions, simulate_drive
 
     CACHE.mkdir(exist_ok=True)

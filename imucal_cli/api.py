@@ -12,8 +12,7 @@ is returned for the caller to report.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
-from contextlib import ExitStack
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,10 +22,7 @@ import numpy as np
 from imucal_cli.config import Config, load_config
 from imucal_cli.core.streaming import StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
-from imucal_cli.io.logs import ImuBatches, ReadStats, start_reading
-from imucal_cli.io.prefetch import read_ahead
-from imucal_cli.io.salvage import Loss
-from imucal_cli.parallel import ForkedWorker
+from imucal_cli.io.logs import ImuBatches, Loss, ReadStats
 from imucal_cli.pipeline import CalibrationResult, calibration_document, make_calibrator
 from imucal_cli.types import Transform
 
@@ -36,7 +32,7 @@ CLOCK_COMPARE_SLACK_S = 0.05
 CLOCK_COMPARE_SAMPLES = 200
 
 __all__ = [
-    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "load_transforms", "lost_summary", "start_reading", "stream_log",
+    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "load_transforms", "lost_summary", "stream_log",
 ]
 
 
@@ -97,63 +93,37 @@ class StreamedLog:
     format_name: str
 
 
-def stream_log(
-    log: str | Path,
-    config: Config,
-    progress: Callable[[int], None] | None = None,
-    background: bool = True,
-    reading: tuple[ImuBatches, Iterator[Any]] | None = None,
-) -> StreamedLog:
+def stream_log(log: str | Path, config: Config, progress: Callable[[int], None] | None = None) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
-    log's length (decoding in a child process beside the math when ``background``).
-
-    ``reading`` is what :func:`start_reading` returned for this log: used when its topics are
-    the config's, closed otherwise."""
+    log's length: windows reduced, nothing solved yet."""
     log = Path(log)
     names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    reader = ImuBatches(log, names)
+    calibrator = make_calibrator(config)
+    clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
     t0_ns: int | None = None
     count = 0
-    if reading is not None and (reading[0].path != log or reading[0].topics != list(names) or not background):
-        reading[1].close()  # type: ignore[attr-defined]
-        reading = None
-    if reading is None:
-        reader = ImuBatches(log, names)
-        reading = (reader, read_ahead(reader, background=background))
-    reader, batches = reading
-    with ExitStack() as stack:
-        close = getattr(batches, "close", None)
-        if close is not None:
-            stack.callback(close)
-        calibrator = make_calibrator(config)
-        clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
-        if background and ForkedWorker.available():
-            # half the blocks' math in a second process (forked while this one has no thread:
-            # the reader's receiving thread starts at the first batch)
-            calibrator.executor = stack.enter_context(ForkedWorker())
-            stack.callback(setattr, calibrator, "executor", None)
-        for topic, stamps, log_times, gyro, accel in batches:
-            clocks.add(topic, stamps, log_times)
-            clocks.check(list(names))
-            if len(stamps):
-                first = int(stamps.min())
-                t0_ns = first if t0_ns is None else min(t0_ns, first)
-            calibrator.add(names[topic], stamps, gyro, accel)
-            count += len(stamps)
-            if progress is not None:
-                progress(count)
-        if close is not None:
-            close()
-        lost = lost_summary(reader.losses)
-        for topic, stats in reader.stats.items():
-            usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated - stats.implausible - stats.stamp_outliers
-            if usable < 10:
-                raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages{lost}")
-        if calibrator.t_ref_ns is None or t0_ns is None:
-            raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
-        try:
-            calibrator.process(final=True)
-        except ImucalError as exc:
-            raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
+    for topic, stamps, log_times, gyro, accel in reader:
+        clocks.add(topic, stamps, log_times)
+        clocks.check(list(names))
+        if len(stamps):
+            first = int(stamps.min())
+            t0_ns = first if t0_ns is None else min(t0_ns, first)
+        calibrator.add(names[topic], stamps, gyro, accel)
+        count += len(stamps)
+        if progress is not None:
+            progress(count)
+    lost = lost_summary(reader.losses)
+    for topic, stats in reader.stats.items():
+        usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated - stats.implausible - stats.stamp_outliers
+        if usable < 10:
+            raise InputError(f"{log} [{topic}]: too little data: {usable} usable messages{lost}")
+    if calibrator.t_ref_ns is None or t0_ns is None:
+        raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
+    try:
+        calibrator.process(final=True)
+    except ImucalError as exc:
+        raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
     duplicates = {topic: calibrator.duplicates(name) for topic, name in names.items()}
     return StreamedLog(log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name)
 
@@ -167,12 +137,12 @@ class LogCalibration:
     streamed: StreamedLog  # what reading found: counts per topic, losses
 
 
-def calibrate_log(log: str | Path, config: Config | str | Path, background: bool = True) -> LogCalibration:
+def calibrate_log(log: str | Path, config: Config | str | Path) -> LogCalibration:
     """Calibrate every sensor of ``config`` from the IMU topics of ``log`` (MCAP, rosbag2 or
     ROS 1 bag). ``config`` is a :class:`Config` or the path of its YAML file."""
     if not isinstance(config, Config):
         config = load_config(config)
-    streamed = stream_log(log, config, background=background)
+    streamed = stream_log(log, config)
     result = estimate(streamed)
     return LogCalibration(result, calibration_document(result, str(log)), streamed)
 
@@ -189,9 +159,9 @@ def estimate(streamed: StreamedLog) -> CalibrationResult:
 
 
 def export_extrinsics(document: Mapping[str, Any], fmt: str, parent: str | None = None, source: str = "<document>") -> dict[str, str]:
-    """The text of one export format (:mod:`imucal_cli.io.exports`) from a calibrate document:
+    """The text of one export format (:mod:`imucal_cli.exports`) from a calibrate document:
     ``{"main": ...}``, plus ``{"launch": ...}`` for the tf2 static publishers."""
-    from imucal_cli.io.exports import Extrinsics, export
+    from imucal_cli.exports import Extrinsics, export
 
     return export(Extrinsics.from_document(dict(document), source), fmt, parent)
 
@@ -199,8 +169,8 @@ def export_extrinsics(document: Mapping[str, Any], fmt: str, parent: str | None 
 def load_transforms(path: str | Path, key: str = "T_base_lidar") -> dict[str, Transform]:
     """``key`` of every sensor of a calibrate output or truth file (``sensors: NAME: key``);
     :class:`InputError` naming the file and the key path when one is missing or malformed."""
+    from imucal_cli.documents import load_document
     from imucal_cli.errors import ConfigError
-    from imucal_cli.io.reports import load_document
 
     document = load_document(path)
     if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict):

@@ -69,9 +69,6 @@ def _root(
     ] = False,
 ) -> None:
     """Calibrate the extrinsics of every lidar on a vehicle from raw IMU signals alone."""
-    from imucal_cli.parallel import reuse_freed_memory
-
-    reuse_freed_memory()  # before the log reader and the math worker are forked
 
 
 # --------------------------------------------------------------------------- output helpers
@@ -104,11 +101,8 @@ def _stdout_console() -> Any:
 
 
 @contextmanager
-def _progress(description: str, from_first_count: bool = False) -> Iterator[Any]:
-    """A spinner with a counter on stderr when it is a terminal; nothing otherwise.
-
-    With ``from_first_count`` it starts at the first count: its refresh thread must not exist
-    when the log reader and the math worker are forked, at the start of reading."""
+def _progress(description: str) -> Iterator[Any]:
+    """A spinner with a counter on stderr when it is a terminal; nothing otherwise."""
     if not sys.stderr.isatty():
         yield lambda count: None
         return
@@ -132,8 +126,7 @@ def _progress(description: str, from_first_count: bool = False) -> Iterator[Any]
         if count is not None:
             progress.update(tasks[0], completed=count)
 
-    if not from_first_count:
-        update()
+    update()
     try:
         yield update
     finally:
@@ -143,7 +136,7 @@ def _progress(description: str, from_first_count: bool = False) -> Iterator[Any]
 
 def _emit(document: dict[str, Any], out: Path | None, as_json: bool, render: Any) -> None:
     """Write ``document`` to ``out`` (YAML/JSON by suffix), or print JSON, or render it."""
-    from imucal_cli.io.reports import dumps, write_document
+    from imucal_cli.documents import dumps, write_document
 
     if out is not None:
         write_document(out, document)
@@ -227,7 +220,8 @@ def inspect(
     from imucal_cli.io.logs import summarize_log
 
     _check_output(out)
-    summary = summarize_log(log)
+    with _progress(f"reading {log}") as progress:
+        summary = summarize_log(log, progress)
     _note_losses(log, summary.losses)
     _emit(_inspect_document(summary), out, as_json, _render_inspect)
 
@@ -243,7 +237,7 @@ def check_config(
 ) -> None:
     """Validate a config and print it with every default filled in."""
     from imucal_cli.config import load_config
-    from imucal_cli.io.reports import dumps
+    from imucal_cli.documents import dumps
 
     typer.echo(dumps(load_config(config).to_dict(), as_json=as_json), nl=False)
 
@@ -267,7 +261,8 @@ def _note_read(log: Path, topic: str, counts: dict[str, int]) -> None:
 def _note_losses(log: Path, losses: list[Any]) -> None:
     """One line on stderr per part of the log that could not be read (at most five, then a count)."""
     for loss in losses[:5]:
-        typer.echo(f"imucal: warning: {log}: {loss.describe()}", err=True)
+        kind = "warning" if loss.lost else "note"  # a note says how the log was read, nothing lost
+        typer.echo(f"imucal: {kind}: {log}: {loss.describe()}", err=True)
     if len(losses) > 5:
         typer.echo(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read", err=True)
 
@@ -300,34 +295,16 @@ def _load_drive(log: Path, config_path: Path, quiet: bool = False) -> tuple[Any,
     return config, streams
 
 
-def _start_reading(log: Path, config_path: Path) -> Any:
-    """The log's reader, started before the math's imports (about a second of numpy and scipy),
-    from the config's topics read plainly: the one the entry point started before the CLI's
-    imports (:mod:`imucal_cli.launch`) where it guessed this log and config, else one started
-    now; None when the topics cannot be read plainly (the config is then loaded and checked as
-    usual, and says what is wrong)."""
-    from imucal_cli import launch
-
-    reading = launch.take_early(log, config_path)
-    return reading if reading is not None else launch.start_reading(log, config_path)
-
-
 def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
     nothing solved yet); say on stderr what reading found. Returns the config and the
     :class:`~imucal_cli.api.StreamedLog`."""
-    reading = _start_reading(log, config_path)
-    try:
-        from imucal_cli.api import stream_log
-        from imucal_cli.config import load_config
+    from imucal_cli.api import stream_log
+    from imucal_cli.config import load_config
 
-        config = load_config(config_path)
-    except BaseException:
-        if reading is not None:
-            reading[1].close()
-        raise
-    with _progress(f"reading {log}", from_first_count=True) as progress:
-        streamed = stream_log(log, config, progress=progress, reading=reading)
+    config = load_config(config_path)
+    with _progress(f"reading {log}") as progress:
+        streamed = stream_log(log, config, progress=progress)
     _note_losses(log, streamed.losses)
     for topic, stats in streamed.stats.items():
         _note_read(log, topic, stats.to_dict() | {"duplicates": streamed.duplicates[topic]})
@@ -432,7 +409,7 @@ def calibrate(
             raise InputError(f"{report}: report folder's parent {report.parent} does not exist")
         if report.exists() and not report.is_dir():
             raise InputError(f"{report}: exists and is not a folder")
-        from imucal_cli.io.report import pyplot
+        from imucal_cli.report import pyplot
 
         pyplot()  # fail before the work when matplotlib is missing
     cfg, streamed = _stream_log(log, config)
@@ -469,8 +446,8 @@ def calibrate(
             console.print(f"{pair}: xyz {_fmt(T['translation'], 4)} m, rpy {_fmt(T['rpy_deg'], 3)} deg")
 
     if report is not None:
-        from imucal_cli.io.report import write_report
         from imucal_cli.pipeline import run_biases
+        from imucal_cli.report import write_report
 
         _, streams = _load_drive(log, config, quiet=True)
         with _progress("drawing the report"):
@@ -506,8 +483,9 @@ def export(
     parent: Annotated[str | None, typer.Option("--parent", help="Parent frame (default: the calibration's base frame).")] = None,
 ) -> None:
     """The extrinsics in the layout of Autoware, URDF, tf2 static publishers, Kalibr or JSON."""
-    from imucal_cli.io.exports import FORMATS, Extrinsics, export as make
-    from imucal_cli.io.reports import load_document, write_text_atomic
+    from imucal_cli.documents import load_document, write_text_atomic
+    from imucal_cli.exports import FORMATS, Extrinsics
+    from imucal_cli.exports import export as make
 
     if fmt not in FORMATS:
         raise InputError(f"--format {fmt}: unknown format (expected one of: {', '.join(FORMATS)})")
@@ -547,8 +525,16 @@ def batch(
     junit: Annotated[Path | None, typer.Option("--junit", help="Write JUnit XML here (for CI).")] = None,
 ) -> None:
     """Calibrate many logs (local processes or a Dask cluster); summary CSV/JSON, JUnit; exit 1 if any fails."""
-    from imucal_cli.fleet import Task, junit_xml, read_manifest, run_dask, run_local, summary_csv, summary_json
-    from imucal_cli.io.reports import write_text_atomic
+    from imucal_cli.documents import write_text_atomic
+    from imucal_cli.fleet import (
+        Task,
+        junit_xml,
+        read_manifest,
+        run_dask,
+        run_local,
+        summary_csv,
+        summary_json,
+    )
 
     if truth_dir is not None and reference is not None:
         raise InputError("--truth-dir and --reference: give one of them")
@@ -694,9 +680,9 @@ def simulate(
     ] = "none",
 ) -> None:
     """Simulate a drive: a log OUT with STEM.truth.yaml and STEM.config.yaml beside it."""
-    from imucal_cli.io.reports import write_document
-    from imucal_cli.io.writers import write_imu_log
+    from imucal_cli.documents import write_document
     from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
+    from imucal_cli.sim.writers import write_imu_log
 
     fmt = log_format.value if log_format is not None else _infer_format(out)
     suffix = out.suffix.lower()
@@ -741,46 +727,21 @@ def simulate(
 
 
 def main() -> None:
-    """Console-script entry point (usage errors exit 2, as Typer does)."""
+    """Console-script entry point (usage errors exit 2, as Typer does).
+
+    A Ctrl-C ends with exit 130 at once: CPython 3.11 takes a KeyboardInterrupt that passed
+    through an import's exec() (scipy's lazy imports run some) for an unhandled one even when
+    it was caught, and would end the process by SIGINT (a caller saw -2, not 130)."""
     try:
         app()
     except SystemExit as exc:
-        code = exc.code
-    else:  # pragma: no cover - Typer ends with SystemExit
-        code = 0
-    if not (code is None or isinstance(code, int)):
-        raise SystemExit(code)
-    _end(code or 0)
+        if exc.code == EXIT_INTERRUPTED:
+            import os
 
-
-def _end(code: int) -> None:
-    """End the process now, once the command is done: its outputs written and closed, its
-    child processes ended.
-
-    The interpreter's own teardown would free every object of numpy, scipy, Rich and the rest
-    one by one: 0.2 s of CPU on every run, measured with ``strace`` after ``calibrate`` (from
-    the last exit handler to the process's end), that nothing needs. The exit handlers still
-    run (``atexit``: multiprocessing's, logging's), and where a thread the interpreter would
-    wait for still runs (not a daemon), it is left to wait for it as usual.
-
-    It also ends a Ctrl-C (exit 130) that CPython 3.11 would end otherwise: the interpreter
-    takes a Ctrl-C that passed through an exec() of a string (scipy's imports run some) for an
-    unhandled one even when it was caught, and ends itself by SIGINT (a caller saw -2, not
-    130)."""
-    import atexit
-    import os
-    import threading
-
-    waited_for = [t for t in threading.enumerate() if not t.daemon and t is not threading.main_thread()]
-    if waited_for and code != EXIT_INTERRUPTED:
-        raise SystemExit(code)
-    atexit._run_exitfuncs()  # noqa: SLF001 - what the teardown would run first
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a reader that went away (a pipe to `head`), or closed
-            pass
-    os._exit(code)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(EXIT_INTERRUPTED)
+        raise
 
 
 if __name__ == "__main__":

@@ -342,7 +342,7 @@ def load_config(path: str | Path) -> Config:
     ConfigError
         Naming the file and the key path of the first problem found.
     """
-    from imucal_cli.io.reports import load_document
+    from imucal_cli.documents import load_document
 
     try:
         data = load_document(path)

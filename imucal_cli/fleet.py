@@ -74,13 +74,13 @@ def run_one(task: Task) -> list[Row]:
     import time
 
     from imucal_cli.api import calibrate_log, load_transforms
-    from imucal_cli.io.reports import write_document
+    from imucal_cli.documents import write_document
     from imucal_cli.pipeline import transform_errors
 
     start = time.perf_counter()
     name = Path(task.log).name
     try:
-        run = calibrate_log(task.log, task.config, background=False)
+        run = calibrate_log(task.log, task.config)
         write_document(task.out, run.document)
         compare_to = task.truth or task.reference
         against = load_transforms(compare_to) if compare_to else {}

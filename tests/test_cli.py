@@ -59,7 +59,7 @@ def test_simulate_then_inspect_every_format(tmp_path, fmt):
 
 
 def test_inspect_writes_yaml_and_json(tmp_path, short_drive):
-    from imucal_cli.io.writers import write_imu_log
+    from imucal_cli.sim.writers import write_imu_log
 
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
     for name in ("report.yaml", "report.json"):
@@ -78,7 +78,7 @@ def test_inspect_bad_inputs(tmp_path, short_drive):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"\x89MCAP0\r\n" + b"\x00" * 64)
     assert_bad_input(runner.invoke(app, ["inspect", str(junk)]), "junk.mcap")
-    from imucal_cli.io.writers import write_imu_log
+    from imucal_cli.sim.writers import write_imu_log
 
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
     result = runner.invoke(app, ["inspect", str(log), "-o", str(tmp_path / "nope" / "r.yaml")])
@@ -140,19 +140,17 @@ def test_help_names_the_extras_to_install(command, extra):
 
 
 def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_whole(tmp_path, short_drive):
-    """The console script's entry point (:mod:`imucal_cli.launch`: the log's reader started
-    first, then the CLI, whose ``main`` ends the process itself once the command is done, with
-    no interpreter teardown): the output file is whole, what was printed reaches a pipe, and the
-    exit code is the command's (0, 2 on bad input)."""
+    """The console script's entry point (``imucal_cli.cli:main``): the output file is whole,
+    what was printed reaches a pipe, and the exit code is the command's (0, 2 on bad input)."""
     import subprocess
     import sys
 
-    from imucal_cli.io.reports import write_document
-    from imucal_cli.io.writers import write_imu_log
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim.writers import write_imu_log
 
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
     write_document(tmp_path / "c.yaml", short_drive.config_document())
-    command = [sys.executable, "-m", "imucal_cli.launch", "calibrate", str(log), "-c", str(tmp_path / "c.yaml")]
+    command = [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml")]
     written = subprocess.run([*command, "-o", str(tmp_path / "e.json")], capture_output=True, timeout=300)
     assert written.returncode == 0, written.stderr
     printed = subprocess.run([*command, "--json"], capture_output=True, timeout=300)

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
-from imucal_cli.io.exports import FORMATS, Extrinsics, SensorExtrinsics, export
+from imucal_cli.exports import FORMATS, Extrinsics, SensorExtrinsics, export
 from imucal_cli.types import Transform, rpy_to_rotation
 
 runner = CliRunner()

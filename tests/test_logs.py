@@ -7,7 +7,7 @@ import pytest
 
 from imucal_cli.errors import LogError
 from imucal_cli.io.logs import open_log, read_imu, summarize_log
-from imucal_cli.io.writers import FORMATS, TopicData, write_imu_log
+from imucal_cli.sim.writers import FORMATS, TopicData, write_imu_log
 from imucal_cli.types import ImuStream
 
 T0 = 1_700_000_000_000_000_000

@@ -671,6 +671,11 @@ class _Problem:
 
 #: Delete-a-group jackknife: at most this many groups of consecutive windows.
 JACKKNIFE_GROUPS = 10
+#: Gauss-Newton steps of a replicate, from the full fit (the one-step jackknife): a tenth of
+#: the windows left out moves the optimum little, and one step from the full fit lands within
+#: second order of it. Replicates converged to 1e-10 rad took 10 steps each and three
+#: quarters of the solve's time.
+JACKKNIFE_ITERATIONS = 1
 #: Residual std over the noise the data imply, above which the model does not explain the data.
 RESIDUAL_LEVEL_MAX = 2.0
 #: What the grid's interpolation and filtering leave of a signal, relative to its RMS about each
@@ -685,9 +690,11 @@ NUMERICAL_ZERO = 1e-6
 
 
 def _chi2_limit(dof: int, alpha: float) -> float:
-    from scipy.stats import chi2
+    """The chi-square quantile a false alarm rate ``alpha`` allows (``chi2.ppf(1 - alpha)``,
+    from ``scipy.special``: ``scipy.stats`` takes 0.8 s to import)."""
+    from scipy.special import chdtri
 
-    return float(chi2.ppf(1.0 - alpha, dof))
+    return float(chdtri(dof, alpha))
 
 
 def _rotation_difference(a: Rotation, b: Rotation) -> np.ndarray:
@@ -708,7 +715,7 @@ def _jackknife(problem: _Problem, fit: _Fit) -> np.ndarray | None:
     for group in groups:
         weights = np.ones(K)
         weights[group] = 0.0
-        rep = problem.fit(fit, fit.free, window_weights=weights)
+        rep = problem.fit(fit, fit.free, window_weights=weights, max_iterations=JACKKNIFE_ITERATIONS)
         replicates.append(np.concatenate([_rotation_difference(rep.R, fit.R), rep.t - fit.t, [rep.dtau - fit.dtau]]))
     reps = np.array(replicates)
     G = len(reps)

@@ -17,12 +17,12 @@ from imucal_cli.config import (
     SegmentsConfig,
     parse_config,
 )
-from imucal_cli.io.writers import TopicData
 from imucal_cli.pipeline import DriveStreams
 from imucal_cli.sim.imu import MEMS_LIDAR, TACTICAL_BASE, ImuErrorModel, SimulatedImu, simulate_imu
 from imucal_cli.sim.rig import DEFAULT_MOUNTS, LidarMount, cad_prior
 from imucal_cli.sim.scenarios import SCENARIOS, VehicleDynamics, make_scenario
 from imucal_cli.sim.trajectory import Trajectory
+from imucal_cli.sim.writers import TopicData
 from imucal_cli.types import Transform
 
 BASE_TOPIC = "/gnss/imu"

@@ -1,6 +1,6 @@
 """Writing ``sensor_msgs/Imu`` logs in every format imucal reads (for the simulator and tests).
 
-Messages are serialised in bulk (:mod:`imucal_cli.io.bulkwrite`, byte-identical with the
+Messages are serialised in bulk (:mod:`imucal_cli.sim.serialize`, byte-identical with the
 ``rosbags`` serialisers), containers are written by the ``mcap`` writer (plain MCAP) and the
 ``rosbags`` writers (rosbag2 sqlite3/mcap, ROS 1 bag).
 """
@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.errors import InputError
-from imucal_cli.io.bulkwrite import serialize_cdr, serialize_ros1
-from imucal_cli.io.logs import IMU_MSGTYPE
+from imucal_cli.io.imu_msg import IMU_MSGTYPE
+from imucal_cli.sim.serialize import serialize_cdr, serialize_ros1
 from imucal_cli.types import ImuStream
 
 #: ``--format`` names: plain MCAP with ROS 2 CDR, plain MCAP with ROS 1 encoding, rosbag2

@@ -1,7 +1,7 @@
 """Vectorised serialisation of ``sensor_msgs/Imu`` for writing long logs quickly.
 
 Used by the benchmarks to build hour-long logs; tests check it is byte-identical with the rosbags
-serialisers. (The simulator's writer, :mod:`imucal_cli.io.writers`, serialises message by
+serialisers. (The simulator's writer, :mod:`imucal_cli.sim.writers`, serialises message by
 message and is the reference.)
 """
 

@@ -344,7 +344,7 @@ def write_report(out_dir: Path, log: Path, streams: Any, result: Any, streamed: 
         poses[sensor.name] = {"imu": est.T_base_imu, "lidar": result.T_base_lidar(sensor.name), "prior_imu": sensor.prior_T_base_imu}
     figures.append((vehicle_figure(plt, poses, out_dir / "vehicle.png"), "Top and side view: base frame, IMUs and lidars as estimated (solid), CAD prior (dashed)."))
     page = out_dir / "report.html"
-    from imucal_cli.io.reports import write_text_atomic
+    from imucal_cli.documents import write_text_atomic
 
     write_text_atomic(page, html_page(f"imucal calibration report: {log.name}", document, figures))
     return [p for p, _ in figures] + [page]

@@ -1,0 +1,160 @@
+"""What every container reader shares: the topics it describes, what it could not read, and
+the interface :mod:`imucal_cli.io.logs` reads through."""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from imucal_cli.errors import LogError
+from imucal_cli.io.imu_msg import IMU_MSGTYPE, RawBatch, normalize_msgtype
+
+#: Messages of one topic gathered into a batch by the readers that get them one at a time.
+BATCH_MESSAGES = 8192
+#: Groups of chunks read and decompressed ahead of the one being decoded.
+READ_AHEAD_GROUPS = 2
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """A topic as the container describes it."""
+
+    topic: str
+    msgtype: str  # as stored: sensor_msgs/msg/Imu (ROS 2) or sensor_msgs/Imu (ROS 1)
+    count: int
+    encoding: str  # "cdr", "ros1" or what the file says
+
+    @property
+    def is_imu(self) -> bool:
+        return normalize_msgtype(self.msgtype) == IMU_MSGTYPE
+
+
+@dataclass
+class Loss:
+    """A part of a log that could not be read (or, with ``lost=False``, a note on how it was)."""
+
+    reason: str
+    offset: int = 0  # byte offset in the file where it starts
+    nbytes: int = 0
+    start_ns: int | None = None  # log-time span, where the container says
+    end_ns: int | None = None
+    messages: dict[str, int] | None = None  # per topic, where the container says
+    lost: bool = True
+
+    def describe(self) -> str:
+        if not self.lost:
+            return self.reason
+        span = ""
+        if self.start_ns is not None and self.end_ns is not None and self.end_ns >= self.start_ns:
+            span = f", {(self.end_ns - self.start_ns) * 1e-9:.2f} s of log time"
+        count = ""
+        if self.messages:
+            count = ", " + ", ".join(f"{n} messages of {t}" for t, n in sorted(self.messages.items()))
+        return f"not read: {self.reason} at byte {self.offset} ({self.nbytes} bytes{span}{count})"
+
+
+class LogReader:
+    """A log opened for reading; use as a context manager. Subclasses list the topics and
+    yield raw batches of the topics asked for; :attr:`losses` fills in as they read."""
+
+    format_name = ""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.losses: list[Loss] = []
+
+    def __enter__(self) -> LogReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the file handles."""
+
+    def topics(self) -> dict[str, TopicInfo]:
+        raise NotImplementedError
+
+    def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
+        """Raw batches of ``topics``, each of one topic, in roughly log-time order."""
+        raise NotImplementedError
+
+    def error(self, problem: str, topic: str | None = None) -> LogError:
+        return LogError(str(self.path), problem, topic)
+
+
+class Batcher:
+    """Gathers messages that arrive one at a time into :class:`RawBatch` es per topic."""
+
+    def __init__(self) -> None:
+        self.encodings: dict[str, str] = {}
+        self.data: dict[str, list[bytes]] = {}
+        self.times: dict[str, list[int]] = {}
+
+    def add(self, topic: str, encoding: str, log_time_ns: int, data: bytes) -> RawBatch | None:
+        if topic not in self.data:
+            self.encodings[topic], self.data[topic], self.times[topic] = encoding, [], []
+        self.data[topic].append(data)
+        self.times[topic].append(log_time_ns)
+        return self.flush(topic) if len(self.data[topic]) >= BATCH_MESSAGES else None
+
+    def flush(self, topic: str) -> RawBatch | None:
+        from imucal_cli.io.imu_msg import pack_blobs
+
+        if not self.data[topic]:
+            return None
+        batch = pack_blobs(topic, self.encodings[topic], self.data[topic], self.times[topic])
+        self.data[topic], self.times[topic] = [], []
+        return batch
+
+    def rest(self) -> Iterator[RawBatch]:
+        for topic in self.data:
+            batch = self.flush(topic)
+            if batch is not None:
+                yield batch
+
+
+def read_ahead(items: Iterator[T], depth: int = READ_AHEAD_GROUPS) -> Iterator[T]:
+    """``items`` made in a thread, up to ``depth`` ahead of the consumer (file reads and
+    decompression run outside the GIL)."""
+    ready: queue.Queue[tuple[str, Any]] = queue.Queue(depth)
+    stop = threading.Event()
+
+    def produce() -> None:
+        try:
+            for item in items:
+                while not stop.is_set():
+                    try:
+                        ready.put(("item", item), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            ready.put(("end", None))
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer
+            ready.put(("error", exc))
+
+    thread = threading.Thread(target=produce, name="imucal-read-ahead", daemon=True)
+    thread.start()
+    try:
+        while True:
+            kind, value = ready.get()
+            if kind == "end":
+                return
+            if kind == "error":
+                raise value
+            yield value
+    finally:
+        stop.set()
+        while thread.is_alive():
+            try:
+                ready.get(timeout=0.05)
+            except queue.Empty:
+                pass

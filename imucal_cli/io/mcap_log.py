@@ -1,0 +1,348 @@
+"""MCAP files, read with the ``mcap`` library.
+
+A file whose summary lists its channels and chunk indexes, each chunk with message indexes (what
+the official writers produce by default), is read chunk by chunk: only the chunks that hold a
+wanted channel are read and decompressed, and the messages are found
+through the message indexes, whose entries this module reads as numpy arrays: the library
+builds a Python tuple per message, 1.2 s for the 3.2 M messages of an hour of five IMUs
+(docs/performance.md). Every other valid file (no summary, no indexes, channels only inside
+the chunks, no chunks at all) is read with the library's :class:`StreamReader`, record by
+record. A file cut off mid-write has no summary: it is read up to the cut, and the cut is a
+:class:`Loss`; a chunk that does not decompress is one too.
+"""
+
+from __future__ import annotations
+
+import mmap
+import struct
+from collections.abc import Iterable, Iterator
+from io import BytesIO
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+from mcap.data_stream import ReadDataStream
+from mcap.reader import make_reader
+from mcap.records import Channel, Chunk, ChunkIndex, Schema
+from mcap.stream_reader import StreamReader
+from mcap.summary import Summary
+
+from imucal_cli.io.base import LogReader, Loss, TopicInfo, read_ahead
+from imucal_cli.io.imu_msg import RawBatch, gather
+
+MAGIC = b"\x89MCAP0\r\n"
+#: Decompressed bytes of chunks decoded together: fewer, larger gathers. The 1 h MCAP of
+#: benchmarks/throughput.py (1 MiB chunks) reads and decodes in 2.0 s one chunk at a time and
+#: in 1.2 s in groups of 16 MiB.
+GROUP_BYTES = 2 << 20
+_RECORD = struct.Struct("<BQ")  # opcode, length
+_FOOTER_OP, _SCHEMA_OP, _CHANNEL_OP, _MESSAGE_OP, _CHUNK_OP, _DATA_END_OP = 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F
+_MESSAGE_RECORD = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"), ("log_time", "<u8"), ("publish_time", "<u8")])
+_MESSAGE_HEADER = _MESSAGE_RECORD.itemsize  # 31 bytes before a message's data
+#: Largest decompressed chunk believed: an index claiming more is damaged.
+_MAX_CHUNK = 1 << 30
+REPAIR = "`mcap recover FILE -o FIXED.mcap` rewrites what is readable"
+
+
+def _encoding(channel: Channel) -> str:
+    return "ros1" if channel.message_encoding == "ros1" else channel.message_encoding
+
+
+class McapLog(LogReader):
+    format_name = "mcap"
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path)
+        self._file: BinaryIO = path.open("rb")
+        if self._file.read(len(MAGIC)) != MAGIC:
+            self._file.close()
+            raise self.error("not an MCAP file (bad magic bytes)")
+        self._summary = self._usable_summary()
+        self._scanned: tuple[dict[int, Channel], dict[int, Schema], dict[int, int]] | None = None
+
+    def close(self) -> None:
+        self._file.close()
+
+    def _usable_summary(self) -> Summary | None:
+        """The summary, where it indexes every chunk's messages and names their channels."""
+        try:
+            self._file.seek(0)
+            summary = make_reader(self._file).get_summary()
+        except Exception:  # noqa: BLE001 - no footer or a damaged one: read from the start
+            return None
+        if summary is None or not summary.chunk_indexes:
+            return None
+        for index in summary.chunk_indexes:
+            if not index.message_index_offsets and index.uncompressed_size > 0:
+                return None
+            if any(c not in summary.channels for c in index.message_index_offsets):
+                return None
+        return summary
+
+    # ----------------------------------------------------------------- topics
+
+    def _channels(self) -> tuple[dict[int, Channel], dict[int, Schema], dict[int, int]]:
+        """Channels, schemas and message counts per channel id."""
+        if self._summary is not None:
+            s = self._summary
+            if s.statistics is not None and s.statistics.channel_message_counts:
+                counts = dict(s.statistics.channel_message_counts)
+            else:
+                counts = {}
+                for index in s.chunk_indexes:
+                    for channel_id, entries in self._message_indexes(index, set(index.message_index_offsets)).items():
+                        counts[channel_id] = counts.get(channel_id, 0) + len(entries)
+            return dict(s.channels), dict(s.schemas), counts
+        if self._scanned is None:
+            channels: dict[int, Channel] = {}
+            schemas: dict[int, Schema] = {}
+            counts = {}
+            for data, at in self._walk(channels, schemas, note=True):
+                for channel_id, n in zip(*np.unique(gather(data, at + 9, 2, "<u2"), return_counts=True), strict=True):
+                    counts[int(channel_id)] = counts.get(int(channel_id), 0) + int(n)
+            lost = [x for x in self.losses if x.lost]
+            if not channels and lost:
+                raise self.error(f"no channel could be read: {lost[0].reason}")
+            self._scanned = channels, schemas, counts
+        return self._scanned
+
+    def topics(self) -> dict[str, TopicInfo]:
+        channels, schemas, counts = self._channels()
+        out: dict[str, TopicInfo] = {}
+        for channel_id, channel in channels.items():
+            schema = schemas.get(channel.schema_id)
+            count = counts.get(channel_id, 0) + (out[channel.topic].count if channel.topic in out else 0)
+            out[channel.topic] = TopicInfo(channel.topic, schema.name if schema else "", count, _encoding(channel))
+        return out
+
+    # ----------------------------------------------------------------- messages
+
+    def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
+        wanted = set(topics)
+        if self._summary is not None:
+            ids = {c: (ch.topic, _encoding(ch)) for c, ch in self._summary.channels.items() if ch.topic in wanted}
+            chunks = sorted(self._summary.chunk_indexes, key=lambda i: i.chunk_start_offset)
+            # file reads and zstd (outside the GIL) in a thread, ahead of the decode
+            for found in read_ahead(self._group(group, set(ids)) for group in _groups(chunks, set(ids))):
+                yield from self._chunk_batches(*found, ids)
+            return
+        channels: dict[int, Channel] = {}
+        for data, at in self._walk(channels, {}, note=False):
+            ids = gather(data, at + 9, 2, "<u2").ravel()
+            for channel_id in np.unique(ids):
+                channel = channels.get(int(channel_id))
+                if channel is None or channel.topic not in wanted:
+                    continue
+                mine = at[ids == channel_id]
+                length = gather(data, mine + 1, 8, "<u8").ravel().astype(np.int64)
+                log_times = gather(data, mine + 15, 8, "<u8").ravel().astype(np.int64)
+                yield RawBatch(channel.topic, _encoding(channel), data, mine + _MESSAGE_HEADER, length - 22, log_times)
+
+    def _walk(self, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """The file's records from its start: per chunk (and per top-level message) the data
+        and the offsets of its Message records; channels and schemas collected on the way,
+        their bodies parsed by the library. A record cut off ends the walk (a :class:`Loss`
+        where ``note``); a chunk cut off gives what decompresses of it."""
+        size = self._file.seek(0, 2)
+        data = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+        pos, messages, last_ns = len(MAGIC), 0, None
+        try:
+            while pos + 9 <= len(data):
+                opcode, length = _RECORD.unpack_from(data, pos)
+                body = memoryview(data)[pos + 9 : pos + 9 + length]
+                if opcode in (_FOOTER_OP, _DATA_END_OP):
+                    return
+                if opcode == _CHUNK_OP:
+                    chunk = Chunk.read(ReadDataStream(BytesIO(body)))
+                    inner, cut = _decompress_prefix(chunk), pos + 9 + length > len(data)
+                    found = self._records(inner, channels, schemas)
+                else:
+                    if pos + 9 + length > len(data):
+                        break
+                    inner, cut = np.frombuffer(data, np.uint8, 9 + length, pos), False
+                    found = self._records(inner, channels, schemas)
+                if len(found):
+                    messages += len(found)
+                    last_ns = int(gather(inner, found + 15, 8, "<u8")[-1, 0])
+                    yield inner, found
+                if cut:
+                    break
+                pos += 9 + length
+            if note and pos < len(data):
+                self.losses.append(Loss(
+                    f"the file is cut off after {messages} messages; what follows is lost; {REPAIR}",
+                    pos, len(data) - pos, last_ns, None,
+                ))
+        except Exception as exc:  # noqa: BLE001 - the library raises many types on damage
+            if note:
+                self.losses.append(Loss(
+                    f"the file is damaged after {messages} messages ({type(exc).__name__}: {exc}); "
+                    f"what follows is lost; {REPAIR}", pos, len(data) - pos, last_ns, None,
+                ))
+        finally:
+            if note and not self.losses:
+                self.losses.append(Loss("the file has no usable summary and indexes: read record by record", lost=False))
+
+    @staticmethod
+    def _records(data: np.ndarray, channels: dict[int, Channel], schemas: dict[int, Schema]) -> np.ndarray:
+        """The offsets of the Message records in ``data`` (records end to end, as in a
+        chunk), channels and schemas noted. A record cut off ends the list."""
+        raw = data.data
+        offsets: list[int] = []
+        pos, size = 0, len(data)
+        unpack = _RECORD.unpack_from
+        while pos + 9 <= size:
+            opcode, length = unpack(raw, pos)
+            end = pos + 9 + length
+            if end > size:
+                break
+            if opcode == _MESSAGE_OP:
+                offsets.append(pos)
+            elif opcode == _CHANNEL_OP:
+                channel = Channel.read(ReadDataStream(BytesIO(raw[pos + 9 : end])))
+                channels[channel.id] = channel
+            elif opcode == _SCHEMA_OP:
+                schema = Schema.read(ReadDataStream(BytesIO(raw[pos + 9 : end])))
+                schemas[schema.id] = schema
+            pos = end
+        return np.asarray(offsets, dtype=np.int64)
+
+    def _message_indexes(self, index: ChunkIndex, channel_ids: set[int]) -> dict[int, np.ndarray]:
+        """The message index entries (log time, offset in the chunk) of some channels of a chunk."""
+        offsets = {c: o for c, o in index.message_index_offsets.items() if c in channel_ids}
+        if not offsets:
+            return {}
+        begin = min(offsets.values())
+        end = index.chunk_start_offset + index.chunk_length + index.message_index_length
+        self._file.seek(begin)
+        region = self._file.read(end - begin)
+        out = {}
+        for channel_id, offset in offsets.items():
+            at = offset - begin
+            opcode, _, cid, nbytes = struct.unpack_from("<BQHI", region, at)
+            if opcode != 0x07 or cid != channel_id or at + 15 + nbytes > len(region):
+                raise ValueError(f"message index of channel {channel_id} at byte {offset} is damaged")
+            out[channel_id] = np.frombuffer(region, "<u8", nbytes // 8, at + 15).reshape(-1, 2)
+        return out
+
+    def _group(self, group: list[ChunkIndex], channel_ids: set[int]) -> tuple[list[ChunkIndex], np.ndarray, dict[int, np.ndarray]]:
+        """Chunks decompressed into one buffer, with their wanted message index entries
+        (offsets into that buffer): one gather per field, channel and group, not per chunk.
+        A chunk that does not read is a :class:`Loss`; the others are kept."""
+        buffer = np.empty(sum(min(index.uncompressed_size, _MAX_CHUNK) for index in group), dtype=np.uint8)
+        entries: dict[int, list[np.ndarray]] = {}
+        kept, size = [], 0
+        for index in group:
+            try:
+                found = self._message_indexes(index, channel_ids)
+                self._file.seek(index.chunk_start_offset)
+                record = self._file.read(index.chunk_length)
+                if index.uncompressed_size > _MAX_CHUNK:
+                    raise ValueError(f"the chunk index claims {index.uncompressed_size} bytes")
+                chunk = next(iter(StreamReader(BytesIO(record), skip_magic=True, emit_chunks=True).records))
+                if not isinstance(chunk, Chunk):
+                    raise ValueError("the chunk index does not point at a chunk")
+                if any(len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > chunk.uncompressed_size for e in found.values()):
+                    raise ValueError("a message index points past the chunk's end")
+                buffer[size : size + chunk.uncompressed_size] = np.frombuffer(_decompress(chunk), dtype=np.uint8)
+            except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
+                self._lose_chunk(index, exc)
+                continue
+            for channel_id, e in found.items():
+                entries.setdefault(channel_id, []).append(e[:, 1].astype(np.int64) + size)
+            kept.append(index)
+            size += chunk.uncompressed_size
+        return kept, buffer[:size], {c: np.concatenate(e) for c, e in entries.items()}
+
+    def _lose_chunk(self, index: ChunkIndex, exc: Exception) -> None:
+        """A chunk that does not read: a :class:`Loss`, its messages counted from its index."""
+        assert self._summary is not None
+        try:
+            found = self._message_indexes(index, set(index.message_index_offsets))
+            messages: dict[str, int] | None = {}
+            for channel_id, e in found.items():
+                topic = self._summary.channels[channel_id].topic
+                messages[topic] = messages.get(topic, 0) + len(e)  # type: ignore[index]
+        except Exception:  # noqa: BLE001 - its index is damaged too: not counted
+            messages = None
+        self.losses.append(Loss(
+            f"chunk does not read ({exc}); {REPAIR}", index.chunk_start_offset, index.chunk_length,
+            index.message_start_time, index.message_end_time, messages,
+        ))
+
+    def _chunk_batches(self, group: list[ChunkIndex], data: np.ndarray, entries: dict[int, np.ndarray], ids: dict[int, tuple[str, str]]) -> list[RawBatch]:
+        """The wanted messages of a decompressed chunk, a batch per channel, found through
+        their message index entries (checked against the records they point at)."""
+        batches = []
+        for channel_id, at in entries.items():
+            if not len(at):
+                continue
+            head = gather(data, at, _MESSAGE_HEADER, _MESSAGE_RECORD).ravel()
+            length = head["length"].astype(np.int64)
+            if (head["opcode"] != _MESSAGE_OP).any() or (head["channel"] != channel_id).any() or (length < 22).any() or (at + 9 + length > len(data)).any():
+                if len(group) == 1:
+                    self._lose_chunk(group[0], ValueError("a message index does not point at its messages"))
+                    return []
+                # find the chunk at fault: read the group's chunks one by one
+                return [b for index in group for b in self._chunk_batches(*self._group([index], set(ids)), ids)]
+            topic, encoding = ids[channel_id]
+            batches.append(RawBatch(topic, encoding, data, at + _MESSAGE_HEADER, length - 22, head["log_time"].astype(np.int64)))
+        return batches
+
+
+def _groups(chunks: list[ChunkIndex], channel_ids: set[int]) -> Iterator[list[ChunkIndex]]:
+    """The chunks holding a wanted channel, in groups of about :data:`GROUP_BYTES` decompressed."""
+    group: list[ChunkIndex] = []
+    size = 0
+    for index in chunks:
+        if not channel_ids & index.message_index_offsets.keys():
+            continue
+        group.append(index)
+        size += index.uncompressed_size
+        if size >= GROUP_BYTES:
+            yield group
+            group, size = [], 0
+    if group:
+        yield group
+
+
+def _decompress_prefix(chunk: Chunk) -> np.ndarray:
+    """A chunk's records, or where it is cut off, as much of them as decompresses."""
+    try:
+        return np.frombuffer(_decompress(chunk), dtype=np.uint8)
+    except Exception:  # noqa: BLE001 - cut off or damaged: the prefix that decodes
+        if chunk.compression == "zstd":
+            import zstandard
+
+            try:
+                out = zstandard.ZstdDecompressor().decompressobj().decompress(chunk.data)
+            except zstandard.ZstdError:
+                out = b""
+        elif chunk.compression == "lz4":
+            import lz4.frame
+
+            try:
+                out = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data)
+            except RuntimeError:
+                out = b""
+        else:
+            out = chunk.data
+        return np.frombuffer(out, dtype=np.uint8)
+
+
+def _decompress(chunk: Chunk) -> bytes:
+    if chunk.compression == "zstd":
+        import zstandard
+
+        out = zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=chunk.uncompressed_size)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        out = lz4.frame.decompress(chunk.data)
+    elif chunk.compression == "":
+        out = chunk.data
+    else:
+        raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
+    if len(out) != chunk.uncompressed_size:
+        raise ValueError(f"decompressed to {len(out)} bytes, the chunk says {chunk.uncompressed_size}")
+    return out

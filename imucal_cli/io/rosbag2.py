@@ -1,0 +1,116 @@
+"""rosbag2 folders (sqlite3 or mcap storage), opened with ``rosbags``.
+
+``rosbags`` reads the folder's ``metadata.yaml`` (topics, types, counts, storage, compression).
+Messages come from ``rosbags`` too, one at a time (the hour of five IMUs of docs/performance.md:
+9.6 s; the ``sqlite3`` module in blocks of rows was no faster, 9.5 s), except from uncompressed
+mcap storage files, which :class:`~imucal_cli.io.mcap_log.McapLog` reads (1.5 s, and up to the
+cut where the recorder was killed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from imucal_cli.errors import LogError
+from imucal_cli.io.base import Batcher, LogReader, Loss, TopicInfo
+from imucal_cli.io.imu_msg import RawBatch
+from imucal_cli.io.mcap_log import McapLog
+
+REINDEX = "`ros2 bag reindex FOLDER` rebuilds a missing or broken metadata.yaml"
+
+
+def bag_folder(path: Path) -> Path:
+    """The bag folder of a path given as the folder or as its ``metadata.yaml``; a
+    :class:`LogError` that says what to give for anything else."""
+    if path.is_file() and path.name == "metadata.yaml":
+        return path.parent
+    if path.is_dir():
+        return path
+    raise LogError(str(path), f"a rosbag2 storage file: give its bag folder ({path.parent}) instead")
+
+
+def _metadata(folder: Path) -> tuple[dict[str, Any] | None, str]:
+    """The folder's bag information, or None and why not."""
+    import yaml
+
+    try:
+        info = yaml.safe_load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    except FileNotFoundError:
+        return None, "it has no metadata.yaml"
+    except Exception as exc:  # noqa: BLE001 - yaml, key and type errors alike
+        return None, f"its metadata.yaml does not read ({type(exc).__name__}: {exc})"
+    return (info, "") if isinstance(info, dict) else (None, "its metadata.yaml holds no bag information")
+
+
+class Rosbag2Log(LogReader):
+    """A rosbag2 folder. Uncompressed mcap storage is read file by file as MCAP (also where
+    ``metadata.yaml`` is missing, as a killed recorder leaves it); everything else through
+    ``rosbags``."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(bag_folder(path))
+        info, why = _metadata(self.path)
+        mcaps = sorted(self.path.glob("*.mcap"))
+        self._reader: Any = None
+        self._storage: list[McapLog] = []
+        if info is None:
+            if not mcaps:
+                raise self.error(f"not a readable rosbag2 folder: {why}; {REINDEX}")
+            self.losses.append(Loss(f"{why}: its {len(mcaps)} mcap storage file(s) read directly", lost=False))
+            self.format_name = "rosbag2-mcap"
+            self._storage = [McapLog(f) for f in mcaps]
+        elif info.get("storage_identifier") == "mcap" and not info.get("compression_format"):
+            self.format_name = "rosbag2-mcap"
+            files = [self.path / Path(p).name for p in info.get("relative_file_paths", [])]
+            missing = [f.name for f in files if not f.is_file()]
+            if missing:
+                raise self.error(f"storage file {missing[0]} of metadata.yaml is missing")
+            self._storage = [McapLog(f) for f in files]
+        else:
+            from rosbags.rosbag2 import Reader
+
+            self.format_name = f"rosbag2-{info.get('storage_identifier', '?')}"
+            try:
+                self._reader = Reader(self.path)
+                self._reader.open()
+            except Exception as exc:  # noqa: BLE001 - rosbags raises its own and OS errors
+                raise self.error(f"cannot read the rosbag2 folder: {exc}; {REINDEX}; `sqlite3 FILE.db3 .recover` salvages a damaged database") from None
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+        for log in self._storage:
+            log.close()
+
+    def topics(self) -> dict[str, TopicInfo]:
+        out: dict[str, TopicInfo] = {}
+        if self._reader is None:
+            for log in self._storage:
+                for topic, info in log.topics().items():
+                    count = info.count + (out[topic].count if topic in out else 0)
+                    out[topic] = TopicInfo(topic, info.msgtype, count, info.encoding)
+                self.losses.extend(x for x in log.losses if x.lost)
+            return out
+        for conn in self._reader.connections:
+            count = int(conn.msgcount) + (out[conn.topic].count if conn.topic in out else 0)
+            out[conn.topic] = TopicInfo(conn.topic, conn.msgtype, count, getattr(conn.ext, "serialization_format", "cdr"))
+        return out
+
+    def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
+        wanted = set(topics)
+        if self._reader is None:
+            for log in self._storage:
+                yield from log.batches(wanted)
+            return
+        connections = [c for c in self._reader.connections if c.topic in wanted]
+        batcher = Batcher()
+        try:
+            for conn, timestamp, data in self._reader.messages(connections=connections):
+                batch = batcher.add(conn.topic, getattr(conn.ext, "serialization_format", "cdr"), int(timestamp), bytes(data))
+                if batch is not None:
+                    yield batch
+        except Exception as exc:  # noqa: BLE001 - a damaged storage file
+            raise self.error(f"cannot read its messages: {exc}; `sqlite3 FILE.db3 .recover` salvages a damaged database") from None
+        yield from batcher.rest()

@@ -1,0 +1,134 @@
+"""MCAP: the project's conformance files, and IMU logs in every layout the official writer makes."""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from imucal_cli.cli import app
+from imucal_cli.io.logs import read_imu
+from imucal_cli.sim.writers import _messages, _msgdef, _serialized, write_imu_log
+
+runner = CliRunner()
+CONFORMANCE = Path(__file__).resolve().parents[2] / "shared" / "conformance" / "mcap"
+
+
+def _expected() -> dict[str, dict[str, int]]:
+    return json.loads((CONFORMANCE / "expected_counts.json").read_text()) if CONFORMANCE.is_dir() else {}
+
+
+@pytest.mark.skipif(not CONFORMANCE.is_dir(), reason="../shared/conformance is not here")
+def test_every_conformance_file_lists_the_topics_and_counts_the_mcap_library_reads():
+    wrong = []
+    for name, counts in _expected().items():
+        result = runner.invoke(app, ["inspect", str(CONFORMANCE / name), "--json"])
+        got = json.loads(result.stdout)["topics"] if result.exit_code == 0 else result.output
+        if result.exit_code != 0 or {t: v["count"] for t, v in got.items()} != counts:
+            wrong.append((name, counts, got))
+        elif not counts and "warning" in result.stderr:  # a complete file with no messages is not cut off
+            wrong.append((name, counts, result.stderr))
+    assert not wrong, f"{len(wrong)} of {len(_expected())} files read wrong, first: {wrong[0]}"
+    assert len(_expected()) == 255
+
+
+def _write(path: Path, topics, **options) -> Path:
+    """The drive through the official writer with ``options`` (mcap.writer.Writer's)."""
+    from mcap.writer import Writer
+
+    msgdef, _ = _msgdef(False)
+    blobs = _serialized(topics, False)
+    with path.open("wb") as handle:
+        writer = Writer(handle, **options)
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema(name="sensor_msgs/msg/Imu", encoding="ros2msg", data=msgdef.encode())
+        channels = {t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema) for t in topics}
+        for log_ns, topic, i in _messages(topics):
+            writer.add_message(channel_id=channels[topic], log_time=log_ns, data=blobs[topic][i].tobytes(), publish_time=log_ns)
+        writer.finish()
+    return path
+
+
+def _without_summary(path: Path) -> Path:
+    """The file with its summary section dropped: the footer says there is none."""
+    data = path.read_bytes()
+    footer = len(data) - 8 - (1 + 8 + 8 + 8 + 4)
+    (summary_start,) = struct.unpack_from("<Q", data, footer + 9)
+    out = path.with_name(path.stem + "-nosummary.mcap")
+    record = struct.pack("<BQQQI", 0x02, 20, 0, 0, 0)
+    out.write_bytes(data[:summary_start] + record + data[-8:])
+    return out
+
+
+@pytest.fixture(scope="module")
+def layouts(tmp_path_factory, short_drive):
+    from mcap.writer import IndexType
+
+    root = tmp_path_factory.mktemp("layouts")
+    topics = short_drive.topics()
+    made = {
+        "default": _write(root / "default.mcap", topics),
+        "no repeated channels or schemas": _write(root / "norepeat.mcap", topics, repeat_channels=False, repeat_schemas=False),
+        "message indexes only": _write(root / "mx.mcap", topics, index_types=IndexType.MESSAGE),
+        "chunk indexes only": _write(root / "chx.mcap", topics, index_types=IndexType.CHUNK),
+        "unchunked": _write(root / "unchunked.mcap", topics, use_chunking=False),
+        "no statistics": _write(root / "nostats.mcap", topics, use_statistics=False),
+    }
+    made["no summary"] = _without_summary(made["default"])
+    return made, list(topics)
+
+
+@pytest.mark.parametrize("layout", ["no repeated channels or schemas", "message indexes only", "chunk indexes only", "unchunked", "no statistics", "no summary"])
+def test_every_layout_of_the_official_writer_reads_the_same_samples(layouts, layout):
+    made, topics = layouts
+    want, got = read_imu(made["default"], topics), read_imu(made[layout], topics)
+    for topic in topics:
+        assert got[topic].stream.t_ns.tobytes() == want[topic].stream.t_ns.tobytes()
+        assert got[topic].stream.gyro.tobytes() == want[topic].stream.gyro.tobytes()
+        assert got[topic].stream.accel.tobytes() == want[topic].stream.accel.tobytes()
+        assert got[topic].stats.to_dict() == want[topic].stats.to_dict()
+
+
+@pytest.mark.parametrize("layout", ["no repeated channels or schemas", "chunk indexes only", "no summary"])
+def test_calibrate_gives_the_same_result_on_every_layout(layouts, layout, tmp_path, short_drive):
+    from imucal_cli.documents import write_document
+
+    made, _ = layouts
+    config = tmp_path / "c.yaml"
+    write_document(config, short_drive.config_document())
+    docs = []
+    for path in (made["default"], made[layout]):
+        result = runner.invoke(app, ["calibrate", str(path), "-c", str(config), "--json"])
+        assert result.exit_code == 0, result.output
+        doc = json.loads(result.stdout)
+        doc.pop("log")
+        docs.append(doc)
+    assert docs[0] == docs[1]
+
+
+def test_a_rosbag2_given_as_its_metadata_file_reads_as_its_folder(tmp_path, short_drive):
+    topics = short_drive.topics()
+    for fmt in ("rosbag2-sqlite3", "rosbag2-mcap"):
+        bag = write_imu_log(tmp_path / fmt, fmt, topics)
+        by_folder, by_metadata = read_imu(bag, list(topics)), read_imu(bag / "metadata.yaml", list(topics))
+        for topic in topics:
+            assert by_metadata[topic].stream.t_ns.tobytes() == by_folder[topic].stream.t_ns.tobytes()
+
+
+def test_a_storage_file_or_a_folder_that_is_not_a_bag_says_what_to_give(tmp_path, short_drive):
+    bag = write_imu_log(tmp_path / "bag", "rosbag2-sqlite3", short_drive.topics())
+    storage = next(bag.glob("*.db3"))
+    result = runner.invoke(app, ["inspect", str(storage)])
+    assert result.exit_code == 2 and f"give its bag folder ({bag})" in result.stderr
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    result = runner.invoke(app, ["inspect", str(empty)])
+    assert result.exit_code == 2 and "no metadata.yaml" in result.stderr and "ros2 bag reindex" in result.stderr
+    zstd = tmp_path / "bag2" / "x.db3.zstd"
+    zstd.parent.mkdir()
+    zstd.write_bytes(b"\x28\xb5\x2f\xfd")
+    result = runner.invoke(app, ["inspect", str(zstd)])
+    assert result.exit_code == 2 and "give its bag folder" in result.stderr
