@@ -32,7 +32,7 @@ CLOCK_COMPARE_SLACK_S = 0.05
 CLOCK_COMPARE_SAMPLES = 200
 
 __all__ = [
-    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "load_transforms", "lost_summary", "stream_log",
+    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "load_transforms", "lost_summary", "stream_biases", "stream_log",
 ]
 
 
@@ -126,6 +126,28 @@ def stream_log(log: str | Path, config: Config, progress: Callable[[int], None] 
         raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
     duplicates = {topic: calibrator.duplicates(name) for topic, name in names.items()}
     return StreamedLog(log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name)
+
+
+def stream_biases(log: str | Path, config: Config, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+    """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
+    :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length."""
+    from imucal_cli.pipeline import bias_trackers, biases_document
+
+    log = Path(log)
+    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    trackers = bias_trackers(config)
+    reader = ImuBatches(log, names)
+    count = 0
+    for topic, stamps, _, gyro, accel in reader:
+        trackers[names[topic]].add(stamps, gyro, accel)
+        count += len(stamps)
+        if progress is not None:
+            progress(count)
+    empty = [topic for topic, name in names.items() if trackers[name].first_ns is None]
+    if empty:
+        raise InputError(f"{log} [{empty[0]}]: too little data: no usable message{lost_summary(reader.losses)}")
+    reports = {name: tracker.report() for name, tracker in trackers.items()}
+    return biases_document(min(r.first_ns for r in reports.values()), config, reports)
 
 
 @dataclass

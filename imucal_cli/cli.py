@@ -267,34 +267,6 @@ def _note_losses(log: Path, losses: list[Any]) -> None:
         typer.echo(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read", err=True)
 
 
-def _load_drive(log: Path, config_path: Path, quiet: bool = False) -> tuple[Any, Any]:
-    """Load the config, then the base and sensor IMU streams of the log."""
-    from imucal_cli.api import lost_summary
-    from imucal_cli.config import load_config
-    from imucal_cli.io.logs import read_imu
-    from imucal_cli.pipeline import DriveStreams
-
-    config = load_config(config_path)
-    topics = [config.base.topic] + [s.imu_topic for s in config.sensors]
-    losses: list[Any] = []
-    with _progress(f"reading {log}") as progress:
-        reads = read_imu(log, topics, progress=progress, losses=losses)
-    for topic, read in reads.items():
-        if len(read.stream) < 10:
-            raise InputError(f"{log} [{topic}]: too little data: {len(read.stream)} usable messages{lost_summary(losses)}")
-    if not quiet:
-        _note_losses(log, losses)
-        for topic, read in reads.items():
-            _note_read(log, topic, read.stats.to_dict())
-    t0_ns = min(int(r.stream.t_ns[0]) for r in reads.values())
-    streams = DriveStreams(
-        base=reads[config.base.topic].stream,
-        sensors={s.name: reads[s.imu_topic].stream for s in config.sensors},
-        t0_ns=t0_ns,
-    )
-    return config, streams
-
-
 def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
     nothing solved yet); say on stderr what reading found. Returns the config and the
@@ -326,12 +298,13 @@ def biases(
     as_json: JsonOption = False,
 ) -> None:
     """Per IMU: rest periods, accelerometer bias and noise, gyro bias track summary."""
-    from imucal_cli.pipeline import biases_document, run_biases
+    from imucal_cli.api import stream_biases
+    from imucal_cli.config import load_config
 
     _check_output(out)
-    cfg, streams = _load_drive(log, config)
-    with _progress("estimating biases"):
-        document = biases_document(streams, cfg, run_biases(streams, cfg))
+    cfg = load_config(config)
+    with _progress(f"reading {log}") as progress:
+        document = stream_biases(log, cfg, progress)
 
     def render(doc: dict[str, Any]) -> None:
         from rich.table import Table
@@ -346,7 +319,11 @@ def biases(
                 name, str(len(imu["rest_periods"])), f"{rest_s:.1f}", _fmt(imu["accel_bias_mps2"], 4),
                 _fmt(gyro["final"], 5), _fmt(gyro["final_std"], 5),
             )
-        _stdout_console().print(table)
+        console = _stdout_console()
+        console.print(table)
+        for name, imu in doc["imus"].items():
+            for warning in imu["warnings"]:
+                console.print(f"{name}: {warning}", style="yellow")
 
     _emit(document, out, as_json, render)
 
@@ -446,12 +423,10 @@ def calibrate(
             console.print(f"{pair}: xyz {_fmt(T['translation'], 4)} m, rpy {_fmt(T['rpy_deg'], 3)} deg")
 
     if report is not None:
-        from imucal_cli.pipeline import run_biases
         from imucal_cli.report import write_report
 
-        _, streams = _load_drive(log, config, quiet=True)
         with _progress("drawing the report"):
-            written = write_report(report, log, streams, result, streamed, run_biases(streams, cfg), document)
+            written = write_report(report, log, result, streamed, document)
         typer.echo(f"imucal: report: {written[-1]}", err=True)
     _emit(document, out, as_json, render)
     if require_observable and not result.all_ok:

@@ -15,7 +15,7 @@ import numpy as np
 
 from imucal_cli import __version__
 from imucal_cli.config import Config, SensorConfig
-from imucal_cli.core.biases import BiasReport, estimate_biases
+from imucal_cli.core.biases import BiasReport, BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
@@ -81,27 +81,18 @@ def feed(calibrator: StreamingCalibrator, streams: DriveStreams, block_s: float 
 # --------------------------------------------------------------------------- biases
 
 
-def run_biases(streams: DriveStreams, config: Config) -> dict[str, BiasReport]:
-    """Per IMU (``base`` first, then each sensor): rests, accelerometer and gyro biases."""
-    out: dict[str, BiasReport] = {}
-    for name, stream in [("base", streams.base), *streams.sensors.items()]:
-        out[name] = estimate_biases(
-            stream,
-            config.rest.accel_tolerance_mps2,
-            config.rest.gyro_tolerance_radps,
-            config.rest.min_duration_s,
-            np.radians(config.gyro_bias.process_noise_dps),
-            np.radians(config.gyro_bias.initial_std_dps),
-        )
-    return out
+def bias_trackers(config: Config) -> dict[str, BiasTracker]:
+    """A :class:`BiasTracker` per IMU (``base`` first, then each sensor), as the config says."""
+    rest, gyro = config.rest, config.gyro_bias
+    args = (rest.accel_tolerance_mps2, rest.gyro_tolerance_radps, rest.min_duration_s, np.radians(gyro.process_noise_dps), np.radians(gyro.initial_std_dps))
+    return {name: BiasTracker(*args) for name in ["base", *(s.name for s in config.sensors)]}
 
 
-def biases_document(streams: DriveStreams, config: Config, reports: Mapping[str, BiasReport]) -> dict[str, Any]:
+def biases_document(t0_ns: int, config: Config, reports: Mapping[str, BiasReport]) -> dict[str, Any]:
     topics = {"base": config.base.topic} | {s.name: s.imu_topic for s in config.sensors}
     imus: dict[str, Any] = {}
     for name, report in reports.items():
-        stream = streams.base if name == "base" else streams.sensors[name]
-        offset = streams.seconds(int(stream.t_ns[0]))
+        offset = (report.first_ns - t0_ns) * 1e-9
         imus[name] = {
             "topic": topics[name],
             "rest_periods": [[offset + r.start_s, offset + r.end_s] for r in report.rest_periods],
@@ -113,8 +104,9 @@ def biases_document(streams: DriveStreams, config: Config, reports: Mapping[str,
                 "track_std": report.gyro_bias_track_std,
                 "final_std": report.gyro_bias_final_std,
             },
+            "warnings": report.warnings,
         }
-    return {"imucal_version": __version__, "t0_ns": streams.t0_ns, "imus": imus}
+    return {"imucal_version": __version__, "t0_ns": t0_ns, "imus": imus}
 
 
 # --------------------------------------------------------------------------- segments

@@ -1,22 +1,18 @@
-"""A calibration report: PNG figures like the paper's and one ``report.html`` that embeds them
-with the result table (``imucal calibrate --report DIR``).
+"""A calibration report: PNG figures and one ``report.html`` that embeds them with the result
+table (``imucal calibrate --report DIR``), drawn from what the calibration computed, with no
+second read of the log and no model of its own.
 
 Figures (matplotlib, Agg backend; the optional extra ``imucal[report]``):
 
-- ``gyro_<sensor>.png``: base and sensor gyro per axis, raw (sensor axes) and after calibration
-  (rotated into the base frame, relative bias removed, clock offset applied), paper Figs. 7-8;
-- ``biases.png``: every IMU's gyro bias track (Kalman filter, eqs. 7-9) with its +-1 std band,
-  rest periods shaded, paper Figs. 5-6;
-- ``windows.png``: per sensor, each window's rotation std (eq. 19) against the threshold, over
-  the base's ``|w|``, selected windows shaded, paper Figs. 9b-10b;
-- ``residuals.png``: the specific-force residual of every sensor after calibration (eq. 11 with
-  the estimated rotation, lever arm and bias), per axis;
+- ``biases.png``: per sensor, the relative gyro and accelerometer bias the joint fit estimated
+  at each knot (eqs. 5-9 within eq. 10-17's fit);
+- ``windows.png``: per sensor, each window's rotation std (eq. 19) against the threshold,
+  selected windows shaded, paper Figs. 9b-10b;
+- ``residuals.png``: per sensor, the gyro and specific-force residual RMS of the fit in every
+  window used (eqs. 10 and 11), against the noise the data imply;
 - ``std.png``: the standard deviation of every estimated axis (rotation and translation);
 - ``vehicle.png``: top and side view of the vehicle: the base frame and every IMU and lidar at
   its estimated pose, the CAD prior beside it.
-
-The report needs the IMU streams in memory (the calibration itself does not): it reads the log
-once more, which costs memory in proportion to its length.
 """
 
 from __future__ import annotations
@@ -32,8 +28,6 @@ import numpy as np
 from imucal_cli.errors import InputError
 from imucal_cli.types import Transform
 
-#: Most points drawn per line (longer series are thinned evenly).
-MAX_POINTS = 6000
 AXES = ("x", "y", "z")
 COLOURS = ("tab:red", "tab:green", "tab:blue")
 
@@ -49,12 +43,6 @@ def pyplot() -> Any:
     return plt
 
 
-def _thin(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
-    n = len(arrays[0])
-    step = max(1, n // MAX_POINTS)
-    return tuple(a[::step] for a in arrays)
-
-
 def _save(fig: Any, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     import matplotlib.pyplot as plt
@@ -63,104 +51,67 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
-def gyro_figure(plt: Any, name: str, t_base: np.ndarray, w_base: np.ndarray, t_sensor: np.ndarray, w_sensor: np.ndarray,
-                R_base_imu: np.ndarray, gyro_bias: np.ndarray, tau_s: float, path: Path) -> Path:
-    """Base vs sensor gyro per axis: raw (left) and calibrated (right)."""
-    # calibrated: the sensor's sample at base time t is the one stamped t + tau; rotate it into
-    # the base frame after removing its relative bias
-    w_cal = np.column_stack([np.interp(t_base + tau_s, t_sensor, w_sensor[:, k]) for k in range(3)])
-    w_cal = (w_cal - gyro_bias) @ R_base_imu.T
-    fig, axes = plt.subplots(3, 2, figsize=(13, 8), sharex=True)
-    rms = np.sqrt(np.nanmean((w_cal - w_base) ** 2, axis=0))
-    tb, wb, wc = _thin(t_base, w_base, w_cal)
-    ts, ws = _thin(t_sensor, w_sensor)
-    for k in range(3):
-        left, right = axes[k, 0], axes[k, 1]
-        left.plot(tb, wb[:, k], color="black", lw=0.8, label="base")
-        left.plot(ts, ws[:, k], color=COLOURS[k], lw=0.8, alpha=0.8, label=f"{name} (own axes)")
-        right.plot(tb, wb[:, k], color="black", lw=0.8, label="base")
-        right.plot(tb, wc[:, k], color=COLOURS[k], lw=0.8, alpha=0.8, ls="--", label=f"{name} calibrated (rms diff {rms[k]:.4f} rad/s)")
-        left.set_ylabel(f"w_{AXES[k]} (rad/s)")
-        for ax in (left, right):
+def bias_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: Path) -> Path:
+    """Per sensor: the relative gyro (left) and accelerometer (right) bias at every knot."""
+    fig, axes = plt.subplots(len(estimates), 2, figsize=(13, 2.6 * len(estimates)), sharex=True, squeeze=False)
+    for row, (name, est) in zip(axes, estimates.items(), strict=True):
+        t = est.bias_knots_s + offset_s
+        for k in range(3):
+            row[0].plot(t, np.degrees(est.gyro_bias_knots[:, k]), color=COLOURS[k], lw=1.0, label=f"b_{AXES[k]}")
+            row[1].plot(t, est.accel_bias_knots[:, k], color=COLOURS[k], lw=1.0, label=f"b_{AXES[k]}")
+        row[0].set_ylabel("gyro bias (deg/s)")
+        row[1].set_ylabel("accel bias (m/s^2)")
+        row[0].set_title(f"{name}: relative gyro bias, sensor minus base (IMU axes)", fontsize=10)
+        row[1].set_title(f"{name}: relative accelerometer bias (IMU axes)", fontsize=10)
+        for ax in row:
+            ax.grid(alpha=0.3)
+            ax.legend(loc="upper right", fontsize=8, ncol=3)
+    for ax in axes[-1]:
+        ax.set_xlabel("time since the log's first IMU stamp (s)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def windows_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, threshold_deg: float, path: Path) -> Path:
+    """Per sensor: each window's rotation std against the threshold, selected windows shaded."""
+    fig, axes = plt.subplots(len(estimates), 1, figsize=(13, 2.8 * len(estimates)), sharex=True, squeeze=False)
+    for ax, (name, est) in zip(axes[:, 0], estimates.items(), strict=True):
+        infos = est.windows
+        for i, w in enumerate(w for w in infos if w.selected):
+            ax.axvspan(w.start_s + offset_s, w.end_s + offset_s, color="tab:green", alpha=0.15, label=None if i else "selected window")
+        for valid, colour, label in ((True, "tab:blue", "window std"), (False, "tab:orange", "window with a gap (not used)")):
+            mid = [0.5 * (w.start_s + w.end_s) + offset_s for w in infos if w.valid == valid]
+            std = [w.rotation_std_deg if np.isfinite(w.rotation_std_deg) else np.nan for w in infos if w.valid == valid]
+            if mid:
+                ax.plot(mid, std, "_", color=colour, ms=8, mew=2, label=label)
+        ax.axhline(threshold_deg, color="tab:red", ls="--", lw=1, label=f"threshold {threshold_deg:g} deg")
+        ax.set_yscale("log")
+        ax.set_ylabel("rotation std (deg, eq. 19)")
+        ax.set_title(f"{name}: windows ({sum(w.selected for w in infos)} of {len(infos)} selected)", fontsize=10)
+        ax.legend(loc="upper right", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("time since the log's first IMU stamp (s)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def residual_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: Path) -> Path:
+    """Per sensor: the fit's residual RMS in every window used, against the noise floor."""
+    fig, axes = plt.subplots(len(estimates), 2, figsize=(13, 2.6 * len(estimates)), sharex=True, squeeze=False)
+    for row, (name, est) in zip(axes, estimates.items(), strict=True):
+        r = est.window_residuals
+        for ax, col, unit, noise in ((row[0], 1, "rad/s", "gyro_radps"), (row[1], 2, "m/s^2", "accel_mps2")):
+            ax.plot(r[:, 0] + offset_s, r[:, col], ".", color="black", ms=3, label="window residual RMS")
+            if noise in est.noise_std:
+                ax.axhline(est.noise_std[noise], color="tab:blue", ls="--", lw=1, label="noise the data imply")
+            ax.set_ylabel(f"residual ({unit})")
+            ax.set_yscale("log")
             ax.grid(alpha=0.3)
             ax.legend(loc="upper right", fontsize=8)
-    axes[0, 0].set_title("raw: base axes vs the sensor IMU's own axes")
-    axes[0, 1].set_title("calibrated: rotated into the base frame, bias removed, time-aligned")
-    axes[2, 0].set_xlabel("time since the log's first IMU stamp (s)")
-    axes[2, 1].set_xlabel("time since the log's first IMU stamp (s)")
-    fig.suptitle(f"Angular velocity, base and {name}")
-    fig.tight_layout()
-    return _save(fig, path)
-
-
-def bias_figure(plt: Any, tracks: Mapping[str, tuple[np.ndarray, Any]], path: Path) -> Path:
-    """Each IMU's gyro bias track with its +-1 std band; rest periods shaded."""
-    fig, axes = plt.subplots(len(tracks), 1, figsize=(13, 2.6 * len(tracks)), sharex=True, squeeze=False)
-    for ax, (name, (t, report)) in zip(axes[:, 0], tracks.items(), strict=True):
-        track, std = report.gyro_bias_track, report.gyro_bias_track_std_series
-        tt, tr, sd = _thin(t, track, std)
-        for k in range(3):
-            ax.plot(tt, np.degrees(tr[:, k]), color=COLOURS[k], lw=1.0, label=f"b_{AXES[k]}")
-            ax.fill_between(tt, np.degrees(tr[:, k] - sd[:, k]), np.degrees(tr[:, k] + sd[:, k]), color=COLOURS[k], alpha=0.15)
-        for i, rest in enumerate(report.rest_periods):  # rest times count from the stream's first sample
-            ax.axvspan(t[0] + rest.start_s, t[0] + rest.end_s, color="grey", alpha=0.2, label="rest" if i == 0 else None)
-        low, high = np.degrees(np.nanmin(track)), np.degrees(np.nanmax(track))
-        margin = max(0.1, 0.6 * (high - low))
-        ax.set_ylim(low - margin, high + margin)  # the band grows off the chart while driving
-        ax.set_ylabel("gyro bias (deg/s)")
-        ax.set_title(f"{name}: gyro bias (Kalman filter) with +-1 std (grows between rests), rest periods shaded", fontsize=10)
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper right", fontsize=8, ncol=4)
-    axes[-1, 0].set_xlabel("time since the log's first IMU stamp (s)")
-    fig.tight_layout()
-    return _save(fig, path)
-
-
-def windows_figure(plt: Any, t_base: np.ndarray, w_base: np.ndarray, windows: Mapping[str, list[Any]], offset_s: float,
-                   threshold_deg: float, path: Path) -> Path:
-    """Per sensor: each window's rotation std against the threshold, over the base's |w|."""
-    fig, axes = plt.subplots(len(windows), 1, figsize=(13, 2.8 * len(windows)), sharex=True, squeeze=False)
-    tb, wb = _thin(t_base, np.linalg.norm(w_base, axis=1))
-    for ax, (name, infos) in zip(axes[:, 0], windows.items(), strict=True):
-        ax.plot(tb, np.degrees(wb), color="grey", lw=0.7)
-        ax.set_ylabel("|w| base (deg/s)", color="grey")
-        right = ax.twinx()
-        labelled = set()
-        for w in infos:
-            a, b = w.start_s + offset_s, w.end_s + offset_s
-            if w.selected:
-                ax.axvspan(a, b, color="tab:green", alpha=0.15, label=None if "sel" in labelled else "selected window")
-                labelled.add("sel")
-            std = w.rotation_std_deg if np.isfinite(w.rotation_std_deg) else np.nan
-            kind = "window std" if w.valid else "window with a gap (not used)"
-            right.plot([a, b], [std, std], color="tab:blue" if w.valid else "tab:orange", lw=2, label=None if kind in labelled else kind)
-            labelled.add(kind)
-        right.axhline(threshold_deg, color="tab:red", ls="--", lw=1, label=f"threshold {threshold_deg:g} deg")
-        right.set_yscale("log")
-        right.set_ylabel("rotation std (deg, eq. 19)", color="tab:blue")
-        ax.set_title(f"{name}: windows ({sum(w.selected for w in infos)} of {len(infos)} selected)", fontsize=10)
-        h1, l1 = ax.get_legend_handles_labels()
-        h2, l2 = right.get_legend_handles_labels()
-        right.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=8)
-        ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel("time since the log's first IMU stamp (s)")
-    fig.tight_layout()
-    return _save(fig, path)
-
-
-def residual_figure(plt: Any, residuals: Mapping[str, tuple[np.ndarray, np.ndarray]], path: Path) -> Path:
-    """Specific-force residual per sensor and axis after calibration."""
-    fig, axes = plt.subplots(len(residuals), 1, figsize=(13, 2.6 * len(residuals)), sharex=True, squeeze=False)
-    for ax, (name, (t, r)) in zip(axes[:, 0], residuals.items(), strict=True):
-        tt, rr = _thin(t, r)
-        rms = np.sqrt(np.nanmean(r**2, axis=0))
-        for k in range(3):
-            ax.plot(tt, rr[:, k], color=COLOURS[k], lw=0.7, label=f"{AXES[k]} (rms {rms[k]:.4f})")
-        ax.set_ylabel("residual (m/s^2)")
-        ax.set_title(f"{name}: f_I - R^T (f_B + (W^2 + dW) t) - b_a, low-passed (eq. 11)", fontsize=10)
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper right", fontsize=8, ncol=3)
-    axes[-1, 0].set_xlabel("time since the log's first IMU stamp (s)")
+        row[0].set_title(f"{name}: gyro residual after calibration (eq. 10)", fontsize=10)
+        row[1].set_title(f"{name}: specific-force residual after calibration (eq. 11)", fontsize=10)
+    for ax in axes[-1]:
+        ax.set_xlabel("time since the log's first IMU stamp (s)")
     fig.tight_layout()
     return _save(fig, path)
 
@@ -283,68 +234,25 @@ td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}img{{max-width:10
 """
 
 
-def write_report(out_dir: Path, log: Path, streams: Any, result: Any, streamed: Any, biases: Mapping[str, Any],
-                 document: Mapping[str, Any]) -> list[Path]:
+def write_report(out_dir: Path, log: Path, result: Any, streamed: Any, document: Mapping[str, Any]) -> list[Path]:
     """Draw every figure into ``out_dir`` and write ``report.html``; returns the files written."""
-    from imucal_cli.core.signals import Lowpass
+    from imucal_cli.documents import write_text_atomic
 
     plt = pyplot()
     out_dir.mkdir(parents=True, exist_ok=True)
     config = result.config
-    t0 = streams.t0_ns
-
-    def seconds(t_ns: np.ndarray) -> np.ndarray:
-        return (t_ns - t0) * 1e-9
-
-    tb = seconds(streams.base.t_ns)
-    figures: list[tuple[Path, str]] = []
-    for sensor in config.sensors:
-        est = result.estimates[sensor.name]
-        s = streams.sensors[sensor.name]
-        path = gyro_figure(plt, sensor.name, tb, streams.base.gyro, seconds(s.t_ns), s.gyro, est.T_base_imu.rotation.as_matrix(),
-                           est.gyro_bias, est.time_offset_s, out_dir / f"gyro_{sensor.name}.png")
-        figures.append((path, f"Gyro of the base and {sensor.name} per axis, raw and after calibration (paper Figs. 7-8)."))
-    tracks = {"base": (tb, biases["base"])} | {n: (seconds(streams.sensors[n].t_ns), biases[n]) for n in streams.sensors}
-    figures.append((bias_figure(plt, tracks, out_dir / "biases.png"), "Gyro bias tracks with +-1 std, rest periods shaded (paper Figs. 5-6)."))
-    offset = (streamed.calibrator.t_ref_ns - t0) * 1e-9
-    windows = {s.name: result.estimates[s.name].windows for s in config.sensors}
-    figures.append((windows_figure(plt, tb, streams.base.gyro, windows, offset, config.segments.max_rotation_std_deg, out_dir / "windows.png"),
-                    "Per-window rotation std against the threshold over the base |w|; selected windows shaded (paper Figs. 9b-10b)."))
-
-    # specific-force residuals on a uniform grid, every term low-passed alike
-    rate = config.calibration.resample_hz
-    lowpass: Lowpass = streamed.calibrator.lowpass
-    grid = np.arange(tb[0], tb[-1], 1.0 / rate)
-    w_b = lowpass(np.column_stack([np.interp(grid, tb, streams.base.gyro[:, k]) for k in range(3)]))
-    f_b = lowpass(np.column_stack([np.interp(grid, tb, streams.base.accel[:, k]) for k in range(3)]))
-    dw_b = np.gradient(w_b, 1.0 / rate, axis=0)
-    from imucal_cli.core.so3 import skew
-
-    A = skew(w_b) @ skew(w_b) + skew(dw_b)
-    residuals = {}
-    for sensor in config.sensors:
-        est = result.estimates[sensor.name]
-        s = streams.sensors[sensor.name]
-        ts = seconds(s.t_ns)
-        f_i = lowpass(np.column_stack([np.interp(grid + est.time_offset_s, ts, s.accel[:, k]) for k in range(3)]))
-        R = est.T_base_imu.rotation.as_matrix()
-        predicted = (f_b + A @ est.T_base_imu.translation) @ R + est.accel_bias
-        r = f_i - predicted
-        # 2 s at each end are left out: the low-pass's edges, and the sensor's own ends
-        outside = (grid < tb[0] + 2.0) | (grid > tb[-1] - 2.0)
-        outside |= (grid + est.time_offset_s < ts[0] + 2.0) | (grid + est.time_offset_s > ts[-1] - 2.0)
-        r[outside] = np.nan  # where the sensor's samples end, interpolation holds the edge value
-        residuals[sensor.name] = (grid, r)
-    figures.append((residual_figure(plt, residuals, out_dir / "residuals.png"), "Specific-force residuals after calibration, per sensor and axis."))
+    estimates = {s.name: result.estimates[s.name] for s in config.sensors}
+    offset = (streamed.calibrator.t_ref_ns - streamed.t0_ns) * 1e-9  # the grid clock from the first stamp
+    figures = [
+        (bias_figure(plt, estimates, offset, out_dir / "biases.png"), "Relative biases of every sensor at each knot of the joint fit."),
+        (windows_figure(plt, estimates, offset, config.segments.max_rotation_std_deg, out_dir / "windows.png"),
+         "Per-window rotation std against the threshold; selected windows shaded (paper Figs. 9b-10b)."),
+        (residual_figure(plt, estimates, offset, out_dir / "residuals.png"), "Residual RMS of the fit in every window used, against the noise."),
+    ]
     stds = {n: (s["rotation_std_deg"], s["translation_std_m"]) for n, s in document["sensors"].items()}
     figures.append((std_figure(plt, stds, out_dir / "std.png"), "One standard deviation of every estimated axis."))
-    poses = {}
-    for sensor in config.sensors:
-        est = result.estimates[sensor.name]
-        poses[sensor.name] = {"imu": est.T_base_imu, "lidar": result.T_base_lidar(sensor.name), "prior_imu": sensor.prior_T_base_imu}
+    poses = {s.name: {"imu": estimates[s.name].T_base_imu, "lidar": result.T_base_lidar(s.name), "prior_imu": s.prior_T_base_imu} for s in config.sensors}
     figures.append((vehicle_figure(plt, poses, out_dir / "vehicle.png"), "Top and side view: base frame, IMUs and lidars as estimated (solid), CAD prior (dashed)."))
     page = out_dir / "report.html"
-    from imucal_cli.documents import write_text_atomic
-
     write_text_atomic(page, html_page(f"imucal calibration report: {log.name}", document, figures))
     return [p for p, _ in figures] + [page]

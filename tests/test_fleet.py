@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 
 from imucal_cli.cli import app
 from imucal_cli.documents import write_document
-from imucal_cli.sim.writers import write_imu_log
 from imucal_cli.sim import DriveOptions, simulate_drive
+from imucal_cli.sim.writers import write_imu_log
 from imucal_cli.types import Transform
 
 runner = CliRunner()

@@ -105,6 +105,8 @@ class SensorEstimate:
     tilt_rad_per_mps2: np.ndarray | None = None  # the mount's, where the rigid-mount check estimated it
     #: The accelerometer's scale factors and non-orthogonality where the drive shows them.
     accel_intrinsics: dict[str, Any] = field(default_factory=dict)
+    #: Per window used: start (s, grid clock), gyro and accelerometer residual RMS of the fit.
+    window_residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def rotation_std_deg(self) -> np.ndarray | None:
@@ -938,4 +940,9 @@ def solve(
         time_offset_observable=time_offset_observable,
         tilt_rad_per_mps2=fit.tilt.copy(),
         accel_intrinsics=intrinsics,
+        window_residuals=np.column_stack([
+            [w.start_s for w in problem.used],
+            np.sqrt(np.maximum(fit.cost_g, 0.0) / (3 * problem.samples_per_window)),
+            np.sqrt(np.maximum(fit.cost_a, 0.0) / (3 * problem.samples_per_window)),
+        ]),
     )

@@ -1,0 +1,58 @@
+"""Rests and biases of one IMU (core/biases.py), streamed."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imucal_cli.core.biases import BiasTracker
+from imucal_cli.types import GRAVITY_MPS2
+
+RATE = 200.0
+NOISE_A, NOISE_W = 0.02, 0.002
+
+
+def _drive(bias_a: np.ndarray, bias_w: np.ndarray, seed: int = 0):
+    """Rest 10 s, drive 10 s (turning, braking), rest 10 s: stamps, gyro, accel."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(30 * RATE)) / RATE
+    moving = (t >= 10) & (t < 20)
+    w = np.zeros((len(t), 3))
+    w[moving, 2] = 0.3 * np.sin(2 * np.pi * 0.2 * (t[moving] - 10))
+    f = np.tile([0.0, 0.0, GRAVITY_MPS2], (len(t), 1))
+    f[moving, 0] = 2.0 * np.sin(2 * np.pi * 0.3 * (t[moving] - 10))
+    gyro = w + bias_w + rng.normal(0, NOISE_W, w.shape)
+    accel = f + bias_a + rng.normal(0, NOISE_A, f.shape)
+    return (t * 1e9).astype(np.int64) + 10**18, gyro, accel
+
+
+def _tracker(t, gyro, accel, step: int | None = None):
+    tracker = BiasTracker(0.1, 0.02, 2.0, np.radians(0.1), np.radians(0.3))
+    step = step or len(t)
+    for a in range(0, len(t), step):
+        tracker.add(t[a : a + step], gyro[a : a + step], accel[a : a + step])
+    return tracker.report()
+
+
+def test_a_bias_past_the_rest_tolerance_still_finds_the_rests_and_is_estimated():
+    bias_a, bias_w = np.array([0.0, 0.0, 0.5]), np.array([0.004, -0.002, 0.003])  # 0.5 m/s^2: five tolerances
+    report = _tracker(*_drive(bias_a, bias_w))
+    assert [(round(r.start_s), round(r.end_s)) for r in report.rest_periods] == [(0, 10), (20, 30)]
+    n = report.rest_periods[-1].samples
+    assert abs(report.accel_bias[2] - 0.5) < 4 * NOISE_A / np.sqrt(n)  # the gravity-parallel component
+    assert np.all(np.abs(report.gyro_bias_final - bias_w) < 4 * NOISE_W / np.sqrt(n))
+    assert not report.warnings
+
+
+def test_streamed_in_pieces_equals_at_once():
+    data = _drive(np.array([0.1, -0.2, 0.3]), np.zeros(3), seed=1)
+    whole, pieces = _tracker(*data), _tracker(*data, step=333)
+    assert [(r.start_s, r.end_s) for r in whole.rest_periods] == [(r.start_s, r.end_s) for r in pieces.rest_periods]
+    np.testing.assert_allclose(pieces.accel_bias, whole.accel_bias, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(pieces.gyro_bias_final, whole.gyro_bias_final, rtol=1e-9, atol=1e-15)
+
+
+def test_no_rest_says_so():
+    t, gyro, accel = _drive(np.zeros(3), np.zeros(3))
+    gyro[:, 2] += 0.5  # always turning
+    report = _tracker(t, gyro, accel)
+    assert not report.rest_periods and report.warnings and np.all(report.gyro_bias_final == 0)
