@@ -11,9 +11,7 @@
    more than one line or without naming the file, or left an output file behind on failure.
 
 Run: ``python benchmarks/faults.py [--cases 1000] [--seed 1]``. Everything runs in-process
-through Typer's CliRunner (a traceback shows as an exception that is not SystemExit), each
-command line first through the entry point's early start of the log's reader
-(:func:`imucal_cli.launch.begin`), as the ``imucal`` command runs it.
+through Typer's CliRunner (a traceback shows as an exception that is not SystemExit).
 """
 
 from __future__ import annotations
@@ -30,12 +28,11 @@ from pathlib import Path
 import numpy as np
 from typer.testing import CliRunner
 
-from imucal_cli import launch
 from imucal_cli.cli import app
-from imucal_cli.io.logs import read_imu
 from imucal_cli.documents import write_document
-from imucal_cli.sim.writers import FORMATS, TopicData, write_imu_log
+from imucal_cli.io.logs import read_imu
 from imucal_cli.sim import DriveOptions, simulate_drive
+from imucal_cli.sim.writers import FORMATS, TopicData, write_imu_log
 from imucal_cli.types import ImuStream
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -176,7 +173,6 @@ def main() -> None:
 def run(argv: list[str], out: Path | None) -> dict:
     if out is not None and out.exists():
         out.unlink()
-    launch.begin(argv)  # as the imucal command starts: calibrate's and segments' reader first
     result = runner.invoke(app, argv)
     traceback = result.exception is not None and not isinstance(result.exception, SystemExit)
     lines = [line for line in result.stderr.splitlines() if line.strip()]
@@ -266,7 +262,7 @@ def matrix(work: Path) -> None:
             try:
                 read = read_imu(log, base_topics)
                 recovered = sum(len(r.stream) for r in read.values())
-            except Exception:  # noqa: BLE001 - the matrix reports what could be read
+            except Exception:
                 recovered = 0
             message = result["error"] or next(
                 (line for key in ("not read", "warning", "note") for line in result["lines"] if key in line), ""

@@ -22,8 +22,8 @@ HERE = Path(__file__).resolve().parent
 
 def build(folder: Path, count: int, duration: float) -> list[Path]:
     from imucal_cli.documents import write_document
-    from imucal_cli.sim.writers import write_imu_log
     from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import write_imu_log
 
     folder.mkdir(parents=True, exist_ok=True)
     logs = []

@@ -7,7 +7,7 @@ odometry" (Scania/KTH). See README.md for the conventions and the commands.
 __all__ = ["__version__", "calibrate_log", "export_extrinsics", "load_config"]
 
 
-def __getattr__(name: str):  # noqa: ANN202 - lazy: ``import imucal_cli`` stays light for the CLI
+def __getattr__(name: str):
     if name == "__version__":  # importlib.metadata takes 50 ms to import: not before it is asked
         from importlib.metadata import PackageNotFoundError, version
 

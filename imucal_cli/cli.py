@@ -389,7 +389,7 @@ def calibrate(
         from imucal_cli.report import pyplot
 
         pyplot()  # fail before the work when matplotlib is missing
-    cfg, streamed = _stream_log(log, config)
+    _cfg, streamed = _stream_log(log, config)
     from imucal_cli.api import estimate
     from imucal_cli.pipeline import calibration_document
 

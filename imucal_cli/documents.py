@@ -46,7 +46,7 @@ def load_document(path: str | Path) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read: {exc}") from None
     try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        return yaml.load(text, Loader=_StrictLoader)
     except yaml.YAMLError as exc:
         problem = str(exc).replace("\n", " ")
         raise InputError(f"{path}: not valid YAML/JSON: {problem}") from None

@@ -86,7 +86,7 @@ def run_one(task: Task) -> list[Row]:
         against = load_transforms(compare_to) if compare_to else {}
     except ImucalError as exc:
         return [Row(name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)]
-    except Exception as exc:  # noqa: BLE001 - a fleet run reports, it does not stop
+    except Exception as exc:
         where = traceback.extract_tb(exc.__traceback__)[-1]
         return [Row(name, "", "failed", error=f"internal error: {type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})", seconds=time.perf_counter() - start)]
     rows = []
@@ -137,7 +137,7 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
             i = futures[future]
             try:
                 results[i] = future.result()
-            except Exception as exc:  # noqa: BLE001 - a worker that died (out of memory, killed)
+            except Exception as exc:
                 results[i] = [Row(Path(tasks[i].log).name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
             if on_done:
                 on_done(i, results[i])  # type: ignore[arg-type]
@@ -152,7 +152,7 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
         raise InputError("--scheduler needs dask.distributed: pip install 'imucal[fleet]'") from None
     try:
         client = Client(address, timeout="10s")
-    except Exception as exc:  # noqa: BLE001 - unreachable scheduler
+    except Exception as exc:
         raise InputError(f"--scheduler {address}: cannot connect: {exc}") from None
     results: list[list[Row] | None] = [None] * len(tasks)
     try:
@@ -162,7 +162,7 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
             i = index[future.key]
             try:
                 results[i] = future.result()
-            except Exception as exc:  # noqa: BLE001 - a worker that died
+            except Exception as exc:
                 results[i] = [Row(Path(tasks[i].log).name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
             if on_done:
                 on_done(i, results[i])  # type: ignore[arg-type]

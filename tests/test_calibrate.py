@@ -61,7 +61,7 @@ def test_clock_offsets_of_50_ms_are_recovered_within_1_ms(offset_drives):
 
 def test_clock_offsets_do_not_cost_accuracy(offset_drives):
     """Same noise realisation, with and without offsets: the estimates agree within their std."""
-    plain_drive, plain, offset_drive, offset = offset_drives
+    plain_drive, plain, _offset_drive, offset = offset_drives
     for mount in plain_drive.mounts:
         a, b = plain.estimates[mount.name], offset.estimates[mount.name]
         std = np.sqrt(np.diag(a.covariance))

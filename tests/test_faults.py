@@ -558,3 +558,28 @@ def test_mcap_message_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
     assert [x.offset for x in losses] == [chunk.chunk_start_offset] and "past the chunk's end" in losses[0].reason
     lost = sum(len(full[t].stream) - len(got[t].stream) for t in topics)
     assert lost == sum(losses[0].messages.values()) > 0
+
+
+def test_a_long_gap_in_one_imu_does_not_confuse_its_units_or_its_clock(tmp_path):
+    """A lidar IMU silent for 10 s of a 60 s drive: units and clock offsets are measured where
+    every IMU has data (a spline across the gap once read as a gyro in neither unit)."""
+    from imucal_cli.api import calibrate_log
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import TopicData
+    from imucal_cli.types import ImuStream
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=60.0, seed=7))
+    topics = drive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    t = data.stream.t_ns
+    keep = (t < t[0] + 20 * 10**9) | (t > t[0] + 30 * 10**9)
+    topics[name] = TopicData(ImuStream(t[keep], data.stream.gyro[keep], data.stream.accel[keep], data.stream.frame_id), data.log_time_ns[keep])
+    log = write_imu_log(tmp_path / "gap.mcap", "mcap", topics)
+    from imucal_cli.documents import write_document
+
+    write_document(tmp_path / "c.yaml", drive.config_document())
+    run = calibrate_log(log, tmp_path / "c.yaml")
+    for sensor in run.document["sensors"].values():
+        assert not any("publishes" in w for w in sensor["warnings"])  # no unit conversion made up
+    assert run.streamed.stats[name].gaps == 1

@@ -214,7 +214,7 @@ def test_new_sensor_keys_are_checked(key, value, problem):
 def test_consistency_alpha_must_be_a_rate():
     document = drive_with("none", sensors=1).config_document()
     document["calibration"]["consistency_alpha"] = 0.7
-    with pytest.raises(ConfigError, match="calibration.consistency_alpha"):
+    with pytest.raises(ConfigError, match=r"calibration\.consistency_alpha"):
         parse_config(document, "v.yaml")
     document["calibration"]["consistency_alpha"] = 0.01
     assert parse_config(document, "v.yaml").calibration.consistency_alpha == 0.01

@@ -120,28 +120,3 @@ def test_garbage_with_log_suffix_is_a_log_error(tmp_path, suffix):
     with pytest.raises(LogError) as info:
         read_imu(path, ["/imu"])
     assert str(path) in str(info.value)
-
-
-@pytest.mark.parametrize("expected", [0, 1, 1000, 10**9])
-def test_columns_made_for_the_index_count_hold_every_sample_whatever_it_said(expected):
-    """The columns are made for the count the index gives and grown when it gave too few (a
-    count far too large is not taken at its word)."""
-    from imucal_cli.io.logs import ReadStats, _TopicColumns
-
-    rng = np.random.default_rng(3)
-    sizes = [0, 1, 700, 5, 3000]
-    parts = [(np.sort(rng.integers(0, 10**12, n)), rng.integers(0, 10**12, n), rng.standard_normal((n, 3)), rng.standard_normal((n, 3))) for n in sizes]
-    columns = _TopicColumns(expected)
-    for part in parts:
-        columns.add(*part)
-    assert len(columns.stamps) <= max(min(expected, _TopicColumns.MAX_PREALLOCATED), 2 * sum(sizes), 1024)
-    columns.stats = ReadStats()
-    read = columns.finish()
-    log_times = np.concatenate([p[1] for p in parts])
-    order = np.argsort(log_times, kind="stable")
-    stamps = np.concatenate([p[0] for p in parts])[order]
-    assert len(read.log_time_ns) == sum(sizes)
-    index = np.argsort(stamps, kind="stable")
-    assert read.stream.t_ns.tobytes() == stamps[index].tobytes()
-    assert read.stream.gyro.tobytes() == np.concatenate([p[2] for p in parts])[order][index].tobytes()
-    assert read.stream.accel.tobytes() == np.concatenate([p[3] for p in parts])[order][index].tobytes()

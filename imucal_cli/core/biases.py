@@ -90,8 +90,9 @@ class BiasTracker:
             self.sums = np.vstack([self.sums, np.zeros((int(block.max()) + 1 - len(self.sums) + 1024, 13))])
         a, w = accel - self.reference[:3], gyro - self.reference[3:]
         columns = np.column_stack([np.ones(len(t_ns)), a, a * a, w, w * w])
+        low, high = int(block.min()), int(block.max()) + 1
         for k in range(13):
-            self.sums[:, k] += np.bincount(block, columns[:, k], len(self.sums))
+            self.sums[low:high, k] += np.bincount(block - low, columns[:, k], high - low)
 
     def report(self) -> BiasReport:
         n_blocks = int((self.last_ns - (self.first_ns or 0)) // int(BLOCK_S * 1e9)) + 1 if self.first_ns is not None else 0
@@ -109,7 +110,7 @@ class BiasTracker:
             & (np.linalg.norm(gyro_mean, axis=1) <= self.gyro_tolerance)
         )
         rests = []
-        edge = int(round(REST_EDGE_S / BLOCK_S))
+        edge = round(REST_EDGE_S / BLOCK_S)
         for a, b in _runs(still):
             if (b - a) * BLOCK_S < self.min_duration_s:
                 continue

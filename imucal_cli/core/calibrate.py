@@ -227,10 +227,10 @@ def base_moments(G_gyro: np.ndarray, G_accel: np.ndarray) -> BaseMoments:
 def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray:
     """The full moments ``S`` of several windows, (K, dim, dim), ``which`` is "gyro" or "accel"."""
     if which == "gyro":
-        dim, rows, packed = GYRO_DIM, [w.rows_gyro for w in windows], [w.base.packed_gyro for w in windows]
+        dim, row_list, packed_list = GYRO_DIM, [w.rows_gyro for w in windows], [w.base.packed_gyro for w in windows]
     else:
-        dim, rows, packed = ACCEL_DIM, [w.rows_accel for w in windows], [w.base.packed_accel for w in windows]
-    rows, packed = np.stack(rows), np.stack(packed)
+        dim, row_list, packed_list = ACCEL_DIM, [w.rows_accel for w in windows], [w.base.packed_accel for w in windows]
+    rows, packed = np.stack(row_list), np.stack(packed_list)
     upper = _UPPER[dim]
     full = np.empty((len(windows), dim, dim))
     full[:, 3 + upper[0], 3 + upper[1]] = packed
@@ -529,8 +529,8 @@ class _Problem:
         """Per axis, the lever arm's information ``sum (A - mean A)^T (A - mean A)`` over the
         windows (each centred), less the angular acceleration's noise (unit residual)."""
         total = np.zeros(3)
-        for n, a in enumerate(self.starts):
-            S = self.cached[n] if self.cached is not None else self._S_a(a)
+        for k, a in enumerate(self.starts):
+            S = self.cached[k] if self.cached is not None else self._S_a(a)
             n = S[:, ACCEL_DIM - 2, ACCEL_DIM - 2]
             mean = S[:, 9:18, ACCEL_DIM - 2] / n[:, None]
             centred = S[:, 9:18, 9:18] - n[:, None, None] * mean[:, :, None] * mean[:, None, :]
@@ -890,7 +890,7 @@ def solve(
         cov7 *= max(c.inflation for c in failed)
     # translation axes on the box: the std covers the distance to where the data pull them
     on_box = fit.free[3:6] & (np.abs(fit.t - prior.translation) >= bound * (1.0 - 1e-6))
-    for axis in np.flatnonzero(on_box):
+    for axis in np.flatnonzero(on_box).tolist():
         pull = fit.unconstrained_t[axis] - fit.t[axis]
         cov7[3 + axis, 3 + axis] += pull**2
         warnings.append(

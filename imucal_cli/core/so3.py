@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 def skew(v: np.ndarray) -> np.ndarray:
     """``[v]x`` for a 3-vector or a stack (N, 3) -> (N, 3, 3)."""
     v = np.asarray(v, dtype=np.float64)
-    out = np.zeros(v.shape[:-1] + (3, 3))
+    out = np.zeros((*v.shape[:-1], 3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
     out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]

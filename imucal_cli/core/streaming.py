@@ -29,10 +29,8 @@ with a knot per window, eliminated by a banded Schur complement, the lever arm i
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
@@ -323,19 +321,6 @@ class _BlockJob:
     samples: dict[str, tuple[float, np.ndarray, np.ndarray]]
 
 
-class _Reduced:
-    """A block reduced here: the interface of a finished future."""
-
-    def __init__(self, windows: dict[str, list[WindowMoments]]) -> None:
-        self.windows = windows
-
-    def done(self) -> bool:
-        return True
-
-    def result(self) -> dict[str, list[WindowMoments]]:
-        return self.windows
-
-
 def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     """Condition a block of consecutive windows once and reduce each window, for every sensor,
     to its moments."""
@@ -379,7 +364,7 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     _vec_of_sum(rows[:, 15:21], dw, X[:, 14:23])
     _vec_of_sum(rows[:, 21:27], ddw, X[:, 23:32])
     # each window's rows in the block
-    at = [(int(round((start - block_start) * rate)), int(round((end - start) * rate))) for _, start, end in spans]
+    at = [(round((start - block_start) * rate), round((end - start) * rate)) for _, start, end in spans]
     for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
         X[i0 : i0 + n_win, 7] = (t_rows[i0 : i0 + n_win] - start) / job.window_s
     X[:, 37] = X[:, 7]
@@ -407,13 +392,25 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     return out
 
 
+def _longest_covered(grid: np.ndarray, covered: list[np.ndarray], margin: int) -> np.ndarray:
+    """The longest stretch of ``grid`` that every IMU covers (no gap), less ``margin`` points at
+    each end (where a filter would reach into the gap): the boot's units and clock offsets are
+    measured on it, never across a gap."""
+    both = np.logical_and.reduce(covered)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], both.astype(np.int8), [0]])))
+    runs = list(zip(edges[::2], edges[1::2], strict=True))
+    if not runs:
+        return grid[:0]
+    a, b = max(runs, key=lambda r: r[1] - r[0])
+    return grid[a + margin : b - margin]
+
+
 class StreamingCalibrator:
     """Feed IMU samples as they are read; ask for the estimate at any time.
 
     Windows are reduced ``block_windows`` at a time (faster in batch); a live system that wants
     an estimate after every window passes ``block_windows=1``. Memory holds the raw samples of
-    about one block plus two small matrices per window and sensor. With an :attr:`executor`,
-    every block it is idle for is reduced there (the same result).
+    about one block plus two small matrices per window and sensor.
 
     >>> cal = StreamingCalibrator(sensors, base_name="base")        # doctest: +SKIP
     >>> for imu, t_ns, gyro, accel in batches:                      # doctest: +SKIP
@@ -458,13 +455,6 @@ class StreamingCalibrator:
         #: Median sample rate of every IMU (Hz), measured at boot.
         self.rates_hz: dict[str, float] = {}
         self.finished = False
-        #: Where blocks may be reduced besides here: anything with ``submit(fn, *args)``
-        #: returning an object with ``done()`` and ``result()`` (a ``concurrent.futures``
-        #: executor, :class:`imucal_cli.parallel.ForkedWorker`). A block goes to it whenever it
-        #: is idle; results are stored in window order. (The solves stay here: sending every
-        #: window's moments over would cost memory that grows with the log.)
-        self.executor: Any = None
-        self._pending: deque[Any] = deque()
         self.block_windows = max(1, int(block_windows))
 
     # ---------------------------------------------------------------- input
@@ -526,7 +516,11 @@ class StreamingCalibrator:
         self._boot_tried_s = covered
         samples = {name: buffer.cleaned() for name, buffer in self.buffers.items()}
         unit_warnings: dict[str, list[str]] = {}
-        raw_speeds = {name: np.linalg.norm(self.lowpass(_Spline(self._seconds(t), both, self.rate).gyro(grid)), axis=1) for name, (t, both) in samples.items()}
+        splines = {name: _Spline(self._seconds(t), both, self.rate) for name, (t, both) in samples.items()}
+        grid = _longest_covered(grid, [spline.covered(grid) for spline in splines.values()], self.lowpass.pad)
+        if len(grid) < self.lowpass.pad:
+            return False  # no stretch that every IMU covers yet
+        raw_speeds = {name: np.linalg.norm(self.lowpass(spline.gyro(grid)), axis=1) for name, spline in splines.items()}
         scales = self._units(samples, raw_speeds, unit_warnings, final=not patient)
         if scales is None:
             return False  # not enough motion yet to tell the gyros' units
@@ -549,7 +543,7 @@ class StreamingCalibrator:
         if patient and not all(o.shown for o in offsets.values()):
             return False  # not enough motion yet to place every clock offset
         # booted: the buffers from now on in SI
-        for name, (t, both) in samples.items():
+        for name, (_, both) in samples.items():
             if scales[name] != (1.0, 1.0):
                 both *= np.repeat(scales[name], 3)  # the stored samples, in place
         self.scales, self.unit_warnings, self.sigma = scales, unit_warnings, sigma
@@ -645,8 +639,6 @@ class StreamingCalibrator:
                 buffer.drop_before(self.t_ref_ns + int(keep_from * 1e9))
             if partial or len(spans) < self.block_windows:
                 break
-        if final:
-            self._store(wait=True)
         return count
 
     def _need(self, number: int, final: bool) -> float:
@@ -672,11 +664,10 @@ class StreamingCalibrator:
             self.next_window = int((ready - self._grid_start) // self.window_s)
 
     def _reduce(self, spans: list[tuple[int, float, float]]) -> None:
-        """Condition a block of consecutive windows once and reduce each to its moments: here,
-        or on :attr:`executor` when it is idle. Results are stored in window order."""
+        """Condition a block of consecutive windows once and reduce each to its moments."""
         block_start, block_end = spans[0][1], spans[-1][2]
-        n_pad = int(round(PAD_S * self.rate))
-        n_block = int(round((block_end - block_start) * self.rate))
+        n_pad = round(PAD_S * self.rate)
+        n_block = round((block_end - block_start) * self.rate)
         last = self._covered_until() - self.max_offset - 2.0 / self.rate  # never extrapolate
         n_after = int(np.clip(np.floor((last - block_end) * self.rate), 0, n_pad))
         # the samples the grid needs (as in _reduce_block), with a margin
@@ -689,21 +680,11 @@ class StreamingCalibrator:
             a, b = int(np.searchsorted(t, first_s + tau, side="left")), int(np.searchsorted(t, last_s + tau, side="right"))
             samples[name] = (tau, t[a:b], both[a:b])
         job = _BlockJob(spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after, self.base_name, samples)
-        if self.executor is not None and all(pending.done() for pending in self._pending):
-            self._pending.append(self.executor.submit(_reduce_block, job))
-        else:
-            self._pending.append(_Reduced(_reduce_block(job)))
-        self._store(wait=False)
-
-    def _store(self, wait: bool) -> None:
-        """Store the reduced blocks that are ready, in order (all of them when ``wait``)."""
-        while self._pending and (wait or self._pending[0].done()):
-            for name, windows in self._pending.popleft().result().items():
-                self.windows[name].extend(windows)
+        for name, windows in _reduce_block(job).items():
+            self.windows[name].extend(windows)
 
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
         """Fill in the observability of windows that lack it (all at once)."""
-        self._store(wait=True)
         windows = self.windows[name]
         missing = [w for w in windows if w.info is None]
         setup = self.sensors[name]

@@ -82,7 +82,7 @@ def estimate_time_offset(
     max_lag = min(max_lag, n - 2)
     lags = np.arange(-max_lag, max_lag + 1)
     # c[k] = sum_n b[n + k] a[n], only over the few lags searched
-    corr = np.array([np.dot(b[max(k, 0) : n + min(k, 0)], a[max(-k, 0) : n - max(k, 0)]) for k in lags])
+    corr = np.array([np.dot(b[max(k, 0) : n + min(k, 0)], a[max(-k, 0) : n - max(k, 0)]) for k in lags.tolist()])
     norm = np.sqrt(np.sum(a**2) * np.sum(b**2))
     if norm == 0:
         return 0.0, 0.0

@@ -1,5 +1,4 @@
-"""What every container reader shares: the topics it describes, what it could not read, and
-the interface :mod:`imucal_cli.io.logs` reads through."""
+"""What the container readers share: topics, losses, the reader interface, the read-ahead."""
 
 from __future__ import annotations
 
@@ -11,7 +10,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from imucal_cli.errors import LogError
-from imucal_cli.io.imu_msg import IMU_MSGTYPE, RawBatch, normalize_msgtype
+from imucal_cli.io.imu_msg import IMU_MSGTYPE, RawBatch, normalize_msgtype, pack_blobs
 
 #: Messages of one topic gathered into a batch by the readers that get them one at a time.
 BATCH_MESSAGES = 8192
@@ -105,8 +104,6 @@ class Batcher:
         return self.flush(topic) if len(self.data[topic]) >= BATCH_MESSAGES else None
 
     def flush(self, topic: str) -> RawBatch | None:
-        from imucal_cli.io.imu_msg import pack_blobs
-
         if not self.data[topic]:
             return None
         batch = pack_blobs(topic, self.encodings[topic], self.data[topic], self.times[topic])
@@ -114,10 +111,7 @@ class Batcher:
         return batch
 
     def rest(self) -> Iterator[RawBatch]:
-        for topic in self.data:
-            batch = self.flush(topic)
-            if batch is not None:
-                yield batch
+        yield from (b for b in map(self.flush, list(self.data)) if b is not None)
 
 
 def read_ahead(items: Iterator[T], depth: int = READ_AHEAD_GROUPS) -> Iterator[T]:
@@ -138,7 +132,7 @@ def read_ahead(items: Iterator[T], depth: int = READ_AHEAD_GROUPS) -> Iterator[T
                 if stop.is_set():
                     return
             ready.put(("end", None))
-        except BaseException as exc:  # noqa: BLE001 - handed to the consumer
+        except BaseException as exc:
             ready.put(("error", exc))
 
     thread = threading.Thread(target=produce, name="imucal-read-ahead", daemon=True)

@@ -151,7 +151,7 @@ def _decode_generic(batch: RawBatch, i: int) -> tuple[int, list[float], list[flo
             msg = store.deserialize_cdr(data, IMU_MSGTYPE)
         else:
             msg = store.deserialize_ros1(data, IMU_MSGTYPE)
-    except Exception:  # noqa: BLE001 - a damaged message is counted, never kept
+    except Exception:
         return None
     w, a = msg.angular_velocity, msg.linear_acceleration
     stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)

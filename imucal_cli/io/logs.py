@@ -100,74 +100,18 @@ class ImuRead:
     log_time_ns: np.ndarray  # log (receive) time of each kept sample, same order as the stream
 
 
-def _finish_topic(
-    stamps: list[int], log_times: list[int], gyro: list[Any], accel: list[Any], stats: ReadStats
-) -> ImuRead:
-    # imported here: reading needs no scipy (imucal_cli.types imports scipy.spatial), so the
-    # CLI can start the reader before the math's imports
-    from imucal_cli.types import ImuStream
+def _finish_topic(t_ns: np.ndarray, log_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, stats: ReadStats) -> ImuRead:
+    """One topic's samples (in log order) sorted by stamp, duplicate stamps removed, counted."""
+    from imucal_cli.types import ImuStream  # imported here: reading needs no scipy
 
-    t_ns = np.asarray(stamps, dtype=np.int64)
-    log_ns = np.asarray(log_times, dtype=np.int64)
-    gyro_arr = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
-    accel_arr = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
-    steps = np.diff(t_ns)
-    stats.backwards = int(np.count_nonzero(steps < 0))
-    if len(t_ns) < 2 or np.all(steps > 0):  # the usual case: already sorted, no duplicates
-        frame_id = stats.frame_ids[0] if stats.frame_ids else ""
-        return ImuRead(ImuStream(t_ns, gyro_arr, accel_arr, frame_id), stats, log_ns)
+    stats.backwards = int(np.count_nonzero(np.diff(t_ns) < 0))
     order = np.argsort(t_ns, kind="stable")
-    t_sorted = t_ns[order]
-    keep = np.ones(len(t_sorted), dtype=bool)
-    if len(t_sorted) > 1:
-        keep[1:] = np.diff(t_sorted) != 0
+    keep = np.ones(len(order), dtype=bool)
+    keep[1:] = np.diff(t_ns[order]) != 0
     stats.duplicates = int(np.count_nonzero(~keep))
     index = order[keep]
     frame_id = stats.frame_ids[0] if stats.frame_ids else ""
-    stream = ImuStream(t_ns[index], gyro_arr[index], accel_arr[index], frame_id)
-    return ImuRead(stream, stats, log_ns[index])
-
-
-class _TopicColumns:
-    """Decoded samples of one topic, copied batch by batch into columns made for the number of
-    messages the container's index gives (grown when it gave too few): the copies happen while
-    the reader's threads decode the next batches, not all at the end."""
-
-    #: Largest number of samples made room for at once from an index's word (a damaged index
-    #: could claim any number).
-    MAX_PREALLOCATED = 1 << 24
-
-    def __init__(self, expected: int = 0) -> None:
-        self.size = 0
-        n = max(0, min(int(expected), self.MAX_PREALLOCATED))
-        self.stamps = np.empty(n, dtype=np.int64)
-        self.log_times = np.empty(n, dtype=np.int64)
-        self.gyro = np.empty((n, 3))
-        self.accel = np.empty((n, 3))
-        self.stats = ReadStats()
-
-    def add(self, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        end = self.size + len(stamps)
-        if end > len(self.stamps):
-            room = max(end, 2 * len(self.stamps), 1024)
-            for name in ("stamps", "log_times", "gyro", "accel"):
-                old = getattr(self, name)
-                grown = np.empty((room, *old.shape[1:]), dtype=old.dtype)
-                grown[: self.size] = old[: self.size]
-                setattr(self, name, grown)
-        self.stamps[self.size : end] = stamps
-        self.log_times[self.size : end] = log_times
-        self.gyro[self.size : end] = gyro
-        self.accel[self.size : end] = accel
-        self.size = end
-
-    def finish(self) -> ImuRead:
-        n = self.size
-        stamps, log_times, gyro, accel = self.stamps[:n], self.log_times[:n], self.gyro[:n], self.accel[:n]
-        if n > 1 and np.any(np.diff(log_times) < 0):  # log order, for the backwards count
-            order = np.argsort(log_times, kind="stable")
-            stamps, log_times, gyro, accel = stamps[order], log_times[order], gyro[order], accel[order]
-        return _finish_topic(stamps, log_times, gyro, accel, self.stats)
+    return ImuRead(ImuStream(t_ns[index], gyro[index].reshape(-1, 3), accel[index].reshape(-1, 3), frame_id), stats, log_ns[index])
 
 
 def _check_topics(log: LogReader, wanted: list[str]) -> dict[str, TopicInfo]:
@@ -259,7 +203,7 @@ class ImuBatches:
         self._reached: dict[str, int] = {}  # per topic: the latest stamp kept so far
         self._period: dict[str, float] = {}  # per topic: median step between stamps (ns)
 
-    def _screen(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray):  # noqa: ANN202
+    def _screen(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray):
         """Drop (and count) samples with non-finite, implausible or clipped values and damaged
         stamps. The common case (nothing to drop) costs a few whole-batch reductions."""
         st = self.stats[topic]
@@ -274,8 +218,8 @@ class ImuBatches:
         # whole-array extremes (a NaN anywhere makes them NaN, and the comparisons False)
         g_lo, g_hi, a_lo, a_hi = float(gyro.min()), float(gyro.max()), float(accel.min()), float(accel.max())
         values_ok = (
-            -SATURATION_GYRO_RADPS < g_lo and g_hi < SATURATION_GYRO_RADPS
-            and -SATURATION_ACCEL_MPS2 < a_lo and a_hi < SATURATION_ACCEL_MPS2
+            g_lo > -SATURATION_GYRO_RADPS and g_hi < SATURATION_GYRO_RADPS
+            and a_lo > -SATURATION_ACCEL_MPS2 and a_hi < SATURATION_ACCEL_MPS2
         )
         low, high = int(stamps.min()), int(stamps.max())
         # no step can leap by more than `jump` when the whole batch spans less than that
@@ -288,8 +232,8 @@ class ImuBatches:
         # values past the saturation floors but finite and plausible, stamps quiet (a lively
         # sensor): only a clipped run could be dropped, and there is none in the usual case
         plausible = (
-            -IMPLAUSIBLE_GYRO_RADPS <= g_lo and g_hi <= IMPLAUSIBLE_GYRO_RADPS
-            and -IMPLAUSIBLE_ACCEL_MPS2 <= a_lo and a_hi <= IMPLAUSIBLE_ACCEL_MPS2
+            g_lo >= -IMPLAUSIBLE_GYRO_RADPS and g_hi <= IMPLAUSIBLE_GYRO_RADPS
+            and a_lo >= -IMPLAUSIBLE_ACCEL_MPS2 and a_hi <= IMPLAUSIBLE_ACCEL_MPS2
         )  # and finite: a NaN anywhere makes the extremes NaN, and the comparisons False
         if quiet and plausible and not (_clipped(gyro, SATURATION_GYRO_RADPS).any() or _clipped(accel, SATURATION_ACCEL_MPS2).any()):
             self._reached[topic] = max(reached_before, high)
@@ -372,24 +316,22 @@ def read_imu(path: str | Path, topics: Iterable[str], progress: Callable[[int], 
     Raises :class:`LogError` where the log cannot be read, a topic is missing (the message
     lists the IMU topics the log has) or a topic is not ``sensor_msgs/Imu``."""
     reader = ImuBatches(path, topics)
-    columns: dict[str, _TopicColumns] = {}
+    parts: dict[str, list[tuple[np.ndarray, ...]]] = {t: [] for t in reader.topics}
     count = 0
     for topic, stamps, log_times, gyro, accel in reader:
-        if topic not in columns:  # made once the reader knows the counts its index gives
-            columns[topic] = _TopicColumns(reader.expected.get(topic, 0))
-        columns[topic].add(stamps, log_times, gyro, accel)
+        parts[topic].append((stamps, log_times, gyro, accel))
         count += len(stamps)
         if progress is not None:
             progress(count)
     if losses is not None:
         losses.extend(reader.losses)
     out = {}
-    for topic in reader.topics:
-        stats = reader.stats[topic]
-        stats.backwards = 0  # recounted in log order by finish()
-        column = columns.get(topic) or _TopicColumns()
-        column.stats = stats
-        out[topic] = column.finish()
+    for topic, batches in parts.items():
+        stamps, log_times, gyro, accel = (np.concatenate([b[k] for b in batches]) if batches else np.zeros((0, 3) if k > 1 else 0) for k in range(4))
+        if len(log_times) > 1 and np.any(np.diff(log_times) < 0):  # log order, for the backwards count
+            order = np.argsort(log_times, kind="stable")
+            stamps, log_times, gyro, accel = stamps[order], log_times[order], gyro[order], accel[order]
+        out[topic] = _finish_topic(stamps.astype(np.int64), log_times.astype(np.int64), gyro, accel, reader.stats[topic])
     return out
 
 

@@ -68,7 +68,7 @@ class McapLog(LogReader):
         try:
             self._file.seek(0)
             summary = make_reader(self._file).get_summary()
-        except Exception:  # noqa: BLE001 - no footer or a damaged one: read from the start
+        except Exception:
             return None
         if summary is None or not summary.chunk_indexes:
             return None
@@ -128,12 +128,12 @@ class McapLog(LogReader):
             return
         channels: dict[int, Channel] = {}
         for data, at in self._walk(channels, {}, note=False):
-            ids = gather(data, at + 9, 2, "<u2").ravel()
-            for channel_id in np.unique(ids):
+            of = gather(data, at + 9, 2, "<u2").ravel()
+            for channel_id in np.unique(of):
                 channel = channels.get(int(channel_id))
                 if channel is None or channel.topic not in wanted:
                     continue
-                mine = at[ids == channel_id]
+                mine = at[of == channel_id]
                 length = gather(data, mine + 1, 8, "<u8").ravel().astype(np.int64)
                 log_times = gather(data, mine + 15, 8, "<u8").ravel().astype(np.int64)
                 yield RawBatch(channel.topic, _encoding(channel), data, mine + _MESSAGE_HEADER, length - 22, log_times)
@@ -173,7 +173,7 @@ class McapLog(LogReader):
                     f"the file is cut off after {messages} messages; what follows is lost; {REPAIR}",
                     pos, len(data) - pos, last_ns, None,
                 ))
-        except Exception as exc:  # noqa: BLE001 - the library raises many types on damage
+        except Exception as exc:
             if note:
                 self.losses.append(Loss(
                     f"the file is damaged after {messages} messages ({type(exc).__name__}: {exc}); "
@@ -245,7 +245,7 @@ class McapLog(LogReader):
                 if any(len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > chunk.uncompressed_size for e in found.values()):
                     raise ValueError("a message index points past the chunk's end")
                 buffer[size : size + chunk.uncompressed_size] = np.frombuffer(_decompress(chunk), dtype=np.uint8)
-            except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
+            except Exception as exc:
                 self._lose_chunk(index, exc)
                 continue
             for channel_id, e in found.items():
@@ -259,11 +259,12 @@ class McapLog(LogReader):
         assert self._summary is not None
         try:
             found = self._message_indexes(index, set(index.message_index_offsets))
-            messages: dict[str, int] | None = {}
+            counted: dict[str, int] = {}
             for channel_id, e in found.items():
                 topic = self._summary.channels[channel_id].topic
-                messages[topic] = messages.get(topic, 0) + len(e)  # type: ignore[index]
-        except Exception:  # noqa: BLE001 - its index is damaged too: not counted
+                counted[topic] = counted.get(topic, 0) + len(e)
+            messages: dict[str, int] | None = counted
+        except Exception:
             messages = None
         self.losses.append(Loss(
             f"chunk does not read ({exc}); {REPAIR}", index.chunk_start_offset, index.chunk_length,
@@ -310,7 +311,7 @@ def _decompress_prefix(chunk: Chunk) -> np.ndarray:
     """A chunk's records, or where it is cut off, as much of them as decompresses."""
     try:
         return np.frombuffer(_decompress(chunk), dtype=np.uint8)
-    except Exception:  # noqa: BLE001 - cut off or damaged: the prefix that decodes
+    except Exception:
         if chunk.compression == "zstd":
             import zstandard
 

@@ -41,7 +41,7 @@ def _fields(header: bytes) -> dict[str, bytes]:
     return out
 
 
-def _record(buf: bytes | memoryview, pos: int) -> tuple[dict[str, bytes], int, int, int]:
+def _record(buf: bytes | memoryview | mmap.mmap, pos: int) -> tuple[dict[str, bytes], int, int, int]:
     """The record at ``pos``: its header fields, where its data start, its data length and
     where the next record starts. ``ValueError`` where it runs past the buffer."""
     if pos + 4 > len(buf):
@@ -93,7 +93,7 @@ class Ros1Log(LogReader):
         self.chunks: list[tuple[int, dict[int, int]]] = []  # (position, messages per conn)
         try:
             self._read_index()
-        except Exception as exc:  # noqa: BLE001 - no usable index: walk the bag
+        except Exception as exc:
             self.chunks = []
             self.losses.append(Loss(f"its index cannot be used ({exc}): read record by record", lost=False))
             self._walk_counts()
@@ -191,7 +191,7 @@ class Ros1Log(LogReader):
                     if len(e) and int(e["offset"].max()) + 8 > len(data):
                         raise ValueError("an index entry points past the chunk's end")
                     found[_U32.unpack(f["conn"])[0]] = e
-            except Exception as exc:  # noqa: BLE001 - a damaged chunk is lost, the others are read
+            except Exception as exc:
                 self._lose_chunk(chunk, exc)
                 continue
             for conn, e in found.items():
@@ -240,7 +240,7 @@ class Ros1Log(LogReader):
                 elif op == 0x02:
                     yield self._message(fields, data[start : start + length])
                 pos = after
-        except Exception as exc:  # noqa: BLE001 - cut off or damaged: what follows is lost
+        except Exception as exc:
             self.losses.append(Loss(f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}", pos, self._size - pos))
 
     def _inner(self, chunk: bytes) -> Iterator[tuple[int, int, bytes]]:

@@ -39,7 +39,7 @@ def _metadata(folder: Path) -> tuple[dict[str, Any] | None, str]:
         info = yaml.safe_load((folder / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     except FileNotFoundError:
         return None, "it has no metadata.yaml"
-    except Exception as exc:  # noqa: BLE001 - yaml, key and type errors alike
+    except Exception as exc:
         return None, f"its metadata.yaml does not read ({type(exc).__name__}: {exc})"
     return (info, "") if isinstance(info, dict) else (None, "its metadata.yaml holds no bag information")
 
@@ -75,7 +75,7 @@ class Rosbag2Log(LogReader):
             try:
                 self._reader = Reader(self.path)
                 self._reader.open()
-            except Exception as exc:  # noqa: BLE001 - rosbags raises its own and OS errors
+            except Exception as exc:
                 raise self.error(f"cannot read the rosbag2 folder: {exc}; {REINDEX}; `sqlite3 FILE.db3 .recover` salvages a damaged database") from None
 
     def close(self) -> None:
@@ -111,6 +111,6 @@ class Rosbag2Log(LogReader):
                 batch = batcher.add(conn.topic, getattr(conn.ext, "serialization_format", "cdr"), int(timestamp), bytes(data))
                 if batch is not None:
                     yield batch
-        except Exception as exc:  # noqa: BLE001 - a damaged storage file
+        except Exception as exc:
             raise self.error(f"cannot read its messages: {exc}; `sqlite3 FILE.db3 .recover` salvages a damaged database") from None
         yield from batcher.rest()

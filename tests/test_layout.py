@@ -1,0 +1,73 @@
+"""The house: no import cycle, the core does no I/O, the sizes the project holds itself to."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "imucal_cli"
+
+
+def _module(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports() -> dict[str, set[str]]:
+    """Every module's imports of other imucal_cli modules (at any level of the file)."""
+    modules = {_module(p): p for p in PACKAGE.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("imucal_cli"):
+                for alias in node.names:
+                    target = f"{node.module}.{alias.name}"
+                    found.add(target if target in modules else node.module)
+            elif isinstance(node, ast.Import):
+                found |= {a.name for a in node.names if a.name.startswith("imucal_cli")}
+        graph[name] = {m for m in found if m in modules and m != name and m != "imucal_cli"}
+    return graph
+
+
+def test_no_import_cycle():
+    graph = _imports()
+    state: dict[str, int] = {}
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                raise AssertionError(" -> ".join([*path[path.index(nxt):], nxt]) if nxt in path else nxt)
+            if nxt not in state:
+                visit(nxt, [*path, nxt])
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [node])
+
+
+def test_core_and_io_import_only_downwards():
+    graph = _imports()
+    for name, targets in graph.items():
+        if name.startswith("imucal_cli.core"):
+            assert all(t.startswith(("imucal_cli.core", "imucal_cli.types", "imucal_cli.errors")) for t in targets), (name, targets)
+        if name.startswith("imucal_cli.io"):
+            assert all(t.startswith(("imucal_cli.io", "imucal_cli.errors", "imucal_cli.types")) for t in targets), (name, targets)
+
+
+def test_core_does_no_io_and_prints_nothing():
+    for path in (PACKAGE / "core").glob("*.py"):
+        tree = ast.parse(path.read_text())
+        calls = {n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
+        assert not calls & {"print", "open", "input"}, path.name
+
+
+def test_sizes():
+    """io/ at most 1,500 lines, the README at most 150. (The whole package's bound, 7,000, is
+    not met yet: see the lean-house issue.)"""
+    lines = {p: len(p.read_text().splitlines()) for p in PACKAGE.rglob("*.py")}
+    assert sum(n for p, n in lines.items() if p.parent.name == "io") <= 1500
+    readme = PACKAGE.parent / "README.md"
+    assert len(readme.read_text().splitlines()) <= 150
