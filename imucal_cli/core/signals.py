@@ -151,6 +151,21 @@ def derivative_noise_variance(lowpass: Lowpass, density: float) -> float:
     return float(2.0 * density**2 * np.trapezoid(lowpass.gain(f) ** 2 * (2 * np.pi * f) ** 2, f))
 
 
+def welch(x: np.ndarray, rate_hz: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
+    """Welch's one-sided power spectral density of each column of ``x`` (N, m), as
+    ``scipy.signal.welch(x, rate_hz, nperseg=nperseg, axis=0)`` computes it (Hann window, half
+    overlap, each segment's mean removed): written here because ``scipy.signal`` takes 0.6 s
+    to import (it imports ``scipy.stats``), a tenth of an hour's calibration."""
+    step = nperseg - nperseg // 2  # scipy's default overlap, nperseg // 2
+    starts = np.arange(0, len(x) - nperseg + 1, step)
+    window = 0.5 - 0.5 * np.cos(2.0 * np.pi * np.arange(nperseg) / nperseg)  # periodic Hann
+    segments = x[starts[:, None] + np.arange(nperseg)]  # (segments, nperseg, m)
+    segments = (segments - segments.mean(axis=1, keepdims=True)) * window[None, :, None]
+    power = np.abs(np.fft.rfft(segments, axis=1)) ** 2 / (rate_hz * np.sum(window**2))
+    power[:, 1 : (nperseg + 1) // 2] *= 2.0  # one-sided: every bin but 0 and Nyquist twice
+    return np.fft.rfftfreq(nperseg, 1.0 / rate_hz), power.mean(axis=0)
+
+
 def white_noise_density(x: np.ndarray, rate_hz: float, band_hz: tuple[float, float]) -> np.ndarray:
     """Per-axis white-noise density (per sqrt(Hz), two-sided: a sample's std is
     ``density sqrt(rate)``) of a sampled signal (N, 3), from the median of its periodogram in
@@ -159,14 +174,12 @@ def white_noise_density(x: np.ndarray, rate_hz: float, band_hz: tuple[float, flo
     noise). The periodogram is of the second differences, the signal's motion thereby
     suppressed by ``(2 sin(pi f / rate))^4`` before the window's leakage can spread it, and
     corrected back."""
-    from scipy.signal import welch
-
     d2 = np.diff(np.asarray(x, dtype=np.float64), n=2, axis=0)
     nperseg = int(min(len(d2), 2 ** np.ceil(np.log2(4.0 * rate_hz))))  # about 4 s segments
     lo, hi = band_hz[0], min(band_hz[1], 0.8 * rate_hz / 2)
     if nperseg < 16 or lo >= hi:
         return white_noise_std(x) / np.sqrt(rate_hz)
-    f, psd = welch(d2, fs=rate_hz, nperseg=nperseg, axis=0)
+    f, psd = welch(d2, rate_hz, nperseg)
     inside = (f >= lo) & (f <= hi)
     if np.count_nonzero(inside) < 3:
         return white_noise_std(x) / np.sqrt(rate_hz)
