@@ -166,7 +166,7 @@ def calibrate_log(log: str | Path, config: Config | str | Path) -> LogCalibratio
         config = load_config(config)
     streamed = stream_log(log, config)
     result = estimate(streamed)
-    return LogCalibration(result, calibration_document(result, str(log)), streamed)
+    return LogCalibration(result, calibration_document(result, str(log), streamed.losses), streamed)
 
 
 def estimate(streamed: StreamedLog) -> CalibrationResult:

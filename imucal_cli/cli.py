@@ -7,6 +7,7 @@ partial output file. Heavy imports happen inside the commands so ``imucal --help
 from __future__ import annotations
 
 import functools
+import os
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -395,7 +396,7 @@ def calibrate(
 
     with _progress("calibrating"):
         result = estimate(streamed)
-    document = calibration_document(result, str(log))
+    document = calibration_document(result, str(log), streamed.losses)
 
     def render(doc: dict[str, Any]) -> None:
         from rich.table import Table
@@ -498,8 +499,11 @@ def batch(
     max_rotation_deg: Annotated[float | None, typer.Option("--max-rotation-deg", help="Pass threshold on the rotation error (deg).")] = None,
     max_translation_m: Annotated[float | None, typer.Option("--max-translation-m", help="Pass threshold on the translation error (m).")] = None,
     junit: Annotated[Path | None, typer.Option("--junit", help="Write JUnit XML here (for CI).")] = None,
+    max_lost_s: Annotated[float | None, typer.Option("--max-lost-s", min=0.0, help="Pass a log whose read lost at most this many seconds (default: any loss fails).")] = None,
 ) -> None:
     """Calibrate many logs (local processes or a Dask cluster); summary CSV/JSON, JUnit; exit 1 if any fails."""
+    from imucal_cli.api import load_transforms
+    from imucal_cli.config import load_config
     from imucal_cli.documents import write_text_atomic
     from imucal_cli.fleet import (
         Task,
@@ -520,33 +524,47 @@ def batch(
         raise InputError("no logs: give LOG... or --manifest CSV")
     if not out_dir.parent.is_dir():
         raise InputError(f"{out_dir}: output folder's parent {out_dir.parent} does not exist")
-    for path in (truth_dir, junit.parent if junit else None):
-        if path is not None and not path.is_dir():
-            raise InputError(f"{path}: folder does not exist")
-    if reference is not None and not reference.is_file():
-        raise InputError(f"{reference}: no such file")
-    out_dir.mkdir(exist_ok=True)
+    if truth_dir is not None and not truth_dir.is_dir():
+        raise InputError(f"{truth_dir}: folder does not exist")
+    if junit is not None and not junit.parent.is_dir() and junit.parent.resolve() != out_dir.resolve():
+        raise InputError(f"{junit}: folder {junit.parent} does not exist")
+    # every path resolved and every file read here: a worker started anywhere runs the task
+    paths = [Path(e["log"]).resolve() for e in entries]
+    root = Path(os.path.commonpath([p.parent for p in paths]))
+    configs: dict[str, Any] = {}
+    shared = load_transforms(reference) if reference is not None else None
     tasks, seen = [], set()
-    for entry in entries:
-        log = Path(entry["log"])
+    for entry, log in zip(entries, paths, strict=True):
         cfg = entry.get("config") or (str(config) if config else None)
         if cfg is None:
             raise InputError(f"{log}: no config: give -c CFG or a config column in the manifest")
-        stem = log.name.split(".")[0] if log.is_file() else log.name
+        if cfg not in configs:
+            configs[cfg] = load_config(cfg)
+        name = log.relative_to(root).as_posix()
+        stem = name.split(".")[0] if log.is_file() else name  # vehicle/date/drive.mcap -> vehicle/date/drive
         if stem in seen:
             raise InputError(f"{log}: two logs named {stem}: their outputs would collide in {out_dir}")
         seen.add(stem)
-        truth = entry.get("truth") or (str(truth_dir / f"{stem}.truth.yaml") if truth_dir else None)
-        tasks.append(Task(str(log), cfg, str(out_dir / f"{stem}.yaml"), truth, entry.get("reference") or (str(reference) if reference else None),
-                          max_rotation_deg, max_translation_m))
+        against, source, is_reference = shared, str(reference or ""), reference is not None
+        if entry.get("reference") or entry.get("truth"):
+            source = entry.get("reference") or entry["truth"]
+            against, is_reference = load_transforms(source), bool(entry.get("reference"))
+        elif truth_dir is not None:
+            nested, flat = truth_dir / f"{stem}.truth.yaml", truth_dir / f"{Path(stem).name}.truth.yaml"
+            source = str(nested if nested.is_file() else flat)
+            against = load_transforms(source) if Path(source).is_file() else {}
+        tasks.append(Task(str(log), name, configs[cfg], str((out_dir / f"{stem}.yaml").resolve()), against, source, is_reference,
+                          max_rotation_deg, max_translation_m, max_lost_s))
+    for task in tasks:
+        Path(task.out).parent.mkdir(parents=True, exist_ok=True)
 
     def done(i: int, rows: list[Any]) -> None:
         verdict = "ok" if all(r.passed for r in rows) else "FAIL"
-        typer.echo(f"imucal: [{i + 1}/{len(tasks)}] {tasks[i].log}: {verdict}", err=True)
+        typer.echo(f"imucal: [{i + 1}/{len(tasks)}] {tasks[i].name}: {verdict}", err=True)
 
     results = run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
     rows = [row for result in results for row in result]
-    settings = {"jobs": jobs, "scheduler": scheduler, "max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m,
+    settings = {"jobs": jobs, "scheduler": scheduler, "max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m, "max_lost_s": max_lost_s,
                 "truth_dir": str(truth_dir) if truth_dir else None, "reference": str(reference) if reference else None}
     write_text_atomic(out_dir / "summary.csv", summary_csv(rows))
     write_text_atomic(out_dir / "summary.json", summary_json(rows, settings))

@@ -19,27 +19,36 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
+from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
+from imucal_cli.config import Config
 from imucal_cli.errors import ImucalError, InputError
+from imucal_cli.types import Transform
 
 SUMMARY_COLUMNS = (
     "log", "sensor", "status", "x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg",
-    "rotation_std_deg", "translation_std_m", "rotation_error_deg", "translation_error_m", "moved", "pass", "error",
+    "rotation_std_deg", "translation_std_m", "rotation_error_deg", "translation_error_m", "moved",
+    "lost_s", "warnings", "pass", "error",
 )
 
 
 @dataclass(frozen=True)
 class Task:
-    log: str
-    config: str
-    out: str  # where the calibrate document goes
-    truth: str | None = None  # a truth file (sensors: NAME: T_base_lidar) to compare against
-    reference: str | None = None  # the vehicle's previous calibration: sensors past the thresholds moved
+    """One log's calibration, self-contained: absolute paths and the config's content, so a
+    worker started anywhere (another folder, another machine with the same mounts) runs it."""
+
+    log: str  # absolute
+    name: str  # the log as the summary names it (its path relative to the logs' common folder)
+    config: Config
+    out: str  # absolute: where the calibrate document goes
+    against: dict[str, Transform] | None = None  # truth or reference T_base_lidar per sensor
+    against_source: str = ""  # the file they came from (for messages)
+    reference: bool = False  # against is the vehicle's previous calibration: past the thresholds is "moved"
     max_rotation_deg: float | None = None
     max_translation_m: float | None = None
+    max_lost_s: float | None = None  # None: any read loss fails the log's rows
 
 
 @dataclass
@@ -58,6 +67,8 @@ class Row:
     rotation_error_deg: float | None = None  # against truth or reference
     translation_error_m: float | None = None
     moved: bool | None = None  # against a reference: past a threshold
+    lost_s: float | None = 0.0  # log time the read lost (None: not known, a log cut off mid-write)
+    warnings: str = ""  # what reading lost and what the calibration warned of, "; "-separated
     passed: bool = False
     error: str = ""
     seconds: float = field(default=0.0, compare=False)
@@ -73,33 +84,36 @@ def run_one(task: Task) -> list[Row]:
     """Calibrate one log and compare; never raises. Safe to run in any process or worker."""
     import time
 
-    from imucal_cli.api import calibrate_log, load_transforms
+    from imucal_cli.api import calibrate_log
     from imucal_cli.documents import write_document
     from imucal_cli.pipeline import transform_errors
 
     start = time.perf_counter()
-    name = Path(task.log).name
     try:
         run = calibrate_log(task.log, task.config)
         write_document(task.out, run.document)
-        compare_to = task.truth or task.reference
-        against = load_transforms(compare_to) if compare_to else {}
     except ImucalError as exc:
-        return [Row(name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)]
+        return [Row(task.name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)]
     except Exception as exc:
         where = traceback.extract_tb(exc.__traceback__)[-1]
-        return [Row(name, "", "failed", error=f"internal error: {type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})", seconds=time.perf_counter() - start)]
+        return [Row(task.name, "", "failed", error=f"internal error: {type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})", seconds=time.perf_counter() - start)]
+    lost_s, losses = run.document["lost_s"], run.document["losses"]
+    lost_ok = not losses or (task.max_lost_s is not None and lost_s is not None and lost_s <= task.max_lost_s)
     rows = []
     for sensor, s in run.document["sensors"].items():
         T = run.result.T_base_lidar(sensor)
         std_r, std_t = s["rotation_std_deg"], s["translation_std_m"]
         row = Row(
-            name, sensor, s["status"], *map(float, T.translation), *map(float, np.degrees(T.rpy_rad)),
+            task.name, sensor, s["status"], *map(float, T.translation), *map(float, np.degrees(T.rpy_rad)),
             None if std_r is None else float(max(std_r)), None if std_t is None else float(max(std_t)),
+            lost_s=lost_s, warnings="; ".join([x["reason"] for x in losses] + s["warnings"]),
         )
-        row.passed = s["status"] == "ok"
-        if sensor in against:
-            errors = transform_errors(T, against[sensor])
+        row.passed = s["status"] == "ok" and lost_ok
+        if not lost_ok:
+            limit = "any loss fails (--max-lost-s)" if task.max_lost_s is None else f"--max-lost-s {task.max_lost_s:g}"
+            row.error = f"the read lost {'an unknown span' if lost_s is None else f'{lost_s:.2f} s'} of the log; {limit}"
+        if task.against is not None and sensor in task.against:
+            errors = transform_errors(T, task.against[sensor])
             row.rotation_error_deg = errors["rotation_error_deg"]
             row.translation_error_m = errors["translation_error_m"]
             over = (task.max_rotation_deg is not None and row.rotation_error_deg > task.max_rotation_deg) or (
@@ -108,9 +122,9 @@ def run_one(task: Task) -> list[Row]:
             if task.reference:
                 row.moved = bool(over)
             row.passed = row.passed and not over
-        elif compare_to:
+        elif task.against is not None:
             row.passed = False
-            row.error = f"{compare_to}: no entry for sensor {sensor}"
+            row.error = f"{task.against_source}: no entry for sensor {sensor}"
         rows.append(row)
     elapsed = time.perf_counter() - start
     for row in rows:
@@ -138,7 +152,7 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
             try:
                 results[i] = future.result()
             except Exception as exc:
-                results[i] = [Row(Path(tasks[i].log).name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
+                results[i] = [Row(tasks[i].name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
             if on_done:
                 on_done(i, results[i])  # type: ignore[arg-type]
     return results  # type: ignore[return-value]
@@ -163,7 +177,7 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
             try:
                 results[i] = future.result()
             except Exception as exc:
-                results[i] = [Row(Path(tasks[i].log).name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
+                results[i] = [Row(tasks[i].name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
             if on_done:
                 on_done(i, results[i])  # type: ignore[arg-type]
     finally:
@@ -210,21 +224,28 @@ def summary_json(rows: Iterable[Row], settings: dict[str, Any]) -> str:
 
 
 def junit_xml(rows: Sequence[Row]) -> str:
-    """JUnit XML: a test case per log and sensor (a log that failed to run is one error)."""
+    """JUnit XML: a test case per log and sensor (a log that failed to run is one error); every
+    case carries its figures and warnings in ``system-out``."""
     cases = []
     for r in rows:
         name = quoteattr(r.sensor or "calibration")
         head = f"  <testcase classname={quoteattr(r.log)} name={name} time=\"{r.seconds:.3f}\">"
+        figures = ", ".join(
+            f"{k} {v:.6g}" if isinstance(v, float) else f"{k} {v}"
+            for k, v in (("status", r.status), ("rotation_error_deg", r.rotation_error_deg), ("translation_error_m", r.translation_error_m),
+                         ("moved", r.moved), ("lost_s", r.lost_s)) if v is not None
+        )
+        out = f"<system-out>{escape(figures + (('; ' + r.warnings) if r.warnings else ''))}</system-out>"
         if r.status == "failed":
-            cases.append(f"{head}<error message={quoteattr(r.error)}/></testcase>")
+            cases.append(f"{head}<error message={quoteattr(r.error)}/>{out}</testcase>")
         elif not r.passed:
             why = r.error or (
                 f"status {r.status}" + ("" if r.rotation_error_deg is None else f", rotation error {r.rotation_error_deg:.4f} deg, translation error {r.translation_error_m:.4f} m")
                 + (", moved" if r.moved else "")
             )
-            cases.append(f"{head}<failure message={quoteattr(why)}/></testcase>")
+            cases.append(f"{head}<failure message={quoteattr(why)}/>{out}</testcase>")
         else:
-            cases.append(f"{head}</testcase>")
+            cases.append(f"{head}{out}</testcase>")
     failures = sum(1 for r in rows if not r.passed and r.status != "failed")
     errors = sum(1 for r in rows if r.status == "failed")
     total = sum(r.seconds for r in {(r.log): r for r in rows}.values())

@@ -6,7 +6,7 @@ No I/O: functions take streams and a config, return results, and build the SPEC'
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import combinations
 from typing import Any
@@ -19,6 +19,7 @@ from imucal_cli.core.biases import BiasReport, BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
+from imucal_cli.io.base import Loss
 from imucal_cli.types import ImuStream, Transform
 
 
@@ -194,7 +195,25 @@ def _plain(value: Any) -> Any:
     return number if np.isfinite(number) else None
 
 
-def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
+def lost_seconds(losses: Sequence[Loss]) -> float | None:
+    """Seconds of log time the read lost: 0 without a loss, None where a loss's span is not
+    known (a log cut off mid-write: its end is not recorded anywhere)."""
+    spans = [(x.start_ns, x.end_ns) for x in losses if x.lost]
+    if any(a is None or b is None for a, b in spans):
+        return None
+    return float(sum((b - a) * 1e-9 for a, b in spans if a is not None and b is not None))
+
+
+def losses_document(losses: Sequence[Loss]) -> list[dict[str, Any]]:
+    return [
+        {"reason": x.describe(), "offset": x.offset, "bytes": x.nbytes, "start_ns": x.start_ns, "end_ns": x.end_ns, "messages": x.messages}
+        for x in losses if x.lost
+    ]
+
+
+def calibration_document(result: CalibrationResult, log: str, losses: Sequence[Loss] = ()) -> dict[str, Any]:
+    """The SPEC's calibrate document; ``losses`` (what reading the log could not read) go in
+    as ``losses`` and ``lost_s`` (None: a span not known)."""
     config = result.config
     sensors: dict[str, Any] = {}
     for sensor in config.sensors:
@@ -241,6 +260,8 @@ def calibration_document(result: CalibrationResult, log: str) -> dict[str, Any]:
         "base_imu_rate_hz": _rate(result, "base"),
         "sensors": sensors,
         "pairs": pairs,
+        "lost_s": lost_seconds(losses),
+        "losses": losses_document(losses),
     }
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -95,3 +96,101 @@ def test_reference_flags_sensors_that_moved(fleet, tmp_path):
     assert rows[moved]["moved"] == "True" and rows[moved]["pass"] == "False"
     assert float(rows[moved]["rotation_error_deg"]) == pytest.approx(1.0, abs=0.05)
     assert all(r["moved"] == "False" and r["pass"] == "True" for name, r in rows.items() if name != moved)
+
+
+@pytest.fixture(scope="module")
+def six(tmp_path_factory):
+    """Six short drives in a vehicle/date/drive layout, each with its own config and truth;
+    two of them share a file name."""
+    root = tmp_path_factory.mktemp("six")
+    rows = ["log,config,truth"]
+    for k in range(6):
+        drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=20.0, seed=20 + k))
+        folder = root / f"truck{k % 2}" / f"2026-11-{k + 1:02d}"
+        folder.mkdir(parents=True)
+        name = "drive.mcap" if k < 2 else f"drive{k}.mcap"
+        write_imu_log(folder / name, "mcap", drive.topics())
+        write_document(folder / "config.yaml", drive.config_document())
+        write_document(folder / "truth.yaml", drive.truth_document())
+        rel = folder.relative_to(root)
+        rows.append(f"{rel / name},{rel / 'config.yaml'},{rel / 'truth.yaml'}")
+    (root / "drives.csv").write_text("\n".join(rows) + "\n")
+    return root
+
+
+def _batch(manifest, out, *extra):
+    return runner.invoke(app, ["batch", "--manifest", str(manifest), "--out-dir", str(out), "--junit", str(out / "junit.xml"), *extra])
+
+
+def test_logs_of_one_name_in_other_folders_and_a_fresh_out_folder(six, tmp_path):
+    result = _batch(six / "drives.csv", tmp_path / "fresh")  # the README's example: out and its junit made here
+    assert result.exit_code in (0, 1), result.output
+    names = [r["log"] for r in _rows(tmp_path / "fresh")]
+    assert "truck0/2026-11-01/drive.mcap" in names and "truck1/2026-11-02/drive.mcap" in names
+    assert (tmp_path / "fresh" / "truck0" / "2026-11-01" / "drive.yaml").is_file()
+    assert (tmp_path / "fresh" / "truck1" / "2026-11-02" / "drive.yaml").is_file()
+    assert ET.parse(tmp_path / "fresh" / "junit.xml").getroot().find("testsuite").get("tests") == str(len(names))
+
+
+def test_a_damaged_log_fails_its_rows_and_says_what_was_lost_everywhere(six, tmp_path):
+    import shutil
+
+    work = tmp_path / "logs"
+    shutil.copytree(six, work)
+    log = work / "truck0" / "2026-11-01" / "drive.mcap"
+    log.write_bytes(log.read_bytes()[: int(log.stat().st_size * 0.4)])  # cut at 40%, as a killed recorder leaves it
+    result = _batch(work / "drives.csv", tmp_path / "out")
+    assert result.exit_code == 1
+    rows = [r for r in _rows(tmp_path / "out") if r["log"] == "truck0/2026-11-01/drive.mcap"]
+    assert rows and all(r["pass"] == "False" and "cut off" in r["warnings"] and "read lost" in r["error"] for r in rows)
+    assert all(r["lost_s"] == "" for r in rows)  # a cut's span is not known: never passes for a number
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert all("cut off" in r["warnings"] for r in summary["rows"] if r["log"] == rows[0]["log"])
+    document = yaml.safe_load((tmp_path / "out" / "truck0" / "2026-11-01" / "drive.yaml").read_text())
+    assert document["losses"] and "cut off" in document["losses"][0]["reason"] and document["lost_s"] is None
+    cases = [c for c in ET.parse(tmp_path / "out" / "junit.xml").getroot().iter("testcase") if c.get("classname") == rows[0]["log"]]
+    assert cases and all(c.find("failure") is not None and "cut off" in c.find("system-out").text for c in cases)
+    intact = [r for r in _rows(tmp_path / "out") if r["log"] != rows[0]["log"]]
+    assert all(r["lost_s"] == "0.0" and "cut off" not in r["warnings"] for r in intact)
+
+
+def test_a_real_dask_cluster_started_in_another_folder_gives_the_local_summary(six, tmp_path, monkeypatch):
+    """A scheduler and two workers as their own processes, started in a folder that is not the
+    logs'; the batch given relative paths (resolved and read before submitting)."""
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("dask.distributed")
+    dask = shutil.which("dask", path=str(Path(sys.executable).parent))
+    if dask is None:
+        pytest.skip("no dask command")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(six)
+    local = _batch(Path("drives.csv"), tmp_path / "local")
+    scheduler_file = elsewhere / "scheduler.json"
+    processes = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(scheduler_file)],
+                                  cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while not scheduler_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(scheduler_file.read_text())["address"]
+        for _ in range(2):
+            processes.append(subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
+                                              cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        from dask.distributed import Client
+
+        with Client(address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=60)
+        remote = _batch(Path("drives.csv"), tmp_path / "dask", "--scheduler", address)
+    finally:
+        for process in reversed(processes):
+            process.terminate()
+        for process in processes:
+            process.wait(timeout=30)
+    assert remote.exit_code == local.exit_code, remote.output
+    assert _rows(tmp_path / "dask") == _rows(tmp_path / "local")
+    assert all("not found" not in r["error"] for r in _rows(tmp_path / "dask"))
