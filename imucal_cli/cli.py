@@ -66,7 +66,7 @@ def _version(value: bool) -> None:
 @app.callback()
 def _root(
     version: Annotated[
-        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")
+        bool, typer.Option("--version", metavar="", callback=_version, is_eager=True, help="Print the version.")
     ] = False,
 ) -> None:
     """Calibrate the extrinsics of every lidar on a vehicle from raw IMU signals alone."""
@@ -215,7 +215,7 @@ def _render_inspect(document: dict[str, Any]) -> None:
 def inspect(
     log: Annotated[Path, typer.Argument(help=LOG_HELP)],
     out: Annotated[Path | None, typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).")] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", metavar="", help="Print JSON instead of a table.")] = False,
 ) -> None:
     """Topics, message types, counts, rates, duration, gaps and time jumps of a log."""
     from imucal_cli.io.logs import summarize_log
@@ -234,7 +234,7 @@ def inspect(
 @handles_errors
 def check_config(
     config: Annotated[Path, typer.Argument(help="Calibration config (YAML).")],
-    as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of YAML.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", metavar="", help="Print JSON instead of YAML.")] = False,
 ) -> None:
     """Validate a config and print it with every default filled in."""
     from imucal_cli.config import load_config
@@ -248,7 +248,7 @@ def check_config(
 PANEL_CAL = "Calibration"
 ConfigOption = Annotated[Path, typer.Option("-c", "--config", help="Calibration config (YAML).")]
 OutOption = Annotated[Path | None, typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).")]
-JsonOption = Annotated[bool, typer.Option("--json", help="Print JSON instead of a summary.")]
+JsonOption = Annotated[bool, typer.Option("--json", metavar="", help="Print JSON instead of a summary.")]
 
 
 def _note_read(log: Path, topic: str, counts: dict[str, int]) -> None:
@@ -373,7 +373,7 @@ def calibrate(
     out: OutOption = None,
     as_json: JsonOption = False,
     require_observable: Annotated[
-        bool, typer.Option("--require-observable", help="Exit 1 unless every sensor is fully observable (status ok).")
+        bool, typer.Option("--require-observable", metavar="", help="Exit 1 unless every sensor is fully observable (status ok).")
     ] = False,
     report: Annotated[
         Path | None,
@@ -469,9 +469,9 @@ def export(
         raise InputError(f"{out}: output folder {out.parent} does not exist")
     files = make(Extrinsics.from_document(load_document(extrinsics), str(extrinsics)), fmt, parent)
     if out is None:
-        typer.echo(files["main"], nl=False)
+        typer.echo(files["main"], nl=False)  # one file: the launch file needs -o
         if "launch" in files:
-            typer.echo(files["launch"], nl=False)
+            typer.echo(f"imucal: note: the {LAUNCH_SUFFIX[fmt]} launch file is written beside -o OUT", err=True)
         return
     targets = {"main": out}
     if "launch" in files:
@@ -479,6 +479,8 @@ def export(
         targets["launch"] = out.with_name(stem + LAUNCH_SUFFIX[fmt])
     for key, path in targets.items():
         write_text_atomic(path, files[key])
+        if key == "main" and fmt.startswith("tf-static"):
+            path.chmod(path.stat().st_mode | 0o111)  # the command lines: a script to run
         typer.echo(f"imucal: wrote {path}", err=True)
 
 
@@ -533,6 +535,18 @@ def batch(
     root = Path(os.path.commonpath([p.parent for p in paths]))
     configs: dict[str, Any] = {}
     shared = load_transforms(reference) if reference is not None else None
+    reference_std: dict[str, tuple[float | None, float | None]] = {}
+    if reference is not None:
+        from imucal_cli.documents import load_document
+        from imucal_cli.fleet import MOVED_FALLBACK_DEG, MOVED_FALLBACK_M, MOVED_STD
+
+        for name, s in (load_document(reference).get("sensors") or {}).items():
+            r, t = s.get("rotation_std_deg"), s.get("translation_std_m")
+            reference_std[name] = (max(r) if r else None, max(t) if t else None)
+        if max_rotation_deg is None or max_translation_m is None:
+            typer.echo(f"imucal: --reference: a sensor moved past {MOVED_STD:g} combined std of the two calibrations "
+                       f"(largest axis; {MOVED_FALLBACK_DEG:g} deg, {MOVED_FALLBACK_M:g} m where a std is not known)"
+                       + "".join(f"; {k} {v:g}" for k, v in (("--max-rotation-deg", max_rotation_deg), ("--max-translation-m", max_translation_m)) if v is not None), err=True)
     tasks, seen = [], set()
     for entry, log in zip(entries, paths, strict=True):
         cfg = entry.get("config") or (str(config) if config else None)
@@ -554,7 +568,7 @@ def batch(
             source = str(nested if nested.is_file() else flat)
             against = load_transforms(source) if Path(source).is_file() else {}
         tasks.append(Task(str(log), name, configs[cfg], str((out_dir / f"{stem}.yaml").resolve()), against, source, is_reference,
-                          max_rotation_deg, max_translation_m, max_lost_s))
+                          max_rotation_deg, max_translation_m, max_lost_s, reference_std if is_reference else {}))
     for task in tasks:
         Path(task.out).parent.mkdir(parents=True, exist_ok=True)
 
@@ -585,17 +599,29 @@ def evaluate(
     max_translation_m: Annotated[float | None, typer.Option(help="Fail (exit 1) above this translation error.", min=0.0)] = None,
     out: OutOption = None,
     as_json: JsonOption = False,
+    allow_missing: Annotated[bool, typer.Option("--allow-missing", metavar="", help="Pass although a sensor is in one file only.")] = False,
+    junit: Annotated[Path | None, typer.Option("--junit", help="Also write JUnit XML here (for CI).")] = None,
 ) -> None:
     """Rotation and translation errors of every sensor and pair against ground truth."""
     from imucal_cli.api import load_transforms
+    from imucal_cli.documents import write_text_atomic
+    from imucal_cli.fleet import evaluate_junit
     from imucal_cli.pipeline import evaluate_document
 
     _check_output(out)
+    if junit is not None and not junit.parent.is_dir():
+        raise InputError(f"{junit}: folder {junit.parent} does not exist")
     estimates = load_transforms(estimate)
     truths = load_transforms(truth)
     if not set(estimates) & set(truths):
         raise InputError(f"{estimate}: no sensor in common with {truth}")
-    document = evaluate_document(estimates, truths, max_rotation_deg, max_translation_m)
+    document = evaluate_document(estimates, truths, max_rotation_deg, max_translation_m, allow_missing)
+    for side, names in document["missing"].items():
+        for name in names:
+            where = estimate if side == "estimate_only" else truth
+            typer.echo(f"imucal: {'note' if allow_missing else 'error'}: sensor {name} is in {where} only", err=True)
+    if junit is not None:
+        write_text_atomic(junit, evaluate_junit(document, str(estimate), str(truth)))
 
     def render(doc: dict[str, Any]) -> None:
         from rich.table import Table

@@ -27,6 +27,11 @@ from imucal_cli.config import Config
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.types import Transform
 
+#: A sensor moved when its calibration and the reference differ by more than this many
+#: combined std (largest axis of each); where a std is not known, the fallbacks below.
+MOVED_STD = 3.0
+MOVED_FALLBACK_DEG, MOVED_FALLBACK_M = 0.1, 0.02
+
 SUMMARY_COLUMNS = (
     "log", "sensor", "status", "x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg",
     "rotation_std_deg", "translation_std_m", "rotation_error_deg", "translation_error_m", "moved",
@@ -49,6 +54,9 @@ class Task:
     max_rotation_deg: float | None = None
     max_translation_m: float | None = None
     max_lost_s: float | None = None  # None: any read loss fails the log's rows
+    #: Against a reference without thresholds: per sensor its (rotation deg, translation m) std
+    #: (largest axis) in the reference, for the default "moved" test (:data:`MOVED_STD`).
+    reference_std: dict[str, tuple[float | None, float | None]] = field(default_factory=dict)
 
 
 @dataclass
@@ -116,9 +124,14 @@ def run_one(task: Task) -> list[Row]:
             errors = transform_errors(T, task.against[sensor])
             row.rotation_error_deg = errors["rotation_error_deg"]
             row.translation_error_m = errors["translation_error_m"]
-            over = (task.max_rotation_deg is not None and row.rotation_error_deg > task.max_rotation_deg) or (
-                task.max_translation_m is not None and row.translation_error_m > task.max_translation_m
-            )
+            limit_r, limit_t = task.max_rotation_deg, task.max_translation_m
+            if task.reference:
+                ref_r, ref_t = task.reference_std.get(sensor, (None, None))
+                limit_r = limit_r if limit_r is not None else _combined(row.rotation_std_deg, ref_r, MOVED_FALLBACK_DEG)
+                limit_t = limit_t if limit_t is not None else _combined(row.translation_std_m, ref_t, MOVED_FALLBACK_M)
+            over = (limit_r is not None and row.rotation_error_deg > limit_r) or (limit_t is not None and row.translation_error_m > limit_t)
+            if over and task.reference:
+                row.error = row.error or f"moved: {row.rotation_error_deg:.4f} deg (limit {limit_r:.4g}), {row.translation_error_m:.4f} m (limit {limit_t:.4g})"
             if task.reference:
                 row.moved = bool(over)
             row.passed = row.passed and not over
@@ -130,6 +143,13 @@ def run_one(task: Task) -> list[Row]:
     for row in rows:
         row.seconds = elapsed
     return rows
+
+
+def _combined(now: float | None, before: float | None, fallback: float) -> float:
+    """:data:`MOVED_STD` combined std of two calibrations, or ``fallback`` where one is unknown."""
+    if now is None or before is None:
+        return fallback
+    return MOVED_STD * float(np.hypot(now, before))
 
 
 def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
@@ -252,5 +272,36 @@ def junit_xml(rows: Sequence[Row]) -> str:
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
         f'<testsuites><testsuite name="imucal batch" tests="{len(rows)}" failures="{failures}" errors="{errors}" time="{total:.3f}">\n'
+        + "\n".join(cases) + "\n</testsuite></testsuites>\n"
+    )
+
+
+def evaluate_junit(document: dict[str, Any], estimate: str, truth: str) -> str:
+    """JUnit XML of an ``evaluate`` document: a case per sensor and pair, failing with the
+    threshold and the measured value; every case carries its errors in ``system-out``; a
+    sensor in one file only is a failed case (an error when ``--allow-missing`` was not given)."""
+    limits = document["thresholds"]
+    allowed = document["pass"] or not (document["missing"]["estimate_only"] or document["missing"]["truth_only"])
+    cases, failures = [], 0
+    for group in ("sensors", "pairs"):
+        for name, row in document[group].items():
+            values = f"rotation_error_deg {row['rotation_error_deg']:.6g}, translation_error_m {row['translation_error_m']:.6g}"
+            over = [
+                f"{value} {row[value]:.6g} > {key} {limits[key]:g}"
+                for key, value in (("max_rotation_deg", "rotation_error_deg"), ("max_translation_m", "translation_error_m"))
+                if limits[key] is not None and row[value] > limits[key]
+            ]
+            failures += bool(over)
+            body = f"<failure message={quoteattr('; '.join(over))}/>" if over else ""
+            cases.append(f"  <testcase classname={quoteattr(group)} name={quoteattr(name)}>{body}<system-out>{escape(values)}</system-out></testcase>")
+    for side, names in document["missing"].items():
+        for name in names:
+            where = f"in {estimate} only" if side == "estimate_only" else f"in {truth} only"
+            failures += not allowed
+            body = "" if allowed else f"<failure message={quoteattr(f'sensor {name} is {where}')}/>"
+            cases.append(f"  <testcase classname=\"missing\" name={quoteattr(name)}>{body}<system-out>{escape(where)}</system-out></testcase>")
+    return (
+        '<?xml version="1.0" encoding="UTF-8"?>\n'
+        f'<testsuites><testsuite name="imucal evaluate" tests="{len(cases)}" failures="{failures}" errors="0">\n'
         + "\n".join(cases) + "\n</testsuite></testsuites>\n"
     )

@@ -285,9 +285,12 @@ def evaluate_document(
     truths: Mapping[str, Transform],
     max_rotation_deg: float | None,
     max_translation_m: float | None,
+    allow_missing: bool = False,
 ) -> dict[str, Any]:
-    """Every sensor present in both, and every pair ``T_a_b = T_base_a^-1 T_base_b``."""
+    """Every sensor present in both, and every pair ``T_a_b = T_base_a^-1 T_base_b``. A sensor
+    in one file and not the other fails the evaluation unless ``allow_missing``."""
     names = sorted(set(estimates) & set(truths))
+    missing = {"estimate_only": sorted(set(estimates) - set(truths)), "truth_only": sorted(set(truths) - set(estimates))}
     sensors = {n: transform_errors(estimates[n], truths[n]) for n in names}
     pairs = {}
     for a, b in combinations(names, 2):
@@ -297,7 +300,7 @@ def evaluate_document(
         del errors["translation_error_xyz_m"]
         pairs[f"{a}/{b}"] = errors
     rows = list(sensors.values()) + list(pairs.values())
-    passed = bool(names)
+    passed = bool(names) and (allow_missing or not (missing["estimate_only"] or missing["truth_only"]))
     if max_rotation_deg is not None:
         passed &= all(r["rotation_error_deg"] <= max_rotation_deg for r in rows)
     if max_translation_m is not None:
@@ -306,5 +309,6 @@ def evaluate_document(
         "sensors": sensors,
         "pairs": pairs,
         "thresholds": {"max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m},
+        "missing": missing,
         "pass": passed,
     }

@@ -158,3 +158,10 @@ def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_wh
     assert json.loads(printed.stdout) == json.loads((tmp_path / "e.json").read_text())
     bad = subprocess.run([*command[:-1], str(tmp_path / "missing.yaml")], capture_output=True, timeout=300)
     assert bad.returncode == 2 and b"missing.yaml" in bad.stderr and b"Traceback" not in bad.stderr
+
+
+def test_plain_flags_show_no_metavar_in_help():
+    for command in ("calibrate", "inspect", "evaluate"):
+        result = runner.invoke(app, [command, "--help"], env={"COLUMNS": "200"})
+        flags = [line for line in result.stdout.splitlines() if "--json" in line or "--require-observable" in line or "--allow-missing" in line]
+        assert flags and all("<bool>" not in line for line in flags), (command, flags)

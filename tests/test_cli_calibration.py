@@ -169,3 +169,39 @@ def test_names_and_paths_are_printed_as_they_are(tmp_path):
     assert result.exit_code == 1, result.output  # a failed check
     assert "lidar[front]" in result.stdout and "[night]" in result.stdout
     assert result.stdout.rstrip().endswith("fail")
+
+
+def test_evaluate_fails_on_a_sensor_missing_from_the_truth_unless_allowed(estimate_path, tmp_path):
+    import xml.etree.ElementTree as ET
+
+    truth = yaml.safe_load(TRUTH.read_text())
+    dropped = sorted(truth["sensors"])[0]
+    del truth["sensors"][dropped]
+    partial = tmp_path / "partial.truth.yaml"
+    partial.write_text(yaml.safe_dump(truth))
+    result = runner.invoke(app, ["evaluate", str(estimate_path), str(partial), "--json", "--junit", str(tmp_path / "e.xml")])
+    assert result.exit_code == 1 and f"sensor {dropped} is in {estimate_path} only" in result.stderr
+    doc = json.loads(result.stdout)
+    assert doc["pass"] is False and doc["missing"] == {"estimate_only": [dropped], "truth_only": []}
+    cases = ET.parse(tmp_path / "e.xml").getroot().iter("testcase")
+    missing = [c for c in cases if c.get("classname") == "missing"]
+    assert len(missing) == 1 and dropped in missing[0].find("failure").get("message")
+    result = runner.invoke(app, ["evaluate", str(estimate_path), str(partial), "--allow-missing"])
+    assert result.exit_code == 0
+
+
+def test_evaluate_junit_names_the_threshold_and_the_value_and_passing_cases_carry_theirs(estimate_path, tmp_path):
+    import xml.etree.ElementTree as ET
+
+    doc = json.loads(runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--json"]).stdout)
+    worst_name, worst = max(doc["sensors"].items(), key=lambda item: item[1]["rotation_error_deg"])
+    limit = worst["rotation_error_deg"] * 0.999
+    result = runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--max-rotation-deg", repr(limit), "--junit", str(tmp_path / "e.xml")])
+    assert result.exit_code == 1
+    suite = ET.parse(tmp_path / "e.xml").getroot().find("testsuite")
+    cases = {(c.get("classname"), c.get("name")): c for c in suite.iter("testcase")}
+    failed = cases[("sensors", worst_name)].find("failure").get("message")
+    assert f"rotation_error_deg {worst['rotation_error_deg']:.6g}" in failed and "max_rotation_deg" in failed
+    passing = [c for c in cases.values() if c.find("failure") is None]
+    assert passing and all("rotation_error_deg" in c.find("system-out").text for c in passing)
+    assert int(suite.get("failures")) == sum(c.find("failure") is not None for c in cases.values())

@@ -122,7 +122,10 @@ def test_sample_calibration_round_trips(fmt, tmp_path):
     files = {"main": target.read_text()}
     if fmt.startswith("tf-static"):
         files["launch"] = (tmp_path / ("export_tf-static-ros2.launch.xml" if fmt.endswith("ros2") else "export_tf-static-ros1.launch")).read_text()
+        assert target.stat().st_mode & 0o111  # the command lines are a script to run
     assert files == export(ex, fmt)
+    printed = runner.invoke(app, ["export", str(out), "--format", fmt])
+    assert printed.stdout == files["main"]  # one file printed, never the launch file mixed in
 
 
 def test_kalibr_T_i_b_is_the_base_in_the_imu():

@@ -194,3 +194,19 @@ def test_a_real_dask_cluster_started_in_another_folder_gives_the_local_summary(s
     assert remote.exit_code == local.exit_code, remote.output
     assert _rows(tmp_path / "dask") == _rows(tmp_path / "local")
     assert all("not found" not in r["error"] for r in _rows(tmp_path / "dask"))
+
+
+def test_reference_without_thresholds_flags_a_move_past_three_combined_std(fleet, tmp_path):
+    root, logs = fleet
+    assert runner.invoke(app, ["calibrate", str(logs[0]), "-c", str(root / "config.yaml"), "-o", str(tmp_path / "last.yaml")]).exit_code == 0
+    reference = yaml.safe_load((tmp_path / "last.yaml").read_text())
+    moved = next(iter(reference["sensors"]))
+    T = Transform.from_dict(reference["sensors"][moved]["T_base_lidar"])
+    bumped = Transform.from_rpy(np.radians([0.0, 0.0, 0.47]), np.zeros(3)) * T  # the 0.47 deg
+    reference["sensors"][moved]["T_base_lidar"] = {"translation": list(bumped.translation), "rotation": list(bumped.quaternion_xyzw)}
+    write_document(tmp_path / "reference.yaml", reference)
+    result = runner.invoke(app, ["batch", str(logs[0]), "-c", str(root / "config.yaml"), "--out-dir", str(tmp_path / "r"), "--reference", str(tmp_path / "reference.yaml")])
+    assert result.exit_code == 1 and "3 combined std" in result.stderr
+    rows = {r["sensor"]: r for r in _rows(tmp_path / "r")}
+    assert rows[moved]["moved"] == "True" and rows[moved]["pass"] == "False" and "limit" in rows[moved]["error"]
+    assert all(r["moved"] == "False" and r["pass"] == "True" for name, r in rows.items() if name != moved)
