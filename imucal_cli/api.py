@@ -177,7 +177,7 @@ def estimate(streamed: StreamedLog) -> CalibrationResult:
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         # only data no IMU produces get here (the reader drops what it can recognise)
         raise InputError(f"{streamed.log}: the IMU data are numerically degenerate ({exc}); the log may hold damaged samples") from None
-    return CalibrationResult(estimates, streamed.config, dict(streamed.calibrator.rates_hz))
+    return CalibrationResult(estimates, streamed.config, dict(streamed.calibrator.rates_hz), dict(streamed.calibrator.noise))
 
 
 def export_extrinsics(document: Mapping[str, Any], fmt: str, parent: str | None = None, source: str = "<document>") -> dict[str, str]:

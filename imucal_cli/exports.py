@@ -37,6 +37,7 @@ class SensorExtrinsics:
     T_base_imu: Transform
     time_offset_s: float
     imu_rate_hz: float | None
+    imu_noise: dict[str, float | None] | None = None  # Kalibr's four noise figures
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,7 @@ class Extrinsics:
     base_topic: str | None
     base_imu_rate_hz: float | None
     sensors: tuple[SensorExtrinsics, ...]
+    base_imu_noise: dict[str, float | None] | None = None
 
     @staticmethod
     def from_document(document: Any, source: str) -> Extrinsics:
@@ -71,11 +73,12 @@ class Extrinsics:
                 SensorExtrinsics(
                     str(name), str(s["lidar_frame"]), str(s.get("imu_topic", "")), T_base_lidar, T_base_imu,
                     _number(s, "time_offset_s", f"{where}.time_offset_s") or 0.0, _number(s, "imu_rate_hz", f"{where}.imu_rate_hz"),
+                    s.get("imu_noise"),
                 )
             )
         return Extrinsics(
             source, str(document.get("base_frame", "base_link")), document.get("base_topic"),
-            _number(document, "base_imu_rate_hz", f"{source}: base_imu_rate_hz"), tuple(sensors),
+            _number(document, "base_imu_rate_hz", f"{source}: base_imu_rate_hz"), tuple(sensors), document.get("base_imu_noise"),
         )
 
 
@@ -166,15 +169,31 @@ def kalibr(ex: Extrinsics) -> str:
     lines = ["# imucal: IMU chain in Kalibr's layout; imu0 is the base IMU", "imu0:", "  T_i_b:"]
     lines += _matrix_rows(np.eye(4), "    ")
     lines += ["  model: calibrated", f"  rostopic: {ex.base_topic or ''}", "  time_offset: 0.0"]
-    if ex.base_imu_rate_hz is not None:
-        lines.append(f"  update_rate: {_f(ex.base_imu_rate_hz)}")
+    lines += _kalibr_imu(ex, "base", ex.base_imu_rate_hz, ex.base_imu_noise)
     for k, s in enumerate(ex.sensors, start=1):
         lines += [f"imu{k}:", f"  # {s.name}", "  T_i_b:"]
         lines += _matrix_rows(s.T_base_imu.inverse().as_matrix(), "    ")
         lines += ["  model: calibrated", f"  rostopic: {s.imu_topic}", f"  time_offset: {_f(-s.time_offset_s)}"]
-        if s.imu_rate_hz is not None:
-            lines.append(f"  update_rate: {_f(s.imu_rate_hz)}")
+        lines += _kalibr_imu(ex, f"sensors.{s.name}", s.imu_rate_hz, s.imu_noise)
     return "\n".join(lines) + "\n"
+
+
+KALIBR_NOISE = ("accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk")
+
+
+def _kalibr_imu(ex: Extrinsics, where: str, rate: float | None, noise: dict[str, float | None] | None) -> list[str]:
+    """The update rate and the four noise figures Kalibr's and OpenVINS's readers require
+    (each positive); an error naming the key where the calibrate output lacks one."""
+    key = "base_imu" if where == "base" else where
+    if rate is None or not rate > 0:
+        raise InputError(f"{ex.source}: {key}{'_rate_hz' if where == 'base' else '.imu_rate_hz'}: missing: Kalibr needs the IMU's update_rate")
+    lines = [f"  update_rate: {_f(rate)}"]
+    for name in KALIBR_NOISE:
+        value = (noise or {}).get(name)
+        if value is None or not value > 0:
+            raise InputError(f"{ex.source}: {key}{'_noise' if where == 'base' else '.imu_noise'}.{name}: missing (calibrate with this imucal version): Kalibr needs it")
+        lines.append(f"  {name}: {_f(value)}")
+    return lines
 
 
 def json_matrices(ex: Extrinsics) -> str:

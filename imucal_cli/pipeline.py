@@ -155,6 +155,8 @@ class CalibrationResult:
     config: Config
     #: Median sample rate of each IMU ("base" and the sensor names), where measured (Hz).
     rates_hz: Mapping[str, float] = field(default_factory=dict)
+    #: White-noise density of each IMU's gyro and accelerometer (rad/s/sqrt(Hz), m/s^2/sqrt(Hz)).
+    noise_density: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
     def T_base_lidar(self, name: str) -> Transform:
         return self.estimates[name].T_base_imu * self.config.sensor(name).T_imu_lidar
@@ -169,7 +171,7 @@ def run_calibrate(streams: DriveStreams, config: Config) -> CalibrationResult:
     calibrator = make_calibrator(config)
     feed(calibrator, streams)
     estimates = calibrator.finish()
-    return CalibrationResult(estimates, config, dict(calibrator.rates_hz))
+    return CalibrationResult(estimates, config, dict(calibrator.rates_hz), dict(calibrator.noise))
 
 
 def _std_list(values: np.ndarray | None) -> list[float] | None:
@@ -211,6 +213,29 @@ def losses_document(losses: Sequence[Loss]) -> list[dict[str, Any]]:
     ]
 
 
+#: Smallest random walk written (Kalibr refuses zero): 1e-9 per sqrt(s).
+MIN_RANDOM_WALK = 1e-9
+
+
+def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
+    """An IMU's noise in Kalibr's terms: white-noise densities measured above the motion, the
+    gyro bias random walk of the config (``gyro_bias.process_noise_dps``) and the accelerometer
+    bias random walk from the knots of the relative bias the fit estimated (sensor minus base:
+    for each IMU an upper bound); the base's accelerometer walk is the smallest sensor's."""
+    gyro, accel = result.noise_density.get(name, (None, None))
+    walk_g = float(np.radians(result.config.gyro_bias.process_noise_dps))
+    walks = []
+    for sensor, est in result.estimates.items():
+        knots = est.accel_bias_knots
+        if len(knots) > 2 and (name == "base" or sensor == name):
+            walks.append(float(np.sqrt(np.mean(np.diff(knots, axis=0) ** 2) / result.config.segments.window_s)))
+    walk_a = (min(walks) if name == "base" else walks[0]) if walks else None
+    return {
+        "gyroscope_noise_density": gyro, "accelerometer_noise_density": accel,
+        "gyroscope_random_walk": max(walk_g, MIN_RANDOM_WALK), "accelerometer_random_walk": None if walk_a is None else max(walk_a, MIN_RANDOM_WALK),
+    }
+
+
 def calibration_document(result: CalibrationResult, log: str, losses: Sequence[Loss] = ()) -> dict[str, Any]:
     """The SPEC's calibrate document; ``losses`` (what reading the log could not read) go in
     as ``losses`` and ``lost_s`` (None: a span not known)."""
@@ -225,6 +250,7 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
             "imu_topic": sensor.imu_topic,
             "lidar_frame": sensor.lidar_frame,
             "imu_rate_hz": _rate(result, sensor.name),
+            "imu_noise": imu_noise(result, sensor.name),
             "T_base_imu": est.T_base_imu.to_dict(),
             "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
             "rotation_std_deg": _std_list(None if cov is None else np.degrees(np.sqrt(np.diag(cov)[:3]))),
@@ -258,6 +284,7 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
         "base_frame": config.base.frame,
         "base_topic": config.base.topic,
         "base_imu_rate_hz": _rate(result, "base"),
+        "base_imu_noise": imu_noise(result, "base"),
         "sensors": sensors,
         "pairs": pairs,
         "lost_s": lost_seconds(losses),

@@ -28,15 +28,18 @@ def angle(a: Rotation, b: Rotation) -> float:
     return float((a.inv() * b).magnitude())
 
 
+NOISE = {"accelerometer_noise_density": 2e-3, "accelerometer_random_walk": 3e-3, "gyroscope_noise_density": 2e-4, "gyroscope_random_walk": 2e-5}
+
+
 def extrinsics(transforms: list[Transform]) -> Extrinsics:
     sensors = tuple(
         SensorExtrinsics(
             f"s{k}", f"lidar_{k}", f"/lidar/{k}/imu", T, T * Transform.from_rpy(np.array([0.1, -0.2, 3.0]), np.array([0.01, 0.02, -0.03])),
-            0.001 * k - 0.002, 200.0,
+            0.001 * k - 0.002, 200.0, NOISE,
         )
         for k, T in enumerate(transforms)
     )
-    return Extrinsics("test.yaml", "base_link", "/gnss/imu", 100.0, sensors)
+    return Extrinsics("test.yaml", "base_link", "/gnss/imu", 100.0, sensors, NOISE)
 
 
 def parse(fmt: str, files: dict[str, str], parent: str = "base_link") -> dict[str, Transform]:
@@ -131,7 +134,7 @@ def test_sample_calibration_round_trips(fmt, tmp_path):
 def test_kalibr_T_i_b_is_the_base_in_the_imu():
     T_base_imu = Transform.from_rpy(np.array([0.0, 0.0, np.pi / 2]), np.array([1.0, 0.0, 0.0]))
     ex = extrinsics([Transform.identity()])
-    ex = Extrinsics(ex.source, ex.base_frame, ex.base_topic, ex.base_imu_rate_hz, (SensorExtrinsics("s", "l", "/imu", Transform.identity(), T_base_imu, 0.0, 200.0),))
+    ex = Extrinsics(ex.source, ex.base_frame, ex.base_topic, ex.base_imu_rate_hz, (SensorExtrinsics("s", "l", "/imu", Transform.identity(), T_base_imu, 0.0, 200.0, NOISE),), NOISE)
     T_i_b = np.array(yaml.safe_load(export(ex, "kalibr")["main"])["imu1"]["T_i_b"])
     # The IMU sits 1 m along the base's x axis, yawed 90 deg: its y axis points along the base's
     # -x. The base origin, 1 m behind the IMU along base x, is 1 m along the IMU's +y.
@@ -175,3 +178,61 @@ def test_export_rejects_a_non_number_rate(tmp_path):
     out.write_text(yaml.safe_dump(document))
     result = runner.invoke(app, ["export", str(out), "--format", "kalibr"])
     assert result.exit_code == 2 and f"sensors.{name}.imu_rate_hz" in result.stderr and "e.yaml" in result.stderr
+
+
+def _kalibr_imu_parameters(data: dict, name: str) -> tuple:
+    """What Kalibr's ``kalibr_common.ConfigReader.ImuParameters`` reads and checks of one IMU
+    (its getRosTopic, getUpdateRate, getAccelerometerStatistics, getGyroStatistics: a missing
+    field or a value that is not positive is an error), and the T_i_b its IMU chain holds."""
+    imu = data[name]
+    for field in ("rostopic", "update_rate", "accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk"):
+        assert field in imu, f"[ImuConfig Reader]: Field '{field}' missing"
+    assert isinstance(imu["rostopic"], str), "rostopic has to be a string"
+    assert imu["update_rate"] > 0.0, "invalid update_rate"
+    for field in ("accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk"):
+        assert isinstance(imu[field], float) and imu[field] > 0.0, f"invalid {field}"
+    T = np.array(imu["T_i_b"], dtype=float)
+    assert T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9) and np.allclose(T[3], [0, 0, 0, 1])
+    return imu["accelerometer_noise_density"] / np.sqrt(1.0 / imu["update_rate"]), imu["gyroscope_noise_density"] / np.sqrt(1.0 / imu["update_rate"])
+
+
+def _openvins_noise(data: dict) -> dict:
+    """What OpenVINS's VioManagerOptions::print_and_load_noise takes from the IMU file: imu0's
+    four noise figures, each required (parse_external fails without it)."""
+    keys = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density", "accelerometer_random_walk")
+    missing = [k for k in keys if k not in data["imu0"]]
+    assert not missing, f"unable to find {missing}"
+    return {k: float(data["imu0"][k]) for k in keys}
+
+
+def test_kalibr_export_reads_in_kalibr_and_openvins_with_the_noise_the_drive_has(tmp_path):
+    from conftest import SAMPLE_DATA
+
+    out = tmp_path / "ext.yaml"
+    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    result = runner.invoke(app, ["export", str(out), "--format", "kalibr"])
+    assert result.exit_code == 0, result.output
+    data = yaml.safe_load(result.stdout)
+    names = sorted(data)
+    assert names == [f"imu{k}" for k in range(len(names))] and len(names) >= 2
+    for name in names:
+        _kalibr_imu_parameters(data, name)
+    noise = _openvins_noise(data)
+    # the sample drive's IMUs (the simulator's defaults): base 0.002 deg/s/sqrt(Hz) and
+    # 50 ug/sqrt(Hz), lidar IMUs 0.015 deg/s/sqrt(Hz) and 230 ug/sqrt(Hz); measured within 10%
+    assert noise["gyroscope_noise_density"] == pytest.approx(np.radians(0.002), rel=0.1)
+    assert noise["accelerometer_noise_density"] == pytest.approx(50e-6 * 9.80665, rel=0.1)
+    assert data["imu1"]["gyroscope_noise_density"] == pytest.approx(np.radians(0.015), rel=0.1)
+    assert data["imu1"]["accelerometer_noise_density"] == pytest.approx(230e-6 * 9.80665, rel=0.1)
+
+
+def test_kalibr_export_of_a_document_without_noise_names_the_missing_key(tmp_path):
+    from conftest import SAMPLE_DATA
+
+    out = tmp_path / "ext.yaml"
+    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    document = yaml.safe_load(out.read_text())
+    del document["base_imu_noise"]
+    out.write_text(yaml.safe_dump(document))
+    result = runner.invoke(app, ["export", str(out), "--format", "kalibr"])
+    assert result.exit_code == 2 and "base_imu_noise.accelerometer_noise_density: missing" in result.stderr
