@@ -180,12 +180,15 @@ def estimate(streamed: StreamedLog) -> CalibrationResult:
     return CalibrationResult(estimates, streamed.config, dict(streamed.calibrator.rates_hz), dict(streamed.calibrator.noise))
 
 
-def export_extrinsics(document: Mapping[str, Any], fmt: str, parent: str | None = None, source: str = "<document>") -> dict[str, str]:
+def export_extrinsics(
+    document: Mapping[str, Any], fmt: str, parent: str | None = None, source: str = "<document>", T_base_parent: Transform | None = None, allow_not_ok: bool = False,
+) -> dict[str, str]:
     """The text of one export format (:mod:`imucal_cli.exports`) from a calibrate document:
-    ``{"main": ...}``, plus ``{"launch": ...}`` for the tf2 static publishers."""
+    ``{"main": ...}``, plus ``{"launch": ...}`` for the tf2 static publishers; relative to
+    ``parent`` where given; sensors not ``ok`` only with ``allow_not_ok``."""
     from imucal_cli.exports import Extrinsics, export
 
-    return export(Extrinsics.from_document(dict(document), source), fmt, parent)
+    return export(Extrinsics.from_document(dict(document), source), fmt, parent, T_base_parent, allow_not_ok)
 
 
 def load_transforms(path: str | Path, key: str = "T_base_lidar") -> dict[str, Transform]:

@@ -437,6 +437,30 @@ def calibrate(
 
 
 PANEL_EXPORT = "Export"
+
+
+def _parse_transform(text: str) -> Any:
+    """A transform given on the command line: a YAML/JSON file, or seven numbers."""
+    from imucal_cli.errors import ConfigError
+    from imucal_cli.types import Transform
+
+    path = Path(text)
+    try:
+        if path.is_file():
+            from imucal_cli.documents import load_document
+
+            return Transform.from_dict(load_document(path), str(path), "")
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ConfigError as exc:
+        raise InputError(str(exc)) from None
+    except ValueError:
+        values = []
+    if len(values) != 7:
+        raise InputError(f"--parent-transform {text!r}: expected a file or 'x y z qx qy qz qw'")
+    try:
+        return Transform.from_dict({"translation": values[:3], "rotation": values[3:]}, "--parent-transform", "")
+    except ConfigError as exc:
+        raise InputError(str(exc)) from None
 LAUNCH_SUFFIX = {"tf-static-ros2": ".launch.xml", "tf-static-ros1": ".launch"}
 
 
@@ -456,7 +480,9 @@ def export(
             "STEM.launch.xml for ROS 2, STEM.launch for ROS 1). Default: print.",
         ),
     ] = None,
-    parent: Annotated[str | None, typer.Option("--parent", help="Parent frame (default: the calibration's base frame).")] = None,
+    parent: Annotated[str | None, typer.Option("--parent", help="Express every transform relative to this frame: the base frame, a lidar frame or sensor name, or any frame --parent-transform places.")] = None,
+    parent_transform: Annotated[str | None, typer.Option("--parent-transform", help="T_base_PARENT: a YAML/JSON file {translation, rotation} or 'x y z qx qy qz qw'.")] = None,
+    allow_not_ok: Annotated[bool, typer.Option("--allow-not-ok", metavar="", help="Export sensors whose status is not ok (their prior may go out as if calibrated).")] = False,
 ) -> None:
     """The extrinsics in the layout of Autoware, URDF, tf2 static publishers, Kalibr or JSON."""
     from imucal_cli.documents import load_document, write_text_atomic
@@ -467,7 +493,10 @@ def export(
         raise InputError(f"--format {fmt}: unknown format (expected one of: {', '.join(FORMATS)})")
     if out is not None and not out.parent.is_dir():
         raise InputError(f"{out}: output folder {out.parent} does not exist")
-    files = make(Extrinsics.from_document(load_document(extrinsics), str(extrinsics)), fmt, parent)
+    if parent_transform is not None and parent is None:
+        raise InputError("--parent-transform: give --parent FRAME too (the frame it places)")
+    T_base_parent = _parse_transform(parent_transform) if parent_transform is not None else None
+    files = make(Extrinsics.from_document(load_document(extrinsics), str(extrinsics)), fmt, parent, T_base_parent, allow_not_ok)
     if out is None:
         typer.echo(files["main"], nl=False)  # one file: the launch file needs -o
         if "launch" in files:

@@ -16,7 +16,7 @@ only the quaternion form is written here, so nothing depends on that order.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 from xml.sax.saxutils import quoteattr
 
@@ -38,6 +38,8 @@ class SensorExtrinsics:
     time_offset_s: float
     imu_rate_hz: float | None
     imu_noise: dict[str, float | None] | None = None  # Kalibr's four noise figures
+    status: str = "ok"
+    time_offset_observable: bool = True
 
 
 @dataclass(frozen=True)
@@ -73,7 +75,7 @@ class Extrinsics:
                 SensorExtrinsics(
                     str(name), str(s["lidar_frame"]), str(s.get("imu_topic", "")), T_base_lidar, T_base_imu,
                     _number(s, "time_offset_s", f"{where}.time_offset_s") or 0.0, _number(s, "imu_rate_hz", f"{where}.imu_rate_hz"),
-                    s.get("imu_noise"),
+                    s.get("imu_noise"), str(s.get("status", "")), bool(s.get("time_offset_observable", False)),
                 )
             )
         return Extrinsics(
@@ -173,7 +175,8 @@ def kalibr(ex: Extrinsics) -> str:
     for k, s in enumerate(ex.sensors, start=1):
         lines += [f"imu{k}:", f"  # {s.name}", "  T_i_b:"]
         lines += _matrix_rows(s.T_base_imu.inverse().as_matrix(), "    ")
-        lines += ["  model: calibrated", f"  rostopic: {s.imu_topic}", f"  time_offset: {_f(-s.time_offset_s)}"]
+        offset = f"{_f(-s.time_offset_s)}" if s.time_offset_observable else "0.0  # not observable from the drive: not estimated"
+        lines += ["  model: calibrated", f"  rostopic: {s.imu_topic}", f"  time_offset: {offset}"]
         lines += _kalibr_imu(ex, f"sensors.{s.name}", s.imu_rate_hz, s.imu_noise)
     return "\n".join(lines) + "\n"
 
@@ -212,9 +215,37 @@ def json_matrices(ex: Extrinsics) -> str:
     return json.dumps(document, indent=2) + "\n"
 
 
-def export(ex: Extrinsics, fmt: str, parent: str | None = None) -> dict[str, str]:
-    """The files of one format: ``{"main": text}`` plus ``{"launch": text}`` for tf-static."""
-    parent = parent or ex.base_frame
+def relative_to(ex: Extrinsics, parent: str, T_base_parent: Transform | None = None) -> Extrinsics:
+    """Every ``T_base_lidar`` re-expressed as ``T_parent_lidar = T_base_parent^-1 T_base_lidar``.
+    ``parent`` is the base frame, a lidar frame or sensor name of the calibration, or any frame
+    whose ``T_base_parent`` is given; anything else is refused (renaming the parent alone would
+    publish every transform against the wrong frame)."""
+    if T_base_parent is None:
+        if parent == ex.base_frame:
+            return ex
+        found = [s for s in ex.sensors if parent in (s.lidar_frame, s.name)]
+        if not found:
+            frames = ", ".join([ex.base_frame, *(s.lidar_frame for s in ex.sensors)])
+            raise InputError(f"--parent {parent}: not a frame of {ex.source} ({frames}); give --parent-transform with T_{ex.base_frame}_{parent}")
+        T_base_parent, parent = found[0].T_base_lidar, found[0].lidar_frame
+    inverse = T_base_parent.inverse()
+    sensors = tuple(replace(s, T_base_lidar=inverse * s.T_base_lidar, T_base_imu=inverse * s.T_base_imu) for s in ex.sensors if s.lidar_frame != parent)
+    return replace(ex, base_frame=parent, sensors=sensors)
+
+
+def export(ex: Extrinsics, fmt: str, parent: str | None = None, T_base_parent: Transform | None = None, allow_not_ok: bool = False) -> dict[str, str]:
+    """The files of one format: ``{"main": text}`` plus ``{"launch": text}`` for tf-static.
+    ``parent``: re-express every transform relative to that frame (:func:`relative_to`). A
+    sensor that is not ``ok`` is refused unless ``allow_not_ok`` (its prior would go out as if
+    calibrated)."""
+    weak = [f"{s.name} ({s.status or 'no status'})" for s in ex.sensors if s.status != "ok"]
+    if weak and not allow_not_ok:
+        raise InputError(f"{ex.source}: not calibrated on every axis: {', '.join(weak)}; --allow-not-ok exports them anyway")
+    if parent is not None and (parent != ex.base_frame or T_base_parent is not None):
+        if fmt == "kalibr":
+            raise InputError(f"--parent {parent}: a Kalibr IMU chain is relative to its first IMU, the base's: no other parent")
+        ex = relative_to(ex, parent, T_base_parent)
+    parent = ex.base_frame
     if fmt == "autoware":
         return {"main": autoware(ex, parent)}
     if fmt == "urdf":

@@ -236,3 +236,59 @@ def test_kalibr_export_of_a_document_without_noise_names_the_missing_key(tmp_pat
     out.write_text(yaml.safe_dump(document))
     result = runner.invoke(app, ["export", str(out), "--format", "kalibr"])
     assert result.exit_code == 2 and "base_imu_noise.accelerometer_noise_density: missing" in result.stderr
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    from conftest import SAMPLE_DATA
+
+    out = tmp_path_factory.mktemp("export") / "ext.yaml"
+    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    return out
+
+
+def _json_export(path, *args):
+    result = runner.invoke(app, ["export", str(path), "--format", "json", *args])
+    assert result.exit_code == 0, result.output
+    import json
+
+    return json.loads(result.stdout)
+
+
+def test_parent_re_expresses_every_transform_not_just_its_name(calibrated):
+    document = yaml.safe_load(calibrated.read_text())
+    a, b = sorted(document["sensors"])
+    frame_a = document["sensors"][a]["lidar_frame"]
+    exported = _json_export(calibrated, "--parent", frame_a)
+    assert exported["base_frame"] == frame_a and list(exported["sensors"]) == [b]
+    T_a_b = Transform.from_dict(document["pairs"][f"{a}/{b}"]).as_matrix()
+    assert np.allclose(exported["sensors"][b]["T_base_lidar"], T_a_b, atol=1e-12)  # the calibrate pair, T_a_b
+    lifted = _json_export(calibrated, "--parent", "base_footprint", "--parent-transform", "0 0 -0.3 0 0 0 1")
+    plain = _json_export(calibrated)
+    for name in document["sensors"]:
+        moved = np.array(lifted["sensors"][name]["T_base_lidar"])[:3, 3] - np.array(plain["sensors"][name]["T_base_lidar"])[:3, 3]
+        assert np.allclose(moved, [0.0, 0.0, 0.3], atol=1e-12)
+
+
+def test_parent_that_is_no_frame_of_the_calibration_is_refused(calibrated):
+    result = runner.invoke(app, ["export", str(calibrated), "--format", "urdf", "--parent", "map"])
+    assert result.exit_code == 2 and "--parent map: not a frame" in result.stderr and "--parent-transform" in result.stderr
+    result = runner.invoke(app, ["export", str(calibrated), "--format", "kalibr", "--parent", "map", "--parent-transform", "0 0 0 0 0 0 1"])
+    assert result.exit_code == 2 and "Kalibr" in result.stderr
+
+
+def test_a_sensor_not_ok_goes_out_only_when_allowed_and_an_unobserved_offset_is_not_written(calibrated, tmp_path):
+    document = yaml.safe_load(calibrated.read_text())
+    name = sorted(document["sensors"])[0]
+    document["sensors"][name]["status"] = "partial"
+    document["sensors"][name]["time_offset_observable"] = False
+    document["sensors"][name]["time_offset_s"] = 0.0
+    weak = tmp_path / "weak.yaml"
+    weak.write_text(yaml.safe_dump(document))
+    result = runner.invoke(app, ["export", str(weak), "--format", "urdf"])
+    assert result.exit_code == 2 and f"{name} (partial)" in result.stderr and "--allow-not-ok" in result.stderr
+    result = runner.invoke(app, ["export", str(weak), "--format", "kalibr", "--allow-not-ok"])
+    assert result.exit_code == 0
+    entry = next(k for k, v in yaml.safe_load(result.stdout).items() if v["rostopic"] == document["sensors"][name]["imu_topic"])
+    block = result.stdout.split(f"\n{entry}:\n")[1].split("\nimu")[0]
+    assert "time_offset: 0.0  # not observable" in block
