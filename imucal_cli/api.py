@@ -32,7 +32,8 @@ CLOCK_COMPARE_SLACK_S = 0.05
 CLOCK_COMPARE_SAMPLES = 200
 
 __all__ = [
-    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "export_extrinsics", "load_transforms", "lost_summary", "stream_biases", "stream_log",
+    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "evaluate", "export_extrinsics", "load_transforms", "lost_summary", "stream_biases",
+    "stream_log", "write_report",
 ]
 
 
@@ -93,7 +94,7 @@ class StreamedLog:
     format_name: str
 
 
-def stream_log(log: str | Path, config: Config, progress: Callable[[int], None] | None = None) -> StreamedLog:
+def stream_log(log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
     log's length: windows reduced, nothing solved yet."""
     log = Path(log)
@@ -112,7 +113,7 @@ def stream_log(log: str | Path, config: Config, progress: Callable[[int], None] 
         calibrator.add(names[topic], stamps, gyro, accel)
         count += len(stamps)
         if progress is not None:
-            progress(count)
+            progress(count, sum(reader.expected.values()))  # messages read, of what the log holds
     lost = lost_summary(reader.losses)
     for topic, stats in reader.stats.items():
         usable = stats.messages - stats.decode_errors - stats.non_finite - stats.saturated - stats.implausible - stats.stamp_outliers
@@ -128,7 +129,7 @@ def stream_log(log: str | Path, config: Config, progress: Callable[[int], None] 
     return StreamedLog(log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name)
 
 
-def stream_biases(log: str | Path, config: Config, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
+def stream_biases(log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
     :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length."""
     from imucal_cli.pipeline import bias_trackers, biases_document
@@ -142,7 +143,7 @@ def stream_biases(log: str | Path, config: Config, progress: Callable[[int], Non
         trackers[names[topic]].add(stamps, gyro, accel)
         count += len(stamps)
         if progress is not None:
-            progress(count)
+            progress(count, sum(reader.expected.values()))  # messages read, of what the log holds
     empty = [topic for topic, name in names.items() if trackers[name].first_ns is None]
     if empty:
         raise InputError(f"{log} [{empty[0]}]: too little data: no usable message{lost_summary(reader.losses)}")
@@ -159,12 +160,13 @@ class LogCalibration:
     streamed: StreamedLog  # what reading found: counts per topic, losses
 
 
-def calibrate_log(log: str | Path, config: Config | str | Path) -> LogCalibration:
+def calibrate_log(log: str | Path, config: Config | str | Path, progress: Callable[[int, int], None] | None = None) -> LogCalibration:
     """Calibrate every sensor of ``config`` from the IMU topics of ``log`` (MCAP, rosbag2 or
-    ROS 1 bag). ``config`` is a :class:`Config` or the path of its YAML file."""
+    ROS 1 bag). ``config`` is a :class:`Config` or the path of its YAML file; ``progress`` is
+    called with (messages read, messages in the log) as reading goes."""
     if not isinstance(config, Config):
         config = load_config(config)
-    streamed = stream_log(log, config)
+    streamed = stream_log(log, config, progress)
     result = estimate(streamed)
     return LogCalibration(result, calibration_document(result, str(log), streamed.losses), streamed)
 
@@ -189,6 +191,27 @@ def export_extrinsics(
     from imucal_cli.exports import Extrinsics, export
 
     return export(Extrinsics.from_document(dict(document), source), fmt, parent, T_base_parent, allow_not_ok)
+
+
+def evaluate(
+    estimate: str | Path, truth: str | Path, max_rotation_deg: float | None = None, max_translation_m: float | None = None, allow_missing: bool = False,
+) -> dict[str, Any]:
+    """The SPEC's evaluate document of a calibrate output (or any file with ``sensors: NAME:
+    T_base_lidar``) against a truth file; ``document["pass"]`` is the verdict."""
+    from imucal_cli.pipeline import evaluate_document
+
+    estimates, truths = load_transforms(estimate), load_transforms(truth)
+    if not set(estimates) & set(truths):
+        raise InputError(f"{estimate}: no sensor in common with {truth}")
+    return evaluate_document(estimates, truths, max_rotation_deg, max_translation_m, allow_missing)
+
+
+def write_report(out_dir: str | Path, run: LogCalibration) -> list[Path]:
+    """The report's figures and ``report.html`` of a calibration into ``out_dir`` (needs
+    matplotlib, ``imucal[report]``); returns the files written."""
+    from imucal_cli.report import write_report as draw
+
+    return draw(Path(out_dir), run.streamed.log, run.result, run.streamed, run.document)
 
 
 def load_transforms(path: str | Path, key: str = "T_base_lidar") -> dict[str, Transform]:

@@ -103,36 +103,36 @@ def _stdout_console() -> Any:
 
 @contextmanager
 def _progress(description: str) -> Iterator[Any]:
-    """A spinner with a counter on stderr when it is a terminal; nothing otherwise."""
+    """A bar with the total and the time left on stderr when it is a terminal (a counter while
+    the total is not known); nothing otherwise. The callback takes ``(count, total)``."""
     if not sys.stderr.isatty():
-        yield lambda count: None
+        yield lambda count=None, total=None: None
         return
     from rich.console import Console
-    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     progress = Progress(
-        SpinnerColumn(),
         TextColumn("{task.description}", markup=False),  # a path, as it is
-        TextColumn("{task.completed:>10,.0f} messages"),
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        transient=True,
+        BarColumn(), MofNCompleteColumn(), TextColumn("messages"), TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
+        console=Console(stderr=True), transient=True,
     )
-    tasks = []
+    task = progress.add_task(description, total=None)
+    progress.start()
 
-    def update(count: int | None = None) -> None:
-        if not tasks:
-            progress.start()
-            tasks.append(progress.add_task(description, total=None))
-        if count is not None:
-            progress.update(tasks[0], completed=count)
+    def update(count: int | None = None, total: int | None = None) -> None:
+        progress.update(task, completed=count, total=total or None)
 
-    update()
     try:
         yield update
     finally:
-        if tasks:
-            progress.stop()
+        progress.stop()
 
 
 def _emit(document: dict[str, Any], out: Path | None, as_json: bool, render: Any) -> None:

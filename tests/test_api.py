@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import yaml
 from conftest import SAMPLE_DATA
 from typer.testing import CliRunner
@@ -23,3 +25,18 @@ def test_calibrate_log_equals_the_cli(tmp_path):
     assert run.streamed.stats["/gnss/imu"].messages == 8100 and not [x for x in run.streamed.losses if x.lost]
     files = imucal_cli.export_extrinsics(run.document, "urdf")
     assert f'<child link="{run.document["sensors"][name]["lidar_frame"]}"/>' in files["main"]
+
+
+def test_the_documented_api_calibrates_with_progress_evaluates_exports_and_reports(tmp_path):
+    """The example of docs/usage.md's Python API section, run."""
+    log, config, truth = SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml", SAMPLE_DATA / "aggressive.truth.yaml"
+    seen = []
+    run = imucal_cli.calibrate_log(log, config, progress=lambda count, total: seen.append((count, total)))
+    assert seen and seen[-1][0] == seen[-1][1] == sum(s.messages for s in run.streamed.stats.values())
+    assert all(a[0] <= b[0] for a, b in itertools.pairwise(seen))
+    (tmp_path / "e.yaml").write_text(yaml.safe_dump(to_plain(run.document)))
+    verdict = imucal_cli.evaluate(tmp_path / "e.yaml", truth, max_rotation_deg=0.1, max_translation_m=0.03)
+    assert verdict["pass"] is True and set(verdict["sensors"]) == set(run.document["sensors"])
+    assert "base_link" in imucal_cli.export_extrinsics(run.document, "autoware")["main"]
+    written = imucal_cli.write_report(tmp_path / "report", run)
+    assert written[-1].name == "report.html" and all(p.is_file() for p in written)

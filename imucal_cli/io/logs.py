@@ -310,7 +310,7 @@ def _decode(log: LogReader, batch: RawBatch) -> DecodedBatch:
         raise log.error(str(exc), batch.topic) from None
 
 
-def read_imu(path: str | Path, topics: Iterable[str], progress: Callable[[int], None] | None = None, losses: list[Loss] | None = None) -> dict[str, ImuRead]:
+def read_imu(path: str | Path, topics: Iterable[str], progress: Callable[[int, int], None] | None = None, losses: list[Loss] | None = None) -> dict[str, ImuRead]:
     """Read ``sensor_msgs/Imu`` topics of a log into one :class:`ImuRead` per topic.
 
     Raises :class:`LogError` where the log cannot be read, a topic is missing (the message
@@ -322,7 +322,7 @@ def read_imu(path: str | Path, topics: Iterable[str], progress: Callable[[int], 
         parts[topic].append((stamps, log_times, gyro, accel))
         count += len(stamps)
         if progress is not None:
-            progress(count)
+            progress(count, sum(reader.expected.values()))
     if losses is not None:
         losses.extend(reader.losses)
     out = {}
@@ -389,7 +389,7 @@ def _timing(
     return TopicTiming(topic, msgtype, n, rate, duration, gaps, backwards, duplicates, time_source)
 
 
-def summarize_log(path: str | Path, progress: Callable[[int], None] | None = None) -> LogSummary:
+def summarize_log(path: str | Path, progress: Callable[[int, int], None] | None = None) -> LogSummary:
     """Per topic: type, count, median rate, duration, gaps, backwards jumps, duplicates, read
     in one streamed pass. IMU topics are timed by ``header.stamp`` (log time where it is zero
     or the message does not decode), others by log time."""
@@ -398,7 +398,7 @@ def summarize_log(path: str | Path, progress: Callable[[int], None] | None = Non
     with open_log(path) as log:
         available = log.topics()
         imu = {t for t, info in available.items() if info.is_imu and info.encoding in ("cdr", "ros1")}
-        count = 0
+        count, total = 0, sum(info.count for info in available.values())
         for batch in log.batches(list(available)):
             times = batch.log_time_ns
             if batch.topic in imu:
@@ -408,7 +408,7 @@ def summarize_log(path: str | Path, progress: Callable[[int], None] | None = Non
             stamps.setdefault(batch.topic, []).append(times)
             count += len(times)
             if progress is not None:
-                progress(count)
+                progress(count, total)
         format_name, losses = log.format_name, list(log.losses)
     arrays = {t: np.concatenate(s) if s else np.zeros(0, np.int64) for t, s in ((t, stamps.get(t, [])) for t in available)}
     firsts = [int(a.min()) for a in arrays.values() if len(a)]
