@@ -757,8 +757,8 @@ def simulate(
     stem = _stem(out)
     truth_path = stem.with_name(stem.name + ".truth.yaml")
     config_path = stem.with_name(stem.name + ".config.yaml")
-    with _progress(f"writing {out}"):
-        write_imu_log(out, fmt, drive.topics())
+    with _progress(f"writing {out}") as progress:
+        write_imu_log(out, fmt, drive.topics(), progress)
     write_document(truth_path, drive.truth_document())
     write_document(config_path, drive.config_document())
     counts = {topic: len(data.stream) for topic, data in drive.topics().items()}

@@ -218,3 +218,15 @@ def test_four_sensors_and_rates():
         assert abs(len(imu.stream) - 1000) < 10
     with pytest.raises(ValueError):
         simulate_drive(DriveOptions(sensors=5))
+
+
+def test_writing_a_log_reports_its_progress_to_the_total(tmp_path, short_drive):
+    from imucal_cli.io.logs import read_imu
+    from imucal_cli.sim.writers import write_imu_log
+
+    for fmt, name in (("mcap", "p.mcap"), ("rosbag1", "p.bag")):
+        seen: list[tuple[int, int]] = []
+        log = write_imu_log(tmp_path / name, fmt, short_drive.topics(), lambda count, total, seen=seen: seen.append((count, total)))
+        total = sum(len(d.stream) for d in short_drive.topics().values())
+        assert seen[-1] == (total, total) and all(t == total for _, t in seen)
+        assert sum(len(r.stream) for r in read_imu(log, list(short_drive.topics())).values()) == total

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import heapq
 import shutil
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +24,7 @@ from imucal_cli.types import ImuStream
 #: ``--format`` names: plain MCAP with ROS 2 CDR, plain MCAP with ROS 1 encoding, rosbag2
 #: directories with sqlite3 or mcap storage, ROS 1 bag.
 FORMATS = ("mcap", "mcap-ros1", "rosbag2-sqlite3", "rosbag2-mcap", "rosbag1")
+Progress = Callable[[int, int], None]
 
 
 @dataclass(frozen=True)
@@ -34,9 +35,24 @@ class TopicData:
     log_time_ns: np.ndarray | None = None  # defaults to the stamps
 
 
-def _messages(topics: Mapping[str, TopicData]) -> Iterator[tuple[int, str, int]]:
-    """``(log_time_ns, topic, index)`` over all topics, merged in log-time order."""
+def _messages(topics: Mapping[str, TopicData], progress: Progress | None = None) -> Iterator[tuple[int, str, int]]:
+    """``(log_time_ns, topic, index)`` over all topics, merged in log-time order; ``progress``
+    told (written, total) every 10,000 messages."""
+    merged = _merged(topics)
+    if progress is None:
+        return merged
+    total = sum(len(d.stream) for d in topics.values())
 
+    def told() -> Iterator[tuple[int, str, int]]:
+        for count, item in enumerate(merged, start=1):
+            if count % 10_000 == 0 or count == total:
+                progress(count, total)
+            yield item
+
+    return told()
+
+
+def _merged(topics: Mapping[str, TopicData]) -> Iterator[tuple[int, str, int]]:
     def one(topic: str, data: TopicData) -> Iterator[tuple[int, str, int]]:
         log_ns = data.stream.t_ns if data.log_time_ns is None else data.log_time_ns
         order = np.argsort(log_ns, kind="stable")
@@ -61,7 +77,7 @@ def _serialized(topics: Mapping[str, TopicData], ros1: bool) -> dict[str, np.nda
     return {topic: serialize(data.stream) for topic, data in topics.items()}
 
 
-def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool, compression: str = "zstd", chunk_size: int = 1024 * 1024) -> None:
+def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool, compression: str = "zstd", chunk_size: int = 1024 * 1024, progress: Progress | None = None) -> None:
     from mcap.writer import CompressionType, Writer
 
     msgdef, _ = _msgdef(ros1)
@@ -81,7 +97,7 @@ def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool, compres
             for topic in topics
         }
         sequence = dict.fromkeys(topics, 0)
-        for log_ns, topic, i in _messages(topics):
+        for log_ns, topic, i in _messages(topics, progress):
             writer.add_message(
                 channel_id=channels[topic],
                 log_time=log_ns,
@@ -93,7 +109,7 @@ def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool, compres
         writer.finish()
 
 
-def _fill_rosbags_writer(writer: Any, topics: Mapping[str, TopicData], ros1: bool) -> None:
+def _fill_rosbags_writer(writer: Any, topics: Mapping[str, TopicData], ros1: bool, progress: Progress | None = None) -> None:
     """Open a rosbags writer, add one connection per topic, write every message, close."""
     _, typestore = _msgdef(ros1)
     blobs = _serialized(topics, ros1)
@@ -102,28 +118,28 @@ def _fill_rosbags_writer(writer: Any, topics: Mapping[str, TopicData], ros1: boo
         connections = {
             topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore) for topic in topics
         }
-        for log_ns, topic, i in _messages(topics):
+        for log_ns, topic, i in _messages(topics, progress):
             writer.write(connections[topic], log_ns, blobs[topic][i].tobytes())
     finally:
         writer.close()
 
 
-def _write_rosbag2(path: Path, topics: Mapping[str, TopicData], storage: str) -> None:
+def _write_rosbag2(path: Path, topics: Mapping[str, TopicData], storage: str, progress: Progress | None = None) -> None:
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    _fill_rosbags_writer(Writer(path, version=9, storage_plugin=plugin), topics, ros1=False)
+    _fill_rosbags_writer(Writer(path, version=9, storage_plugin=plugin), topics, ros1=False, progress=progress)
 
 
-def _write_rosbag1(path: Path, topics: Mapping[str, TopicData]) -> None:
+def _write_rosbag1(path: Path, topics: Mapping[str, TopicData], progress: Progress | None = None) -> None:
     from rosbags.rosbag1 import Writer
 
     writer = Writer(path)
     writer.set_compression(Writer.CompressionFormat.LZ4)
-    _fill_rosbags_writer(writer, topics, ros1=True)
+    _fill_rosbags_writer(writer, topics, ros1=True, progress=progress)
 
 
-def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData]) -> Path:
+def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData], progress: Progress | None = None) -> Path:
     """Write IMU topics to ``out`` in format ``fmt`` (one of :data:`FORMATS`).
 
     The log is built beside ``out`` under a temporary name and renamed into place once
@@ -138,11 +154,11 @@ def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData]) ->
     _remove(tmp)
     try:
         if fmt in ("mcap", "mcap-ros1"):
-            _write_mcap(tmp, topics, ros1=fmt == "mcap-ros1")
+            _write_mcap(tmp, topics, ros1=fmt == "mcap-ros1", progress=progress)
         elif fmt == "rosbag1":
-            _write_rosbag1(tmp, topics)
+            _write_rosbag1(tmp, topics, progress)
         else:
-            _write_rosbag2(tmp, topics, storage=fmt.removeprefix("rosbag2-"))
+            _write_rosbag2(tmp, topics, storage=fmt.removeprefix("rosbag2-"), progress=progress)
             _rename_rosbag2_storage(tmp, out.name)
         _remove(out)
         tmp.rename(out)
