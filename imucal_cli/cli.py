@@ -102,7 +102,7 @@ def _stdout_console() -> Any:
 
 
 @contextmanager
-def _progress(description: str) -> Iterator[Any]:
+def _progress(description: str, unit: str = "messages") -> Iterator[Any]:
     """A bar with the total and the time left on stderr when it is a terminal (a counter while
     the total is not known); nothing otherwise. The callback takes ``(count, total)``."""
     if not sys.stderr.isatty():
@@ -120,7 +120,7 @@ def _progress(description: str) -> Iterator[Any]:
 
     progress = Progress(
         TextColumn("{task.description}", markup=False),  # a path, as it is
-        BarColumn(), MofNCompleteColumn(), TextColumn("messages"), TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
+        BarColumn(), MofNCompleteColumn(), TextColumn(unit), TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
         console=Console(stderr=True), transient=True,
     )
     task = progress.add_task(description, total=None)
@@ -426,8 +426,8 @@ def calibrate(
     if report is not None:
         from imucal_cli.report import write_report
 
-        with _progress("drawing the report"):
-            written = write_report(report, log, result, streamed, document)
+        with _progress("drawing the report", "figures") as progress:
+            written = write_report(report, log, result, streamed, document, progress)
         typer.echo(f"imucal: report: {written[-1]}", err=True)
     _emit(document, out, as_json, render)
     if require_observable and not result.all_ok:

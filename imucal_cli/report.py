@@ -234,8 +234,9 @@ td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}img{{max-width:10
 """
 
 
-def write_report(out_dir: Path, log: Path, result: Any, streamed: Any, document: Mapping[str, Any]) -> list[Path]:
-    """Draw every figure into ``out_dir`` and write ``report.html``; returns the files written."""
+def write_report(out_dir: Path, log: Path, result: Any, streamed: Any, document: Mapping[str, Any], progress: Any = None) -> list[Path]:
+    """Draw every figure into ``out_dir`` and write ``report.html``; returns the files written.
+    ``progress`` is told (figures drawn, figures in all) as it goes."""
     from imucal_cli.documents import write_text_atomic
 
     plt = pyplot()
@@ -243,16 +244,21 @@ def write_report(out_dir: Path, log: Path, result: Any, streamed: Any, document:
     config = result.config
     estimates = {s.name: result.estimates[s.name] for s in config.sensors}
     offset = (streamed.calibrator.t_ref_ns - streamed.t0_ns) * 1e-9  # the grid clock from the first stamp
-    figures = [
-        (bias_figure(plt, estimates, offset, out_dir / "biases.png"), "Relative biases of every sensor at each knot of the joint fit."),
-        (windows_figure(plt, estimates, offset, config.segments.max_rotation_std_deg, out_dir / "windows.png"),
-         "Per-window rotation std against the threshold; selected windows shaded (paper Figs. 9b-10b)."),
-        (residual_figure(plt, estimates, offset, out_dir / "residuals.png"), "Residual RMS of the fit in every window used, against the noise."),
-    ]
     stds = {n: (s["rotation_std_deg"], s["translation_std_m"]) for n, s in document["sensors"].items()}
-    figures.append((std_figure(plt, stds, out_dir / "std.png"), "One standard deviation of every estimated axis."))
     poses = {s.name: {"imu": estimates[s.name].T_base_imu, "lidar": result.T_base_lidar(s.name), "prior_imu": s.prior_T_base_imu} for s in config.sensors}
-    figures.append((vehicle_figure(plt, poses, out_dir / "vehicle.png"), "Top and side view: base frame, IMUs and lidars as estimated (solid), CAD prior (dashed)."))
+    drawings = [
+        (lambda: bias_figure(plt, estimates, offset, out_dir / "biases.png"), "Relative biases of every sensor at each knot of the joint fit."),
+        (lambda: windows_figure(plt, estimates, offset, config.segments.max_rotation_std_deg, out_dir / "windows.png"),
+         "Per-window rotation std against the threshold; selected windows shaded (paper Figs. 9b-10b)."),
+        (lambda: residual_figure(plt, estimates, offset, out_dir / "residuals.png"), "Residual RMS of the fit in every window used, against the noise."),
+        (lambda: std_figure(plt, stds, out_dir / "std.png"), "One standard deviation of every estimated axis."),
+        (lambda: vehicle_figure(plt, poses, out_dir / "vehicle.png"), "Top and side view: base frame, IMUs and lidars as estimated (solid), CAD prior (dashed)."),
+    ]
+    figures = []
+    for k, (draw, caption) in enumerate(drawings, start=1):
+        figures.append((draw(), caption))
+        if progress is not None:
+            progress(k, len(drawings))
     page = out_dir / "report.html"
     write_text_atomic(page, html_page(f"imucal calibration report: {log.name}", document, figures))
     return [p for p, _ in figures] + [page]
