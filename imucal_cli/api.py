@@ -32,8 +32,18 @@ CLOCK_COMPARE_SLACK_S = 0.05
 CLOCK_COMPARE_SAMPLES = 200
 
 __all__ = [
-    "LogCalibration", "StreamedLog", "calibrate_log", "estimate", "evaluate", "export_extrinsics", "load_transforms", "lost_summary", "stream_biases",
-    "stream_log", "write_report",
+    "LogCalibration",
+    "StreamedLog",
+    "calibrate_log",
+    "estimate",
+    "evaluate",
+    "export_extrinsics",
+    "follow_log",
+    "load_transforms",
+    "lost_summary",
+    "stream_biases",
+    "stream_log",
+    "write_report",
 ]
 
 
@@ -169,6 +179,67 @@ def calibrate_log(log: str | Path, config: Config | str | Path, progress: Callab
     streamed = stream_log(log, config, progress)
     result = estimate(streamed)
     return LogCalibration(result, calibration_document(result, str(log), streamed.losses), streamed)
+
+
+def follow_log(
+    log: str | Path, config: Config, on_update: Callable[[CalibrationResult, int], None] | None = None,
+    stop: Callable[[], bool] = lambda: False, until_converged: bool = False,
+) -> tuple[LogCalibration, bool, bool]:
+    """Follow a log that is still being written (an MCAP file, or a rosbag2 folder recording
+    to mcap storage): the estimate after every window, ``on_update(result, windows)``, until
+    the recording ends, ``stop()`` says so, or (``until_converged``) every sensor is within the
+    config's ``stop:`` targets. Returns the last calibration, whether it converged, and whether
+    a Ctrl-C ended it (the estimate so far is returned all the same)."""
+    from imucal_cli.pipeline import converged
+
+    log = Path(log)
+    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    calibrator = make_calibrator(config, block_windows=1)
+    done = [False]
+    reader = ImuBatches(log, names, follow=lambda: done[0] or stop())
+    windows, result, good = 0, None, False
+    t0_ns: int | None = None
+    interrupted = False
+    try:
+        for topic, stamps, _, gyro, accel in reader:
+            if len(stamps):
+                t0_ns = int(stamps.min()) if t0_ns is None else min(t0_ns, int(stamps.min()))
+            calibrator.add(names[topic], stamps, gyro, accel)
+            reduced = min(len(w) for w in calibrator.windows.values())
+            if reduced > windows:
+                windows = reduced
+                result = _estimate_now(calibrator, config)
+                if result is not None:
+                    good = converged(result)
+                    if on_update is not None:
+                        on_update(result, windows)
+                    if until_converged and good:
+                        done[0] = True
+    except KeyboardInterrupt:
+        interrupted = True
+    if not done[0]:  # the recording ended, or time is up: what is buffered, reduced
+        try:
+            calibrator.process(final=True)
+            result = _estimate_now(calibrator, config) or result
+            good = result is not None and converged(result)
+        except ImucalError:
+            pass
+    if result is None or t0_ns is None:
+        raise InputError(f"{log}: too little data to estimate anything yet{lost_summary(reader.losses)}")
+    streamed = StreamedLog(log, config, calibrator, t0_ns, reader.stats, {t: calibrator.duplicates(n) for t, n in names.items()}, reader.losses, reader.format_name)
+    return LogCalibration(result, calibration_document(result, str(log), reader.losses), streamed), good, interrupted
+
+
+def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> CalibrationResult | None:
+    """The estimate from the windows so far, or None before the calibrator has booted."""
+    if not calibrator.tau0:
+        return None
+    with np.errstate(all="ignore"):
+        try:
+            estimates = calibrator.estimates()
+        except (ImucalError, np.linalg.LinAlgError, ValueError):
+            return None
+    return CalibrationResult(estimates, config, dict(calibrator.rates_hz), dict(calibrator.noise))
 
 
 def estimate(streamed: StreamedLog) -> CalibrationResult:

@@ -218,7 +218,7 @@ def inspect(
     as_json: Annotated[bool, typer.Option("--json", metavar="", help="Print JSON instead of a table.")] = False,
 ) -> None:
     """Topics, message types, counts, rates, duration, gaps and time jumps of a log."""
-    from imucal_cli.io.logs import summarize_log
+    from imucal_cli.inspection import summarize_log
 
     _check_output(out)
     with _progress(f"reading {log}") as progress:
@@ -379,9 +379,17 @@ def calibrate(
         Path | None,
         typer.Option("--report", help="Also write figures (PNG) and report.html into this folder (needs imucal\\[report])."),
     ] = None,
+    follow: Annotated[bool, typer.Option("--follow", metavar="", help="Read a log still being written; update the estimate as each window completes.")] = False,
+    until_converged: Annotated[bool, typer.Option("--until-converged", metavar="", help="With --follow: exit 0 once every sensor meets the config's stop: targets.")] = False,
+    timeout: Annotated[float | None, typer.Option("--timeout", min=0.0, help="With --follow: stop after this many seconds (exit 1 with --until-converged).")] = None,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
     _check_output(out)
+    if follow:
+        _follow(log, config, out, as_json, until_converged, timeout)
+        return
+    if until_converged or timeout is not None:
+        raise InputError("--until-converged and --timeout go with --follow")
     if report is not None:
         if not report.parent.is_dir():
             raise InputError(f"{report}: report folder's parent {report.parent} does not exist")
@@ -433,6 +441,49 @@ def calibrate(
     if require_observable and not result.all_ok:
         weak = [n for n, e in result.estimates.items() if e.status != "ok"]
         typer.echo(f"imucal: not fully observable: {', '.join(weak)}", err=True)
+        raise typer.Exit(EXIT_CHECK_FAILED)
+
+
+def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until_converged: bool, timeout: float | None) -> None:
+    """calibrate --follow: an update per window (a JSON line with --json, else a line on
+    stderr), then the last estimate with each sensor's missing axes; exit codes as the SPEC says."""
+    import json
+    import time
+
+    from imucal_cli.api import follow_log
+    from imucal_cli.config import load_config
+    from imucal_cli.documents import to_plain
+    from imucal_cli.pipeline import missing_axes
+
+    cfg = load_config(config_path)
+    deadline = None if timeout is None else time.monotonic() + timeout
+
+    def update(result: Any, windows: int) -> None:
+        sensors = {
+            name: {"status": e.status, "rotation_std_deg": e.rotation_std_deg, "translation_std_m": e.translation_std_m, "missing": missing_axes(e, cfg.stop)}
+            for name, e in result.estimates.items()
+        }
+        if as_json:
+            typer.echo(json.dumps(to_plain({"windows": windows, "sensors": sensors})))
+        else:
+            typer.echo(f"imucal: {windows} windows: " + ", ".join(f"{n} {s['status']} ({len(s['missing'])} axes missing)" for n, s in sensors.items()), err=True)
+
+    run, good, interrupted = follow_log(log, cfg, update, lambda: deadline is not None and time.monotonic() > deadline, until_converged)
+    for name, estimate in run.result.estimates.items():
+        run.document["sensors"][name]["missing"] = missing_axes(estimate, cfg.stop)
+    run.document["converged"] = good
+    if out is not None:
+        from imucal_cli.documents import write_document
+
+        write_document(out, run.document)
+    for name, s in run.document["sensors"].items():
+        for line in s["missing"]:
+            typer.echo(f"imucal: {name}: missing {line}", err=True)
+    if interrupted:
+        typer.echo("imucal: interrupted", err=True)
+        raise typer.Exit(EXIT_INTERRUPTED)
+    if until_converged and not good:
+        typer.echo("imucal: not converged" + (" before --timeout" if timeout is not None else ""), err=True)
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 

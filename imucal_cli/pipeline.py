@@ -50,8 +50,10 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
     )
 
 
-def make_calibrator(config: Config) -> StreamingCalibrator:
-    """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names."""
+def make_calibrator(config: Config, block_windows: int | None = None) -> StreamingCalibrator:
+    """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names
+    (``block_windows=1``: every window reduced as soon as the data cover it, for live use)."""
+    extra = {} if block_windows is None else {"block_windows": block_windows}
     return StreamingCalibrator(
         [
             SensorSetup(s.name, s.prior_T_base_imu, options_for(config, s), s.gyro_units, s.accel_units, s.imu_topic, f"sensors.{s.name}")
@@ -60,7 +62,41 @@ def make_calibrator(config: Config) -> StreamingCalibrator:
         base_name="base",
         base_units=(config.base.gyro_units, config.base.accel_units),
         base_label=(config.base.topic, "base"),
+        **extra,
     )
+
+
+#: What driving supplies information about each axis (the lever arm enters through
+#: ``([w]x^2 + [dw]x) t``: x and y through the yaw rate and its changes, z through roll and pitch).
+MANOEUVRES = {
+    "rotation x (roll)": "roll motion: crossfall, speed bumps, turns taken briskly",
+    "rotation y (pitch)": "pitch motion: braking and accelerating, speed bumps",
+    "rotation z (yaw)": "turns in both directions",
+    "translation x": "turns in both directions and changes of turn rate (slalom, roundabouts)",
+    "translation y": "turns in both directions and changes of turn rate (slalom, roundabouts)",
+    "translation z": "roll and pitch motion: speed bumps, crossfall, braking and accelerating",
+}
+
+
+def missing_axes(estimate: SensorEstimate, stop: Any) -> list[str]:
+    """The axes whose std is not yet within the ``stop:`` targets, each with the driving that
+    supplies it: from the estimate's covariance (its Fisher information, made honest)."""
+    if estimate.covariance is None:
+        return [f"{axis}: {what}" for axis, what in MANOEUVRES.items()]
+    rotation, translation = estimate.rotation_std_deg, estimate.translation_std_m
+    assert rotation is not None and translation is not None
+    names = list(MANOEUVRES)
+    out = [f"{names[k]}: {MANOEUVRES[names[k]]} (std {rotation[k]:.3g} deg, target {stop.max_rotation_std_deg:g})" for k in range(3) if rotation[k] > stop.max_rotation_std_deg]
+    out += [
+        f"{names[3 + k]}: {MANOEUVRES[names[3 + k]]} (std {translation[k]:.3g} m, target {stop.max_translation_std_m:g})"
+        for k in range(3) if translation[k] > stop.max_translation_std_m or not estimate.translation_observable[k]
+    ]
+    return out
+
+
+def converged(result: CalibrationResult) -> bool:
+    """Every sensor ``ok`` and within the config's ``stop:`` targets."""
+    return all(e.status == "ok" and not missing_axes(e, result.config.stop) for e in result.estimates.values())
 
 
 def feed(calibrator: StreamingCalibrator, streams: DriveStreams, block_s: float = 10.0) -> None:

@@ -449,7 +449,7 @@ class StreamingCalibrator:
         #: Per IMU, (topic, config key path) for messages.
         self.labels = {base_name: base_label, **{s.name: (s.topic, s.key) for s in sensors}}
         self.dw_noise_var = 0.0
-        self._boot_tried_s = -np.inf
+        self._boot_horizon_s = BOOT_S
         self.noise: dict[str, tuple[float, float]] = {}
         self.sigma: dict[str, tuple[float, float]] = {}
         #: Median sample rate of every IMU (Hz), measured at boot.
@@ -499,9 +499,13 @@ class StreamingCalibrator:
         if self.tau0:
             return True
         covered = self._covered_until() if self.t_ref_ns is not None else 0.0
-        if not final and covered < self._grid_start + BOOT_S + PAD_S:
+        # patient attempts at fixed horizons (BOOT_S, then every BOOT_RETRY_S), each on the data
+        # up to its horizon only: the boot, and so the estimate, is the same however the log
+        # arrives (in 10 s chunks from a file, or message by message while it is recorded)
+        horizon = self._grid_start + self._boot_horizon_s
+        if not final and covered < horizon + PAD_S + self.max_offset:
             return False
-        end = min(covered - PAD_S - self.max_offset, self._grid_start + MAX_BOOT_S)
+        end = min(covered - PAD_S - self.max_offset, self._grid_start + MAX_BOOT_S if final else horizon)
         grid = np.arange(self._grid_start, end, 1.0 / self.rate)
         if len(grid) < 10:
             if final:
@@ -510,11 +514,11 @@ class StreamingCalibrator:
                     f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window"
                 )
             return False
-        patient = not final and covered < MAX_BOOT_S  # may wait for more motion
-        if patient and covered < self._boot_tried_s + BOOT_RETRY_S:
-            return False  # tried lately: wait for more data before trying again
-        self._boot_tried_s = covered
-        samples = {name: buffer.cleaned() for name, buffer in self.buffers.items()}
+        patient = not final and self._boot_horizon_s < MAX_BOOT_S  # may wait for more motion
+        self._boot_horizon_s += BOOT_RETRY_S  # the next attempt's, should this one wait
+        limit = self.t_ref_ns + int((end + PAD_S + self.max_offset + 3.0 / self.rate) * 1e9)  # type: ignore[operator]
+        full = {name: buffer.cleaned() for name, buffer in self.buffers.items()}
+        samples = {name: (t[: int(np.searchsorted(t, limit, side="right"))], both[: int(np.searchsorted(t, limit, side="right"))]) for name, (t, both) in full.items()}
         unit_warnings: dict[str, list[str]] = {}
         splines = {name: _Spline(self._seconds(t), both, self.rate) for name, (t, both) in samples.items()}
         grid = _longest_covered(grid, [spline.covered(grid) for spline in splines.values()], self.lowpass.pad)
@@ -543,7 +547,7 @@ class StreamingCalibrator:
         if patient and not all(o.shown for o in offsets.values()):
             return False  # not enough motion yet to place every clock offset
         # booted: the buffers from now on in SI
-        for name, (_, both) in samples.items():
+        for name, (_, both) in full.items():
             if scales[name] != (1.0, 1.0):
                 both *= np.repeat(scales[name], 3)  # the stored samples, in place
         self.scales, self.unit_warnings, self.sigma = scales, unit_warnings, sigma

@@ -20,7 +20,7 @@ could not be read at all is a :class:`~imucal_cli.io.base.Loss`.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,7 +38,7 @@ from imucal_cli.io.rosbag2 import Rosbag2Log
 if TYPE_CHECKING:
     from imucal_cli.types import ImuStream
 
-__all__ = ["IMU_MSGTYPE", "ImuBatches", "ImuRead", "LogReader", "Loss", "ReadStats", "TopicInfo", "open_log", "read_imu", "summarize_log"]
+__all__ = ["IMU_MSGTYPE", "ImuBatches", "ImuRead", "LogReader", "Loss", "ReadStats", "TopicInfo", "open_log", "read_imu"]
 
 
 def open_log(path: str | Path) -> LogReader:
@@ -78,19 +78,8 @@ class ReadStats:
     frame_ids: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "messages": self.messages,
-            "zero_stamps": self.zero_stamps,
-            "backwards": self.backwards,
-            "duplicates": self.duplicates,
-            "decode_errors": self.decode_errors,
-            "non_finite": self.non_finite,
-            "saturated": self.saturated,
-            "clock_jumps": self.clock_jumps,
-            "gaps": self.gaps,
-            "implausible": self.implausible,
-            "stamp_outliers": self.stamp_outliers,
-        }
+        """The counts (every field but the frame ids)."""
+        return {k: v for k, v in asdict(self).items() if k != "frame_ids"}
 
 
 @dataclass(frozen=True)
@@ -127,6 +116,8 @@ def _check_topics(log: LogReader, wanted: list[str]) -> dict[str, TopicInfo]:
     return available
 
 
+#: A gap is a step between consecutive stamps longer than this many median periods.
+GAP_MEDIAN_PERIODS = 5.0
 #: A step between consecutive stamps of one topic longer than this (s) is a clock jump.
 CLOCK_JUMP_S = 60.0
 #: Smallest magnitude a run of identical extreme samples must have to be called clipped: a
@@ -191,8 +182,10 @@ class ImuBatches:
     zero replaced by the log time). What was read is counted in :attr:`stats`; what could not
     be read is in :attr:`losses` once iterated."""
 
-    def __init__(self, path: str | Path, topics: Iterable[str]) -> None:
+    def __init__(self, path: str | Path, topics: Iterable[str], follow: Callable[[], bool] | None = None) -> None:
         self.path = Path(path)
+        #: Follow mode: read a log still being written until ``follow()`` says stop (or it ends).
+        self.follow = follow
         self.topics = list(dict.fromkeys(topics))
         self.stats: dict[str, ReadStats] = {t: ReadStats() for t in self.topics}
         self.losses: list[Loss] = []
@@ -288,12 +281,19 @@ class ImuBatches:
         return stamps
 
     def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        with open_log(self.path) as log:
+        if self.follow is not None:
+            log: LogReader = McapLog(_recording(self.path))
+            batches = log.follow(self.topics, self.follow)  # type: ignore[attr-defined]
+        else:
+            log = open_log(self.path)
+        with log:
             self.format_name = log.format_name
             try:
-                available = _check_topics(log, self.topics)
-                self.expected = {t: available[t].count for t in self.topics}
-                for batch, decoded in ((b, _decode(log, b)) for b in log.batches(self.topics)):
+                if self.follow is None:
+                    available = _check_topics(log, self.topics)
+                    self.expected = {t: available[t].count for t in self.topics}
+                    batches = log.batches(self.topics)
+                for batch, decoded in ((b, _decode(log, b)) for b in batches):
                     st = self.stats[batch.topic]
                     st.messages += len(batch.starts)
                     st.decode_errors += decoded.errors
@@ -301,6 +301,19 @@ class ImuBatches:
                     yield batch.topic, self._count(batch.topic, stamps, log_times, decoded.frame_ids), log_times, gyro, accel
             finally:
                 self.losses = list(log.losses)
+
+
+def _recording(path: Path) -> Path:
+    """The MCAP file a recording is written to: the file, or the one storage file of a rosbag2
+    folder being recorded (follow mode reads MCAP as it grows)."""
+    if path.is_dir():
+        files = sorted(path.glob("*.mcap"))
+        if len(files) != 1:
+            raise LogError(str(path), "follow mode reads a rosbag2 folder with one mcap storage file (sqlite3 storage is not followed)")
+        return files[0]
+    if not path.exists():
+        raise LogError(str(path), "no such file or directory")
+    return path
 
 
 def _decode(log: LogReader, batch: RawBatch) -> DecodedBatch:
@@ -333,88 +346,3 @@ def read_imu(path: str | Path, topics: Iterable[str], progress: Callable[[int, i
             stamps, log_times, gyro, accel = stamps[order], log_times[order], gyro[order], accel[order]
         out[topic] = _finish_topic(stamps.astype(np.int64), log_times.astype(np.int64), gyro, accel, reader.stats[topic])
     return out
-
-
-# --------------------------------------------------------------------------- inspect
-
-
-@dataclass(frozen=True)
-class TopicTiming:
-    """Timing of one topic, as ``imucal inspect`` reports it (seconds since ``t0_ns``)."""
-
-    topic: str
-    msgtype: str
-    count: int
-    rate_hz: float
-    duration_s: float
-    gaps: list[tuple[float, float]]
-    backwards: int
-    duplicates: int
-    time_source: str  # "header.stamp" or "log_time"
-
-
-@dataclass(frozen=True)
-class LogSummary:
-    path: str
-    format_name: str
-    t0_ns: int
-    topics: list[TopicTiming]
-    losses: list[Loss] = field(default_factory=list)
-
-
-#: A gap is a step between consecutive stamps longer than this many median periods.
-GAP_MEDIAN_PERIODS = 5.0
-
-
-def _timing(
-    topic: str, msgtype: str, stamps_in_log_order: np.ndarray, t0_ns: int, time_source: str
-) -> TopicTiming:
-    n = len(stamps_in_log_order)
-    if n == 0:
-        return TopicTiming(topic, msgtype, 0, 0.0, 0.0, [], 0, 0, time_source)
-    backwards = int(np.count_nonzero(np.diff(stamps_in_log_order) < 0))
-    t_sorted = np.sort(stamps_in_log_order)
-    steps = np.diff(t_sorted)
-    duplicates = int(np.count_nonzero(steps == 0))
-    positive = steps[steps > 0]
-    median = float(np.median(positive)) if len(positive) else 0.0
-    rate = 1e9 / median if median > 0 else 0.0
-    gaps: list[tuple[float, float]] = []
-    if median > 0:
-        for i in np.flatnonzero(steps > GAP_MEDIAN_PERIODS * median):
-            gaps.append(
-                (float(t_sorted[i] - t0_ns) * 1e-9, float(t_sorted[i + 1] - t0_ns) * 1e-9)
-            )
-    duration = float(t_sorted[-1] - t_sorted[0]) * 1e-9
-    return TopicTiming(topic, msgtype, n, rate, duration, gaps, backwards, duplicates, time_source)
-
-
-def summarize_log(path: str | Path, progress: Callable[[int, int], None] | None = None) -> LogSummary:
-    """Per topic: type, count, median rate, duration, gaps, backwards jumps, duplicates, read
-    in one streamed pass. IMU topics are timed by ``header.stamp`` (log time where it is zero
-    or the message does not decode), others by log time."""
-    path = Path(path)
-    stamps: dict[str, list[np.ndarray]] = {}
-    with open_log(path) as log:
-        available = log.topics()
-        imu = {t for t, info in available.items() if info.is_imu and info.encoding in ("cdr", "ros1")}
-        count, total = 0, sum(info.count for info in available.values())
-        for batch in log.batches(list(available)):
-            times = batch.log_time_ns
-            if batch.topic in imu:
-                decoded = decode_imu(batch)
-                if decoded.errors == 0:
-                    times = np.where(decoded.stamp_ns == 0, times, decoded.stamp_ns)
-            stamps.setdefault(batch.topic, []).append(times)
-            count += len(times)
-            if progress is not None:
-                progress(count, total)
-        format_name, losses = log.format_name, list(log.losses)
-    arrays = {t: np.concatenate(s) if s else np.zeros(0, np.int64) for t, s in ((t, stamps.get(t, [])) for t in available)}
-    firsts = [int(a.min()) for a in arrays.values() if len(a)]
-    t0_ns = min(firsts) if firsts else 0
-    timings = [
-        _timing(topic, available[topic].msgtype, arrays[topic], t0_ns, "header.stamp" if topic in imu else "log_time")
-        for topic in sorted(available)
-    ]
-    return LogSummary(path=str(path), format_name=format_name, t0_ns=t0_ns, topics=timings, losses=losses)

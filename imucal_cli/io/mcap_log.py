@@ -14,8 +14,10 @@ record. A file cut off mid-write has no summary: it is read up to the cut, and t
 from __future__ import annotations
 
 import mmap
+import os
 import struct
-from collections.abc import Iterable, Iterator
+import time
+from collections.abc import Callable, Iterable, Iterator
 from io import BytesIO
 from pathlib import Path
 from typing import BinaryIO
@@ -128,15 +130,30 @@ class McapLog(LogReader):
             return
         channels: dict[int, Channel] = {}
         for data, at in self._walk(channels, {}, note=False):
-            of = gather(data, at + 9, 2, "<u2").ravel()
-            for channel_id in np.unique(of):
-                channel = channels.get(int(channel_id))
-                if channel is None or channel.topic not in wanted:
-                    continue
-                mine = at[of == channel_id]
-                length = gather(data, mine + 1, 8, "<u8").ravel().astype(np.int64)
-                log_times = gather(data, mine + 15, 8, "<u8").ravel().astype(np.int64)
-                yield RawBatch(channel.topic, _encoding(channel), data, mine + _MESSAGE_HEADER, length - 22, log_times)
+            yield from _channel_batches(data, at, channels, wanted)
+
+    def follow(self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05) -> Iterator[RawBatch]:
+        """A file still being written (follow mode): the wanted messages of each record as it
+        completes, waiting ``poll_s`` for more; ends at the footer, or when ``stop()`` says."""
+        wanted, channels, pos = set(topics), {}, len(MAGIC)  # type: ignore[var-annotated]
+        while True:
+            size = os.fstat(self._file.fileno()).st_size
+            data = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) if size > pos else b""
+            while pos + 9 <= len(data):
+                opcode, length = _RECORD.unpack_from(data, pos)
+                if opcode in (_FOOTER_OP, _DATA_END_OP):
+                    return
+                if pos + 9 + length > len(data):
+                    break  # still being written
+                body = memoryview(data)[pos + 9 : pos + 9 + length]
+                inner = np.frombuffer(_decompress(Chunk.read(ReadDataStream(BytesIO(body)))), np.uint8) if opcode == _CHUNK_OP else np.frombuffer(data, np.uint8, 9 + length, pos)
+                found = self._records(inner, channels, {})
+                if len(found):
+                    yield from _channel_batches(inner, found, channels, wanted)
+                pos += 9 + length
+            if stop():
+                return
+            time.sleep(poll_s)
 
     def _walk(self, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """The file's records from its start: per chunk (and per top-level message) the data
@@ -291,6 +308,19 @@ class McapLog(LogReader):
         return batches
 
 
+def _channel_batches(data: np.ndarray, at: np.ndarray, channels: dict[int, Channel], wanted: set[str]) -> Iterator[RawBatch]:
+    """The Message records at ``at`` in ``data``, a batch per wanted channel."""
+    of = gather(data, at + 9, 2, "<u2").ravel()
+    for channel_id in np.unique(of):
+        channel = channels.get(int(channel_id))
+        if channel is None or channel.topic not in wanted:
+            continue
+        mine = at[of == channel_id]
+        length = gather(data, mine + 1, 8, "<u8").ravel().astype(np.int64)
+        log_times = gather(data, mine + 15, 8, "<u8").ravel().astype(np.int64)
+        yield RawBatch(channel.topic, _encoding(channel), data, mine + _MESSAGE_HEADER, length - 22, log_times)
+
+
 def _groups(chunks: list[ChunkIndex], channel_ids: set[int]) -> Iterator[list[ChunkIndex]]:
     """The chunks holding a wanted channel, in groups of about :data:`GROUP_BYTES` decompressed."""
     group: list[ChunkIndex] = []
@@ -311,23 +341,15 @@ def _decompress_prefix(chunk: Chunk) -> np.ndarray:
     """A chunk's records, or where it is cut off, as much of them as decompresses."""
     try:
         return np.frombuffer(_decompress(chunk), dtype=np.uint8)
-    except Exception:
-        if chunk.compression == "zstd":
-            import zstandard
+    except Exception:  # cut off or damaged: the prefix that decodes
+        import lz4.frame
+        import zstandard
 
-            try:
-                out = zstandard.ZstdDecompressor().decompressobj().decompress(chunk.data)
-            except zstandard.ZstdError:
-                out = b""
-        elif chunk.compression == "lz4":
-            import lz4.frame
-
-            try:
-                out = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data)
-            except RuntimeError:
-                out = b""
-        else:
-            out = chunk.data
+        streams = {"zstd": lambda: zstandard.ZstdDecompressor().decompressobj(), "lz4": lz4.frame.LZ4FrameDecompressor}
+        try:
+            out = streams[chunk.compression]().decompress(chunk.data) if chunk.compression in streams else chunk.data
+        except (zstandard.ZstdError, RuntimeError):
+            out = b""
         return np.frombuffer(out, dtype=np.uint8)
 
 

@@ -1,0 +1,101 @@
+"""calibrate --follow: logs read while they are written (tests/recorder.py writes them)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from recorder import record
+from typer.testing import CliRunner
+
+from imucal_cli.api import calibrate_log
+from imucal_cli.cli import app
+from imucal_cli.documents import write_document
+from imucal_cli.sim import DriveOptions, simulate_drive
+
+runner = CliRunner()
+#: The stop: targets of these tests: what an aggressive drive reaches in about a minute and a
+#: highway drive does not (its yaw and lever arm need turns).
+STOP = {"max_rotation_std_deg": 0.02, "max_translation_std_m": 0.002}
+
+
+def _config(drive, path):
+    document = drive.config_document()
+    document["stop"] = STOP
+    write_document(path, document)
+    return path
+
+
+@pytest.fixture(scope="module")
+def aggressive():
+    # the calibrator boots (units, noise, clock offsets) once it has 60 s of data: drives are longer
+    return simulate_drive(DriveOptions(scenario="aggressive", duration_s=81.0, seed=31))
+
+
+@pytest.mark.parametrize("layout", ["mcap", "rosbag2"])
+def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does(aggressive, tmp_path, layout):
+    config = tmp_path / "c.yaml"
+    write_document(config, aggressive.config_document())
+    if layout == "mcap":
+        path = target = tmp_path / "live.mcap"
+    else:  # a rosbag2 folder being recorded: its mcap storage file, no metadata.yaml yet
+        path = tmp_path / "bag"
+        path.mkdir()
+        target = path / "bag_0.mcap"
+    recorder = record(target, aggressive, factor=10.0)
+    result = runner.invoke(app, ["calibrate", str(path), "-c", str(config), "--follow", "--json", "-o", str(tmp_path / "f.yaml")])
+    assert result.exit_code == 0, result.output
+    recorder.join(60)
+    updates = [json.loads(line) for line in result.stdout.splitlines()]
+    assert len(updates) >= 2 and updates[-1]["windows"] >= updates[0]["windows"]
+    followed = yaml.safe_load((tmp_path / "f.yaml").read_text())
+    batch = calibrate_log(target, config).document
+    for name, s in batch["sensors"].items():
+        f = followed["sensors"][name]
+        assert f["status"] == s["status"]
+        d_t = np.abs(np.array(f["T_base_imu"]["translation"]) - s["T_base_imu"]["translation"])
+        assert np.all(d_t <= 0.05 * np.array(s["translation_std_m"])), (name, d_t, s["translation_std_m"])
+        d_r = np.abs(np.array(f["T_base_imu"]["rpy_deg"]) - s["T_base_imu"]["rpy_deg"])
+        assert np.all(d_r <= 0.05 * np.array(s["rotation_std_deg"])), (name, d_r, s["rotation_std_deg"])
+
+
+def test_until_converged_exits_0_before_the_writer_is_done_on_an_aggressive_drive(aggressive, tmp_path):
+    config = _config(aggressive, tmp_path / "c.yaml")
+    recorder = record(tmp_path / "live.mcap", aggressive, factor=4.0)
+    result = runner.invoke(app, ["calibrate", str(tmp_path / "live.mcap"), "-c", str(config), "--follow", "--until-converged", "--timeout", "60", "-o", str(tmp_path / "f.yaml")])
+    still_writing = not recorder.finished.is_set()
+    recorder.join(60)
+    assert result.exit_code == 0, result.output
+    assert still_writing
+    document = yaml.safe_load((tmp_path / "f.yaml").read_text())
+    assert document["converged"] is True
+    for s in document["sensors"].values():
+        assert s["status"] == "ok" and not s["missing"]
+        assert max(s["rotation_std_deg"]) <= STOP["max_rotation_std_deg"] and max(s["translation_std_m"]) <= STOP["max_translation_std_m"]
+
+
+def test_a_highway_drive_times_out_with_exit_1_and_names_what_is_missing(tmp_path):
+    drive = simulate_drive(DriveOptions(scenario="highway", duration_s=120.0, seed=32))
+    config = _config(drive, tmp_path / "c.yaml")
+    recorder = record(tmp_path / "live.mcap", drive, factor=10.0)
+    result = runner.invoke(app, ["calibrate", str(tmp_path / "live.mcap"), "-c", str(config), "--follow", "--until-converged", "--timeout", "9", "-o", str(tmp_path / "f.yaml")])
+    recorder.join(60)
+    assert result.exit_code == 1, result.output
+    assert "not converged before --timeout" in result.stderr and "missing" in result.stderr
+    document = yaml.safe_load((tmp_path / "f.yaml").read_text())
+    assert document["converged"] is False and any(s["missing"] for s in document["sensors"].values())
+    assert any("turns in both directions" in line for s in document["sensors"].values() for line in s["missing"])
+
+
+def test_a_writer_that_dies_mid_record_ends_at_the_timeout_with_what_was_read(aggressive, tmp_path):
+    config = tmp_path / "c.yaml"
+    write_document(config, aggressive.config_document())
+    recorder = record(tmp_path / "dead.mcap", aggressive, factor=20.0, die_after_s=70.0)
+    result = runner.invoke(app, ["calibrate", str(tmp_path / "dead.mcap"), "-c", str(config), "--follow", "--timeout", "6", "-o", str(tmp_path / "f.yaml")])
+    recorder.join(60)
+    assert result.exit_code == 0, result.output
+    assert "Traceback" not in result.output
+    document = yaml.safe_load((tmp_path / "f.yaml").read_text())
+    assert all(s["segments"]["total"] >= 1 for s in document["sensors"].values())
