@@ -26,6 +26,10 @@ from imucal_cli.io.logs import ImuBatches, Loss, ReadStats
 from imucal_cli.pipeline import CalibrationResult, calibration_document, make_calibrator
 from imucal_cli.types import Transform
 
+#: Follow mode: how far out of order a recording's stamps may arrive (s). A recorder appends in
+#: receive order, so a window waits less for stragglers than in a file (0.5 s), and its
+#: estimate comes sooner.
+FOLLOW_REORDER_S = 0.2
 #: Spread of receive latencies allowed between topics when their clocks are compared (s).
 CLOCK_COMPARE_SLACK_S = 0.05
 #: Samples at the start of each topic whose ``stamp - log_time`` gives its clock's offset.
@@ -194,7 +198,7 @@ def follow_log(
 
     log = Path(log)
     names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
-    calibrator = make_calibrator(config, block_windows=1)
+    calibrator = make_calibrator(config, block_windows=1, reorder_s=FOLLOW_REORDER_S)
     done = [False]
     reader = ImuBatches(log, names, follow=lambda: done[0] or stop())
     windows, result, good = 0, None, False

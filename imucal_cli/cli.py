@@ -444,6 +444,22 @@ def calibrate(
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
+def _follow_table(log: Path, windows: int, result: Any, sensors: dict[str, Any]) -> Any:
+    """The live table of follow mode: per sensor its status, std per axis, windows used and
+    what it still lacks."""
+    from rich.table import Table
+
+    table = Table(title=f"following {log}: {windows} windows")
+    for column in ("sensor", "status", "std rpy deg", "std xyz mm", "windows used", "missing"):
+        table.add_column(column)
+    for name, s in sensors.items():
+        est = result.estimates[name]
+        std_t = None if s["translation_std_m"] is None else [1000 * v for v in s["translation_std_m"]]
+        table.add_row(name, s["status"], _fmt(s["rotation_std_deg"], 4), _fmt(std_t, 2), f"{sum(w.selected for w in est.windows)}/{len(est.windows)}",
+                      "; ".join(m.split(":")[0] for m in s["missing"]) or "-")
+    return table
+
+
 def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until_converged: bool, timeout: float | None) -> None:
     """calibrate --follow: an update per window (a JSON line with --json, else a line on
     stderr), then the last estimate with each sensor's missing axes; exit codes as the SPEC says."""
@@ -457,6 +473,12 @@ def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until
 
     cfg = load_config(config_path)
     deadline = None if timeout is None else time.monotonic() + timeout
+    live = None
+    if not as_json and sys.stderr.isatty():  # a table on the terminal, redrawn each window
+        from rich.console import Console
+        from rich.live import Live
+
+        live = Live(console=Console(stderr=True), auto_refresh=False)
 
     def update(result: Any, windows: int) -> None:
         sensors = {
@@ -465,10 +487,18 @@ def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until
         }
         if as_json:
             typer.echo(json.dumps(to_plain({"windows": windows, "sensors": sensors})))
+        elif live is not None:
+            live.update(_follow_table(log, windows, result, sensors), refresh=True)
         else:
             typer.echo(f"imucal: {windows} windows: " + ", ".join(f"{n} {s['status']} ({len(s['missing'])} axes missing)" for n, s in sensors.items()), err=True)
 
-    run, good, interrupted = follow_log(log, cfg, update, lambda: deadline is not None and time.monotonic() > deadline, until_converged)
+    if live is not None:
+        live.start()
+    try:
+        run, good, interrupted = follow_log(log, cfg, update, lambda: deadline is not None and time.monotonic() > deadline, until_converged)
+    finally:
+        if live is not None:
+            live.stop()
     for name, estimate in run.result.estimates.items():
         run.document["sensors"][name]["missing"] = missing_axes(estimate, cfg.stop)
     run.document["converged"] = good

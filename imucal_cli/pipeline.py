@@ -50,10 +50,12 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
     )
 
 
-def make_calibrator(config: Config, block_windows: int | None = None) -> StreamingCalibrator:
+def make_calibrator(config: Config, block_windows: int | None = None, reorder_s: float | None = None) -> StreamingCalibrator:
     """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names
     (``block_windows=1``: every window reduced as soon as the data cover it, for live use)."""
-    extra = {} if block_windows is None else {"block_windows": block_windows}
+    extra: dict[str, Any] = {} if block_windows is None else {"block_windows": block_windows}
+    if reorder_s is not None:
+        extra["reorder_s"] = reorder_s
     return StreamingCalibrator(
         [
             SensorSetup(s.name, s.prior_T_base_imu, options_for(config, s), s.gyro_units, s.accel_units, s.imu_topic, f"sensors.{s.name}")

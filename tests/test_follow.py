@@ -99,3 +99,24 @@ def test_a_writer_that_dies_mid_record_ends_at_the_timeout_with_what_was_read(ag
     assert "Traceback" not in result.output
     document = yaml.safe_load((tmp_path / "f.yaml").read_text())
     assert all(s["segments"]["total"] >= 1 for s in document["sensors"].values())
+
+
+def test_the_live_table_shows_status_std_windows_and_what_is_missing():
+    from pathlib import Path
+
+    from conftest import SAMPLE_DATA
+    from rich.console import Console
+
+    from imucal_cli.cli import _follow_table
+    from imucal_cli.pipeline import missing_axes
+
+    run = calibrate_log(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
+    stop = run.result.config.stop.__class__(max_rotation_std_deg=0.001, max_translation_std_m=0.0001)  # out of reach
+    sensors = {n: {"status": e.status, "rotation_std_deg": e.rotation_std_deg, "translation_std_m": e.translation_std_m, "missing": missing_axes(e, stop)} for n, e in run.result.estimates.items()}
+    console = Console(width=200, record=True)
+    console.print(_follow_table(Path("live.mcap"), 7, run.result, sensors))
+    text = console.export_text()
+    assert "following live.mcap: 7 windows" in text
+    for name, estimate in run.result.estimates.items():
+        assert name in text and f"{sum(w.selected for w in estimate.windows)}/{len(estimate.windows)}" in text
+    assert "rotation z (yaw)" in text and "translation x" in text

@@ -423,6 +423,7 @@ class StreamingCalibrator:
         sensors: Sequence[SensorSetup],
         base_name: str = "base",
         block_windows: int = BLOCK_WINDOWS,
+        reorder_s: float = REORDER_S,
         base_units: tuple[str, str] = ("auto", "auto"),
         base_label: tuple[str, str] = ("", ""),
     ) -> None:
@@ -456,6 +457,8 @@ class StreamingCalibrator:
         self.rates_hz: dict[str, float] = {}
         self.finished = False
         self.block_windows = max(1, int(block_windows))
+        #: How far out of order stamps may arrive (s): windows wait this long for them.
+        self.reorder_s = reorder_s
 
     # ---------------------------------------------------------------- input
 
@@ -649,7 +652,7 @@ class StreamingCalibrator:
         """Seconds from the origin every IMU must cover before window ``number`` is reduced:
         its end, the padding, the clock offset and (while reading) the reordering slack."""
         end = self._grid_start + (number + 1) * self.window_s
-        return end + PAD_S + self.max_offset + (0.0 if final else REORDER_S)
+        return end + PAD_S + self.max_offset + (0.0 if final else self.reorder_s)
 
     def _skip_empty(self) -> None:
         """Move the next window past a stretch where some IMU has no data at all (a long gap,
