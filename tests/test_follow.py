@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import yaml
-from recorder import record
+from recorder import SqliteRecorder, record
 from typer.testing import CliRunner
 
 from imucal_cli.api import calibrate_log
@@ -59,6 +59,24 @@ def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does
         assert np.all(d_t <= 0.05 * np.array(s["translation_std_m"])), (name, d_t, s["translation_std_m"])
         d_r = np.abs(np.array(f["T_base_imu"]["rpy_deg"]) - s["T_base_imu"]["rpy_deg"])
         assert np.all(d_r <= 0.05 * np.array(s["rotation_std_deg"])), (name, d_r, s["rotation_std_deg"])
+
+
+def test_following_a_rosbag2_recording_to_sqlite3_ends_where_the_batch_calibration_does(aggressive, tmp_path):
+    from imucal_cli.sim.writers import write_imu_log
+
+    config = tmp_path / "c.yaml"
+    write_document(config, aggressive.config_document())
+    recorder = SqliteRecorder(tmp_path / "bag", aggressive.topics(), factor=10.0)
+    recorder.start()
+    recorder.started_writing.wait(30)
+    result = runner.invoke(app, ["calibrate", str(tmp_path / "bag"), "-c", str(config), "--follow", "-o", str(tmp_path / "f.yaml")])
+    recorder.join(60)
+    assert result.exit_code == 0, result.output
+    followed = yaml.safe_load((tmp_path / "f.yaml").read_text())
+    batch = calibrate_log(write_imu_log(tmp_path / "done", "rosbag2-sqlite3", aggressive.topics()), config).document
+    for name, s in batch["sensors"].items():
+        d_t = np.abs(np.array(followed["sensors"][name]["T_base_imu"]["translation"]) - s["T_base_imu"]["translation"])
+        assert followed["sensors"][name]["status"] == s["status"] and np.all(d_t <= 0.05 * np.array(s["translation_std_m"])), (name, d_t)
 
 
 def test_until_converged_exits_0_before_the_writer_is_done_on_an_aggressive_drive(aggressive, tmp_path):

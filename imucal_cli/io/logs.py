@@ -33,7 +33,7 @@ from imucal_cli.io.mcap_log import MAGIC as MCAP_MAGIC
 from imucal_cli.io.mcap_log import McapLog
 from imucal_cli.io.rosbag1 import MAGIC as ROSBAG1_MAGIC
 from imucal_cli.io.rosbag1 import Ros1Log
-from imucal_cli.io.rosbag2 import Rosbag2Log
+from imucal_cli.io.rosbag2 import Rosbag2Log, SqliteRecording
 
 if TYPE_CHECKING:
     from imucal_cli.types import ImuStream
@@ -282,7 +282,7 @@ class ImuBatches:
 
     def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         if self.follow is not None:
-            log: LogReader = McapLog(_recording(self.path))
+            log: LogReader = _recording(self.path)
             batches = log.follow(self.topics, self.follow)  # type: ignore[attr-defined]
         else:
             log = open_log(self.path)
@@ -303,17 +303,17 @@ class ImuBatches:
                 self.losses = list(log.losses)
 
 
-def _recording(path: Path) -> Path:
-    """The MCAP file a recording is written to: the file, or the one storage file of a rosbag2
-    folder being recorded (follow mode reads MCAP as it grows)."""
+def _recording(path: Path) -> LogReader:
+    """The reader of a recording in progress: an MCAP file, or a rosbag2 folder with one
+    storage file (mcap, read as it grows; sqlite3, read as rows are committed)."""
     if path.is_dir():
-        files = sorted(path.glob("*.mcap"))
+        files = sorted(path.glob("*.mcap")) + sorted(path.glob("*.db3"))
         if len(files) != 1:
-            raise LogError(str(path), "follow mode reads a rosbag2 folder with one mcap storage file (sqlite3 storage is not followed)")
-        return files[0]
+            raise LogError(str(path), f"follow mode reads a rosbag2 folder with one storage file; it has {len(files)}")
+        return McapLog(files[0]) if files[0].suffix == ".mcap" else SqliteRecording(path, files[0])
     if not path.exists():
         raise LogError(str(path), "no such file or directory")
-    return path
+    return McapLog(path)
 
 
 def _decode(log: LogReader, batch: RawBatch) -> DecodedBatch:
