@@ -138,3 +138,25 @@ def test_the_live_table_shows_status_std_windows_and_what_is_missing():
     for name, estimate in run.result.estimates.items():
         assert name in text and f"{sum(w.selected for w in estimate.windows)}/{len(estimate.windows)}" in text
     assert "rotation z (yaw)" in text and "translation x" in text
+
+
+def test_ctrl_c_while_following_writes_the_last_estimate_and_exits_130(aggressive, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    config = tmp_path / "c.yaml"
+    write_document(config, aggressive.config_document())
+    recorder = record(tmp_path / "live.mcap", aggressive, factor=8.0)
+    out = tmp_path / "f.yaml"
+    process = subprocess.Popen([sys.executable, "-m", "imucal_cli.cli", "calibrate", str(tmp_path / "live.mcap"), "-c", str(config), "--follow", "--json", "-o", str(out)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    first = process.stdout.readline()  # the first update: the calibrator has booted
+    assert first, process.stderr.read()
+    os.killpg(process.pid, signal.SIGINT)
+    _, stderr = process.communicate(timeout=60)
+    recorder.join(60)
+    assert process.returncode == 130, stderr
+    assert b"Traceback" not in stderr and b"interrupted" in stderr
+    assert yaml.safe_load(out.read_text())["sensors"]
