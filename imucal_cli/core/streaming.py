@@ -57,7 +57,7 @@ from imucal_cli.core.signals import (
 )
 from imucal_cli.core.timing import TimeOffset, time_offset_shown
 from imucal_cli.errors import ImucalError
-from imucal_cli.types import Transform
+from imucal_cli.types import GRAVITY_MPS2, Transform
 
 #: Padding on each side of a window for the spline and the low-pass (s). The filter's impulse
 #: response has decayed by far more than double precision within it.
@@ -93,7 +93,6 @@ class SensorSetup:
 
 #: Degrees per radian: how much larger a gyro's numbers are in deg/s.
 DPS = float(np.degrees(1.0))
-STANDARD_GRAVITY = 9.80665
 #: The base's |w| must vary by this much (rad/s std) before a gyro's units can be told.
 MIN_UNIT_MOTION_RADPS = 0.005
 
@@ -578,11 +577,11 @@ class StreamingCalibrator:
             both = samples[name][1]
             accel = 1.0
             if accel_units == "g":
-                accel = STANDARD_GRAVITY
+                accel = GRAVITY_MPS2
             elif accel_units == "auto":
                 mean = float(np.mean(np.linalg.norm(both[:, 3:], axis=1)))
                 if 0.5 <= mean <= 2.0:
-                    accel = STANDARD_GRAVITY
+                    accel = GRAVITY_MPS2
                     notes.setdefault(name, []).append(f"accelerometer publishes g (mean |f| {mean:.3f}): converted to m/s^2")
                 elif not 5.0 <= mean <= 20.0:
                     raise UnitsError(*self._label(name, "accel_units"), f"the accelerometer's mean |f| is {mean:.3g}: neither m/s^2 (about 9.8) nor g (about 1)")

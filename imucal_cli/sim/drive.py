@@ -23,7 +23,7 @@ from imucal_cli.sim.rig import DEFAULT_MOUNTS, LidarMount, cad_prior
 from imucal_cli.sim.scenarios import SCENARIOS, VehicleDynamics, make_scenario
 from imucal_cli.sim.trajectory import Trajectory
 from imucal_cli.sim.writers import TopicData
-from imucal_cli.types import Transform
+from imucal_cli.types import GRAVITY_MPS2, Transform
 
 BASE_TOPIC = "/gnss/imu"
 BASE_FRAME = "base_link"
@@ -63,7 +63,7 @@ class DriveOptions:
 MEMS_ERRORS = {
     "scale_factor_std": 0.005,
     "nonorthogonality_std_rad": np.radians(0.2),
-    "g_sensitivity_std": np.radians(0.1) / 9.80665,
+    "g_sensitivity_std": np.radians(0.1) / GRAVITY_MPS2,
     "vibration_accel_mps2": 0.5,
     "vibration_gyro_radps": 0.01,
 }

@@ -7,11 +7,18 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from imucal_cli.sim.trajectory import Trajectory
-from imucal_cli.types import ImuStream, Transform
+from imucal_cli.types import GRAVITY_MPS2, ImuStream, Transform
 
 DEG = np.pi / 180.0
-STANDARD_GRAVITY = 9.80665
-MICRO_G = STANDARD_GRAVITY * 1e-6
+MICRO_G = GRAVITY_MPS2 * 1e-6
+
+
+#: The error figures ``ImuErrorModel.scaled`` multiplies.
+_SCALED = (
+    "gyro_noise_density", "accel_noise_density", "gyro_turn_on_bias_std", "accel_turn_on_bias_std", "gyro_bias_random_walk",
+    "accel_bias_random_walk", "jitter_s", "scale_factor_std", "nonorthogonality_std_rad", "misalignment_std_rad", "g_sensitivity_std",
+    "vibration_accel_mps2", "vibration_gyro_radps",
+)
 
 
 @dataclass(frozen=True)
@@ -50,25 +57,14 @@ class ImuErrorModel:
 
     def scaled(self, noise_scale: float) -> ImuErrorModel:
         """Noise, biases, jitter and drop rate multiplied by ``noise_scale`` (0: an ideal sensor)."""
+        ideal = noise_scale <= 0
         return replace(
             self,
-            gyro_noise_density=self.gyro_noise_density * noise_scale,
-            accel_noise_density=self.accel_noise_density * noise_scale,
-            gyro_turn_on_bias_std=self.gyro_turn_on_bias_std * noise_scale,
-            accel_turn_on_bias_std=self.accel_turn_on_bias_std * noise_scale,
-            gyro_bias_random_walk=self.gyro_bias_random_walk * noise_scale,
-            accel_bias_random_walk=self.accel_bias_random_walk * noise_scale,
-            jitter_s=self.jitter_s * noise_scale,
+            **{name: getattr(self, name) * noise_scale for name in _SCALED},
             drop_fraction=min(1.0, self.drop_fraction * noise_scale),
-            gyro_lsb=self.gyro_lsb if noise_scale > 0 else 0.0,
-            accel_lsb=self.accel_lsb if noise_scale > 0 else 0.0,
-            float32_output=self.float32_output and noise_scale > 0,
-            scale_factor_std=self.scale_factor_std * noise_scale,
-            nonorthogonality_std_rad=self.nonorthogonality_std_rad * noise_scale,
-            misalignment_std_rad=self.misalignment_std_rad * noise_scale,
-            g_sensitivity_std=self.g_sensitivity_std * noise_scale,
-            vibration_accel_mps2=self.vibration_accel_mps2 * noise_scale,
-            vibration_gyro_radps=self.vibration_gyro_radps * noise_scale,
+            gyro_lsb=0.0 if ideal else self.gyro_lsb,
+            accel_lsb=0.0 if ideal else self.accel_lsb,
+            float32_output=self.float32_output and not ideal,
         )
 
     def gyro_noise_std(self) -> float:
@@ -85,7 +81,7 @@ TACTICAL_BASE = ImuErrorModel(
     gyro_noise_density=0.002 * DEG,  # 0.12 deg/sqrt(h)
     accel_noise_density=50.0 * MICRO_G,
     gyro_turn_on_bias_std=1.0 * DEG / 3600.0,  # 1 deg/h
-    accel_turn_on_bias_std=0.5e-3 * 9.80665,  # 0.5 mg
+    accel_turn_on_bias_std=0.5e-3 * GRAVITY_MPS2,  # 0.5 mg
     gyro_bias_random_walk=1.0e-6,
     accel_bias_random_walk=2.0e-5,
     rate_hz=100.0,
@@ -231,7 +227,7 @@ def simulate_imu(
     if model.gyro_units == "dps":
         gyro = np.degrees(gyro)  # the resolution below is then in deg/s
     if model.accel_units == "g":
-        accel = accel / STANDARD_GRAVITY
+        accel = accel / GRAVITY_MPS2
     if model.gyro_lsb > 0:
         gyro = np.round(gyro / model.gyro_lsb) * model.gyro_lsb
     if model.accel_lsb > 0:
