@@ -51,6 +51,11 @@ __all__ = [
 ]
 
 
+def imu_names(config: Config) -> dict[str, str]:
+    """Every configured IMU topic and the name the calibrator knows it by ("base", sensors')."""
+    return {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+
+
 def lost_summary(losses: list[Loss]) -> str:
     """For an error message: what of the log could not be read, if anything."""
     real = [x for x in losses if x.lost]
@@ -112,7 +117,7 @@ def stream_log(log: str | Path, config: Config, progress: Callable[[int, int], N
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
     log's length: windows reduced, nothing solved yet."""
     log = Path(log)
-    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    names = imu_names(config)
     reader = ImuBatches(log, names)
     calibrator = make_calibrator(config)
     clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)
@@ -149,7 +154,7 @@ def stream_biases(log: str | Path, config: Config, progress: Callable[[int, int]
     from imucal_cli.pipeline import bias_trackers, biases_document
 
     log = Path(log)
-    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    names = imu_names(config)
     trackers = bias_trackers(config)
     reader = ImuBatches(log, names)
     count = 0
@@ -197,7 +202,7 @@ def follow_log(
     from imucal_cli.pipeline import converged
 
     log = Path(log)
-    names = {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    names = imu_names(config)
     calibrator = make_calibrator(config, block_windows=1, reorder_s=FOLLOW_REORDER_S)
     done = [False]
     reader = ImuBatches(log, names, follow=lambda: done[0] or stop())

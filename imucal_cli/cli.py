@@ -713,19 +713,14 @@ def evaluate(
     junit: Annotated[Path | None, typer.Option("--junit", help="Also write JUnit XML here (for CI).")] = None,
 ) -> None:
     """Rotation and translation errors of every sensor and pair against ground truth."""
-    from imucal_cli.api import load_transforms
+    from imucal_cli.api import evaluate as compare
     from imucal_cli.documents import write_text_atomic
     from imucal_cli.fleet import evaluate_junit
-    from imucal_cli.pipeline import evaluate_document
 
     _check_output(out)
     if junit is not None and not junit.parent.is_dir():
         raise InputError(f"{junit}: folder {junit.parent} does not exist")
-    estimates = load_transforms(estimate)
-    truths = load_transforms(truth)
-    if not set(estimates) & set(truths):
-        raise InputError(f"{estimate}: no sensor in common with {truth}")
-    document = evaluate_document(estimates, truths, max_rotation_deg, max_translation_m, allow_missing)
+    document = compare(estimate, truth, max_rotation_deg, max_translation_m, allow_missing)
     for side, names in document["missing"].items():
         for name in names:
             where = estimate if side == "estimate_only" else truth

@@ -171,30 +171,30 @@ def kalibr(ex: Extrinsics) -> str:
     lines = ["# imucal: IMU chain in Kalibr's layout; imu0 is the base IMU", "imu0:", "  T_i_b:"]
     lines += _matrix_rows(np.eye(4), "    ")
     lines += ["  model: calibrated", f"  rostopic: {ex.base_topic or ''}", "  time_offset: 0.0"]
-    lines += _kalibr_imu(ex, "base", ex.base_imu_rate_hz, ex.base_imu_noise)
+    lines += _kalibr_imu(ex, "base_imu", ex.base_imu_rate_hz, ex.base_imu_noise)
     for k, s in enumerate(ex.sensors, start=1):
         lines += [f"imu{k}:", f"  # {s.name}", "  T_i_b:"]
         lines += _matrix_rows(s.T_base_imu.inverse().as_matrix(), "    ")
         offset = f"{_f(-s.time_offset_s)}" if s.time_offset_observable else "0.0  # not observable from the drive: not estimated"
         lines += ["  model: calibrated", f"  rostopic: {s.imu_topic}", f"  time_offset: {offset}"]
-        lines += _kalibr_imu(ex, f"sensors.{s.name}", s.imu_rate_hz, s.imu_noise)
+        lines += _kalibr_imu(ex, f"sensors.{s.name}.imu", s.imu_rate_hz, s.imu_noise)
     return "\n".join(lines) + "\n"
 
 
 KALIBR_NOISE = ("accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk")
 
 
-def _kalibr_imu(ex: Extrinsics, where: str, rate: float | None, noise: dict[str, float | None] | None) -> list[str]:
+def _kalibr_imu(ex: Extrinsics, key: str, rate: float | None, noise: dict[str, float | None] | None) -> list[str]:
     """The update rate and the four noise figures Kalibr's and OpenVINS's readers require
-    (each positive); an error naming the key where the calibrate output lacks one."""
-    key = "base_imu" if where == "base" else where
+    (each positive); an error naming the calibrate output's key (``base_imu`` or
+    ``sensors.NAME.imu``: its ``_rate_hz`` and ``_noise``) where one is missing."""
     if rate is None or not rate > 0:
-        raise InputError(f"{ex.source}: {key}{'_rate_hz' if where == 'base' else '.imu_rate_hz'}: missing: Kalibr needs the IMU's update_rate")
+        raise InputError(f"{ex.source}: {key}_rate_hz: missing: Kalibr needs the IMU's update_rate")
     lines = [f"  update_rate: {_f(rate)}"]
     for name in KALIBR_NOISE:
         value = (noise or {}).get(name)
         if value is None or not value > 0:
-            raise InputError(f"{ex.source}: {key}{'_noise' if where == 'base' else '.imu_noise'}.{name}: missing (calibrate with this imucal version): Kalibr needs it")
+            raise InputError(f"{ex.source}: {key}_noise.{name}: missing (calibrate with this imucal version): Kalibr needs it")
         lines.append(f"  {name}: {_f(value)}")
     return lines
 
