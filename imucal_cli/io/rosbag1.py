@@ -227,30 +227,25 @@ class Ros1Log(LogReader):
         """Every message record ``(conn, time_ns, data)`` from the start, connections noted on
         the way; the first record that does not read ends the walk with a :class:`Loss`."""
         data = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ)
-        pos = len(MAGIC)
+        at = [len(MAGIC)]  # where the walk of the file is, for the loss
         try:
-            while pos < len(data):
-                fields, start, length, after = _record(data, pos)
-                op = _op(fields)
-                if op == 0x05:
-                    inner = _decompress(fields["compression"], data[start : start + length], _U32.unpack(fields["size"])[0])
-                    yield from self._inner(inner)
-                elif op == 0x07:
-                    self._connection(fields, data[start : start + length])
-                elif op == 0x02:
-                    yield self._message(fields, data[start : start + length])
-                pos = after
+            yield from self._records(data, at)
         except Exception as exc:
-            self.losses.append(Loss(f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}", pos, self._size - pos))
+            self.losses.append(Loss(f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}", at[0], self._size - at[0]))
 
-    def _inner(self, chunk: bytes) -> Iterator[tuple[int, int, bytes]]:
-        pos = 0
-        while pos < len(chunk):
-            fields, start, length, pos = _record(chunk, pos)
-            if _op(fields) == 0x07:
-                self._connection(fields, chunk[start : start + length])
-            elif _op(fields) == 0x02:
-                yield self._message(fields, chunk[start : start + length])
+    def _records(self, buf: bytes | mmap.mmap, at: list[int]) -> Iterator[tuple[int, int, bytes]]:
+        """The message records of ``buf`` from ``at[0]`` (kept at the next record), those of
+        its chunks decompressed and walked too; connections noted on the way."""
+        while at[0] < len(buf):
+            fields, start, length, after = _record(buf, at[0])
+            op = _op(fields)
+            if op == 0x05:
+                yield from self._records(_decompress(fields["compression"], buf[start : start + length], _U32.unpack(fields["size"])[0]), [0])
+            elif op == 0x07:
+                self._connection(fields, buf[start : start + length])
+            elif op == 0x02:
+                yield self._message(fields, buf[start : start + length])
+            at[0] = after
 
     @staticmethod
     def _message(fields: dict[str, bytes], data: bytes) -> tuple[int, int, bytes]:
