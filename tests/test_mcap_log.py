@@ -132,3 +132,17 @@ def test_a_storage_file_or_a_folder_that_is_not_a_bag_says_what_to_give(tmp_path
     zstd.write_bytes(b"\x28\xb5\x2f\xfd")
     result = runner.invoke(app, ["inspect", str(zstd)])
     assert result.exit_code == 2 and "give its bag folder" in result.stderr
+
+
+def test_a_damaged_chunk_in_a_file_without_summary_is_said_not_hidden(layouts):
+    made, topics = layouts
+    data = bytearray(made["no summary"].read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(64)  # inside a chunk's compressed records
+    damaged = made["no summary"].with_name("damaged-nosummary.mcap")
+    damaged.write_bytes(bytes(data))
+    losses = []
+    got = read_imu(damaged, topics, losses=losses)
+    full = read_imu(made["default"], topics)
+    assert sum(len(r.stream) for r in got.values()) < sum(len(r.stream) for r in full.values())
+    assert [x for x in losses if x.lost and "chunk does not read" in x.reason]

@@ -145,9 +145,7 @@ class McapLog(LogReader):
                     return
                 if pos + 9 + length > len(data):
                     break  # still being written
-                body = memoryview(data)[pos + 9 : pos + 9 + length]
-                inner = np.frombuffer(_decompress(Chunk.read(ReadDataStream(BytesIO(body)))), np.uint8) if opcode == _CHUNK_OP else np.frombuffer(data, np.uint8, 9 + length, pos)
-                found = self._records(inner, channels, {})
+                inner, found = self._messages_of(data, pos, channels, {}, note=True)
                 if len(found):
                     yield from _channel_batches(inner, found, channels, wanted)
                 pos += 9 + length
@@ -166,18 +164,12 @@ class McapLog(LogReader):
         try:
             while pos + 9 <= len(data):
                 opcode, length = _RECORD.unpack_from(data, pos)
-                body = memoryview(data)[pos + 9 : pos + 9 + length]
                 if opcode in (_FOOTER_OP, _DATA_END_OP):
                     return
-                if opcode == _CHUNK_OP:
-                    chunk = Chunk.read(ReadDataStream(BytesIO(body)))
-                    inner, cut = _decompress_prefix(chunk), pos + 9 + length > len(data)
-                    found = self._records(inner, channels, schemas)
-                else:
-                    if pos + 9 + length > len(data):
-                        break
-                    inner, cut = np.frombuffer(data, np.uint8, 9 + length, pos), False
-                    found = self._records(inner, channels, schemas)
+                cut = pos + 9 + length > len(data)
+                if cut and opcode != _CHUNK_OP:
+                    break
+                inner, found = self._messages_of(data, pos, channels, schemas, note)
                 if len(found):
                     messages += len(found)
                     last_ns = int(gather(inner, found + 15, 8, "<u8")[-1, 0])
@@ -199,6 +191,23 @@ class McapLog(LogReader):
         finally:
             if note and not self.losses:
                 self.losses.append(Loss("the file has no usable summary and indexes: read record by record", lost=False))
+
+    def _messages_of(self, data: bytes | mmap.mmap, pos: int, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The top-level record at ``pos``: its records (a chunk's decompressed, as much of a
+        cut-off or damaged chunk as decodes: a whole chunk that does not is a :class:`Loss`
+        where ``note``; any other record itself) and the offsets of their messages."""
+        opcode, length = _RECORD.unpack_from(data, pos)
+        if opcode == _CHUNK_OP:
+            chunk = Chunk.read(ReadDataStream(BytesIO(memoryview(data)[pos + 9 : pos + 9 + length])))
+            try:
+                inner = np.frombuffer(_decompress(chunk), dtype=np.uint8)
+            except Exception as exc:  # cut off or damaged: the prefix that decodes
+                if note and pos + 9 + length <= len(data):
+                    self.losses.append(Loss(f"chunk does not read ({exc}); what decodes of it is read; {REPAIR}", pos, 9 + length, chunk.message_start_time, chunk.message_end_time))
+                inner = _decompress_prefix(chunk)
+        else:
+            inner = np.frombuffer(data, np.uint8, 9 + length, pos)
+        return inner, self._records(inner, channels, schemas)
 
     @staticmethod
     def _records(data: np.ndarray, channels: dict[int, Channel], schemas: dict[int, Schema]) -> np.ndarray:
@@ -338,19 +347,16 @@ def _groups(chunks: list[ChunkIndex], channel_ids: set[int]) -> Iterator[list[Ch
 
 
 def _decompress_prefix(chunk: Chunk) -> np.ndarray:
-    """A chunk's records, or where it is cut off, as much of them as decompresses."""
-    try:
-        return np.frombuffer(_decompress(chunk), dtype=np.uint8)
-    except Exception:  # cut off or damaged: the prefix that decodes
-        import lz4.frame
-        import zstandard
+    """As much of a cut-off or damaged chunk's records as decompresses."""
+    import lz4.frame
+    import zstandard
 
-        streams = {"zstd": lambda: zstandard.ZstdDecompressor().decompressobj(), "lz4": lz4.frame.LZ4FrameDecompressor}
-        try:
-            out = streams[chunk.compression]().decompress(chunk.data) if chunk.compression in streams else chunk.data
-        except (zstandard.ZstdError, RuntimeError):
-            out = b""
-        return np.frombuffer(out, dtype=np.uint8)
+    streams = {"zstd": lambda: zstandard.ZstdDecompressor().decompressobj(), "lz4": lz4.frame.LZ4FrameDecompressor}
+    try:
+        out = streams[chunk.compression]().decompress(chunk.data) if chunk.compression in streams else chunk.data
+    except (zstandard.ZstdError, RuntimeError):
+        out = b""
+    return np.frombuffer(out, dtype=np.uint8)
 
 
 def _decompress(chunk: Chunk) -> bytes:
