@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -83,6 +83,10 @@ class LogReader:
     def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
         """Raw batches of ``topics``, each of one topic, in roughly log-time order."""
         raise NotImplementedError
+
+    def follow(self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05) -> Iterator[RawBatch]:
+        """Follow mode: raw batches of a log still being written, until it ends or ``stop()``."""
+        raise self.error("this log cannot be followed while it is written")
 
     def error(self, problem: str, topic: str | None = None) -> LogError:
         return LogError(str(self.path), problem, topic)

@@ -281,11 +281,7 @@ class ImuBatches:
         return stamps
 
     def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        if self.follow is not None:
-            log: LogReader = _recording(self.path)
-            batches = log.follow(self.topics, self.follow)  # type: ignore[attr-defined]
-        else:
-            log = open_log(self.path)
+        log = open_log(self.path) if self.follow is None else _recording(self.path)
         with log:
             self.format_name = log.format_name
             try:
@@ -293,6 +289,8 @@ class ImuBatches:
                     available = _check_topics(log, self.topics)
                     self.expected = {t: available[t].count for t in self.topics}
                     batches = log.batches(self.topics)
+                else:  # topics appear as they are recorded
+                    batches = log.follow(self.topics, self.follow)
                 for batch, decoded in ((b, _decode(log, b)) for b in batches):
                     st = self.stats[batch.topic]
                     st.messages += len(batch.starts)
