@@ -64,6 +64,7 @@ def floor(log: Path, fmt: str) -> float:
     """Seconds to read and decompress the storage, decoding nothing."""
     start = time.perf_counter()
     if fmt == "mcap":
+        import numpy as np
         from mcap.records import Chunk
         from mcap.stream_reader import StreamReader
 
@@ -74,7 +75,7 @@ def floor(log: Path, fmt: str) -> float:
                 handle.seek(index.chunk_start_offset)
                 chunk = next(iter(StreamReader(handle, skip_magic=True, emit_chunks=True).records))
                 assert isinstance(chunk, Chunk)
-                _decompress(chunk)
+                _decompress(chunk, np.empty(chunk.uncompressed_size, dtype=np.uint8))
     elif fmt == "rosbag1":
         from imucal_cli.io.rosbag1 import _U32, Ros1Log, _decompress
 

@@ -514,6 +514,7 @@ class _Problem:
         globals_a = np.arange(N_GLOBAL)
         self.cross_g = (_GYRO_GLOBALS[None, :, None] * n_bias + self.biases_g[:, None, :]).ravel()
         self.cross_a = (globals_a[None, :, None] * n_bias + self.biases_a[:, None, :]).ravel()
+        self._last: tuple[bytes, tuple[np.ndarray, ...]] | None = None
 
     def _S_a(self, a: int) -> np.ndarray:
         """The accelerometer's moments of a chunk of windows, less what the angular
@@ -524,6 +525,30 @@ class _Problem:
         noise = self.dw_noise_var * VEC_SKEW @ VEC_SKEW.T
         S[:, 9:18, 9:18] -= np.array([w.samples for w in windows], dtype=float)[:, None, None] * noise
         return S
+
+    def _linearised(
+        self, R: Rotation, t: np.ndarray, dtau: float, tilt: np.ndarray, intrinsics: np.ndarray, knots: np.ndarray,
+    ) -> tuple[np.ndarray, ...]:
+        """Every window's unweighted normal equations at a point (:func:`_normal_equations`,
+        the gyro's then the accelerometer's). The last point's are kept: the jackknife's
+        replicates and the one-equation checks all take their one step from the same fit."""
+        key = b"".join(np.asarray(v, dtype=np.float64).tobytes() for v in (R.as_quat(), t, dtau, tilt, intrinsics, knots))
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
+        Rt = R.inv().as_matrix()
+        bj, bk = knots[self.numbers], knots[self.numbers + 1]
+        Cg = _C_gyro(Rt, dtau, bj[:, 0:3], bk[:, 0:3])
+        axes = _axes(intrinsics)
+        Ca = _C_accel(axes @ Rt, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
+        gyro = _normal_equations(_derivatives_gyro(Cg, Rt), self.S_g, Cg)
+        parts = []
+        for n, a in enumerate(self.starts):
+            chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 15, 3, 33) in slices
+            S_a = self.cached[n] if self.cached is not None else self._S_a(a)
+            parts.append(_normal_equations(_derivatives_accel(Ca[chunk], axes @ Rt, t, dtau, axes), S_a, Ca[chunk]))
+        accel = tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
+        self._last = (key, (*gyro, *accel))
+        return self._last[1]
 
     def translation_information_diagonal(self) -> np.ndarray:
         """Per axis, the lever arm's information ``sum (A - mean A)^T (A - mean A)`` over the
@@ -571,7 +596,7 @@ class _Problem:
         R, t, dtau, tilt, knots = start.R, start.t.copy(), start.dtau, start.tilt.copy(), start.knots.copy()
         intrinsics = start.intrinsics.copy()
         scale_g, scale_a = start.scale_g, start.scale_a
-        n_bias, numbers = self.n_bias, self.numbers
+        n_bias = self.n_bias
         weights = np.ones(len(self.used)) if window_weights is None else window_weights
         samples = float(np.sum(weights * self.samples_per_window))
         free_idx = np.flatnonzero(free)
@@ -581,18 +606,7 @@ class _Problem:
         factor = X = None
         iterations = 0
         for iterations in range(1, (max_iterations or options.max_iterations) + 1):
-            Rt = R.inv().as_matrix()
-            bj, bk = knots[numbers], knots[numbers + 1]
-            Cg = _C_gyro(Rt, dtau, bj[:, 0:3], bk[:, 0:3])
-            axes = _axes(intrinsics)
-            Ca = _C_accel(axes @ Rt, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
-            Hg, gg, cost_g = _normal_equations(_derivatives_gyro(Cg, Rt), self.S_g, Cg)
-            parts = []
-            for n, a in enumerate(self.starts):
-                chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 15, 3, 33) in slices
-                S_a = self.cached[n] if self.cached is not None else self._S_a(a)
-                parts.append(_normal_equations(_derivatives_accel(Ca[chunk], axes @ Rt, t, dtau, axes), S_a, Ca[chunk]))
-            Ha, ga, cost_a = (np.concatenate([p[i] for p in parts]) for i in range(3))
+            Hg, gg, cost_g, Ha, ga, cost_a = self._linearised(R, t, dtau, tilt, intrinsics, knots)
             if estimate_scale and iterations > 1:  # residual variance from the fit, above what the moments resolve
                 scale_g = float(np.sqrt(max(np.dot(weights, cost_g) / (3 * samples), self.floor_g)))
                 scale_a = float(np.sqrt(max(np.dot(weights, cost_a) / (3 * samples) + self.eiv_variance(t), self.floor_a)))

@@ -200,7 +200,7 @@ class McapLog(LogReader):
         if opcode == _CHUNK_OP:
             chunk = Chunk.read(ReadDataStream(BytesIO(memoryview(data)[pos + 9 : pos + 9 + length])))
             try:
-                inner = np.frombuffer(_decompress(chunk), dtype=np.uint8)
+                inner = _decompress(chunk, np.empty(chunk.uncompressed_size, dtype=np.uint8))
             except Exception as exc:  # cut off or damaged: the prefix that decodes
                 if note and pos + 9 + length <= len(data):
                     self.losses.append(Loss(f"chunk does not read ({exc}); what decodes of it is read; {REPAIR}", pos, 9 + length, chunk.message_start_time, chunk.message_end_time))
@@ -270,7 +270,7 @@ class McapLog(LogReader):
                     raise ValueError("the chunk index does not point at a chunk")
                 if any(len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > chunk.uncompressed_size for e in found.values()):
                     raise ValueError("a message index points past the chunk's end")
-                buffer[size : size + chunk.uncompressed_size] = np.frombuffer(_decompress(chunk), dtype=np.uint8)
+                _decompress(chunk, buffer[size : size + chunk.uncompressed_size])
             except Exception as exc:
                 self._lose_chunk(index, exc)
                 continue
@@ -359,19 +359,25 @@ def _decompress_prefix(chunk: Chunk) -> np.ndarray:
     return np.frombuffer(out, dtype=np.uint8)
 
 
-def _decompress(chunk: Chunk) -> bytes:
+def _decompress(chunk: Chunk, out: np.ndarray) -> np.ndarray:
+    """The chunk's records decompressed into ``out`` (its uncompressed size): zstd straight
+    into it (half the time of decompressing to bytes and copying those)."""
     if chunk.compression == "zstd":
         import zstandard
 
-        out = zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=chunk.uncompressed_size)
-    elif chunk.compression == "lz4":
+        reader = zstandard.ZstdDecompressor().stream_reader(chunk.data)
+        size = 0
+        while size < len(out) and (got := reader.readinto(out.data[size:])):
+            size += got
+        size += len(reader.read(1))  # (anything beyond is an error)
+    elif chunk.compression in ("lz4", ""):
         import lz4.frame
 
-        out = lz4.frame.decompress(chunk.data)
-    elif chunk.compression == "":
-        out = chunk.data
+        data = lz4.frame.decompress(chunk.data) if chunk.compression else chunk.data
+        size = len(data)
+        out[: min(size, len(out))] = np.frombuffer(data, np.uint8, min(size, len(out)))
     else:
         raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
-    if len(out) != chunk.uncompressed_size:
-        raise ValueError(f"decompressed to {len(out)} bytes, the chunk says {chunk.uncompressed_size}")
+    if size != len(out):
+        raise ValueError(f"decompressed to {'more than ' * (size > len(out))}{min(size, len(out))} bytes, the chunk says {len(out)}")
     return out
