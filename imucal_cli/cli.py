@@ -855,13 +855,16 @@ def main() -> None:
 
     A Ctrl-C ends with exit 130 at once: CPython 3.11 takes a KeyboardInterrupt that passed
     through an import's exec() (scipy's lazy imports run some) for an unhandled one even when
-    it was caught, and would end the process by SIGINT (a caller saw -2, not 130)."""
+    it was caught, and would end the process by SIGINT (a caller saw -2, not 130).
+
+    BLAS runs on one thread: its matrices here are small, and its spinning threads took a
+    third of the CPU time of a calibration and made it 10% slower (docs/performance.md);
+    ``batch --jobs`` runs a process per core. The user's own setting is kept."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy is imported
     try:
         app()
     except SystemExit as exc:
         if exc.code == EXIT_INTERRUPTED:
-            import os
-
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(EXIT_INTERRUPTED)
