@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import os
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from enum import StrEnum
 from pathlib import Path
@@ -135,6 +135,20 @@ def _progress(description: str, unit: str = "messages") -> Iterator[Any]:
         progress.stop()
 
 
+def _print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]], justify: str = "left") -> Any:
+    """A rich table on stdout; returns the console (for what follows the table)."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for column in columns:
+        table.add_column(column, justify=justify)  # type: ignore[arg-type]
+    for row in rows:
+        table.add_row(*row)
+    console = _stdout_console()
+    console.print(table)
+    return console
+
+
 def _emit(document: dict[str, Any], out: Path | None, as_json: bool, render: Any) -> None:
     """Write ``document`` to ``out`` (YAML/JSON by suffix), or print JSON, or render it."""
     from imucal_cli.documents import dumps, write_document
@@ -188,26 +202,15 @@ def _inspect_document(summary: Any) -> dict[str, Any]:
 
 
 def _render_inspect(document: dict[str, Any]) -> None:
-    from rich.table import Table
+    def gaps(info: dict[str, Any]) -> str:
+        return str(len(info["gaps"])) if len(info["gaps"]) > 3 else ", ".join(f"{a:.2f}-{b:.2f}" for a, b in info["gaps"]) or "0"
 
-    table = Table(title=f"{document['log']} ({document['format']}), t0_ns = {document['t0_ns']}")
-    for column in ("topic", "type", "count", "rate Hz", "duration s", "gaps", "backwards", "duplicates"):
-        left = column in ("topic", "type")
-        table.add_column(column, justify="left" if left else "right", no_wrap=left)
-    for topic, info in document["topics"].items():
-        gaps = info["gaps"]
-        gap_text = str(len(gaps)) if len(gaps) > 3 else ", ".join(f"{a:.2f}-{b:.2f}" for a, b in gaps) or "0"
-        table.add_row(
-            topic,
-            info["type"],
-            f"{info['count']:,}",
-            f"{info['rate_hz']:.2f}",
-            f"{info['duration_s']:.2f}",
-            gap_text,
-            str(info["backwards"]),
-            str(info["duplicates"]),
-        )
-    _stdout_console().print(table)
+    _print_table(
+        f"{document['log']} ({document['format']}), t0_ns = {document['t0_ns']}",
+        ("topic", "type", "count", "rate Hz", "duration s", "gaps", "backwards", "duplicates"),
+        ((topic, i["type"], f"{i['count']:,}", f"{i['rate_hz']:.2f}", f"{i['duration_s']:.2f}", gaps(i), str(i["backwards"]), str(i["duplicates"]))
+         for topic, i in document["topics"].items()),
+    )
 
 
 @app.command(rich_help_panel=PANEL_LOGS)
@@ -308,20 +311,11 @@ def biases(
         document = stream_biases(log, cfg, progress)
 
     def render(doc: dict[str, Any]) -> None:
-        from rich.table import Table
-
-        table = Table(title=f"IMU biases: {log}")
-        for column in ("IMU", "rests", "rest s", "accel bias m/s^2", "gyro bias rad/s (final)", "final std rad/s"):
-            table.add_column(column)
-        for name, imu in doc["imus"].items():
-            rest_s = sum(b - a for a, b in imu["rest_periods"])
-            gyro = imu["gyro_bias_radps"]
-            table.add_row(
-                name, str(len(imu["rest_periods"])), f"{rest_s:.1f}", _fmt(imu["accel_bias_mps2"], 4),
-                _fmt(gyro["final"], 5), _fmt(gyro["final_std"], 5),
-            )
-        console = _stdout_console()
-        console.print(table)
+        console = _print_table(
+            f"IMU biases: {log}", ("IMU", "rests", "rest s", "accel bias m/s^2", "gyro bias rad/s (final)", "final std rad/s"),
+            ((name, str(len(imu["rest_periods"])), f"{sum(b - a for a, b in imu['rest_periods']):.1f}", _fmt(imu["accel_bias_mps2"], 4),
+              _fmt(imu["gyro_bias_radps"]["final"], 5), _fmt(imu["gyro_bias_radps"]["final_std"], 5)) for name, imu in doc["imus"].items()),
+        )
         for name, imu in doc["imus"].items():
             for warning in imu["warnings"]:
                 console.print(f"{name}: {warning}", style="yellow")
@@ -346,21 +340,14 @@ def segments(
     document = segments_document(t0_ns, cfg, calibrator)
 
     def render(doc: dict[str, Any]) -> None:
-        from rich.table import Table
-
         for name, sensor in doc["sensors"].items():
-            table = Table(title=f"{name}: {sensor['selected']} of {sensor['total']} windows selected "
-                          f"(rotation std < {doc['max_rotation_std_deg']:g} deg)")
-            for column in ("start s", "end s", "min singular value", "rotation std deg", "selected", "translation observable x y z"):
-                table.add_column(column, justify="right")
-            for w in sensor["windows"]:
-                std = w["rotation_std_deg"]
-                table.add_row(
-                    f"{w['start_s']:.1f}", f"{w['end_s']:.1f}", f"{w['min_singular_value']:.4g}",
-                    "inf" if std is None else f"{std:.4f}", "yes" if w["selected"] else "no",
-                    " ".join("y" if v else "n" for v in w["translation_observable"]),
-                )
-            _stdout_console().print(table)
+            _print_table(
+                f"{name}: {sensor['selected']} of {sensor['total']} windows selected (rotation std < {doc['max_rotation_std_deg']:g} deg)",
+                ("start s", "end s", "min singular value", "rotation std deg", "selected", "translation observable x y z"),
+                ((f"{w['start_s']:.1f}", f"{w['end_s']:.1f}", f"{w['min_singular_value']:.4g}", "inf" if w["rotation_std_deg"] is None else f"{w['rotation_std_deg']:.4f}",
+                  "yes" if w["selected"] else "no", " ".join("y" if v else "n" for v in w["translation_observable"])) for w in sensor["windows"]),
+                justify="right",
+            )
 
     _emit(document, out, as_json, render)
 
@@ -407,24 +394,16 @@ def calibrate(
     document = calibration_document(result, str(log), streamed.losses)
 
     def render(doc: dict[str, Any]) -> None:
-        from rich.table import Table
         from rich.text import Text
 
-        table = Table(title=f"T_{doc['base_frame']}_lidar from {log}")
-        for column in ("sensor", "status", "xyz m", "rpy deg", "std xyz mm", "std rpy deg", "time offset ms", "windows"):
-            table.add_column(column)
-        for name, s in doc["sensors"].items():
-            T = s["T_base_lidar"]
+        def row(name: str, s: dict[str, Any]) -> tuple[Any, ...]:
             std_t = None if s["translation_std_m"] is None else [v * 1000 for v in s["translation_std_m"]]
-            colour = {"ok": "green", "partial": "yellow"}.get(s["status"], "red")
-            offset = f"{s['time_offset_s'] * 1000:.2f}" if s["time_offset_observable"] else "not shown"
-            table.add_row(
-                name, Text(s["status"], style=colour), _fmt(T["translation"], 4), _fmt(T["rpy_deg"], 3),
-                _fmt(std_t, 2), _fmt(s["rotation_std_deg"], 4), offset,
-                f"{s['segments']['selected']}/{s['segments']['total']}",
-            )
-        console = _stdout_console()
-        console.print(table)
+            return (name, Text(s["status"], style={"ok": "green", "partial": "yellow"}.get(s["status"], "red")), _fmt(s["T_base_lidar"]["translation"], 4),
+                    _fmt(s["T_base_lidar"]["rpy_deg"], 3), _fmt(std_t, 2), _fmt(s["rotation_std_deg"], 4),
+                    f"{s['time_offset_s'] * 1000:.2f}" if s["time_offset_observable"] else "not shown", f"{s['segments']['selected']}/{s['segments']['total']}")
+
+        console = _print_table(f"T_{doc['base_frame']}_lidar from {log}", ("sensor", "status", "xyz m", "rpy deg", "std xyz mm", "std rpy deg", "time offset ms", "windows"),
+                               (row(name, s) for name, s in doc["sensors"].items()))
         for name, s in doc["sensors"].items():
             for warning in s["warnings"]:
                 console.print(Text(f"{name}: {warning}", style="yellow"))
@@ -729,16 +708,10 @@ def evaluate(
         write_text_atomic(junit, evaluate_junit(document, str(estimate), str(truth)))
 
     def render(doc: dict[str, Any]) -> None:
-        from rich.table import Table
-
-        table = Table(title=f"{estimate} vs {truth}")
-        for column in ("sensor / pair", "rotation error deg", "translation error m", "eq. 20 m"):
-            table.add_column(column)
-        for name, row in {**doc["sensors"], **doc["pairs"]}.items():
-            table.add_row(name, f"{row['rotation_error_deg']:.4f}", f"{row['translation_error_m']:.4f}",
-                          f"{row['translation_error_eq20_m']:.4f}")
-        console = _stdout_console()
-        console.print(table)
+        console = _print_table(
+            f"{estimate} vs {truth}", ("sensor / pair", "rotation error deg", "translation error m", "eq. 20 m"),
+            ((name, f"{r['rotation_error_deg']:.4f}", f"{r['translation_error_m']:.4f}", f"{r['translation_error_eq20_m']:.4f}") for name, r in {**doc["sensors"], **doc["pairs"]}.items()),
+        )
         console.print("pass" if doc["pass"] else "fail", style="green" if doc["pass"] else "red")
 
     _emit(document, out, as_json, render)
@@ -749,20 +722,8 @@ def evaluate(
 # --------------------------------------------------------------------------- simulate
 
 
-def _stem(out: Path) -> Path:
-    """OUT without ``.mcap``/``.bag``: the prefix of the truth and config files."""
-    if out.suffix.lower() in {".mcap", ".bag"}:
-        return out.with_suffix("")
-    return out
-
-
-def _infer_format(out: Path) -> str:
-    suffix = out.suffix.lower()
-    if suffix == ".mcap":
-        return "mcap"
-    if suffix == ".bag":
-        return "rosbag1"
-    return "rosbag2-sqlite3"
+#: What each log suffix of ``simulate OUT`` writes by default (anything else: a rosbag2 folder).
+SUFFIX_FORMAT = {".mcap": "mcap", ".bag": "rosbag1"}
 
 
 @app.command(rich_help_panel=PANEL_SIM)
@@ -808,8 +769,8 @@ def simulate(
     from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
     from imucal_cli.sim.writers import write_imu_log
 
-    fmt = log_format.value if log_format is not None else _infer_format(out)
     suffix = out.suffix.lower()
+    fmt = log_format.value if log_format is not None else SUFFIX_FORMAT.get(suffix, "rosbag2-sqlite3")
     expected = {"mcap": ".mcap", "mcap-ros1": ".mcap", "rosbag1": ".bag"}.get(fmt)
     if expected is not None and suffix != expected:
         raise InputError(f"{out}: format {fmt} writes a {expected} file; name OUT with that suffix")
@@ -830,7 +791,7 @@ def simulate(
         drive = simulate_drive(with_errors(options, errors))
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    stem = _stem(out)
+    stem = out.with_suffix("") if suffix in SUFFIX_FORMAT else out  # the prefix of the truth and config files
     truth_path = stem.with_name(stem.name + ".truth.yaml")
     config_path = stem.with_name(stem.name + ".config.yaml")
     with _progress(f"writing {out}") as progress:

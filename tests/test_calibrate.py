@@ -262,12 +262,12 @@ def test_natural_cubic_spline_interpolates_and_matches_the_b_spline_away_from_th
     have died out (a few samples in) it is the not-a-knot B-spline, values and derivatives."""
     from scipy.interpolate import make_interp_spline
 
-    from imucal_cli.core.streaming import _natural_cubic
+    from imucal_cli.core.streaming import _NaturalCubic
 
     rng = np.random.default_rng(5)
     t = np.arange(2000) / 200.0 + rng.normal(0.0, 2e-5, 2000)  # jittered stamps
     y = np.stack([np.sin(2 * np.pi * f * t + p) for f, p in [(0.3, 0), (1.0, 1), (3.0, 2)]], axis=1)
-    spline, reference = _natural_cubic(t, y), make_interp_spline(t, y, k=3)
+    spline, reference = _NaturalCubic(t, y), make_interp_spline(t, y, k=3)
     np.testing.assert_allclose(spline(t), y, rtol=0, atol=1e-13)
     query = np.linspace(t[40], t[-40], 5000)
     for nu, tol in [(0, 1e-12), (1, 1e-10), (2, 1e-7)]:

@@ -181,7 +181,7 @@ class _Spline:
             both = Lowpass(anti_alias, rate)(both)
         self.t = t
         self.period = period
-        self.spline = _natural_cubic(t, both)
+        self.spline = _NaturalCubic(t, both)
 
     def gyro(self, query: np.ndarray) -> np.ndarray:
         return self.spline(query)[:, 0:3]
@@ -262,11 +262,6 @@ class _NaturalCubic:
         return out
 
 
-def _natural_cubic(t: np.ndarray, y: np.ndarray) -> _NaturalCubic:
-    """The natural cubic spline through ``(t, y)`` (see :class:`_NaturalCubic`)."""
-    return _NaturalCubic(t, y)
-
-
 def _noise_density(both: np.ndarray, rate: float) -> tuple[float, float]:
     """White-noise densities of the gyro and the accelerometer (columns 0-2 and 3-5)."""
     density = white_noise_density(both, rate, NOISE_BAND_HZ)
@@ -304,30 +299,15 @@ def _vec_of_sum(upper: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
         (np.add if sign > 0 else np.subtract)(upper[:, _FROM_UPPER[3 * r + c]], v[:, component], out=out[:, r + 3 * c])
 
 
-@dataclass
-class _BlockJob:
-    """What reducing one block of windows needs, as plain numbers and arrays (so that it can
-    be done in another process): per IMU its clock offset, stamps (s) and ``[gyro, accel]``."""
-
-    spans: list[tuple[int, float, float]]
-    rate: float
-    window_s: float
-    lowpass: Lowpass
-    n_pad: int
-    n_block: int
-    n_after: int
-    base_name: str
-    samples: dict[str, tuple[float, np.ndarray, np.ndarray]]
-
-
-def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
-    """Condition a block of consecutive windows once and reduce each window, for every sensor,
-    to its moments."""
-    lp, rate, spans = job.lowpass, job.rate, job.spans
+def _reduce_block(
+    spans: list[tuple[int, float, float]], rate: float, window_s: float, lp: Lowpass, n_pad: int, n_block: int, n_after: int,
+    base_name: str, samples: dict[str, tuple[float, np.ndarray, np.ndarray]],
+) -> dict[str, list[WindowMoments]]:
+    """Condition a block of consecutive windows once (per IMU its clock offset, stamps in s and
+    ``[gyro, accel]`` in ``samples``) and reduce each window, for every sensor, to its moments."""
     block_start = spans[0][1]
-    n_pad, n_block = job.n_pad, job.n_block
-    grid = block_start + np.arange(-n_pad, n_block + job.n_after) / rate
-    _, t_b, both_b = job.samples[job.base_name]
+    grid = block_start + np.arange(-n_pad, n_block + n_after) / rate
+    _, t_b, both_b = samples[base_name]
     base = _Spline(t_b, both_b, rate)
     values, first, second = base(grid, 2)
     # the terms of the base's side of the equations side by side, each column contiguous (as
@@ -345,7 +325,7 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     np.multiply(f_raw[:, 1], f_raw[:, 1], out=terms[:, 28])
     np.multiply(f_raw[:, 0], f_raw[:, 2], out=terms[:, 29])
     np.multiply(f_raw[:, 0], f_raw[:, 0], out=terms[:, 30])
-    names = [name for name in job.samples if name != job.base_name]
+    names = [name for name in samples if name != base_name]
     # one zero-phase low-pass for every term of every equation (linear filters commute);
     # the symmetric 3x3 terms are filtered by their upper triangles
     rows = lp(terms)[n_pad : n_pad + n_block]
@@ -365,17 +345,17 @@ def _reduce_block(job: _BlockJob) -> dict[str, list[WindowMoments]]:
     # each window's rows in the block
     at = [(round((start - block_start) * rate), round((end - start) * rate)) for _, start, end in spans]
     for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
-        X[i0 : i0 + n_win, 7] = (t_rows[i0 : i0 + n_win] - start) / job.window_s
+        X[i0 : i0 + n_win, 7] = (t_rows[i0 : i0 + n_win] - start) / window_s
     X[:, 37] = X[:, 7]
     sensors = {}
     for k, name in enumerate(names):
-        tau, t_s, both_s = job.samples[name]
+        tau, t_s, both_s = samples[name]
         # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
         sensors[name] = _Spline(t_s, both_s, rate, smooth=lp)
         X[:, n_g + n_a + 6 * k : n_g + n_a + 6 * k + 6] = sensors[name](t_rows + tau)[0]
     # where each stream has data (no gap), once for the block
     base_covered = base.covered(t_rows)
-    sensor_covered = {name: sensors[name].covered(t_rows + job.samples[name][0]) for name in names}
+    sensor_covered = {name: sensors[name].covered(t_rows + samples[name][0]) for name in names}
     out: dict[str, list[WindowMoments]] = {name: [] for name in names}
     for (number, start, end), (i0, n_win) in zip(spans, at, strict=True):
         Xw = X[i0 : i0 + n_win]
@@ -685,8 +665,7 @@ class StreamingCalibrator:
             t = self._seconds(t)  # sorted (cleaned): the samples in the span are a slice
             a, b = int(np.searchsorted(t, first_s + tau, side="left")), int(np.searchsorted(t, last_s + tau, side="right"))
             samples[name] = (tau, t[a:b], both[a:b])
-        job = _BlockJob(spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after, self.base_name, samples)
-        for name, windows in _reduce_block(job).items():
+        for name, windows in _reduce_block(spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after, self.base_name, samples).items():
             self.windows[name].extend(windows)
 
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
