@@ -69,6 +69,7 @@ def summarize_log(path: str | Path, progress: Callable[[int, int], None] | None 
     or the message does not decode), others by log time."""
     path = Path(path)
     stamps: dict[str, list[np.ndarray]] = {}
+    firsts: dict[str, int] = {}
     with open_log(path) as log:
         available = log.topics()
         imu = {t for t, info in available.items() if info.is_imu and info.encoding in ("cdr", "ros1")}
@@ -79,16 +80,18 @@ def summarize_log(path: str | Path, progress: Callable[[int, int], None] | None 
                 decoded = decode_imu(batch)
                 if decoded.errors == 0:
                     times = np.where(decoded.stamp_ns == 0, times, decoded.stamp_ns)
-            stamps.setdefault(batch.topic, []).append(times)
+            if len(times):
+                stamps.setdefault(batch.topic, []).append(times)
+                firsts[batch.topic] = min(firsts.get(batch.topic, int(times.min())), int(times.min()))
             count += len(times)
             if progress is not None:
                 progress(count, total)
         format_name, losses = log.format_name, list(log.losses)
-    arrays = {t: np.concatenate(s) if s else np.zeros(0, np.int64) for t, s in ((t, stamps.get(t, [])) for t in available)}
-    firsts = [int(a.min()) for a in arrays.values() if len(a)]
-    t0_ns = min(firsts) if firsts else 0
-    timings = [
-        _timing(topic, available[topic].msgtype, arrays[topic], t0_ns, "header.stamp" if topic in imu else "log_time")
-        for topic in sorted(available)
-    ]
+    t0_ns = min(firsts.values()) if firsts else 0
+    timings = []
+    for topic in sorted(available):  # a topic at a time, its batches freed as it is joined
+        parts = stamps.pop(topic, [])
+        joined = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+        del parts
+        timings.append(_timing(topic, available[topic].msgtype, joined, t0_ns, "header.stamp" if topic in imu else "log_time"))
     return LogSummary(path=str(path), format_name=format_name, t0_ns=t0_ns, topics=timings, losses=losses)

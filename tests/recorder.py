@@ -4,6 +4,7 @@ appended as they fill and flushed, the summary only at the end (or never, when i
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from pathlib import Path
@@ -94,3 +95,11 @@ class SqliteRecorder(threading.Thread):
         connection.close()
         (self.folder / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 5, storage_identifier: sqlite3}\n")
         self.finished.set()
+
+
+def with_terminal_sigint(argv: list[str]) -> list[str]:
+    """``argv`` run with SIGINT as a terminal gives it: a background job (a CI runner's
+    included) starts its children with SIGINT ignored, and Python then takes no Ctrl-C. A
+    launcher restores the default and execs ``argv`` (a default survives exec)."""
+    restore = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execv(sys.argv[1], sys.argv[1:])"
+    return [sys.executable, "-c", restore, *argv]

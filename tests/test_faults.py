@@ -8,6 +8,7 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from recorder import with_terminal_sigint
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
@@ -383,7 +384,7 @@ def test_ctrl_c_leaves_no_partial_file_and_keeps_the_old_one(tmp_path):
     out = tmp_path / "e.yaml"
     out.write_text("previous: calibration\n")
     process = subprocess.Popen(
-        [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)],
+        with_terminal_sigint([sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)]),
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
     )
     # interrupted once it has the log open: seconds of work remain, however fast the machine

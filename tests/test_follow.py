@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import yaml
-from recorder import SqliteRecorder, record
+from recorder import SqliteRecorder, record, with_terminal_sigint
 from typer.testing import CliRunner
 
 from imucal_cli.api import calibrate_log
@@ -150,8 +150,8 @@ def test_ctrl_c_while_following_writes_the_last_estimate_and_exits_130(aggressiv
     write_document(config, aggressive.config_document())
     recorder = record(tmp_path / "live.mcap", aggressive, factor=8.0)
     out = tmp_path / "f.yaml"
-    process = subprocess.Popen([sys.executable, "-m", "imucal_cli.cli", "calibrate", str(tmp_path / "live.mcap"), "-c", str(config), "--follow", "--json", "-o", str(out)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    argv = [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(tmp_path / "live.mcap"), "-c", str(config), "--follow", "--json", "-o", str(out)]
+    process = subprocess.Popen(with_terminal_sigint(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     first = process.stdout.readline()  # the first update: the calibrator has booted
     assert first, process.stderr.read()
     os.killpg(process.pid, signal.SIGINT)
