@@ -593,12 +593,13 @@ def batch(
     max_lost_s: Annotated[float | None, typer.Option("--max-lost-s", min=0.0, help="Pass a log whose read lost at most this many seconds (default: any loss fails).")] = None,
 ) -> None:
     """Calibrate many logs (local processes or a Dask cluster); summary CSV/JSON, JUnit; exit 1 if any fails."""
-    from imucal_cli.api import load_transforms
-    from imucal_cli.config import load_config
     from imucal_cli.documents import write_text_atomic
     from imucal_cli.fleet import (
-        Task,
+        MOVED_FALLBACK_DEG,
+        MOVED_FALLBACK_M,
+        MOVED_STD,
         junit_xml,
+        plan_tasks,
         read_manifest,
         run_dask,
         run_local,
@@ -606,58 +607,16 @@ def batch(
         summary_json,
     )
 
-    if truth_dir is not None and reference is not None:
-        raise InputError("--truth-dir and --reference: give one of them")
-    entries: list[dict[str, str]] = [{"log": str(p)} for p in logs or []]
-    if manifest is not None:
-        entries += read_manifest(manifest)
-    if not entries:
-        raise InputError("no logs: give LOG... or --manifest CSV")
     if not out_dir.parent.is_dir():
         raise InputError(f"{out_dir}: output folder's parent {out_dir.parent} does not exist")
-    if truth_dir is not None and not truth_dir.is_dir():
-        raise InputError(f"{truth_dir}: folder does not exist")
     if junit is not None and not junit.parent.is_dir() and junit.parent.resolve() != out_dir.resolve():
         raise InputError(f"{junit}: folder {junit.parent} does not exist")
-    # every path resolved and every file read here: a worker started anywhere runs the task
-    paths = [Path(e["log"]).resolve() for e in entries]
-    root = Path(os.path.commonpath([p.parent for p in paths]))
-    configs: dict[str, Any] = {}
-    shared = load_transforms(reference) if reference is not None else None
-    reference_std: dict[str, tuple[float | None, float | None]] = {}
-    if reference is not None:
-        from imucal_cli.documents import load_document
-        from imucal_cli.fleet import MOVED_FALLBACK_DEG, MOVED_FALLBACK_M, MOVED_STD
-
-        for name, s in (load_document(reference).get("sensors") or {}).items():
-            r, t = s.get("rotation_std_deg"), s.get("translation_std_m")
-            reference_std[name] = (max(r) if r else None, max(t) if t else None)
-        if max_rotation_deg is None or max_translation_m is None:
-            typer.echo(f"imucal: --reference: a sensor moved past {MOVED_STD:g} combined std of the two calibrations "
-                       f"(largest axis; {MOVED_FALLBACK_DEG:g} deg, {MOVED_FALLBACK_M:g} m where a std is not known)"
-                       + "".join(f"; {k} {v:g}" for k, v in (("--max-rotation-deg", max_rotation_deg), ("--max-translation-m", max_translation_m)) if v is not None), err=True)
-    tasks, seen = [], set()
-    for entry, log in zip(entries, paths, strict=True):
-        cfg = entry.get("config") or (str(config) if config else None)
-        if cfg is None:
-            raise InputError(f"{log}: no config: give -c CFG or a config column in the manifest")
-        if cfg not in configs:
-            configs[cfg] = load_config(cfg)
-        name = log.relative_to(root).as_posix()
-        stem = name.split(".")[0] if log.is_file() else name  # vehicle/date/drive.mcap -> vehicle/date/drive
-        if stem in seen:
-            raise InputError(f"{log}: two logs named {stem}: their outputs would collide in {out_dir}")
-        seen.add(stem)
-        against, source, is_reference = shared, str(reference or ""), reference is not None
-        if entry.get("reference") or entry.get("truth"):
-            source = entry.get("reference") or entry["truth"]
-            against, is_reference = load_transforms(source), bool(entry.get("reference"))
-        elif truth_dir is not None:
-            nested, flat = truth_dir / f"{stem}.truth.yaml", truth_dir / f"{Path(stem).name}.truth.yaml"
-            source = str(nested if nested.is_file() else flat)
-            against = load_transforms(source) if Path(source).is_file() else {}
-        tasks.append(Task(str(log), name, configs[cfg], str((out_dir / f"{stem}.yaml").resolve()), against, source, is_reference,
-                          max_rotation_deg, max_translation_m, max_lost_s, reference_std if is_reference else {}))
+    entries = [{"log": str(p)} for p in logs or []] + (read_manifest(manifest) if manifest is not None else [])
+    tasks = plan_tasks(entries, config, out_dir, truth_dir, reference, max_rotation_deg, max_translation_m, max_lost_s)
+    if reference is not None and (max_rotation_deg is None or max_translation_m is None):
+        typer.echo(f"imucal: --reference: a sensor moved past {MOVED_STD:g} combined std of the two calibrations "
+                   f"(largest axis; {MOVED_FALLBACK_DEG:g} deg, {MOVED_FALLBACK_M:g} m where a std is not known)"
+                   + "".join(f"; {k} {v:g}" for k, v in (("--max-rotation-deg", max_rotation_deg), ("--max-translation-m", max_translation_m)) if v is not None), err=True)
     for task in tasks:
         Path(task.out).parent.mkdir(parents=True, exist_ok=True)
 

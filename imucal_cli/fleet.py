@@ -205,6 +205,66 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
     return results  # type: ignore[return-value]
 
 
+def plan_tasks(
+    entries: Sequence[dict[str, str]], config: str | Path | None, out_dir: Path, truth_dir: Path | None = None, reference: str | Path | None = None,
+    max_rotation_deg: float | None = None, max_translation_m: float | None = None, max_lost_s: float | None = None,
+) -> list[Task]:
+    """One :class:`Task` per manifest entry (``log``, optional ``config``, ``truth``,
+    ``reference``), named by its path below the logs' common folder. Every path is resolved and
+    every file read here: a worker started anywhere runs the task."""
+    from imucal_cli.api import load_transforms
+    from imucal_cli.config import load_config
+
+    if truth_dir is not None and reference is not None:
+        raise InputError("--truth-dir and --reference: give one of them")
+    if not entries:
+        raise InputError("no logs: give LOG... or --manifest CSV")
+    if truth_dir is not None and not truth_dir.is_dir():
+        raise InputError(f"{truth_dir}: folder does not exist")
+    paths = [Path(e["log"]).resolve() for e in entries]
+    root = Path(os.path.commonpath([p.parent for p in paths]))
+    configs: dict[str, Config] = {}
+    loaded: dict[str, tuple[dict[str, Transform], dict[str, tuple[float | None, float | None]]]] = {}  # truth or reference files
+    tasks: list[Task] = []
+    seen: set[str] = set()
+    for entry, log in zip(entries, paths, strict=True):
+        cfg = entry.get("config") or (str(config) if config else None)
+        if cfg is None:
+            raise InputError(f"{log}: no config: give -c CFG or a config column in the manifest")
+        if cfg not in configs:
+            configs[cfg] = load_config(cfg)
+        name = log.relative_to(root).as_posix()
+        stem = name.split(".")[0] if log.is_file() else name  # vehicle/date/drive.mcap -> vehicle/date/drive
+        if stem in seen:
+            raise InputError(f"{log}: two logs named {stem}: their outputs would collide in {out_dir}")
+        seen.add(stem)
+        optional = False  # a truth file the folder may not have (then: nothing to compare with)
+        if entry.get("reference") or entry.get("truth"):
+            source, is_reference = entry.get("reference") or entry["truth"], bool(entry.get("reference"))
+        elif truth_dir is not None:
+            nested, flat = truth_dir / f"{stem}.truth.yaml", truth_dir / f"{Path(stem).name}.truth.yaml"
+            source, is_reference, optional = str(nested if nested.is_file() else flat), False, True
+        else:
+            source, is_reference = str(reference or ""), reference is not None
+        if source and source not in loaded and not (optional and not Path(source).is_file()):
+            loaded[source] = load_transforms(source), _reference_std(source) if is_reference else {}
+        against, std = loaded.get(source, ({} if source else None, {}))
+        tasks.append(Task(str(log), name, configs[cfg], str((out_dir / f"{stem}.yaml").resolve()), against, source, is_reference,
+                          max_rotation_deg, max_translation_m, max_lost_s, std if is_reference else {}))
+    return tasks
+
+
+def _reference_std(path: str) -> dict[str, tuple[float | None, float | None]]:
+    """Per sensor of a reference calibration: its largest rotation (deg) and translation (m) std."""
+    from imucal_cli.documents import load_document
+
+    out = {}
+    for name, s in (load_document(path).get("sensors") or {}).items():
+        r, t = s.get("rotation_std_deg"), s.get("translation_std_m")
+        out[name] = (max(r) if r else None, max(t) if t else None)
+    return out
+
+
 def read_manifest(path: Path) -> list[dict[str, str]]:
     """A CSV with a ``log`` column (and optional ``config``, ``truth``, ``reference``); relative
     paths are relative to the manifest's folder."""

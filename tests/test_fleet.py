@@ -210,3 +210,29 @@ def test_reference_without_thresholds_flags_a_move_past_three_combined_std(fleet
     rows = {r["sensor"]: r for r in _rows(tmp_path / "r")}
     assert rows[moved]["moved"] == "True" and rows[moved]["pass"] == "False" and "limit" in rows[moved]["error"]
     assert all(r["moved"] == "False" and r["pass"] == "True" for name, r in rows.items() if name != moved)
+
+
+def test_plan_takes_each_reference_std_from_its_own_file(tmp_path):
+    """A manifest's per-log reference gives that log's "moved" test the std of that reference
+    (not of another); a truth folder without the log's file compares nothing; a named truth
+    file that is missing is an error naming it."""
+    from imucal_cli.errors import InputError
+    from imucal_cli.fleet import plan_tasks
+
+    sample = Path(__file__).resolve().parents[1] / "sample_data"
+    config = sample / "urban.config.yaml"
+    refs = {}
+    for std in (0.01, 0.5):
+        doc = {"sensors": {"front_left_top": {"T_base_lidar": Transform.identity().to_dict(), "rotation_std_deg": [std, std / 2, std / 4], "translation_std_m": [std / 10] * 3}}}
+        refs[std] = tmp_path / f"ref{std}.yaml"
+        write_document(refs[std], doc)
+    logs = [sample / "urban.mcap", sample / "aggressive.mcap"]
+    entries = [{"log": str(logs[0]), "reference": str(refs[0.01])}, {"log": str(logs[1]), "reference": str(refs[0.5])}]
+    tasks = plan_tasks(entries, config, tmp_path / "out")
+    assert [t.reference_std["front_left_top"] for t in tasks] == [(0.01, 0.001), (0.5, 0.05)]
+    assert all(t.reference and set(t.against) == {"front_left_top"} for t in tasks)
+    (tmp_path / "truths").mkdir()
+    task = plan_tasks([{"log": str(logs[0])}], config, tmp_path / "out", truth_dir=tmp_path / "truths")[0]
+    assert task.against == {} and not task.reference
+    with pytest.raises(InputError, match=r"nope\.truth\.yaml"):
+        plan_tasks([{"log": str(logs[0]), "truth": str(tmp_path / "nope.truth.yaml")}], config, tmp_path / "out", truth_dir=tmp_path / "truths")
