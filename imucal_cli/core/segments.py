@@ -24,8 +24,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imucal_cli.core.so3 import skew
-
 #: A translation axis counts as observed when its standard deviation is below this fraction of
 #: the search half-width ``translation_bound_m``.
 OBSERVABLE_FRACTION_OF_BOUND = 1.0 / 3.0
@@ -45,21 +43,6 @@ class WindowInfo:
     valid: bool  # False when the window holds a gap in either stream
 
 
-def rotation_information(vectors: np.ndarray, noise_std: float) -> np.ndarray:
-    """3x3 Fisher information of a rotation from vector pairs (N, 3) with white noise of
-    ``noise_std`` per component, a constant bias marginalised (eq. 18)."""
-    centered = vectors - vectors.mean(axis=0)
-    J = -skew(centered)
-    return np.einsum("nji,njk->ik", J, J) / noise_std**2
-
-
-def translation_information(A: np.ndarray, accel_noise_std: float) -> np.ndarray:
-    """3x3 Fisher information of the lever arm from eq. 12's rows ``A_i`` (N, 3, 3), bias
-    marginalised."""
-    centered = A - A.mean(axis=0)
-    return np.einsum("nji,njk->ik", centered, centered) / accel_noise_std**2
-
-
 def _std_from_information(info: np.ndarray) -> np.ndarray:
     """Standard deviations from a 3x3 information matrix, or a stack of them (..., 3, 3);
     infinite where it is singular."""
@@ -70,44 +53,6 @@ def _std_from_information(info: np.ndarray) -> np.ndarray:
         regular = ~singular
         out[regular] = np.sqrt(np.diagonal(np.linalg.inv(info[regular]), axis1=-2, axis2=-1))
     return out
-
-
-def window_info(
-    start_s: float,
-    end_s: float,
-    w_base: np.ndarray,
-    f_base: np.ndarray,
-    A: np.ndarray,
-    lever_arm: np.ndarray,
-    valid: bool,
-    gyro_noise_std: float,
-    accel_noise_std: float,
-    max_rotation_std_deg: float,
-    translation_bound_m: float,
-) -> WindowInfo:
-    """Observability of one window from its low-passed base signals (see the module docstring);
-    the sums over samples that :func:`window_infos_from_moments` takes from the moments.
-
-    ``gyro_noise_std`` and ``accel_noise_std`` are the white-noise standard deviations of one
-    grid sample of the residuals (rad/s, m/s^2); ``lever_arm`` is ``t_base_imu`` (its prior);
-    ``valid`` is False when the window holds a gap in either stream.
-    """
-    v = f_base + np.einsum("nij,j->ni", A, lever_arm)
-    info = rotation_information(w_base, gyro_noise_std) + rotation_information(v, accel_noise_std)
-    s = np.linalg.svd(info, compute_uv=False)
-    sigma_min = float(max(s[-1], 0.0))
-    std_deg = float(np.degrees(1.0 / np.sqrt(sigma_min))) if sigma_min > 0 else float("inf")
-    t_std = _std_from_information(translation_information(A, accel_noise_std))
-    return WindowInfo(
-        start_s=start_s,
-        end_s=end_s,
-        min_singular_value=sigma_min,
-        rotation_std_deg=std_deg,
-        selected=valid and std_deg < max_rotation_std_deg,
-        translation_std_m=t_std,
-        translation_observable=t_std < OBSERVABLE_FRACTION_OF_BOUND * translation_bound_m,
-        valid=valid,
-    )
 
 
 def window_infos_from_moments(
@@ -122,7 +67,7 @@ def window_infos_from_moments(
     translation_bound_m: float,
     dw_noise_var: float = 0.0,
 ) -> list[WindowInfo]:
-    """:func:`window_info_from_moments` for K windows at once: ``spans`` (start, end, valid),
+    """:func:`window_infos_from_moments`: K windows at once: ``spans`` (start, end, valid),
     ``samples`` (K,), ``S_gyro`` (K, 11, 11), ``S_accel`` (K, 33, 33)."""
     n = samples.astype(np.float64)[:, None, None]
 
