@@ -19,6 +19,7 @@ from imucal_cli.core.biases import BiasReport, BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
+from imucal_cli.documents import to_plain
 from imucal_cli.io.base import Loss
 from imucal_cli.types import ImuStream, Transform
 
@@ -221,20 +222,6 @@ def _rate(result: CalibrationResult, name: str) -> float | None:
     return None if rate is None else round(float(rate), 6)
 
 
-def _plain(value: Any) -> Any:
-    """Figures (checks, intrinsics) as plain YAML/JSON values; NaN (not estimated) as null."""
-    if isinstance(value, Mapping):
-        return {key: _plain(v) for key, v in value.items()}
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_plain(v) for v in value]
-    if isinstance(value, (np.integer, int)):
-        return int(value)
-    number = float(value)
-    return number if np.isfinite(number) else None
-
-
 def lost_seconds(losses: Sequence[Loss]) -> float | None:
     """Seconds of log time the read lost: 0 without a loss, None where a loss's span is not
     known (a log cut off mid-write: its end is not recorded anywhere)."""
@@ -304,8 +291,8 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
             "time_offset_s": est.time_offset_s,
             "time_offset_std_s": est.time_offset_std_s,
             "time_offset_observable": bool(est.time_offset_observable),
-            "checks": _plain(est.checks),
-            "accel_intrinsics": _plain(est.accel_intrinsics) if est.accel_intrinsics else None,
+            "checks": to_plain(est.checks),
+            "accel_intrinsics": to_plain(est.accel_intrinsics) if est.accel_intrinsics else None,
             "gyro_bias_radps": est.gyro_bias,
             "accel_bias_mps2": est.accel_bias,
             "segments": {"total": len(est.windows), "selected": sum(w.selected for w in est.windows)},
