@@ -9,8 +9,7 @@ from scipy.spatial.transform import Rotation
 from imucal_cli.config import parse_config
 from imucal_cli.core.calibrate import kabsch_rotation
 from imucal_cli.core.so3 import rotation_angle_deg
-from imucal_cli.core.timing import estimate_time_offset
-from imucal_cli.pipeline import DriveStreams, run_calibrate
+from imucal_cli.pipeline import run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive
 
 
@@ -111,224 +110,6 @@ def test_highway_is_honest():
         assert np.all(np.abs(rot) < 3 * std[:3]) and np.all(np.abs(trans) < 3 * std[3:])
 
 
-def test_time_offset_estimator_is_sub_sample():
-    rate = 100.0
-    grid = np.arange(0, 60, 1 / rate)
-    rng = np.random.default_rng(0)
-    freqs, phases = rng.uniform(0.1, 2.0, 8), rng.uniform(0, 2 * np.pi, 8)
-
-    def speed(t):
-        return 0.3 + np.sum(0.05 * np.sin(2 * np.pi * freqs[:, None] * t[None, :] + phases[:, None]), axis=0)
-
-    for tau in (0.0123, -0.0371, 0.0):
-        estimate, peak = estimate_time_offset(grid, speed(grid), speed(grid - tau), 0.1)
-        assert abs(estimate - tau) < 1e-3 and peak > 0.99
-
-
-def test_kabsch_recovers_a_rotation_with_per_window_bias():
-    """From per-window gyro moments, each window with its own constant bias."""
-    rng = np.random.default_rng(1)
-    R = Rotation.from_euler("xyz", [3, -20, 140], degrees=True)  # R_base_imu
-    moments = []
-    for _ in range(4):
-        w_base = rng.normal(size=(500, 3))
-        w_imu = R.inv().apply(w_base) + rng.normal(size=3)
-        x = np.hstack([w_imu, w_base, np.zeros((500, 3)), np.ones((500, 1)), np.linspace(0, 1, 500)[:, None]])
-        moments.append(x.T @ x)
-    estimate = kabsch_rotation(np.stack(moments), np.full(4, 500.0))
-    assert rotation_angle_deg(estimate, R) < 1e-9
-
-
-@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, 90.0, 179.9999, 180.0])
-def test_rotation_error_is_safe_near_0_and_180(angle):
-    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
-    a = Rotation.from_euler("xyz", [10, 20, 30], degrees=True)
-    b = a * Rotation.from_rotvec(np.radians(angle) * axis)
-    assert rotation_angle_deg(a, b) == pytest.approx(angle, abs=1e-9)
-
-
-def test_planar_motion_leaves_height_unobservable():
-    """A rigid body turning only about z on a flat, smooth yard: [w]x^2 and [dw]x have no z
-    column, so the lever arm's height is not observable: status partial, z kept at the prior."""
-    from imucal_cli.sim.scenarios import VehicleDynamics
-
-    flat = VehicleDynamics(
-        roll_per_lateral_accel=0.0, pitch_per_longitudinal_accel=0.0, bump_roll_rad=0.0,
-        bump_pitch_rad=0.0, bump_heave_m=0.0, max_grade=0.0,
-    )
-    drive = simulate_drive(DriveOptions(scenario="parking", seed=3, dynamics=flat))
-    result = calibrate(drive)
-    config = parse_config(drive.config_document(), "sim.config.yaml")
-    for sensor in config.sensors:
-        estimate = result.estimates[sensor.name]
-        assert estimate.status == "partial"
-        assert estimate.translation_observable.tolist() == [True, True, False]
-        assert estimate.T_base_imu.translation[2] == sensor.prior_T_base_imu.translation[2]
-        # the reported z std is the search box's, and the true height is inside it
-        mount = next(m for m in drive.mounts if m.name == sensor.name)
-        assert estimate.translation_std_m[2] == pytest.approx(sensor.translation_bound_m / np.sqrt(3))
-        assert abs(estimate.T_base_imu.translation[2] - mount.T_base_imu.translation[2]) < sensor.translation_bound_m
-        # x and y are still found
-        assert np.all(np.abs(estimate.T_base_imu.translation[:2] - mount.T_base_imu.translation[:2]) < 4 * estimate.translation_std_m[:2])
-
-
-def _vec(A):
-    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9), ``A t = (t^T x I) vec A``."""
-    return A.transpose(0, 2, 1).reshape(len(A), 9)
-
-
-def _plain_window_info(w_base, f_base, A, lever_arm, gyro_noise_std, accel_noise_std):
-    """A window's rotation information (its min singular value) and lever-arm std, from sums
-    over the samples (the module text of :mod:`imucal_cli.core.segments`), each equation's
-    constant bias marginalised: the plain form of ``window_infos_from_moments``."""
-    from imucal_cli.core.segments import _std_from_information
-    from imucal_cli.core.so3 import skew
-
-    def information(rows, noise_std):  # sum J^T J / s^2 of the centred rows
-        centred = rows - rows.mean(axis=0)
-        return np.einsum("nji,njk->ik", centred, centred) / noise_std**2
-
-    v = f_base + np.einsum("nij,j->ni", A, lever_arm)  # the specific force predicted at the IMU
-    rotation = information(-skew(w_base), gyro_noise_std) + information(-skew(v), accel_noise_std)
-    return float(np.linalg.svd(rotation, compute_uv=False)[-1]), _std_from_information(information(A, accel_noise_std))
-
-
-def test_window_information_from_moments_equals_the_sample_sums():
-    """Segments reduced to moments report the same Fisher information as the sample sums."""
-    from imucal_cli.core.segments import window_infos_from_moments
-
-    rng = np.random.default_rng(0)
-    n = 500
-    w, f, A = rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=(n, 3, 3))
-    lever = np.array([4.0, 1.0, 3.0])
-    ones, u = np.ones((n, 1)), np.linspace(0, 1, n)[:, None]
-    x_g = np.hstack([rng.normal(size=(n, 3)), w, rng.normal(size=(n, 3)), ones, u])
-    x_a = np.hstack([rng.normal(size=(n, 3)), f, rng.normal(size=(n, 3)), _vec(A), _vec(rng.normal(size=(n, 3, 3))), ones, u])
-    sigma_min, t_std = _plain_window_info(w, f, A, lever, 0.01, 0.02)
-    (c,) = window_infos_from_moments(
-        [(0.0, 10.0, True)], np.array([n]), (x_g.T @ x_g)[None], (x_a.T @ x_a)[None], lever, 0.01, 0.02, 1.0, 0.3
-    )
-    assert c.min_singular_value == pytest.approx(sigma_min, rel=1e-9)
-    np.testing.assert_allclose(c.translation_std_m, t_std, rtol=1e-9)
-    assert c.selected == (np.degrees(1.0 / np.sqrt(sigma_min)) < 1.0)
-
-
-def test_live_feed_gives_an_estimate_after_every_window_and_the_batch_result():
-    """Fed message by message with block_windows=1, the calibrator has an estimate as soon as
-    a window is reduced, and ends where the batch run (blocks of windows) ends: the two differ
-    only in where the clock offset was linearised and in filter edges inside the padding, far
-    below the reported uncertainty."""
-    from imucal_cli.core.streaming import StreamingCalibrator
-    from imucal_cli.pipeline import feed, make_calibrator
-
-    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=100.0, seed=8))
-    config = parse_config(drive.config_document(), "sim.config.yaml")
-    streams = DriveStreams(drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0)
-    batch = make_calibrator(config)
-    feed(batch, streams)
-    expected = batch.finish()
-
-    live = StreamingCalibrator(list(make_calibrator(config).sensors.values()), block_windows=1)
-    all_streams = {"base": streams.base, **streams.sensors}
-    events = sorted((int(s.t_ns[i]), name, i) for name, s in all_streams.items() for i in range(len(s.t_ns)))
-    seen = 0
-    for _, name, i in events:
-        s = all_streams[name]
-        if live.add(name, s.t_ns[i : i + 1], s.gyro[i : i + 1], s.accel[i : i + 1]):
-            seen += 1
-            if seen == 2:  # an estimate already, after two windows
-                early = live.estimates()
-                assert all(e.status == "ok" for e in early.values())
-    final = live.finish()
-    assert seen >= 3
-    for name, estimate in expected.items():
-        std = np.sqrt(np.diag(estimate.covariance))
-        angle = np.radians(rotation_angle_deg(final[name].T_base_imu.rotation, estimate.T_base_imu.rotation))
-        assert angle < 0.05 * std[:3].min()
-        assert np.all(np.abs(final[name].T_base_imu.translation - estimate.T_base_imu.translation) < 0.05 * std[3:])
-
-
-def test_a_live_feed_may_reuse_its_buffers_after_each_add():
-    """What add() was given is copied: a caller that refills the same arrays for the next
-    samples (as a driver loop does) gets the estimate of the samples it fed."""
-    from imucal_cli.pipeline import make_calibrator
-
-    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=60.0, seed=3))
-    config = parse_config(drive.config_document(), "sim.config.yaml")
-    streams = {"base": drive.base.stream, **{m.name: drive.sensors[m.name].stream for m in drive.mounts}}
-    fresh, reused = make_calibrator(config), make_calibrator(config)
-    buffers = {name: (np.empty(50, dtype=np.int64), np.empty((50, 3)), np.empty((50, 3))) for name in streams}
-    for start in range(0, max(len(s.t_ns) for s in streams.values()), 50):
-        for name, s in streams.items():
-            part = slice(start, min(start + 50, len(s.t_ns)))
-            n = part.stop - part.start
-            if n <= 0:
-                continue
-            fresh.add(name, s.t_ns[part].copy(), s.gyro[part].copy(), s.accel[part].copy())
-            t, g, a = buffers[name]
-            t[:n], g[:n], a[:n] = s.t_ns[part], s.gyro[part], s.accel[part]
-            reused.add(name, t[:n], g[:n], a[:n])
-    expected, got = fresh.finish(), reused.finish()
-    for name, estimate in expected.items():
-        assert got[name].T_base_imu.as_matrix().tobytes() == estimate.T_base_imu.as_matrix().tobytes()
-
-
-def test_natural_cubic_spline_interpolates_and_matches_the_b_spline_away_from_the_ends():
-    """The tridiagonal natural spline passes through every sample, and where the end conditions
-    have died out (a few samples in) it is the not-a-knot B-spline, values and derivatives."""
-    from scipy.interpolate import make_interp_spline
-
-    from imucal_cli.core.streaming import _NaturalCubic
-
-    rng = np.random.default_rng(5)
-    t = np.arange(2000) / 200.0 + rng.normal(0.0, 2e-5, 2000)  # jittered stamps
-    y = np.stack([np.sin(2 * np.pi * f * t + p) for f, p in [(0.3, 0), (1.0, 1), (3.0, 2)]], axis=1)
-    spline, reference = _NaturalCubic(t, y), make_interp_spline(t, y, k=3)
-    np.testing.assert_allclose(spline(t), y, rtol=0, atol=1e-13)
-    query = np.linspace(t[40], t[-40], 5000)
-    for nu, tol in [(0, 1e-12), (1, 1e-10), (2, 1e-7)]:
-        np.testing.assert_allclose(spline(query, nu), reference(query, nu), rtol=0, atol=tol)
-
-
-def test_lowpass_with_a_second_cutoff_is_the_two_filters_in_turn():
-    """Two zero-phase responses multiplied in one pass equal the two filters applied one after
-    the other (to round-off, away from the ends), and the pass band is kept."""
-    from imucal_cli.core.signals import Lowpass
-
-    rng = np.random.default_rng(6)
-    x = np.cumsum(rng.normal(size=(4000, 2)), axis=0)
-    both = Lowpass(5.0, 200.0, 4, 40.0)(x)
-    in_turn = Lowpass(5.0, 200.0)(Lowpass(40.0, 200.0)(x))
-    np.testing.assert_allclose(both[200:-200], in_turn[200:-200], rtol=0, atol=1e-9 * np.abs(x).max())
-    t = np.arange(4000) / 200.0
-    slow = np.sin(2 * np.pi * 0.2 * t)
-    np.testing.assert_allclose(Lowpass(5.0, 200.0, 4, 40.0)(slow)[200:-200], slow[200:-200], atol=1e-6)
-
-
-def test_symmetric_terms_filtered_by_their_upper_triangles_are_the_full_matrices():
-    """What the block reduction builds: the upper triangles of ``[w]x^2`` and
-    ``[dw]x[w]x + [w]x[dw]x`` formed element by element are those of the matrix products, and
-    vec of (such a term low-passed by its upper triangle, plus a skew part) is vec of the whole
-    matrix low-passed, plus that skew part."""
-    from imucal_cli.core.signals import Lowpass
-    from imucal_cli.core.so3 import skew, skew_squared
-    from imucal_cli.core.streaming import _upper_symmetric_products, _vec_of_sum
-
-    rng = np.random.default_rng(7)
-    w, dw = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
-    Sw, Sdw = skew(w), skew(dw)
-    lp = Lowpass(5.0, 100.0)
-    for term, (a, b, half) in ((skew_squared(w), (w, w, 0.5)), (Sdw @ Sw + Sw @ Sdw, (dw, w, 1.0))):
-        upper = np.empty((300, 6))
-        _upper_symmetric_products(a, b, upper)
-        upper *= half
-        np.testing.assert_allclose(upper, term[:, *np.triu_indices(3)], rtol=0, atol=1e-13)
-        full = lp(term.reshape(-1, 9)).reshape(-1, 3, 3) + skew(dw)
-        got = np.empty((300, 9))
-        _vec_of_sum(lp(upper), dw, got)
-        np.testing.assert_allclose(got, _vec(full), rtol=0, atol=1e-12)
-
-
 def test_the_bounded_step_is_the_free_minimiser_inside_the_box_and_the_box_s_own_outside():
     """The translation box (eq. 16): where the unconstrained minimiser of ``x^T S x / 2 - s^T x``
     lies inside the box it is the step (to round-off); where it does not, the step is
@@ -409,3 +190,17 @@ def test_the_normal_equations_read_the_bias_blocks_off_the_moments(dim):
     np.testing.assert_allclose(H, np.einsum("kpra,kab,kqrb->kpq", full, S, full), rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(g, np.einsum("kpra,kab,krb->kp", full, S, C), rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(cost, np.einsum("kra,kab,krb->k", C, S, C), rtol=1e-12)
+
+
+def test_kabsch_recovers_a_rotation_with_per_window_bias():
+    """From per-window gyro moments, each window with its own constant bias."""
+    rng = np.random.default_rng(1)
+    R = Rotation.from_euler("xyz", [3, -20, 140], degrees=True)  # R_base_imu
+    moments = []
+    for _ in range(4):
+        w_base = rng.normal(size=(500, 3))
+        w_imu = R.inv().apply(w_base) + rng.normal(size=3)
+        x = np.hstack([w_imu, w_base, np.zeros((500, 3)), np.ones((500, 1)), np.linspace(0, 1, 500)[:, None]])
+        moments.append(x.T @ x)
+    estimate = kabsch_rotation(np.stack(moments), np.full(4, 500.0))
+    assert rotation_angle_deg(estimate, R) < 1e-9

@@ -1,0 +1,76 @@
+"""Each window's observability (paper eqs. 18-19)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imucal_cli.config import parse_config
+from imucal_cli.pipeline import run_calibrate
+from imucal_cli.sim import DriveOptions, simulate_drive
+
+
+def _vec(A):
+    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9), ``A t = (t^T x I) vec A``."""
+    return A.transpose(0, 2, 1).reshape(len(A), 9)
+
+
+def test_planar_motion_leaves_height_unobservable():
+    """A rigid body turning only about z on a flat, smooth yard: [w]x^2 and [dw]x have no z
+    column, so the lever arm's height is not observable: status partial, z kept at the prior."""
+    from imucal_cli.sim.scenarios import VehicleDynamics
+
+    flat = VehicleDynamics(
+        roll_per_lateral_accel=0.0, pitch_per_longitudinal_accel=0.0, bump_roll_rad=0.0,
+        bump_pitch_rad=0.0, bump_heave_m=0.0, max_grade=0.0,
+    )
+    drive = simulate_drive(DriveOptions(scenario="parking", seed=3, dynamics=flat))
+    result = run_calibrate(drive.streams(), drive.config())
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    for sensor in config.sensors:
+        estimate = result.estimates[sensor.name]
+        assert estimate.status == "partial"
+        assert estimate.translation_observable.tolist() == [True, True, False]
+        assert estimate.T_base_imu.translation[2] == sensor.prior_T_base_imu.translation[2]
+        # the reported z std is the search box's, and the true height is inside it
+        mount = next(m for m in drive.mounts if m.name == sensor.name)
+        assert estimate.translation_std_m[2] == pytest.approx(sensor.translation_bound_m / np.sqrt(3))
+        assert abs(estimate.T_base_imu.translation[2] - mount.T_base_imu.translation[2]) < sensor.translation_bound_m
+        # x and y are still found
+        assert np.all(np.abs(estimate.T_base_imu.translation[:2] - mount.T_base_imu.translation[:2]) < 4 * estimate.translation_std_m[:2])
+
+
+def _plain_window_info(w_base, f_base, A, lever_arm, gyro_noise_std, accel_noise_std):
+    """A window's rotation information (its min singular value) and lever-arm std, from sums
+    over the samples (the module text of :mod:`imucal_cli.core.segments`), each equation's
+    constant bias marginalised: the plain form of ``window_infos_from_moments``."""
+    from imucal_cli.core.segments import _std_from_information
+    from imucal_cli.core.so3 import skew
+
+    def information(rows, noise_std):  # sum J^T J / s^2 of the centred rows
+        centred = rows - rows.mean(axis=0)
+        return np.einsum("nji,njk->ik", centred, centred) / noise_std**2
+
+    v = f_base + np.einsum("nij,j->ni", A, lever_arm)  # the specific force predicted at the IMU
+    rotation = information(-skew(w_base), gyro_noise_std) + information(-skew(v), accel_noise_std)
+    return float(np.linalg.svd(rotation, compute_uv=False)[-1]), _std_from_information(information(A, accel_noise_std))
+
+
+def test_window_information_from_moments_equals_the_sample_sums():
+    """Segments reduced to moments report the same Fisher information as the sample sums."""
+    from imucal_cli.core.segments import window_infos_from_moments
+
+    rng = np.random.default_rng(0)
+    n = 500
+    w, f, A = rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=(n, 3, 3))
+    lever = np.array([4.0, 1.0, 3.0])
+    ones, u = np.ones((n, 1)), np.linspace(0, 1, n)[:, None]
+    x_g = np.hstack([rng.normal(size=(n, 3)), w, rng.normal(size=(n, 3)), ones, u])
+    x_a = np.hstack([rng.normal(size=(n, 3)), f, rng.normal(size=(n, 3)), _vec(A), _vec(rng.normal(size=(n, 3, 3))), ones, u])
+    sigma_min, t_std = _plain_window_info(w, f, A, lever, 0.01, 0.02)
+    (c,) = window_infos_from_moments(
+        [(0.0, 10.0, True)], np.array([n]), (x_g.T @ x_g)[None], (x_a.T @ x_a)[None], lever, 0.01, 0.02, 1.0, 0.3
+    )
+    assert c.min_singular_value == pytest.approx(sigma_min, rel=1e-9)
+    np.testing.assert_allclose(c.translation_std_m, t_std, rtol=1e-9)
+    assert c.selected == (np.degrees(1.0 / np.sqrt(sigma_min)) < 1.0)

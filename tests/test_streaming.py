@@ -1,0 +1,116 @@
+"""The streaming calibrator: live feeds, the spline and the block's symmetric terms."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imucal_cli.config import parse_config
+from imucal_cli.core.so3 import rotation_angle_deg
+from imucal_cli.pipeline import DriveStreams
+from imucal_cli.sim import DriveOptions, simulate_drive
+
+
+def _vec(A):
+    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9), ``A t = (t^T x I) vec A``."""
+    return A.transpose(0, 2, 1).reshape(len(A), 9)
+
+
+def test_live_feed_gives_an_estimate_after_every_window_and_the_batch_result():
+    """Fed message by message with block_windows=1, the calibrator has an estimate as soon as
+    a window is reduced, and ends where the batch run (blocks of windows) ends: the two differ
+    only in where the clock offset was linearised and in filter edges inside the padding, far
+    below the reported uncertainty."""
+    from imucal_cli.core.streaming import StreamingCalibrator
+    from imucal_cli.pipeline import feed, make_calibrator
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=100.0, seed=8))
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    streams = DriveStreams(drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0)
+    batch = make_calibrator(config)
+    feed(batch, streams)
+    expected = batch.finish()
+
+    live = StreamingCalibrator(list(make_calibrator(config).sensors.values()), block_windows=1)
+    all_streams = {"base": streams.base, **streams.sensors}
+    events = sorted((int(s.t_ns[i]), name, i) for name, s in all_streams.items() for i in range(len(s.t_ns)))
+    seen = 0
+    for _, name, i in events:
+        s = all_streams[name]
+        if live.add(name, s.t_ns[i : i + 1], s.gyro[i : i + 1], s.accel[i : i + 1]):
+            seen += 1
+            if seen == 2:  # an estimate already, after two windows
+                early = live.estimates()
+                assert all(e.status == "ok" for e in early.values())
+    final = live.finish()
+    assert seen >= 3
+    for name, estimate in expected.items():
+        std = np.sqrt(np.diag(estimate.covariance))
+        angle = np.radians(rotation_angle_deg(final[name].T_base_imu.rotation, estimate.T_base_imu.rotation))
+        assert angle < 0.05 * std[:3].min()
+        assert np.all(np.abs(final[name].T_base_imu.translation - estimate.T_base_imu.translation) < 0.05 * std[3:])
+
+
+def test_a_live_feed_may_reuse_its_buffers_after_each_add():
+    """What add() was given is copied: a caller that refills the same arrays for the next
+    samples (as a driver loop does) gets the estimate of the samples it fed."""
+    from imucal_cli.pipeline import make_calibrator
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=60.0, seed=3))
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    streams = {"base": drive.base.stream, **{m.name: drive.sensors[m.name].stream for m in drive.mounts}}
+    fresh, reused = make_calibrator(config), make_calibrator(config)
+    buffers = {name: (np.empty(50, dtype=np.int64), np.empty((50, 3)), np.empty((50, 3))) for name in streams}
+    for start in range(0, max(len(s.t_ns) for s in streams.values()), 50):
+        for name, s in streams.items():
+            part = slice(start, min(start + 50, len(s.t_ns)))
+            n = part.stop - part.start
+            if n <= 0:
+                continue
+            fresh.add(name, s.t_ns[part].copy(), s.gyro[part].copy(), s.accel[part].copy())
+            t, g, a = buffers[name]
+            t[:n], g[:n], a[:n] = s.t_ns[part], s.gyro[part], s.accel[part]
+            reused.add(name, t[:n], g[:n], a[:n])
+    expected, got = fresh.finish(), reused.finish()
+    for name, estimate in expected.items():
+        assert got[name].T_base_imu.as_matrix().tobytes() == estimate.T_base_imu.as_matrix().tobytes()
+
+
+def test_natural_cubic_spline_interpolates_and_matches_the_b_spline_away_from_the_ends():
+    """The tridiagonal natural spline passes through every sample, and where the end conditions
+    have died out (a few samples in) it is the not-a-knot B-spline, values and derivatives."""
+    from scipy.interpolate import make_interp_spline
+
+    from imucal_cli.core.streaming import _NaturalCubic
+
+    rng = np.random.default_rng(5)
+    t = np.arange(2000) / 200.0 + rng.normal(0.0, 2e-5, 2000)  # jittered stamps
+    y = np.stack([np.sin(2 * np.pi * f * t + p) for f, p in [(0.3, 0), (1.0, 1), (3.0, 2)]], axis=1)
+    spline, reference = _NaturalCubic(t, y), make_interp_spline(t, y, k=3)
+    np.testing.assert_allclose(spline(t), y, rtol=0, atol=1e-13)
+    query = np.linspace(t[40], t[-40], 5000)
+    for nu, tol in [(0, 1e-12), (1, 1e-10), (2, 1e-7)]:
+        np.testing.assert_allclose(spline(query, nu), reference(query, nu), rtol=0, atol=tol)
+
+
+def test_symmetric_terms_filtered_by_their_upper_triangles_are_the_full_matrices():
+    """What the block reduction builds: the upper triangles of ``[w]x^2`` and
+    ``[dw]x[w]x + [w]x[dw]x`` formed element by element are those of the matrix products, and
+    vec of (such a term low-passed by its upper triangle, plus a skew part) is vec of the whole
+    matrix low-passed, plus that skew part."""
+    from imucal_cli.core.signals import Lowpass
+    from imucal_cli.core.so3 import skew, skew_squared
+    from imucal_cli.core.streaming import _upper_symmetric_products, _vec_of_sum
+
+    rng = np.random.default_rng(7)
+    w, dw = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
+    Sw, Sdw = skew(w), skew(dw)
+    lp = Lowpass(5.0, 100.0)
+    for term, (a, b, half) in ((skew_squared(w), (w, w, 0.5)), (Sdw @ Sw + Sw @ Sdw, (dw, w, 1.0))):
+        upper = np.empty((300, 6))
+        _upper_symmetric_products(a, b, upper)
+        upper *= half
+        np.testing.assert_allclose(upper, term[:, *np.triu_indices(3)], rtol=0, atol=1e-13)
+        full = lp(term.reshape(-1, 9)).reshape(-1, 3, 3) + skew(dw)
+        got = np.empty((300, 9))
+        _vec_of_sum(lp(upper), dw, got)
+        np.testing.assert_allclose(got, _vec(full), rtol=0, atol=1e-12)
