@@ -10,8 +10,9 @@ four lidar IMUs at 200 Hz (900 messages/s) driving in town, and measures per for
   process: wall time and peak RSS (``ru_maxrss`` of the process);
 - the largest error of ``T_base_lidar`` over the four lidars against the simulator's truth.
 
-Each figure is the fastest of ``--repeat`` runs taken in turns (the machine's run-to-run spread
-is tens of per cent; the minimum is the least disturbed); peak RSS is the largest.
+Each figure is the fastest of ``--repeat`` rounds, each round running every case in turn (the
+machine's run-to-run spread is tens of per cent; the minimum is the least disturbed); peak RSS
+is the largest.
 
 Run: ``python benchmarks/throughput.py [--lengths 15m 1h 4h] [--formats mcap rosbag1
 rosbag2-sqlite3] [--repeat 3]``.
@@ -130,21 +131,24 @@ def main() -> None:
     parser.add_argument("--formats", nargs="+", default=["mcap", "rosbag1", "rosbag2-sqlite3"], choices=list(SUFFIX))
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
-    rows = {}
-    for length in args.lengths:
-        for fmt in args.formats:
-            if length == "4h" and fmt != "mcap":
-                continue  # the scaling is measured on MCAP
-            log, config = build(length, fmt)
-            runs: dict[str, list[tuple[float, float]]] = {}
-            for _ in range(args.repeat):
-                runs.setdefault("floor", []).append((floor(log, fmt), 0.0))
-                runs.setdefault("read", []).append(read(log, config))
-                for name in COMMANDS:
-                    runs.setdefault(name, []).append(command(name, log, config, CACHE / f"out_{name}.yaml"))
-            best = {k: (min(r[0] for r in v), max(r[1] for r in v)) for k, v in runs.items()}
+    # the scaling is measured on MCAP; every round runs every case once, so that the machine's
+    # drift (tens of per cent over minutes) falls on all lengths alike
+    cases = {(length, fmt): build(length, fmt) for length in args.lengths for fmt in args.formats if length != "4h" or fmt == "mcap"}
+    runs: dict[tuple[str, str], dict[str, list[tuple[float, float]]]] = {case: {} for case in cases}
+    errors_of = {}
+    for _ in range(args.repeat):
+        for case, (log, config) in cases.items():
+            fmt = case[1]
+            runs[case].setdefault("floor", []).append((floor(log, fmt), 0.0))
+            runs[case].setdefault("read", []).append(read(log, config))
+            for name in COMMANDS:
+                runs[case].setdefault(name, []).append(command(name, log, config, CACHE / f"out_{name}.yaml"))
             truth = config.with_name(config.name.replace(".config.yaml", ".truth.yaml"))
-            rows[(length, fmt)] = (log.stat().st_size if log.is_file() else sum(p.stat().st_size for p in log.iterdir()), best, errors(CACHE / "out_calibrate.yaml", truth))
+            errors_of[case] = errors(CACHE / "out_calibrate.yaml", truth)
+    rows = {}
+    for case, (log, _) in cases.items():
+        best = {k: (min(r[0] for r in v), max(r[1] for r in v)) for k, v in runs[case].items()}
+        rows[case] = (log.stat().st_size if log.is_file() else sum(p.stat().st_size for p in log.iterdir()), best, errors_of[case])
     print("| length | format | messages | size MB | floor s | read s | read / floor | " + " | ".join(f"{c} s" for c in COMMANDS) + " | calibrate / floor | peak RSS MB (calibrate) | max dR deg | max abs dt m |")
     print("|---" * (9 + len(COMMANDS) + 1) + "|")
     for (length, fmt), (size, best, (dr, dt)) in rows.items():
