@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, field
+from dataclasses import MISSING, dataclass, field, replace
 from dataclasses import fields as dataclass_fields
 from pathlib import Path
 from typing import Any, TypeVar
@@ -202,8 +202,8 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     sensors = []
     for name in sensors_section.data:
         section = sensors_section.section(name, required=True)
-        frame = section.data.get("lidar_frame")
-        sensors.append(section.fields(SensorConfig, name=name, **({} if frame is not None else {"lidar_frame": f"{name}_lidar"})))
+        sensor = section.fields(SensorConfig, name=name)
+        sensors.append(sensor if sensor.lidar_frame else replace(sensor, lidar_frame=f"{name}_lidar"))  # the default frame
     topics: dict[str, str] = {base.topic: "base.topic"}
     frames: dict[str, str] = {base.frame: "base.frame"}
     for sensor in sensors:

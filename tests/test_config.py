@@ -157,3 +157,13 @@ def test_cli_check_config_prints_defaults_filled_in(base_dict, tmp_path):
     import json
 
     assert json.loads(result.stdout)["rest"]["min_duration_s"] == 2.0
+
+
+def test_a_key_left_empty_takes_its_default(base_dict):
+    """``key:`` with no value (YAML null) is the key's default, as if it were left out: the
+    lidar frame's (which is named after the sensor) as well as a number's."""
+    name = next(iter(base_dict["sensors"]))
+    base_dict["sensors"][name]["lidar_frame"] = None
+    base_dict["sensors"][name]["translation_bound_m"] = None
+    sensor = parse_config(base_dict, "x.yaml").sensor(name)
+    assert sensor.lidar_frame == f"{name}_lidar" and sensor.translation_bound_m == 0.3
