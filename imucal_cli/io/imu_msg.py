@@ -112,9 +112,8 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     floats_abs = starts[index] + floats_at[index]
     used = head[index]
     stamp = used["sec"].astype(np.int64) * 1_000_000_000 + used["nsec"]
-    # angular velocity, its covariance and linear acceleration in one gather (the same cache lines)
-    fields = gather(buf, floats_abs + _GYRO_AFTER_FRAME, _ACCEL_AFTER_FRAME + 24 - _GYRO_AFTER_FRAME, "<f8")
-    gyro, accel = fields[:, 0:3], fields[:, -3:]
+    gyro = gather(buf, floats_abs + _GYRO_AFTER_FRAME, 24, "<f8")
+    accel = gather(buf, floats_abs + _ACCEL_AFTER_FRAME, 24, "<f8")
     frame_ids = _frame_ids(buf, starts[index] + 16, frame_chars[index]) if len(stamp) else []
     log_times = batch.log_time_ns[index]
     if everything:
