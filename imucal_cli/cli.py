@@ -135,13 +135,15 @@ def _progress(description: str, unit: str = "messages") -> Iterator[Any]:
         progress.stop()
 
 
-def _print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]], justify: str = "left") -> Any:
-    """A rich table on stdout; returns the console (for what follows the table)."""
+def _print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]], right: Iterable[str] = (), no_wrap: Iterable[str] = ()) -> Any:
+    """A rich table on stdout, the ``right`` columns right-justified (numbers); returns the
+    console (for what follows the table)."""
     from rich.table import Table
 
     table = Table(title=title)
+    right, no_wrap = set(right), set(no_wrap)
     for column in columns:
-        table.add_column(column, justify=justify)  # type: ignore[arg-type]
+        table.add_column(column, justify="right" if column in right else "left", no_wrap=column in no_wrap)
     for row in rows:
         table.add_row(*row)
     console = _stdout_console()
@@ -207,9 +209,10 @@ def _render_inspect(document: dict[str, Any]) -> None:
 
     _print_table(
         f"{document['log']} ({document['format']}), t0_ns = {document['t0_ns']}",
-        ("topic", "type", "count", "rate Hz", "duration s", "gaps", "backwards", "duplicates"),
+        columns := ("topic", "type", "count", "rate Hz", "duration s", "gaps", "backwards", "duplicates"),
         ((topic, i["type"], f"{i['count']:,}", f"{i['rate_hz']:.2f}", f"{i['duration_s']:.2f}", gaps(i), str(i["backwards"]), str(i["duplicates"]))
          for topic, i in document["topics"].items()),
+        right=columns[2:], no_wrap=columns[:2],
     )
 
 
@@ -343,10 +346,10 @@ def segments(
         for name, sensor in doc["sensors"].items():
             _print_table(
                 f"{name}: {sensor['selected']} of {sensor['total']} windows selected (rotation std < {doc['max_rotation_std_deg']:g} deg)",
-                ("start s", "end s", "min singular value", "rotation std deg", "selected", "translation observable x y z"),
+                columns := ("start s", "end s", "min singular value", "rotation std deg", "selected", "translation observable x y z"),
                 ((f"{w['start_s']:.1f}", f"{w['end_s']:.1f}", f"{w['min_singular_value']:.4g}", "inf" if w["rotation_std_deg"] is None else f"{w['rotation_std_deg']:.4f}",
                   "yes" if w["selected"] else "no", " ".join("y" if v else "n" for v in w["translation_observable"])) for w in sensor["windows"]),
-                justify="right",
+                right=columns,
             )
 
     _emit(document, out, as_json, render)
