@@ -154,28 +154,20 @@ def _combined(now: float | None, before: float | None, fallback: float) -> float
 
 def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
     """Every task in ``jobs`` local processes (in order of the tasks)."""
-    results: list[list[Row] | None] = [None] * len(tasks)
     if jobs <= 1:
+        results = []
         for i, task in enumerate(tasks):
-            results[i] = run_one(task)
+            results.append(run_one(task))
             if on_done:
-                on_done(i, results[i])  # type: ignore[arg-type]
-        return results  # type: ignore[return-value]
+                on_done(i, results[i])
+        return results
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
     with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method)) as pool:
-        futures = {pool.submit(run_one, task): i for i, task in enumerate(tasks)}
-        for future in as_completed(futures):
-            i = futures[future]
-            try:
-                results[i] = future.result()
-            except Exception as exc:
-                results[i] = [Row(tasks[i].name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
-            if on_done:
-                on_done(i, results[i])  # type: ignore[arg-type]
-    return results  # type: ignore[return-value]
+        futures = [pool.submit(run_one, task) for task in tasks]
+        return _collect(tasks, futures, as_completed(futures), on_done)
 
 
 def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
@@ -188,21 +180,28 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
         client = Client(address, timeout="10s")
     except Exception as exc:
         raise InputError(f"--scheduler {address}: cannot connect: {exc}") from None
-    results: list[list[Row] | None] = [None] * len(tasks)
     try:
         futures = client.map(run_one, list(tasks), pure=False)
-        index = {f.key: i for i, f in enumerate(futures)}
-        for future in as_completed(futures):
-            i = index[future.key]
-            try:
-                results[i] = future.result()
-            except Exception as exc:
-                results[i] = [Row(tasks[i].name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
-            if on_done:
-                on_done(i, results[i])  # type: ignore[arg-type]
+        return _collect(tasks, futures, as_completed(futures), on_done)
     finally:
         client.close()
-    return results  # type: ignore[return-value]
+
+
+def _collect(tasks: Sequence[Task], futures: Sequence[Any], completed: Iterable[Any], on_done: Callable[[int, list[Row]], None] | None) -> list[list[Row]]:
+    """The rows of every task, in the tasks' order, from ``futures`` (one per task, of
+    ``concurrent.futures`` or Dask) as ``completed`` yields them; a worker that failed is a
+    failed row, never a stopped run."""
+    index = {id(future): i for i, future in enumerate(futures)}  # (completed yields these objects)
+    results: list[list[Row]] = [[] for _ in tasks]
+    for future in completed:
+        i = index[id(future)]
+        try:
+            results[i] = future.result()
+        except Exception as exc:
+            results[i] = [Row(tasks[i].name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
+        if on_done:
+            on_done(i, results[i])
+    return results
 
 
 def plan_tasks(
