@@ -6,8 +6,8 @@ wanted channel are read and decompressed, and the messages are found
 through the message indexes, whose entries this module reads as numpy arrays: the library
 builds a Python tuple per message, 1.2 s for the 3.2 M messages of an hour of five IMUs
 (docs/performance.md). Every other valid file (no summary, no indexes, channels only inside
-the chunks, no chunks at all) is read with the library's :class:`StreamReader`, record by
-record. A file cut off mid-write has no summary: it is read up to the cut, and the cut is a
+the chunks, no chunks at all) is walked record by record, the library parsing each chunk,
+channel and schema record. A file cut off mid-write has no summary: it is read up to the cut, and the cut is a
 :class:`Loss`; a chunk that does not decompress is one too.
 """
 
@@ -34,8 +34,8 @@ from imucal_cli.io.imu_msg import RawBatch, gather
 
 MAGIC = b"\x89MCAP0\r\n"
 #: Decompressed bytes of chunks decoded together: fewer, larger gathers. The 1 h MCAP of
-#: benchmarks/throughput.py (1 MiB chunks) reads and decodes in 2.0 s one chunk at a time and
-#: in 1.2 s in groups of 16 MiB.
+#: benchmarks/throughput.py (1 MiB chunks) read and decoded in 2.0 s one chunk at a time,
+#: 1.5-1.9 s in groups of 2 MiB and 2.0-2.4 s in groups of 16 MiB (docs/performance.md).
 GROUP_BYTES = 2 << 20
 _RECORD = struct.Struct("<BQ")  # opcode, length
 _FOOTER_OP, _SCHEMA_OP, _CHANNEL_OP, _MESSAGE_OP, _CHUNK_OP, _DATA_END_OP = 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F
