@@ -195,11 +195,12 @@ def follow_log(
     stop: Callable[[], bool] = lambda: False, until_converged: bool = False,
 ) -> tuple[LogCalibration, bool, bool]:
     """Follow a log that is still being written (an MCAP file, or a rosbag2 folder recording
-    to mcap storage): the estimate after every window, ``on_update(result, windows)``, until
-    the recording ends, ``stop()`` says so, or (``until_converged``) every sensor is within the
-    config's ``stop:`` targets. Returns the last calibration, whether it converged, and whether
-    a Ctrl-C ended it (the estimate so far is returned all the same)."""
-    from imucal_cli.pipeline import converged
+    to mcap or sqlite3 storage): the estimate after every window, ``on_update(result,
+    windows)``, until the recording ends, ``stop()`` says so, or (``until_converged``) every
+    sensor is within the config's ``stop:`` targets. Returns the last calibration (its
+    document with each sensor's ``missing`` axes and ``converged``), whether it converged, and
+    whether a Ctrl-C ended it (the estimate so far is returned all the same)."""
+    from imucal_cli.pipeline import converged, missing_axes
 
     log = Path(log)
     names = imu_names(config)
@@ -236,7 +237,11 @@ def follow_log(
     if result is None or t0_ns is None:
         raise InputError(f"{log}: too little data to estimate anything yet{lost_summary(reader.losses)}")
     streamed = StreamedLog(log, config, calibrator, t0_ns, reader.stats, {t: calibrator.duplicates(n) for t, n in names.items()}, reader.losses, reader.format_name)
-    return LogCalibration(result, calibration_document(result, str(log), reader.losses), streamed), good, interrupted
+    document = calibration_document(result, str(log), reader.losses)
+    for name, estimate in result.estimates.items():  # what each sensor still lacks of the stop: targets
+        document["sensors"][name]["missing"] = missing_axes(estimate, config.stop)
+    document["converged"] = good
+    return LogCalibration(result, document, streamed), good, interrupted
 
 
 def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> CalibrationResult | None:

@@ -481,9 +481,6 @@ def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until
     finally:
         if live is not None:
             live.stop()
-    for name, estimate in run.result.estimates.items():
-        run.document["sensors"][name]["missing"] = missing_axes(estimate, cfg.stop)
-    run.document["converged"] = good
     if out is not None:
         from imucal_cli.documents import write_document
 
