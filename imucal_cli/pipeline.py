@@ -278,8 +278,8 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
             "imu_noise": imu_noise(result, sensor.name),
             "T_base_imu": est.T_base_imu.to_dict(),
             "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
-            "rotation_std_deg": _std_list(None if cov is None else np.degrees(np.sqrt(np.diag(cov)[:3]))),
-            "translation_std_m": _std_list(None if cov is None else np.sqrt(np.diag(cov)[3:])),
+            "rotation_std_deg": _std_list(est.rotation_std_deg),
+            "translation_std_m": _std_list(est.translation_std_m),
             "covariance": None if cov is None else {
                 "of": "T_base_imu",
                 "order": ["rx", "ry", "rz", "tx", "ty", "tz"],
