@@ -500,7 +500,8 @@ class StreamingCalibrator:
         self._boot_horizon_s += BOOT_RETRY_S  # the next attempt's, should this one wait
         limit = self.t_ref_ns + int((end + PAD_S + self.max_offset + 3.0 / self.rate) * 1e9)  # type: ignore[operator]
         full = {name: buffer.cleaned() for name, buffer in self.buffers.items()}
-        samples = {name: (t[: int(np.searchsorted(t, limit, side="right"))], both[: int(np.searchsorted(t, limit, side="right"))]) for name, (t, both) in full.items()}
+        upto = {name: int(np.searchsorted(t, limit, side="right")) for name, (t, _) in full.items()}
+        samples = {name: (t[: upto[name]], both[: upto[name]]) for name, (t, both) in full.items()}
         unit_warnings: dict[str, list[str]] = {}
         splines = {name: _Spline(self._seconds(t), both, self.rate) for name, (t, both) in samples.items()}
         grid = _longest_covered(grid, [spline.covered(grid) for spline in splines.values()], self.lowpass.pad)
