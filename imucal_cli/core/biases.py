@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from imucal_cli.core.signals import true_runs
 from imucal_cli.types import GRAVITY_MPS2
 
 #: Seconds of samples summed into one block.
@@ -111,7 +112,7 @@ class BiasTracker:
         )
         rests = []
         edge = round(REST_EDGE_S / BLOCK_S)
-        for a, b in _runs(still):
+        for a, b in true_runs(still):
             if (b - a) * BLOCK_S < self.min_duration_s:
                 continue
             inner = slice(a + edge, b - edge) if b - a > 2 * edge + 1 else slice(a, b)
@@ -162,8 +163,3 @@ class BiasTracker:
             gyro_bias_track_std=np.sqrt(weights @ (v - mean) ** 2),
             gyro_bias_final_std=np.sqrt(P),
         )
-
-
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
-    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))

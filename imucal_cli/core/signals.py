@@ -197,3 +197,9 @@ def white_noise_std(x: np.ndarray) -> np.ndarray:
     d2 = np.diff(np.asarray(x, dtype=np.float64), n=2, axis=0)
     mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
     return 1.4826 * mad / np.sqrt(6.0)
+
+
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of True in ``mask``: ``(start, stop)`` index pairs, stop exclusive."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))

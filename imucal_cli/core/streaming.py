@@ -53,6 +53,7 @@ from imucal_cli.core.signals import (
     Lowpass,
     TooLittleData,
     derivative_noise_variance,
+    true_runs,
     white_noise_density,
 )
 from imucal_cli.core.timing import TimeOffset, time_offset_shown
@@ -375,9 +376,7 @@ def _longest_covered(grid: np.ndarray, covered: list[np.ndarray], margin: int) -
     """The longest stretch of ``grid`` that every IMU covers (no gap), less ``margin`` points at
     each end (where a filter would reach into the gap): the boot's units and clock offsets are
     measured on it, never across a gap."""
-    both = np.logical_and.reduce(covered)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], both.astype(np.int8), [0]])))
-    runs = list(zip(edges[::2], edges[1::2], strict=True))
+    runs = true_runs(np.logical_and.reduce(covered))
     if not runs:
         return grid[:0]
     a, b = max(runs, key=lambda r: r[1] - r[0])
