@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from conftest import REALDATA
 
-from imucal_cli.core.biases import BiasTracker, _runs
+from imucal_cli.core.biases import BiasTracker
+from imucal_cli.core.signals import true_runs
 from imucal_cli.types import ImuStream
 
 h5py = pytest.importorskip("h5py")
@@ -53,7 +54,7 @@ def estimate_biases(stream, *args):
 def test_rest_periods_match_the_movement_flag(trial):
     stream, movement, rate = load(trial)
     report = estimate_biases(stream, 0.1, 0.02, 2.0, np.radians(0.1), np.radians(0.3))
-    flagged = [(a / rate, (b - 1) / rate) for a, b in _runs(~movement)]
+    flagged = [(a / rate, (b - 1) / rate) for a, b in true_runs(~movement)]
     found = [(r.start_s, r.end_s) for r in report.rest_periods]
     assert len(found) == len(flagged)
     expected_breaks = 3 if "with_breaks" in trial else 0
