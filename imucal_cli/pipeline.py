@@ -293,6 +293,7 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
             "time_offset_observable": bool(est.time_offset_observable),
             "checks": to_plain(est.checks),
             "accel_intrinsics": to_plain(est.accel_intrinsics) if est.accel_intrinsics else None,
+            "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,
             "gyro_bias_radps": est.gyro_bias,
             "accel_bias_mps2": est.accel_bias,
             "segments": {"total": len(est.windows), "selected": sum(w.selected for w in est.windows)},

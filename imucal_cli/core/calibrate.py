@@ -10,6 +10,8 @@ joint Gauss-Newton estimate of everything the two signals share:
 - gyro (eq. 10): ``w_I(t + tau) = R^T w_B(t) + b_g(t)``
 - accelerometer (eq. 11): ``f_I(t + tau) = R^T (f_B + ([dw_B]x + [w_B]x^2) t_BI)(t) + b_a(t)``
 
+(each right side multiplied by the sensor triad's axes ``I + E`` where the drive shows their errors)
+
 with ``R = R_base_imu``, ``t_BI = t_base_imu``, the clock offset ``tau`` (stamp of the sensor
 minus stamp of the base) and the sensor's biases relative to the base as piecewise-linear
 functions of time with a knot every window (they drift). The accelerometer equation constrains
@@ -48,7 +50,7 @@ from imucal_cli.core.segments import OBSERVABLE_FRACTION_OF_BOUND, WindowInfo
 from imucal_cli.core.signals import LOWPASS_HZ, Lowpass
 from imucal_cli.core.so3 import skew
 from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S
-from imucal_cli.types import Transform
+from imucal_cli.types import GRAVITY_MPS2, Transform
 
 #: Random walk of the accelerometer bias allowed between knots (m/s^2/sqrt(s)): loose, a few
 #: times what MEMS parts drift, so the data decide.
@@ -103,8 +105,10 @@ class SensorEstimate:
     checks: dict[str, dict[str, Any]] = field(default_factory=dict)
     time_offset_observable: bool = False
     tilt_rad_per_mps2: np.ndarray | None = None  # the mount's, where the rigid-mount check estimated it
-    #: The accelerometer's scale factors and non-orthogonality where the drive shows them.
+    #: The accelerometer's and the gyro's scale factors and non-orthogonality where the drive
+    #: shows them.
     accel_intrinsics: dict[str, Any] = field(default_factory=dict)
+    gyro_intrinsics: dict[str, Any] = field(default_factory=dict)
     #: Per window used: start (s, grid clock), gyro and accelerometer residual RMS of the fit.
     window_residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
@@ -185,8 +189,10 @@ def unobservable(prior: Transform, windows: list[WindowInfo], tau: float) -> Sen
     )
 
 
-GYRO_DIM = 11
+GYRO_DIM = 14
 ACCEL_DIM = 33
+#: The sensor's own leading entries of each data vector: x_g's [w_I, f_I], x_a's f_I.
+OWN_ENTRIES = {GYRO_DIM: 6, ACCEL_DIM: 3}
 #: Relative resolution of a residual computed from second moments (double precision squares).
 RESOLUTION = 1e-7
 
@@ -202,20 +208,20 @@ class BaseMoments:
 @dataclass
 class WindowMoments:
     """One window reduced to what the estimator needs: the second moments ``S = sum x x^T``,
-    held as the base's block (shared between sensors) and the sensor's own three rows."""
+    held as the base's block (shared between sensors) and the sensor's own rows."""
 
     number: int
     start_s: float
     end_s: float
     valid: bool  # no gap in either stream
     base: BaseMoments
-    rows_gyro: np.ndarray  # (3, 11): w_I^T x_g
+    rows_gyro: np.ndarray  # (6, 14): [w_I, f_I]^T x_g
     rows_accel: np.ndarray  # (3, 33): f_I^T x_a
     samples: int
     info: WindowInfo | None = None  # observability, filled in (in bulk) when first needed
 
 
-_UPPER = {dim: np.triu_indices(dim - 3) for dim in (GYRO_DIM, ACCEL_DIM)}
+_UPPER = {dim: np.triu_indices(dim - own) for dim, own in OWN_ENTRIES.items()}
 
 
 def base_moments(G_gyro: np.ndarray, G_accel: np.ndarray) -> BaseMoments:
@@ -231,12 +237,12 @@ def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray
     else:
         dim, row_list, packed_list = ACCEL_DIM, [w.rows_accel for w in windows], [w.base.packed_accel for w in windows]
     rows, packed = np.stack(row_list), np.stack(packed_list)
-    upper = _UPPER[dim]
+    upper, own = _UPPER[dim], OWN_ENTRIES[dim]
     full = np.empty((len(windows), dim, dim))
-    full[:, 3 + upper[0], 3 + upper[1]] = packed
-    full[:, 3 + upper[1], 3 + upper[0]] = packed
-    full[:, 0:3, :] = rows
-    full[:, :, 0:3] = rows.transpose(0, 2, 1)
+    full[:, own + upper[0], own + upper[1]] = packed
+    full[:, own + upper[1], own + upper[0]] = packed
+    full[:, 0:own, :] = rows
+    full[:, :, 0:own] = rows.transpose(0, 2, 1)
     return full
 
 
@@ -259,29 +265,45 @@ SOLVE_CACHE_BYTES = 32 << 20
 #: The estimate's global unknowns: a rotation step (3, right-multiplied onto ``R_base_imu``:
 #: IMU axes), ``t_base_imu`` (3), the clock-offset step (1), the mount's tilt (2: roll per
 #: lateral and pitch per longitudinal specific force, rad per m/s^2; estimated by the rigid-mount
-#: check only) and the accelerometer's axis errors (6, :data:`INTRINSICS`).
-N_GLOBAL = 15
+#: check only), the accelerometer's axis errors (6, :data:`INTRINSICS`), the gyro's (6,
+#: :data:`GYRO_INTRINSICS`) and the gyro's g-sensitivity (9, :data:`G_SENSITIVITY`).
+N_GLOBAL = 30
 TAU = 6
 TILT = slice(7, 9)
-#: The accelerometer's axis errors: ``f_measured = (I + E) f`` with ``E`` symmetric (scale
-#: factors on the diagonal, non-orthogonality off it), as :data:`SYMMETRIC` spans it.
+#: A triad's axis errors: ``f_measured = (I + E) f`` (``w_measured = (I + E) w``) with ``E``
+#: symmetric (scale factors on the diagonal, non-orthogonality off it), as :data:`SYMMETRIC`
+#: spans it.
 INTRINSICS = slice(9, 15)
+GYRO_INTRINSICS = slice(15, 21)
+#: The gyro's g-sensitivity: ``w_measured = (I + E) w + G f`` with ``G`` (rad/s per m/s^2,
+#: row-major, the IMU's axes) acting on the specific force the sensor's own accelerometer
+#: measures.
+G_SENSITIVITY = slice(21, 30)
+#: The sensor's own errors, as ``_Fit.intrinsics`` holds them: the accelerometer's axis errors,
+#: the gyro's, its g-sensitivity.
+AXES = slice(9, 30)
 SYMMETRIC = np.zeros((6, 3, 3))
 for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
     SYMMETRIC[_k, _i, _j] = SYMMETRIC[_k, _j, _i] = 1.0
 #: The globals the gyro equations hold.
-_GYRO_GLOBALS = np.array([0, 1, 2, TAU])
+_GYRO_GLOBALS = np.array([0, 1, 2, TAU, *range(GYRO_INTRINSICS.start, G_SENSITIVITY.stop)])
+_P_GYRO = len(_GYRO_GLOBALS)
+#: The globals the accelerometer's equations hold: all before the gyro's own.
+_ACCEL_GLOBALS = np.arange(GYRO_INTRINSICS.start)
+_P_ACCEL = len(_ACCEL_GLOBALS)
 
 
-def _C_gyro(Rt: np.ndarray, dtau: float, bj: np.ndarray, bk: np.ndarray) -> np.ndarray:
-    """Coefficients of ``r_g = C x_g`` per window: (K, 3, 11)."""
+def _C_gyro(Rt: np.ndarray, dtau: float, G: np.ndarray, bj: np.ndarray, bk: np.ndarray) -> np.ndarray:
+    """Coefficients of ``r_g = C x_g`` per window, ``x_g = [w_I, f_I, w_B, dw_B, 1, u]``: (K, 3,
+    14); ``Rt`` is the gyro's ``(I + E) R^T``, ``G`` its g-sensitivity (:data:`G_SENSITIVITY`)."""
     K = len(bj)
     C = np.zeros((K, 3, GYRO_DIM))
     C[:, :, 0:3] = np.eye(3)
-    C[:, :, 3:6] = -Rt
-    C[:, :, 6:9] = dtau * Rt
-    C[:, :, 9] = -bj
-    C[:, :, 10] = -(bk - bj)
+    C[:, :, 3:6] = -G
+    C[:, :, 6:9] = -Rt
+    C[:, :, 9:12] = dtau * Rt
+    C[:, :, 12] = -bj
+    C[:, :, 13] = -(bk - bj)
     return C
 
 
@@ -301,7 +323,7 @@ def _tilt_columns(Rt: np.ndarray, tilt: np.ndarray) -> np.ndarray:
 
 
 def _axes(intrinsics: np.ndarray) -> np.ndarray:
-    """``I + E``: the accelerometer's axes (:data:`INTRINSICS`)."""
+    """``I + E``: a triad's axes from its six axis errors (:data:`INTRINSICS`)."""
     return np.eye(3) + np.tensordot(intrinsics, SYMMETRIC, axes=1)
 
 
@@ -322,22 +344,30 @@ def _C_accel(Rt: np.ndarray, t: np.ndarray, dtau: float, tilt: np.ndarray, aj: n
     return C
 
 
-def _derivatives_gyro(C: np.ndarray, Rt: np.ndarray) -> np.ndarray:
-    """d C_g / d [rot(3), dtau]: (K, 4, 3, 11); the biases' derivatives, constant, are
+def _derivatives_gyro(C: np.ndarray, Rt: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """d C_g / d [rot(3), dtau, intrinsics(6), g-sensitivity(9)] (:data:`_GYRO_GLOBALS`):
+    (K, 19, 3, 14), with ``Rt`` the gyro's ``(I + E) R^T`` and ``axes`` its ``I + E`` (as
+    :func:`_derivatives_accel`); the biases' derivatives, constant, are
     :func:`_normal_equations`' own."""
     K = len(C)
-    D = np.zeros((K, 4, 3, GYRO_DIM))
-    rotating = C.copy()
-    rotating[:, :, 0:3] = 0.0
-    rotating[:, :, 9:11] = 0.0
+    D = np.zeros((K, _P_GYRO, 3, GYRO_DIM))
+    rotating = np.zeros_like(C)
+    rotating[:, :, 6:12] = C[:, :, 6:12]  # the columns (I + E) R^T K: w_B's and dw_B's
+    inverse = np.linalg.inv(axes)
     for m in range(3):  # R^T -> (I - [d]x) R^T
-        D[:, m] = -skew(np.eye(3)[m]) @ rotating
-    D[:, 3, :, 6:9] = Rt
+        D[:, m] = -(axes @ skew(np.eye(3)[m]) @ inverse) @ rotating
+    D[:, 3, :, 9:12] = Rt
+    for b in range(6):
+        D[:, 4 + b] = (SYMMETRIC[b] @ inverse) @ rotating
+    for i in range(3):
+        for j in range(3):  # G_ij: row i of f_I's block takes -1 in column j
+            D[:, 10 + 3 * i + j, i, 3 + j] = -1.0
     return D
 
 
 def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float, axes: np.ndarray) -> np.ndarray:
-    """d C_a / d [rot(3), t(3), dtau, tilt(2), intrinsics(6)]: (K, 15, 3, 33), with ``Rt`` the
+    """d C_a / d [rot(3), t(3), dtau, tilt(2), intrinsics(6)] (:data:`_ACCEL_GLOBALS`): (K, 15,
+    3, 33), with ``Rt`` the
     accelerometer's ``(I + E) R^T`` and ``axes`` its ``I + E``; the biases' derivatives,
     constant, are :func:`_normal_equations`' own.
 
@@ -345,7 +375,7 @@ def _derivatives_accel(C: np.ndarray, Rt: np.ndarray, t: np.ndarray, dtau: float
     rotation step (``R^T -> (I - [d]x) R^T``) takes ``-(I + E) [d]x (I + E)^-1`` of them and an
     intrinsic ``E_b`` takes ``S_b (I + E)^-1`` of them."""
     K = len(C)
-    D = np.zeros((K, N_GLOBAL, 3, ACCEL_DIM))
+    D = np.zeros((K, _P_ACCEL, 3, ACCEL_DIM))
     rotating = C.copy()
     rotating[:, :, 0:3] = 0.0
     rotating[:, :, 31:33] = 0.0
@@ -413,13 +443,14 @@ def _bounded_step(L: np.ndarray, s: np.ndarray, lower: np.ndarray, upper: np.nda
 def kabsch_rotation(S_gyro: np.ndarray, samples: np.ndarray) -> Rotation:
     """``R_base_imu`` minimising ``sum |R^T w_B - w_I|^2`` over windows, each centred (eq. 10).
 
-    From the gyro moments ``S = sum x x^T``, ``x = [w_I, w_B, dw_B, 1, u]`` (K, 11, 11): centring
+    From the gyro moments ``S = sum x x^T``, ``x = [w_I, f_I, w_B, dw_B, 1, u]`` (K, 14, 14): centring
     per window removes a constant relative gyro bias. Kabsch/Horn: with the centred cross
     covariance ``sum w_I w_B^T = U diag(s) V^T``, ``R_imu_base = U diag(1, 1, det) V^T``.
     """
     n = samples[:, None, None]
-    mean_I, mean_B = S_gyro[:, 0:3, 9][:, :, None] / n, S_gyro[:, 3:6, 9][:, :, None] / n
-    cross = np.sum(S_gyro[:, 0:3, 3:6] - n * mean_I @ mean_B.transpose(0, 2, 1), axis=0)
+    one = GYRO_DIM - 2  # the constant column
+    mean_I, mean_B = S_gyro[:, 0:3, one][:, :, None] / n, S_gyro[:, 6:9, one][:, :, None] / n
+    cross = np.sum(S_gyro[:, 0:3, 6:9] - n * mean_I @ mean_B.transpose(0, 2, 1), axis=0)
     U, _, Vt = np.linalg.svd(cross)
     d = np.sign(np.linalg.det(U @ Vt))
     R_imu_base = U @ np.diag([1.0, 1.0, d]) @ Vt
@@ -447,7 +478,7 @@ class _Fit:
     cost_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bias_std: np.ndarray | None = None  # (6,) of the last knot
     iterations: int = 0
-    intrinsics: np.ndarray = field(default_factory=lambda: np.zeros(6))  # the accelerometer's E (INTRINSICS)
+    intrinsics: np.ndarray = field(default_factory=lambda: np.zeros(21))  # the sensor's own errors (AXES)
 
     def std(self) -> np.ndarray:
         """(N_GLOBAL,) standard deviations; inf where not estimated."""
@@ -473,7 +504,7 @@ class _Problem:
         self.dw_noise_var = dw_noise_var
         self.numbers = np.array([w.number for w in used])
         self.n_knots = int(max(w.number for w in windows)) + 2
-        self.S_g = assemble_moments(used, "gyro")  # (K, 11, 11): small
+        self.S_g = assemble_moments(used, "gyro")  # (K, 14, 14): small
         self.starts = range(0, len(used), SOLVE_CHUNK)
         K = len(used)
         # the accelerometer's moments, stacked once where they are small, else a chunk at a time
@@ -491,7 +522,7 @@ class _Problem:
             return float(np.trace(rows[:, 0:3]) - rows[:, -2] @ rows[:, -2] / n)
 
         self.signal_rms = (
-            float(np.sqrt(sum(spread(w.rows_gyro, w.samples) for w in used) / (3 * self.samples))),
+            float(np.sqrt(sum(spread(w.rows_gyro[:3], w.samples) for w in used) / (3 * self.samples))),
             float(np.sqrt(sum(spread(w.rows_accel, w.samples) for w in used) / (3 * self.samples))),
         )
         self.prior_band = _bias_prior(
@@ -511,9 +542,8 @@ class _Problem:
             return ((_BAND + i - j) * n_bias + j).ravel()
 
         self.band_g, self.band_a = band_at(self.biases_g), band_at(self.biases_a)
-        globals_a = np.arange(N_GLOBAL)
         self.cross_g = (_GYRO_GLOBALS[None, :, None] * n_bias + self.biases_g[:, None, :]).ravel()
-        self.cross_a = (globals_a[None, :, None] * n_bias + self.biases_a[:, None, :]).ravel()
+        self.cross_a = (_ACCEL_GLOBALS[None, :, None] * n_bias + self.biases_a[:, None, :]).ravel()
         self._last: tuple[bytes, tuple[np.ndarray, ...]] | None = None
 
     def _S_a(self, a: int) -> np.ndarray:
@@ -537,10 +567,10 @@ class _Problem:
             return self._last[1]
         Rt = R.inv().as_matrix()
         bj, bk = knots[self.numbers], knots[self.numbers + 1]
-        Cg = _C_gyro(Rt, dtau, bj[:, 0:3], bk[:, 0:3])
-        axes = _axes(intrinsics)
+        axes, axes_g, G = _axes(intrinsics[:6]), _axes(intrinsics[6:12]), intrinsics[12:].reshape(3, 3)
+        Cg = _C_gyro(axes_g @ Rt, dtau, G, bj[:, 0:3], bk[:, 0:3])
         Ca = _C_accel(axes @ Rt, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
-        gyro = _normal_equations(_derivatives_gyro(Cg, Rt), self.S_g, Cg)
+        gyro = _normal_equations(_derivatives_gyro(Cg, axes_g @ Rt, axes_g), self.S_g, Cg)
         parts = []
         for n, a in enumerate(self.starts):
             chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 15, 3, 33) in slices
@@ -574,7 +604,7 @@ class _Problem:
         scale_g, scale_a = (s * np.sqrt(self.gain) for s in self.sigma)
         free = np.ones(N_GLOBAL, dtype=bool)
         free[TILT] = False
-        free[INTRINSICS] = False
+        free[AXES] = False
         return _Fit(R, self.prior.translation.copy(), 0.0, np.zeros(2), np.zeros((self.n_knots, _KNOT)), free, scale_g, scale_a)
 
     def fit(
@@ -617,22 +647,23 @@ class _Problem:
             Hg, gg = wg[:, None, None] * Hg, wg[:, None] * gg
             Ha, ga = wa[:, None, None] * Ha, wa[:, None] * ga
             H_gg_all = np.zeros((N_GLOBAL, N_GLOBAL))
-            H_gg_all[np.ix_(_GYRO_GLOBALS, _GYRO_GLOBALS)] += Hg[:, :4, :4].sum(axis=0)
-            H_gg_all += Ha[:, :N_GLOBAL, :N_GLOBAL].sum(axis=0)
+            H_gg_all[np.ix_(_GYRO_GLOBALS, _GYRO_GLOBALS)] += Hg[:, :_P_GYRO, :_P_GYRO].sum(axis=0)
+            H_gg_all[np.ix_(_ACCEL_GLOBALS, _ACCEL_GLOBALS)] += Ha[:, :_P_ACCEL, :_P_ACCEL].sum(axis=0)
             H_gb_all = (
-                np.bincount(self.cross_g, Hg[:, :4, 4:].ravel(), N_GLOBAL * n_bias)
-                + np.bincount(self.cross_a, Ha[:, :N_GLOBAL, N_GLOBAL:].ravel(), N_GLOBAL * n_bias)
+                np.bincount(self.cross_g, Hg[:, :_P_GYRO, _P_GYRO:].ravel(), N_GLOBAL * n_bias)
+                + np.bincount(self.cross_a, Ha[:, :_P_ACCEL, _P_ACCEL:].ravel(), N_GLOBAL * n_bias)
             ).reshape(N_GLOBAL, n_bias)
             size = (_BAND + 1) * n_bias
             u6 = self.upper6
             H_bb = (
-                np.bincount(self.band_g, Hg[:, 4:, 4:][:, u6[0], u6[1]].ravel(), size)
-                + np.bincount(self.band_a, Ha[:, N_GLOBAL:, N_GLOBAL:][:, u6[0], u6[1]].ravel(), size)
+                np.bincount(self.band_g, Hg[:, _P_GYRO:, _P_GYRO:][:, u6[0], u6[1]].ravel(), size)
+                + np.bincount(self.band_a, Ha[:, _P_ACCEL:, _P_ACCEL:][:, u6[0], u6[1]].ravel(), size)
             ).reshape(_BAND + 1, n_bias)
             H_bb += self.prior_band
-            grad_g = -ga[:, :N_GLOBAL].sum(axis=0)
-            grad_g[_GYRO_GLOBALS] -= gg[:, :4].sum(axis=0)
-            grad_b = -(np.bincount(self.biases_g.ravel(), gg[:, 4:].ravel(), n_bias) + np.bincount(self.biases_a.ravel(), ga[:, N_GLOBAL:].ravel(), n_bias))
+            grad_g = np.zeros(N_GLOBAL)
+            grad_g[_ACCEL_GLOBALS] -= ga[:, :_P_ACCEL].sum(axis=0)
+            grad_g[_GYRO_GLOBALS] -= gg[:, :_P_GYRO].sum(axis=0)
+            grad_b = -(np.bincount(self.biases_g.ravel(), gg[:, _P_GYRO:].ravel(), n_bias) + np.bincount(self.biases_a.ravel(), ga[:, _P_ACCEL:].ravel(), n_bias))
             grad_b -= _band_times(self.prior_band, knots.ravel())
             H_gg = H_gg_all[np.ix_(free_idx, free_idx)]
             H_gb = H_gb_all[free_idx]
@@ -661,7 +692,7 @@ class _Problem:
             t = t + step[3:6]
             dtau = dtau + step[TAU]
             tilt = tilt + step[TILT]
-            intrinsics = intrinsics + step[INTRINSICS]
+            intrinsics = intrinsics + step[AXES]
             knots = knots + step_bias.reshape(self.n_knots, _KNOT)
             S_inv = np.linalg.inv(S)
             small = np.max(np.abs(step[:3])) < 1e-10 and np.max(np.abs(step[3:])) < 1e-8
@@ -698,8 +729,11 @@ RESIDUAL_LEVEL_MAX = 2.0
 #: window's mean: a residual level counts only above it. (Noise-free drives leave 1e-4 of the
 #: gyro's and 3e-4 of the accelerometer's.)
 PIPELINE_FLOOR = 1e-3
-#: The accelerometer's axis errors are estimated where the drive determines them this well.
+#: A triad's axis errors are estimated where the drive determines them this well (1% of scale,
+#: 0.6 deg of non-orthogonality).
 INTRINSICS_MAX_STD = 0.01
+#: The gyro's g-sensitivity likewise (rad/s per m/s^2): 0.1 deg/s per g, a MEMS part's.
+G_SENSITIVITY_MAX_STD = np.radians(0.1) / GRAVITY_MPS2
 #: What the checks take as numerically zero (rad, and rad per m/s^2): on noise-free data the
 #: Fisher std is round-off, and so is any difference the checks see.
 NUMERICAL_ZERO = 1e-6
@@ -739,6 +773,69 @@ def _jackknife(problem: _Problem, fit: _Fit) -> np.ndarray | None:
     return (G - 1) / G * centred.T @ centred
 
 
+#: The sensor's own errors, in groups each tested apart: (name, globals, std to be estimated).
+OWN_ERRORS = (("accelerometer", INTRINSICS, INTRINSICS_MAX_STD), ("gyro", GYRO_INTRINSICS, INTRINSICS_MAX_STD), ("g-sensitivity", G_SENSITIVITY, G_SENSITIVITY_MAX_STD))
+
+
+def _own_errors(problem: _Problem, fit: _Fit, alpha: float) -> tuple[_Fit, dict[str, dict[str, Any]]]:
+    """The sensor's own errors (:data:`OWN_ERRORS`) from one joint fit: the components the
+    drive determines to their group's std, a group kept where a chi-square test at ``alpha``
+    finds it. Returns the fit (with the groups kept) and per group ``estimated`` and, where any
+    component was determined, ``chi2``, ``dof``, ``value`` and ``std`` (NaN: not determined)."""
+    free = fit.free.copy()
+    free[AXES] = True
+    joint = problem.fit(fit, free)
+    std = joint.std()
+    shown = np.zeros(N_GLOBAL, dtype=bool)
+    for _, which, max_std in OWN_ERRORS:
+        shown[which] = std[which] <= max_std
+    if not shown.any():
+        return fit, {name: {"estimated": False} for name, _, _ in OWN_ERRORS}
+    free[AXES] = shown[AXES]
+    joint = problem.fit(replace(joint, intrinsics=np.where(shown[AXES], joint.intrinsics, 0.0)), free)
+    found: dict[str, dict[str, Any]] = {}
+    kept = fit.free.copy()
+    for name, which, _ in OWN_ERRORS:
+        group = shown[which]
+        if not group.any():
+            found[name] = {"estimated": False}
+            continue
+        own = slice(which.start - AXES.start, which.stop - AXES.start)  # in _Fit.intrinsics
+        E, cov = joint.intrinsics[own][group], joint.covariance[which, which][np.ix_(group, group)]
+        chi2 = float(E @ np.linalg.solve(cov + NUMERICAL_ZERO**2 * np.eye(len(E)), E))
+        present = chi2 > _chi2_limit(len(E), alpha)
+        found[name] = {"estimated": bool(present), "chi2": chi2, "dof": len(E), "value": joint.intrinsics[own].copy(), "std": np.where(group, joint.std()[which], np.nan)}
+        kept[which] = group & present
+    if not kept[AXES].any():
+        return fit, found
+    if np.array_equal(kept, free):
+        return joint, found
+    return problem.fit(replace(joint, intrinsics=np.where(kept[AXES], joint.intrinsics, 0.0)), kept), found
+
+
+def _axes_document(found: dict[str, Any]) -> dict[str, Any]:
+    """A triad's axis errors as the calibrate document gives them."""
+    if "value" not in found:
+        return found
+    value, std = found["value"], found["std"]
+    return {
+        "estimated": found["estimated"], "chi2": found["chi2"], "dof": found["dof"],
+        "scale": value[:3].tolist(), "nonorthogonality_deg": np.degrees(value[3:]).tolist(),
+        "scale_std": std[:3].tolist(), "nonorthogonality_std_deg": np.degrees(std[3:]).tolist(),
+    }
+
+
+def _g_sensitivity_document(found: dict[str, Any]) -> dict[str, Any]:
+    """The gyro's g-sensitivity ``G`` (:data:`G_SENSITIVITY`, the IMU's axes) in deg/s per g."""
+    if "value" not in found:
+        return found
+    per_g = np.degrees(1.0) * GRAVITY_MPS2
+    return {
+        "estimated": found["estimated"], "chi2": found["chi2"], "dof": found["dof"],
+        "dps_per_g": (per_g * found["value"]).reshape(3, 3).tolist(), "std_dps_per_g": (per_g * found["std"]).reshape(3, 3).tolist(),
+    }
+
+
 @dataclass(frozen=True)
 class Check:
     """One model-consistency test of the estimate (SPEC ``checks``)."""
@@ -766,7 +863,9 @@ def solve(
     1. The joint Gauss-Newton fit (module docstring); translation axes the drive does not
        determine are kept at the prior; a clock offset whose std exceeds
        :data:`TIME_OFFSET_MAX_STD_S` (or that ``time_offset_shown`` says the correlation could
-       not place) is not estimated.
+       not place) is not estimated. Each triad's axis errors (scale factors, non-orthogonality)
+       and the gyro's g-sensitivity join the model where the drive determines them and a
+       chi-square test finds them (:func:`_own_errors`).
     2. Checks (each a test at ``options.consistency_alpha``): the rotation from the gyro alone
        against the rotation from the accelerometer alone (chi-square, 3 dof); the mount's tilt
        with the vehicle's specific force (chi-square, 2 dof; failing, the tilt is estimated
@@ -794,7 +893,22 @@ def solve(
         fit = problem.fit(replace(fit, t=np.where(weak, prior.translation, fit.t)), free)
     checks: list[Check] = []
     alpha = options.consistency_alpha
-    # the mount's tilt with the vehicle's specific force
+    # the sensor's own errors, where the drive determines them and they are there (estimated
+    # always, they would cost clean drives a good part of their lever-arm std): each triad's
+    # axis errors, the gyro's g-sensitivity
+    fit, own = _own_errors(problem, fit, options.consistency_alpha)
+    for name, found in own.items():
+        if found["estimated"]:
+            value = found["value"]
+            if name == "g-sensitivity":
+                detail = f"largest {np.degrees(np.max(np.abs(value))) * GRAVITY_MPS2:.3f} deg/s per g"
+            else:
+                detail = ("scale " + ", ".join(f"{100 * v:+.2f}%" for v in value[:3])
+                          + "; non-orthogonality " + ", ".join(f"{v:+.3f}" for v in np.degrees(value[3:])) + " deg")
+            what = "gyro g-sensitivity" if name == "g-sensitivity" else f"{name} axis errors"
+            warnings.append(f"{what} estimated with the extrinsics: {detail} (chi2 {found['chi2']:.0f}, {found['dof']} dof)")
+    # the mount's tilt with the vehicle's specific force, the axis errors found in the model (an
+    # accelerometer's scale factors look like a tilt where they are not)
     with_tilt = fit.free.copy()
     with_tilt[TILT] = True
     tilted = problem.fit(fit, with_tilt)
@@ -815,32 +929,6 @@ def solve(
             "the rotation given is the mount's at rest"
         )
         fit = tilted
-    # the accelerometer's axis errors, where the drive determines them and they are there
-    # (estimated always, they would cost clean drives a good part of their lever-arm std)
-    free = fit.free.copy()
-    free[INTRINSICS] = True
-    with_axes = problem.fit(fit, free)
-    shown = with_axes.std()[INTRINSICS] <= INTRINSICS_MAX_STD
-    intrinsics: dict[str, Any] = {"estimated": False}
-    if shown.any():
-        free[INTRINSICS] = shown
-        with_axes = problem.fit(replace(with_axes, intrinsics=np.where(shown, with_axes.intrinsics, 0.0)), free)
-        E, cov_E = with_axes.intrinsics[shown], with_axes.covariance[INTRINSICS, INTRINSICS][np.ix_(shown, shown)]
-        chi2_E = float(E @ np.linalg.solve(cov_E + NUMERICAL_ZERO**2 * np.eye(len(E)), E))
-        present = chi2_E > _chi2_limit(len(E), options.consistency_alpha)
-        std_E = np.where(shown, with_axes.std()[INTRINSICS], np.nan)
-        intrinsics = {
-            "estimated": bool(present), "chi2": chi2_E, "dof": len(E),
-            "scale": with_axes.intrinsics[:3].tolist(), "nonorthogonality_deg": np.degrees(with_axes.intrinsics[3:]).tolist(),
-            "scale_std": std_E[:3].tolist(), "nonorthogonality_std_deg": np.degrees(std_E[3:]).tolist(),
-        }
-        if present:
-            fit = with_axes
-            warnings.append(
-                "accelerometer axis errors estimated with the extrinsics: scale "
-                + ", ".join(f"{100 * v:+.2f}%" for v in fit.intrinsics[:3])
-                + "; non-orthogonality " + ", ".join(f"{v:+.3f}" for v in np.degrees(fit.intrinsics[3:])) + f" deg (chi2 {chi2_E:.0f}, {len(E)} dof)"
-            )
     time_offset_observable = options.max_time_offset_s <= 0 or time_offset_shown
     if not time_offset_shown and options.max_time_offset_s > 0:
         warnings.append(f"clock offset not observable ({time_offset_reason or 'the drive does not show it'}): not estimated, kept at 0")
@@ -862,6 +950,7 @@ def solve(
     by_gyro = problem.fit(fit, rotation_only, use=(True, False), max_iterations=1, rotation_prior_std=1.0)
     without_tau = fit.free.copy()
     without_tau[TAU] = False
+    without_tau[GYRO_INTRINSICS.start : G_SENSITIVITY.stop] = False  # (the gyro's own: the accelerometer cannot see them)
     by_accel = problem.fit(fit, without_tau, use=(False, True), max_iterations=1, rotation_prior_std=1.0)
     delta = _rotation_difference(by_accel.R, by_gyro.R)
     cov_delta = by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base() + NUMERICAL_ZERO**2 * np.eye(3)
@@ -953,7 +1042,8 @@ def solve(
         checks={c.name: {**c.figures, "pass": c.passed} for c in checks},
         time_offset_observable=time_offset_observable,
         tilt_rad_per_mps2=fit.tilt.copy(),
-        accel_intrinsics=intrinsics,
+        accel_intrinsics=_axes_document(own["accelerometer"]),
+        gyro_intrinsics={**_axes_document(own["gyro"]), "g_sensitivity": _g_sensitivity_document(own["g-sensitivity"])},
         window_residuals=np.column_stack([
             [w.start_s for w in problem.used],
             np.sqrt(np.maximum(fit.cost_g, 0.0) / (3 * problem.samples_per_window)),

@@ -68,7 +68,7 @@ def window_infos_from_moments(
     dw_noise_var: float = 0.0,
 ) -> list[WindowInfo]:
     """:func:`window_infos_from_moments`: K windows at once: ``spans`` (start, end, valid),
-    ``samples`` (K,), ``S_gyro`` (K, 11, 11), ``S_accel`` (K, 33, 33)."""
+    ``samples`` (K,), ``S_gyro`` (K, 14, 14), ``S_accel`` (K, 33, 33)."""
     n = samples.astype(np.float64)[:, None, None]
 
     def centred(S: np.ndarray, P: np.ndarray | slice, one: int) -> np.ndarray:
@@ -85,11 +85,11 @@ def window_infos_from_moments(
         return (trace * np.eye(3) - C) / std**2
 
     one_a = S_accel.shape[1] - 2  # the constant column of x_a
-    P_w = slice(3, 6)  # w in the gyro data vector
+    P_w = slice(6, 9)  # w_B in the gyro data vector [w_I, f_I, w_B, dw_B, 1, u]
     P_v = np.zeros((3, S_accel.shape[1]))
     P_v[:, 3:6] = np.eye(3)
     P_v[:, 9:18] = np.hstack([lever_arm[0] * np.eye(3), lever_arm[1] * np.eye(3), lever_arm[2] * np.eye(3)])
-    info = rotation_info(centred(S_gyro, P_w, 9), gyro_noise_std) + rotation_info(centred(S_accel, P_v, one_a), accel_noise_std)
+    info = rotation_info(centred(S_gyro, P_w, S_gyro.shape[1] - 2), gyro_noise_std) + rotation_info(centred(S_accel, P_v, one_a), accel_noise_std)
     sigma_min = np.clip(np.linalg.eigvalsh(info)[:, 0], 0.0, None)
     with np.errstate(divide="ignore"):
         std_deg = np.where(sigma_min > 0, np.degrees(1.0 / np.sqrt(sigma_min)), np.inf)

@@ -7,7 +7,7 @@ the common zero-phase low-pass of :mod:`imucal_cli.core.signals`, computed on th
 observability is analysed (eqs. 18-19), and it is reduced to *sufficient statistics*: the second
 moments ``S = sum x x^T`` of the data vectors
 
-- gyro (eq. 10): ``x_g = [w_I, w_B, dw_B, 1, u]``
+- gyro (eq. 10): ``x_g = [w_I, f_I, w_B, dw_B, 1, u]``
 - accelerometer (eq. 11): ``x_a = [f_I, f_B, df_B, vec A, vec dA, q, 1, u]``
 
 with ``A = [w_B]x^2 + [dw_B]x`` (eq. 12), ``q`` the products of the base's specific force a
@@ -15,7 +15,7 @@ tilting mount adds (:func:`imucal_cli.core.calibrate._tilt_columns`) and ``u`` t
 the window (0..1). Every
 residual of the model is linear in ``x`` with coefficients that depend on the parameters:
 
-- ``r_g = w_I(t + tau0) - R^T (w_B - dtau dw_B) - b_g(t)``
+- ``r_g = w_I(t + tau0) - G f_I(t + tau0) - R^T (w_B - dtau dw_B) - b_g(t)`` (``G``: the gyro's g-sensitivity)
 - ``r_a = f_I(t + tau0) - R^T (f_B - dtau df_B + (A - dtau dA) t_BI) - b_a(t)``
 
 (``r = C(params) x``; the clock offset is ``tau0 + dtau``, ``tau0`` from the cross-correlation of
@@ -332,9 +332,9 @@ def _reduce_block(
     rows = lp(terms)[n_pad : n_pad + n_block]
     t_rows = grid[n_pad : n_pad + n_block]
     # every data vector of the block side by side, so that each window's moments are one
-    # Gram matrix: x_g = [w_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, q, 1, u], each
-    # column written once into X (the sensors' columns at the end)
-    n_g, n_a = GYRO_DIM - 3, ACCEL_DIM - 3
+    # Gram matrix: x_g = [w_I, f_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, q, 1, u],
+    # each column written once into X (the sensors' columns at the end)
+    n_g, n_a = GYRO_DIM - 6, ACCEL_DIM - 3
     X = np.empty((n_block, n_g + n_a + 6 * len(names)))
     w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
     X[:, 0:3], X[:, 3:6], X[:, 6], X[:, 7] = w, dw, 1.0, 0.0
@@ -365,7 +365,7 @@ def _reduce_block(
         valid_base = bool(base_covered[i0 : i0 + n_win].all())
         for k, name in enumerate(names):
             wi = n_g + n_a + 6 * k
-            rows_g = np.hstack([G[wi : wi + 3, wi : wi + 3], G[wi : wi + 3, :n_g]])
+            rows_g = np.hstack([G[wi : wi + 6, wi : wi + 6], G[wi : wi + 6, :n_g]])  # [w_I, f_I]^T x_g
             rows_a = np.hstack([G[wi + 3 : wi + 6, wi + 3 : wi + 6], G[wi + 3 : wi + 6, n_g : n_g + n_a]])
             valid = valid_base and bool(sensor_covered[name][i0 : i0 + n_win].all())
             out[name].append(WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win))

@@ -174,6 +174,7 @@ class SimulatedImu:
     accel_bias: np.ndarray  # (N, 3) true accelerometer bias at each sample
     gyro_axes: np.ndarray = field(default_factory=lambda: np.eye(3))  # measured = axes @ true
     accel_axes: np.ndarray = field(default_factory=lambda: np.eye(3))
+    g_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # the gyro's: + G f (rad/s per m/s^2, IMU axes)
 
 
 def simulate_imu(
@@ -198,6 +199,7 @@ def simulate_imu(
     n = len(t_true)
     gyro, accel = ideal_imu(trajectory, T_base_imu, t_true, tilt_rad_per_mps2)
     gyro_axes = accel_axes = np.eye(3)
+    g_sensitivity = np.zeros((3, 3))
     intrinsic = rng.spawn(1)[0] if _has_intrinsic_errors(model) else None  # spawning draws nothing
     if intrinsic is not None:
         if model.vibration_accel_mps2 > 0 or model.vibration_gyro_radps > 0:
@@ -209,7 +211,8 @@ def simulate_imu(
             accel = accel + model.vibration_accel_mps2 * wave[:, :3]
             gyro = gyro + model.vibration_gyro_radps * wave[:, 3:]
         gyro_axes = _axis_errors(model, intrinsic)
-        gyro = gyro @ gyro_axes.T + accel @ intrinsic.normal(0.0, model.g_sensitivity_std, (3, 3)).T
+        g_sensitivity = intrinsic.normal(0.0, model.g_sensitivity_std, (3, 3))
+        gyro = gyro @ gyro_axes.T + accel @ g_sensitivity.T
         accel_axes = _axis_errors(model, intrinsic)
         accel = accel @ accel_axes.T
 
@@ -245,4 +248,4 @@ def simulate_imu(
     t_ns = t0_ns + np.round(stamp_s * 1e9).astype(np.int64)
     log_ns = t0_ns + np.round((t_true + model.latency_s) * 1e9).astype(np.int64)
     stream = ImuStream(t_ns[keep], gyro[keep], accel[keep], frame_id)
-    return SimulatedImu(stream, log_ns[keep], t_true[keep], gyro_bias[keep], accel_bias[keep], gyro_axes, accel_axes)
+    return SimulatedImu(stream, log_ns[keep], t_true[keep], gyro_bias[keep], accel_bias[keep], gyro_axes, accel_axes, g_sensitivity)
