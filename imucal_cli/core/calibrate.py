@@ -570,13 +570,13 @@ class _Problem:
         axes, axes_g, G = _axes(intrinsics[:6]), _axes(intrinsics[6:12]), intrinsics[12:].reshape(3, 3)
         Cg = _C_gyro(axes_g @ Rt, dtau, G, bj[:, 0:3], bk[:, 0:3])
         Ca = _C_accel(axes @ Rt, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
-        gyro = _normal_equations(_derivatives_gyro(Cg, axes_g @ Rt, axes_g), self.S_g, Cg)
-        parts = []
+        parts_g, parts_a = [], []
         for n, a in enumerate(self.starts):
-            chunk = slice(a, a + SOLVE_CHUNK)  # the accelerometer's (K, 15, 3, 33) in slices
+            chunk = slice(a, a + SOLVE_CHUNK)  # the derivatives, (K, 19, 3, 14) and (K, 15, 3, 33), in slices
+            parts_g.append(_normal_equations(_derivatives_gyro(Cg[chunk], axes_g @ Rt, axes_g), self.S_g[chunk], Cg[chunk]))
             S_a = self.cached[n] if self.cached is not None else self._S_a(a)
-            parts.append(_normal_equations(_derivatives_accel(Ca[chunk], axes @ Rt, t, dtau, axes), S_a, Ca[chunk]))
-        accel = tuple(np.concatenate([p[i] for p in parts]) for i in range(3))
+            parts_a.append(_normal_equations(_derivatives_accel(Ca[chunk], axes @ Rt, t, dtau, axes), S_a, Ca[chunk]))
+        gyro, accel = (tuple(np.concatenate([p[i] for p in parts]) for i in range(3)) for parts in (parts_g, parts_a))
         self._last = (key, (*gyro, *accel))
         return self._last[1]
 
