@@ -105,8 +105,8 @@ class SensorEstimate:
     checks: dict[str, dict[str, Any]] = field(default_factory=dict)
     time_offset_observable: bool = False
     tilt_rad_per_mps2: np.ndarray | None = None  # the mount's, where the rigid-mount check estimated it
-    #: The accelerometer's and the gyro's scale factors and non-orthogonality where the drive
-    #: shows them.
+    #: The accelerometer's and the gyro's scale factors and non-orthogonality, and the gyro's
+    #: g-sensitivity, where the drive shows them.
     accel_intrinsics: dict[str, Any] = field(default_factory=dict)
     gyro_intrinsics: dict[str, Any] = field(default_factory=dict)
     #: Per window used: start (s, grid clock), gyro and accelerometer residual RMS of the fit.
@@ -568,14 +568,15 @@ class _Problem:
         Rt = R.inv().as_matrix()
         bj, bk = knots[self.numbers], knots[self.numbers + 1]
         axes, axes_g, G = _axes(intrinsics[:6]), _axes(intrinsics[6:12]), intrinsics[12:].reshape(3, 3)
-        Cg = _C_gyro(axes_g @ Rt, dtau, G, bj[:, 0:3], bk[:, 0:3])
-        Ca = _C_accel(axes @ Rt, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
+        Rt_g, Rt_a = axes_g @ Rt, axes @ Rt  # each triad's (I + E) R^T
+        Cg = _C_gyro(Rt_g, dtau, G, bj[:, 0:3], bk[:, 0:3])
+        Ca = _C_accel(Rt_a, t, dtau, tilt, bj[:, 3:6], bk[:, 3:6])
         parts_g, parts_a = [], []
         for n, a in enumerate(self.starts):
             chunk = slice(a, a + SOLVE_CHUNK)  # the derivatives, (K, 19, 3, 14) and (K, 15, 3, 33), in slices
-            parts_g.append(_normal_equations(_derivatives_gyro(Cg[chunk], axes_g @ Rt, axes_g), self.S_g[chunk], Cg[chunk]))
+            parts_g.append(_normal_equations(_derivatives_gyro(Cg[chunk], Rt_g, axes_g), self.S_g[chunk], Cg[chunk]))
             S_a = self.cached[n] if self.cached is not None else self._S_a(a)
-            parts_a.append(_normal_equations(_derivatives_accel(Ca[chunk], axes @ Rt, t, dtau, axes), S_a, Ca[chunk]))
+            parts_a.append(_normal_equations(_derivatives_accel(Ca[chunk], Rt_a, t, dtau, axes), S_a, Ca[chunk]))
         gyro, accel = (tuple(np.concatenate([p[i] for p in parts]) for i in range(3)) for parts in (parts_g, parts_a))
         self._last = (key, (*gyro, *accel))
         return self._last[1]
@@ -948,10 +949,10 @@ def solve(
     # (one linear step each from the joint solution: a direction one equation alone leaves
     # free stays put, with its large covariance, instead of wandering off)
     by_gyro = problem.fit(fit, rotation_only, use=(True, False), max_iterations=1, rotation_prior_std=1.0)
-    without_tau = fit.free.copy()
-    without_tau[TAU] = False
-    without_tau[GYRO_INTRINSICS.start : G_SENSITIVITY.stop] = False  # (the gyro's own: the accelerometer cannot see them)
-    by_accel = problem.fit(fit, without_tau, use=(False, True), max_iterations=1, rotation_prior_std=1.0)
+    accel_only = np.zeros(N_GLOBAL, dtype=bool)  # the free globals the accelerometer holds, but tau
+    accel_only[_ACCEL_GLOBALS] = fit.free[_ACCEL_GLOBALS]
+    accel_only[TAU] = False
+    by_accel = problem.fit(fit, accel_only, use=(False, True), max_iterations=1, rotation_prior_std=1.0)
     delta = _rotation_difference(by_accel.R, by_gyro.R)
     cov_delta = by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base() + NUMERICAL_ZERO**2 * np.eye(3)
     chi2_rot = float(delta @ np.linalg.solve(cov_delta, delta))

@@ -40,6 +40,7 @@ from imucal_cli.core.calibrate import (
     ACCEL_DIM,
     GAP_PERIODS,
     GYRO_DIM,
+    OWN_ENTRIES,
     CalibrationOptions,
     SensorEstimate,
     WindowMoments,
@@ -334,7 +335,7 @@ def _reduce_block(
     # every data vector of the block side by side, so that each window's moments are one
     # Gram matrix: x_g = [w_I, f_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, q, 1, u],
     # each column written once into X (the sensors' columns at the end)
-    n_g, n_a = GYRO_DIM - 6, ACCEL_DIM - 3
+    n_g, n_a = GYRO_DIM - OWN_ENTRIES[GYRO_DIM], ACCEL_DIM - OWN_ENTRIES[ACCEL_DIM]
     X = np.empty((n_block, n_g + n_a + 6 * len(names)))
     w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
     X[:, 0:3], X[:, 3:6], X[:, 6], X[:, 7] = w, dw, 1.0, 0.0
