@@ -19,6 +19,7 @@ import typer
 
 from imucal_cli import __version__
 from imucal_cli.errors import ImucalError, InputError
+from imucal_cli.names import printable
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -75,6 +76,12 @@ def _root(
 # --------------------------------------------------------------------------- output helpers
 
 
+def _err(text: str) -> None:
+    """One line on stderr, control characters shown as escapes: what a log or config names
+    (topics, frames, paths) can never move the cursor, retitle the terminal or fake a line."""
+    typer.echo(printable(text), err=True)
+
+
 def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
     """Turn :class:`ImucalError` into one line on stderr and exit 2 (no traceback)."""
 
@@ -83,10 +90,10 @@ def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
         try:
             return command(*args, **kwargs)
         except ImucalError as exc:
-            typer.echo(f"imucal: error: {exc}", err=True)
+            _err(f"imucal: error: {exc}")
             raise typer.Exit(EXIT_BAD_INPUT) from None
         except KeyboardInterrupt:
-            typer.echo("imucal: interrupted", err=True)
+            _err("imucal: interrupted")
             raise typer.Exit(EXIT_INTERRUPTED) from None
 
     return wrapper
@@ -123,7 +130,7 @@ def _progress(description: str, unit: str = "messages") -> Iterator[Any]:
         BarColumn(), MofNCompleteColumn(), TextColumn(unit), TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
         console=Console(stderr=True), transient=True,
     )
-    task = progress.add_task(description, total=None)
+    task = progress.add_task(printable(description), total=None)
     progress.start()
 
     def update(count: int | None = None, total: int | None = None) -> None:
@@ -140,12 +147,12 @@ def _print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any
     console (for what follows the table)."""
     from rich.table import Table
 
-    table = Table(title=title)
+    table = Table(title=printable(title))
     right, no_wrap = set(right), set(no_wrap)
     for column in columns:
         table.add_column(column, justify="right" if column in right else "left", no_wrap=column in no_wrap)
     for row in rows:
-        table.add_row(*row)
+        table.add_row(*(printable(cell) if isinstance(cell, str) else cell for cell in row))
     console = _stdout_console()
     console.print(table)
     return console
@@ -163,14 +170,17 @@ def _emit(document: dict[str, Any], out: Path | None, as_json: bool, render: Any
         render(document)
 
 
-def _check_output(out: Path | None) -> None:
-    """Fail early (before any work) on an output path that cannot be written."""
-    if out is None:
-        return
-    if out.suffix.lower() not in {".yaml", ".yml", ".json"}:
+def _check_output(out: Path | None, *inputs: Path | None, junit: Path | None = None) -> None:
+    """Fail early (before any work) on an output path that cannot be written or that would
+    replace one of the run's ``inputs`` (:func:`~imucal_cli.paths.check_outputs`)."""
+    from imucal_cli.paths import check_outputs
+
+    if out is not None and out.suffix.lower() not in {".yaml", ".yml", ".json"}:
         raise InputError(f"{out}: output must end in .yaml, .yml or .json")
-    if not out.parent.is_dir():
-        raise InputError(f"{out}: output folder {out.parent} does not exist")
+    for path in (out, junit):
+        if path is not None and not path.parent.is_dir():
+            raise InputError(f"{path}: output folder {path.parent} does not exist")
+    check_outputs({"-o": out, "--junit": junit}, inputs)
 
 
 # --------------------------------------------------------------------------- inspect
@@ -226,7 +236,7 @@ def inspect(
     """Topics, message types, counts, rates, duration, gaps and time jumps of a log."""
     from imucal_cli.inspection import summarize_log
 
-    _check_output(out)
+    _check_output(out, log)
     with _progress(f"reading {log}") as progress:
         summary = summarize_log(log, progress)
     _note_losses(log, summary.losses)
@@ -262,16 +272,16 @@ def _note_read(log: Path, topic: str, counts: dict[str, int]) -> None:
     changed = {k: v for k, v in counts.items() if k != "messages" and v}
     if changed:
         details = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in changed.items())
-        typer.echo(f"imucal: note: {log} [{topic}]: {counts['messages']} messages; {details}", err=True)
+        _err(f"imucal: note: {log} [{topic}]: {counts['messages']} messages; {details}")
 
 
 def _note_losses(log: Path, losses: list[Any]) -> None:
     """One line on stderr per part of the log that could not be read (at most five, then a count)."""
     for loss in losses[:5]:
         kind = "warning" if loss.lost else "note"  # a note says how the log was read, nothing lost
-        typer.echo(f"imucal: {kind}: {log}: {loss.describe()}", err=True)
+        _err(f"imucal: {kind}: {log}: {loss.describe()}")
     if len(losses) > 5:
-        typer.echo(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read", err=True)
+        _err(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read")
 
 
 def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
@@ -308,7 +318,7 @@ def biases(
     from imucal_cli.api import stream_biases
     from imucal_cli.config import load_config
 
-    _check_output(out)
+    _check_output(out, log, config)
     cfg = load_config(config)
     with _progress(f"reading {log}") as progress:
         document = stream_biases(log, cfg, progress)
@@ -321,7 +331,7 @@ def biases(
         )
         for name, imu in doc["imus"].items():
             for warning in imu["warnings"]:
-                console.print(f"{name}: {warning}", style="yellow")
+                console.print(printable(f"{name}: {warning}"), style="yellow")
 
     _emit(document, out, as_json, render)
 
@@ -335,7 +345,7 @@ def segments(
     as_json: JsonOption = False,
 ) -> None:
     """Per sensor: each window's Fisher-information min singular value, rotation std, selected or not."""
-    _check_output(out)
+    _check_output(out, log, config)
     cfg, streamed = _stream_log(log, config)
     from imucal_cli.pipeline import segments_document
 
@@ -374,7 +384,7 @@ def calibrate(
     timeout: Annotated[float | None, typer.Option("--timeout", min=0.0, help="With --follow: stop after this many seconds (exit 1 with --until-converged).")] = None,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
-    _check_output(out)
+    _check_output(out, log, config)
     if follow:
         _follow(log, config, out, as_json, until_converged, timeout)
         return
@@ -385,6 +395,10 @@ def calibrate(
             raise InputError(f"{report}: report folder's parent {report.parent} does not exist")
         if report.exists() and not report.is_dir():
             raise InputError(f"{report}: exists and is not a folder")
+        from imucal_cli.paths import check_outputs
+        from imucal_cli.report import FIGURES
+
+        check_outputs({"--report": out, **{f"--report ({name})": report / name for name in ("report.html", *FIGURES)}}, [log, config])
         from imucal_cli.report import pyplot
 
         pyplot()  # fail before the work when matplotlib is missing
@@ -409,7 +423,7 @@ def calibrate(
                                (row(name, s) for name, s in doc["sensors"].items()))
         for name, s in doc["sensors"].items():
             for warning in s["warnings"]:
-                console.print(Text(f"{name}: {warning}", style="yellow"))
+                console.print(Text(printable(f"{name}: {warning}"), style="yellow"))
         for pair, T in doc["pairs"].items():
             console.print(f"{pair}: xyz {_fmt(T['translation'], 4)} m, rpy {_fmt(T['rpy_deg'], 3)} deg")
 
@@ -418,11 +432,11 @@ def calibrate(
 
         with _progress("drawing the report", "figures") as progress:
             written = write_report(report, log, result, streamed, document, progress)
-        typer.echo(f"imucal: report: {written[-1]}", err=True)
+        _err(f"imucal: report: {written[-1]}")
     _emit(document, out, as_json, render)
     if require_observable and not result.all_ok:
         weak = [n for n, e in result.estimates.items() if e.status != "ok"]
-        typer.echo(f"imucal: not fully observable: {', '.join(weak)}", err=True)
+        _err(f"imucal: not fully observable: {', '.join(weak)}")
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
@@ -472,7 +486,7 @@ def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until
         elif live is not None:
             live.update(_follow_table(log, windows, result, sensors), refresh=True)
         else:
-            typer.echo(f"imucal: {windows} windows: " + ", ".join(f"{n} {s['status']} ({len(s['missing'])} axes missing)" for n, s in sensors.items()), err=True)
+            _err(f"imucal: {windows} windows: " + ", ".join(f"{n} {s['status']} ({len(s['missing'])} axes missing)" for n, s in sensors.items()))
 
     if live is not None:
         live.start()
@@ -487,12 +501,12 @@ def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until
         write_document(out, run.document)
     for name, s in run.document["sensors"].items():
         for line in s["missing"]:
-            typer.echo(f"imucal: {name}: missing {line}", err=True)
+            _err(f"imucal: {name}: missing {line}")
     if interrupted:
-        typer.echo("imucal: interrupted", err=True)
+        _err("imucal: interrupted")
         raise typer.Exit(EXIT_INTERRUPTED)
     if until_converged and not good:
-        typer.echo("imucal: not converged" + (" before --timeout" if timeout is not None else ""), err=True)
+        _err("imucal: not converged" + (" before --timeout" if timeout is not None else ""))
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
@@ -556,21 +570,27 @@ def export(
     if parent_transform is not None and parent is None:
         raise InputError("--parent-transform: give --parent FRAME too (the frame it places)")
     T_base_parent = _parse_transform(parent_transform) if parent_transform is not None else None
+    targets: dict[str, Path] = {}
+    if out is not None:
+        targets["main"] = out
+        if fmt in LAUNCH_SUFFIX:
+            stem = out.name.split(".")[0] or out.name
+            targets["launch"] = out.with_name(stem + LAUNCH_SUFFIX[fmt])
+        from imucal_cli.paths import check_outputs
+
+        inputs = [extrinsics, Path(parent_transform) if parent_transform is not None else None]
+        check_outputs({"-o" if key == "main" else "the launch file": path for key, path in targets.items()}, inputs)
     files = make(Extrinsics.from_document(load_document(extrinsics), str(extrinsics)), fmt, parent, T_base_parent, allow_not_ok)
     if out is None:
         typer.echo(files["main"], nl=False)  # one file: the launch file needs -o
         if "launch" in files:
-            typer.echo(f"imucal: note: the {LAUNCH_SUFFIX[fmt]} launch file is written beside -o OUT", err=True)
+            _err(f"imucal: note: the {LAUNCH_SUFFIX[fmt]} launch file is written beside -o OUT")
         return
-    targets = {"main": out}
-    if "launch" in files:
-        stem = out.name.split(".")[0] or out.name
-        targets["launch"] = out.with_name(stem + LAUNCH_SUFFIX[fmt])
     for key, path in targets.items():
         write_text_atomic(path, files[key])
         if key == "main" and fmt.startswith("tf-static"):
             path.chmod(path.stat().st_mode | 0o111)  # the command lines: a script to run
-        typer.echo(f"imucal: wrote {path}", err=True)
+        _err(f"imucal: wrote {path}")
 
 
 PANEL_FLEET = "Fleet"
@@ -591,6 +611,7 @@ def batch(
     max_translation_m: Annotated[float | None, typer.Option("--max-translation-m", help="Pass threshold on the translation error (m).")] = None,
     junit: Annotated[Path | None, typer.Option("--junit", help="Write JUnit XML here (for CI).")] = None,
     max_lost_s: Annotated[float | None, typer.Option("--max-lost-s", min=0.0, help="Pass a log whose read lost at most this many seconds (default: any loss fails).")] = None,
+    force: Annotated[bool, typer.Option("--force", metavar="", help="Replace the outputs an earlier batch left in --out-dir.")] = False,
 ) -> None:
     """Calibrate many logs (local processes or a Dask cluster); summary CSV/JSON, JUnit; exit 1 if any fails."""
     from imucal_cli.documents import write_text_atomic
@@ -598,6 +619,7 @@ def batch(
         MOVED_FALLBACK_DEG,
         MOVED_FALLBACK_M,
         MOVED_STD,
+        check_batch_outputs,
         junit_xml,
         plan_tasks,
         read_manifest,
@@ -609,20 +631,26 @@ def batch(
 
     if not out_dir.parent.is_dir():
         raise InputError(f"{out_dir}: output folder's parent {out_dir.parent} does not exist")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"{out_dir}: --out-dir exists and is not a folder")
     if junit is not None and not junit.parent.is_dir() and junit.parent.resolve() != out_dir.resolve():
         raise InputError(f"{junit}: folder {junit.parent} does not exist")
     entries = [{"log": str(p)} for p in logs or []] + (read_manifest(manifest) if manifest is not None else [])
     tasks = plan_tasks(entries, config, out_dir, truth_dir, reference, max_rotation_deg, max_translation_m, max_lost_s)
     if reference is not None and (max_rotation_deg is None or max_translation_m is None):
-        typer.echo(f"imucal: --reference: a sensor moved past {MOVED_STD:g} combined std of the two calibrations "
+        _err(f"imucal: --reference: a sensor moved past {MOVED_STD:g} combined std of the two calibrations "
                    f"(largest axis; {MOVED_FALLBACK_DEG:g} deg, {MOVED_FALLBACK_M:g} m where a std is not known)"
-                   + "".join(f"; {k} {v:g}" for k, v in (("--max-rotation-deg", max_rotation_deg), ("--max-translation-m", max_translation_m)) if v is not None), err=True)
+                   + "".join(f"; {k} {v:g}" for k, v in (("--max-rotation-deg", max_rotation_deg), ("--max-translation-m", max_translation_m)) if v is not None))
+    check_batch_outputs(tasks, [out_dir / "summary.csv", out_dir / "summary.json", *([junit] if junit else [])], [manifest, reference, config], force)
     for task in tasks:
-        Path(task.out).parent.mkdir(parents=True, exist_ok=True)
+        try:
+            Path(task.out).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"{Path(task.out).parent}: cannot make the output folder: {exc.strerror}") from None
 
     def done(i: int, rows: list[Any]) -> None:
         verdict = "ok" if all(r.passed for r in rows) else "FAIL"
-        typer.echo(f"imucal: [{i + 1}/{len(tasks)}] {tasks[i].name}: {verdict}", err=True)
+        _err(f"imucal: [{i + 1}/{len(tasks)}] {tasks[i].name}: {verdict}")
 
     results = run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
     rows = [row for result in results for row in result]
@@ -633,7 +661,7 @@ def batch(
     if junit is not None:
         write_text_atomic(junit, junit_xml(rows))
     failed = sum(not r.passed for r in rows)
-    typer.echo(f"imucal: {len(tasks)} logs, {len(rows)} rows, {failed} failed; summary in {out_dir / 'summary.csv'}", err=True)
+    _err(f"imucal: {len(tasks)} logs, {len(rows)} rows, {failed} failed; summary in {out_dir / 'summary.csv'}")
     if failed:
         raise typer.Exit(EXIT_CHECK_FAILED)
 
@@ -655,14 +683,12 @@ def evaluate(
     from imucal_cli.documents import write_text_atomic
     from imucal_cli.fleet import evaluate_junit
 
-    _check_output(out)
-    if junit is not None and not junit.parent.is_dir():
-        raise InputError(f"{junit}: folder {junit.parent} does not exist")
+    _check_output(out, estimate, truth, junit=junit)
     document = compare(estimate, truth, max_rotation_deg, max_translation_m, allow_missing)
     for side, names in document["missing"].items():
         for name in names:
             where = estimate if side == "estimate_only" else truth
-            typer.echo(f"imucal: {'note' if allow_missing else 'error'}: sensor {name} is in {where} only", err=True)
+            _err(f"imucal: {'note' if allow_missing else 'error'}: sensor {name} is in {where} only")
     if junit is not None:
         write_text_atomic(junit, evaluate_junit(document, str(estimate), str(truth)))
 
@@ -722,6 +748,9 @@ def simulate(
             "apart), tilting-mount, clock-offsets (+-40 ms), prior-off (0.5 m), accel-g, gyro-dps.",
         ),
     ] = "none",
+    force: Annotated[
+        bool, typer.Option("--force", metavar="", help="Replace an existing OUT if it is a log (and the truth and config beside it).")
+    ] = False,
 ) -> None:
     """Simulate a drive: a log OUT with STEM.truth.yaml and STEM.config.yaml beside it."""
     from imucal_cli.documents import write_document
@@ -737,6 +766,7 @@ def simulate(
         raise InputError(f"{out}: format {fmt} writes a rosbag2 directory; name OUT without {suffix}")
     if not out.parent.is_dir():
         raise InputError(f"{out}: output folder {out.parent} does not exist")
+    truth_path, config_path = _simulate_outputs(out, force)
     options = DriveOptions(
         scenario=scenario.value,
         duration_s=duration,
@@ -750,11 +780,8 @@ def simulate(
         drive = simulate_drive(with_errors(options, errors))
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    stem = out.with_suffix("") if suffix in SUFFIX_FORMAT else out  # the prefix of the truth and config files
-    truth_path = stem.with_name(stem.name + ".truth.yaml")
-    config_path = stem.with_name(stem.name + ".config.yaml")
     with _progress(f"writing {out}") as progress:
-        write_imu_log(out, fmt, drive.topics(), progress)
+        write_imu_log(out, fmt, drive.topics(), progress, replace=force)
     write_document(truth_path, drive.truth_document())
     write_document(config_path, drive.config_document())
     counts = {topic: len(data.stream) for topic, data in drive.topics().items()}
@@ -765,6 +792,31 @@ def simulate(
         f"{topic} {count:,}" for topic, count in counts.items()
     )))
     console.print(f"truth:  {truth_path}\nconfig: {config_path}")
+
+
+def _simulate_outputs(out: Path, force: bool) -> tuple[Path, Path]:
+    """The truth and config files beside OUT, checked before any work: an existing log OUT is
+    replaced only with ``--force`` and only if it is a log; its truth and config likewise, and
+    only if they are such documents."""
+    from imucal_cli.documents import load_document
+    from imucal_cli.paths import refuse_existing
+
+    refuse_existing(out, force)
+    stem = out.with_suffix("") if out.suffix.lower() in SUFFIX_FORMAT else out  # the prefix of both
+    truth_path = stem.with_name(stem.name + ".truth.yaml")
+    config_path = stem.with_name(stem.name + ".config.yaml")
+    for path in (truth_path, config_path):
+        if not (path.exists() or path.is_symlink()):
+            continue
+        if not force:
+            raise InputError(f"{path}: exists: name a new log, or give --force to replace it")
+        try:
+            document = load_document(path) if path.is_file() and not path.is_symlink() else None
+        except InputError:
+            document = None
+        if not isinstance(document, dict) or "sensors" not in document:
+            raise InputError(f"{path}: exists and is not a truth or config imucal wrote: not replaced")
+    return truth_path, config_path
 
 
 # --------------------------------------------------------------------------- entry point

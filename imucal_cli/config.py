@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from imucal_cli.errors import ConfigError, InputError
+from imucal_cli.names import name_problem, printable
 from imucal_cli.types import Transform
 
 T = TypeVar("T")
@@ -118,6 +119,9 @@ SECTIONS = {"rest": RestConfig, "gyro_bias": GyroBiasConfig, "segments": Segment
 #: Keys whose value may be zero (every other number must be positive), and keys with choices.
 MAY_BE_ZERO = {"rotation_floor_deg", "translation_floor_m", "max_time_offset_s"}
 CHOICES = {"accel_units": ("auto", "mps2", "g"), "gyro_units": ("auto", "radps", "dps")}
+#: Keys that hold a ROS name, and its kind (:func:`imucal_cli.names.name_problem`): they go into
+#: launch scripts, URDF and Kalibr files, so anything outside ROS's rules is refused here.
+NAME_KINDS = {"frame": "frame", "lidar_frame": "frame", "topic": "topic", "imu_topic": "topic"}
 
 
 class _Section:
@@ -181,6 +185,9 @@ def _parse(value: Any, name: str, kind: Any, source: str, key: str) -> Any:
     if kind == "str":
         if not isinstance(value, str) or not value.strip():
             raise ConfigError(source, key, f"expected a non-empty string, got {_describe(value)}")
+        problem = name_problem(value, NAME_KINDS[name]) if name in NAME_KINDS else None
+        if problem:
+            raise ConfigError(source, key, problem)
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(source, key, f"expected a number, got {_describe(value)}")
@@ -201,6 +208,9 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         raise ConfigError(source, "sensors", "needs at least one sensor")
     sensors = []
     for name in sensors_section.data:
+        problem = name_problem(name, "sensor")
+        if problem:
+            raise ConfigError(source, f"sensors.{printable(name)}", problem)
         section = sensors_section.section(name, required=True)
         sensor = section.fields(SensorConfig, name=name)
         sensors.append(sensor if sensor.lidar_frame else replace(sensor, lidar_frame=f"{name}_lidar"))  # the default frame

@@ -16,6 +16,7 @@ only the quaternion form is written here, so nothing depends on that order.
 from __future__ import annotations
 
 import json
+import shlex
 from dataclasses import dataclass, replace
 from typing import Any
 from xml.sax.saxutils import quoteattr
@@ -23,6 +24,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from imucal_cli.errors import ConfigError, InputError
+from imucal_cli.names import name_problem
 from imucal_cli.types import Transform
 
 FORMATS = ("autoware", "urdf", "tf-static-ros2", "tf-static-ros1", "kalibr", "json")
@@ -59,13 +61,20 @@ class Extrinsics:
         if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict) or not document["sensors"]:
             raise InputError(f"{source}: not an imucal calibrate output (expected a mapping with 'sensors')")
         sensors = []
+        _check_name(document.get("base_frame", "base_link"), "frame", f"{source}: base_frame")
+        if document.get("base_topic") is not None:
+            _check_name(document["base_topic"], "topic", f"{source}: base_topic")
         for name, s in document["sensors"].items():
+            _check_name(name, "sensor", f"{source}: sensors")
             where = f"{source}: sensors.{name}"
             if not isinstance(s, dict):
                 raise InputError(f"{where}: expected a mapping")
             for key in ("T_base_lidar", "T_base_imu", "lidar_frame"):
                 if key not in s:
                     raise InputError(f"{where}.{key}: missing")
+            _check_name(s["lidar_frame"], "frame", f"{where}.lidar_frame")
+            if s.get("imu_topic"):
+                _check_name(s["imu_topic"], "topic", f"{where}.imu_topic")
             try:
                 T_base_lidar = Transform.from_dict(s["T_base_lidar"], source, f"sensors.{name}.T_base_lidar")
                 T_base_imu = Transform.from_dict(s["T_base_imu"], source, f"sensors.{name}.T_base_imu")
@@ -82,6 +91,14 @@ class Extrinsics:
             source, str(document.get("base_frame", "base_link")), document.get("base_topic"),
             _number(document, "base_imu_rate_hz", f"{source}: base_imu_rate_hz"), tuple(sensors), document.get("base_imu_noise"),
         )
+
+
+def _check_name(value: Any, kind: str, where: str) -> None:
+    """Names go into scripts, launch files and YAML that other programs run or read: refuse
+    what ROS would (:mod:`imucal_cli.names`), naming the key."""
+    problem = name_problem(value, kind)
+    if problem:
+        raise InputError(f"{where}: {problem}")
 
 
 def _number(mapping: dict[str, Any], key: str, where: str) -> float | None:
@@ -137,7 +154,8 @@ def tf_static_ros2(ex: Extrinsics, parent: str) -> tuple[str, str]:
     commands, nodes = ["#!/bin/sh", "# imucal: one static transform per lidar (ROS 2)"], []
     for s in ex.sensors:
         x, y, z, qx, qy, qz, qw = _tf_values(s.T_base_lidar)
-        args = f"--x {x} --y {y} --z {z} --qx {qx} --qy {qy} --qz {qz} --qw {qw} --frame-id {parent} --child-frame-id {s.lidar_frame}"
+        words = ["--x", x, "--y", y, "--z", z, "--qx", qx, "--qy", qy, "--qz", qz, "--qw", qw, "--frame-id", parent, "--child-frame-id", s.lidar_frame]
+        args = shlex.join(words)  # quoted: nothing a name holds runs
         commands.append(f"ros2 run tf2_ros static_transform_publisher {args} &")
         nodes.append(
             f'  <node pkg="tf2_ros" exec="static_transform_publisher" name={quoteattr(f"imucal_{s.name}_tf")} args={quoteattr(args)}/>'
@@ -151,7 +169,7 @@ def tf_static_ros1(ex: Extrinsics, parent: str) -> tuple[str, str]:
     roslaunch file (the quaternion form; the Euler form would be ``x y z yaw pitch roll``)."""
     commands, nodes = ["#!/bin/sh", "# imucal: one static transform per lidar (ROS 1)"], []
     for s in ex.sensors:
-        args = " ".join([*_tf_values(s.T_base_lidar), parent, s.lidar_frame])
+        args = shlex.join([*_tf_values(s.T_base_lidar), parent, s.lidar_frame])  # quoted: nothing a name holds runs
         commands.append(f"rosrun tf2_ros static_transform_publisher {args} &")
         nodes.append(
             f'  <node pkg="tf2_ros" type="static_transform_publisher" name={quoteattr(f"imucal_{s.name}_tf")} args={quoteattr(args)}/>'
@@ -241,6 +259,8 @@ def export(ex: Extrinsics, fmt: str, parent: str | None = None, T_base_parent: T
     weak = [f"{s.name} ({s.status or 'no status'})" for s in ex.sensors if s.status != "ok"]
     if weak and not allow_not_ok:
         raise InputError(f"{ex.source}: not calibrated on every axis: {', '.join(weak)}; --allow-not-ok exports them anyway")
+    if parent is not None:
+        _check_name(parent, "frame", "--parent")
     if parent is not None and (parent != ex.base_frame or T_base_parent is not None):
         if fmt == "kalibr":
             raise InputError(f"--parent {parent}: a Kalibr IMU chain is relative to its first IMU, the base's: no other parent")

@@ -19,18 +19,23 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import escape, quoteattr
+from xml.sax import saxutils
 
 import numpy as np
 
 from imucal_cli.config import Config
 from imucal_cli.errors import ImucalError, InputError
+from imucal_cli.names import printable
+from imucal_cli.paths import log_folder
 from imucal_cli.types import Transform
 
 #: A sensor moved when its calibration and the reference differ by more than this many
 #: combined std (largest axis of each); where a std is not known, the fallbacks below.
 MOVED_STD = 3.0
 MOVED_FALLBACK_DEG, MOVED_FALLBACK_M = 0.1, 0.02
+
+#: Log file suffixes a batch output's name drops (``2024.01.05.mcap`` -> ``2024.01.05.yaml``).
+LOG_SUFFIXES = (".mcap", ".bag", ".db3")
 
 SUMMARY_COLUMNS = (
     "log", "sensor", "status", "x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg",
@@ -220,7 +225,7 @@ def plan_tasks(
         raise InputError("no logs: give LOG... or --manifest CSV")
     if truth_dir is not None and not truth_dir.is_dir():
         raise InputError(f"{truth_dir}: folder does not exist")
-    paths = [Path(e["log"]).resolve() for e in entries]
+    paths = [log_folder(Path(e["log"]).resolve()) for e in entries]  # a rosbag2 log is its folder
     root = Path(os.path.commonpath([p.parent for p in paths]))
     configs: dict[str, Config] = {}
     loaded: dict[str, tuple[dict[str, Transform], dict[str, tuple[float | None, float | None]]]] = {}  # truth or reference files
@@ -233,7 +238,7 @@ def plan_tasks(
         if cfg not in configs:
             configs[cfg] = load_config(cfg)
         name = log.relative_to(root).as_posix()
-        stem = name.split(".")[0] if log.is_file() else name  # vehicle/date/drive.mcap -> vehicle/date/drive
+        stem = name.removesuffix(log.suffix) if log.suffix in LOG_SUFFIXES else name  # vehicle/2024.01.05.mcap -> vehicle/2024.01.05
         if stem in seen:
             raise InputError(f"{log}: two logs named {stem}: their outputs would collide in {out_dir}")
         seen.add(stem)
@@ -251,6 +256,22 @@ def plan_tasks(
         tasks.append(Task(str(log), name, configs[cfg], str((out_dir / f"{stem}.yaml").resolve()), against, source, is_reference,
                           max_rotation_deg, max_translation_m, max_lost_s, std if is_reference else {}))
     return tasks
+
+
+def check_batch_outputs(tasks: Sequence[Task], files: Sequence[Path], inputs: Sequence[Path | None], force: bool) -> None:
+    """Before any work: no output of the batch (each log's document, the summaries, ``files``)
+    is one of its inputs or inside one (a rosbag2 folder), and none exists unless ``force``
+    (an earlier batch's outputs are never silently replaced)."""
+    from imucal_cli.paths import check_outputs
+
+    outputs = {f"the output of {task.log}": Path(task.out) for task in tasks} | {str(path.name): path for path in files}
+    every_input = [*inputs, *(Path(task.log) for task in tasks), *{Path(task.config.source) for task in tasks},
+                   *{Path(task.against_source) for task in tasks if task.against_source}]
+    check_outputs(outputs, every_input)
+    existing = [path for path in outputs.values() if path.exists()]
+    if existing and not force:
+        raise InputError(f"{existing[0]}: exists (an earlier batch's output?): give a new --out-dir, or --force to replace "
+                         f"{'it' if len(existing) == 1 else f'these {len(existing)} files'}")
 
 
 def _reference_std(path: str) -> dict[str, tuple[float | None, float | None]]:
@@ -300,6 +321,17 @@ def summary_json(rows: Iterable[Row], settings: dict[str, Any]) -> str:
         {"settings": settings, "logs": len({r.log for r in rows}), "failed": sum(not r.passed for r in rows), "rows": [r.to_dict() for r in rows]},
         indent=2,
     ) + "\n"
+
+
+def quoteattr(text: str) -> str:
+    """An XML attribute value: quoted, escaped, and without the control characters XML 1.0
+    cannot hold at all (written as escapes: :func:`~imucal_cli.names.printable`)."""
+    return saxutils.quoteattr(printable(text))
+
+
+def escape(text: str) -> str:
+    """XML character data, as :func:`quoteattr`."""
+    return saxutils.escape(printable(text))
 
 
 def junit_xml(rows: Sequence[Row]) -> str:

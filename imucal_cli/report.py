@@ -234,6 +234,10 @@ td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}img{{max-width:10
 """
 
 
+#: The figures :func:`write_report` draws into its folder, beside ``report.html``.
+FIGURES = ("biases.png", "windows.png", "residuals.png", "std.png", "vehicle.png")
+
+
 def write_report(out_dir: Path, log: Path, result: Any, streamed: Any, document: Mapping[str, Any], progress: Any = None) -> list[Path]:
     """Draw every figure into ``out_dir`` and write ``report.html``; returns the files written.
     ``progress`` is told (figures drawn, figures in all) as it goes."""

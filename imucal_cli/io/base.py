@@ -19,6 +19,59 @@ READ_AHEAD_GROUPS = 2
 
 T = TypeVar("T")
 
+#: The largest decompressed chunk believed. Recorders write chunks of 768 KiB (rosbag) to a few
+#: MiB (MCAP); a chunk claiming more than this is damaged or hostile, and is lost alone.
+MAX_CHUNK_BYTES = 256 << 20
+#: The largest compression ratio believed of a chunk. The most compressible IMU data there is,
+#: a simulated motionless and noise-free sensor, compresses 23:1 with zstd; a chunk claiming
+#: more than this many times its stored size is a decompression bomb. With :data:`MAX_CHUNK_BYTES`
+#: it bounds what a read decompresses by the file's size, not by what its records claim.
+MAX_RATIO = 1000
+
+
+def check_chunk_size(claimed: int, stored: int, compression: str) -> None:
+    """Raise :class:`ValueError` where a chunk of ``stored`` bytes claims to decompress to more
+    than a real one could (:data:`MAX_CHUNK_BYTES`, :data:`MAX_RATIO`)."""
+    if compression in ("", "none") and claimed != stored:
+        raise ValueError(f"an uncompressed chunk of {stored} bytes claims {claimed}")
+    if claimed > MAX_CHUNK_BYTES or claimed > MAX_RATIO * max(stored, 1):
+        raise ValueError(f"a chunk of {stored} bytes claims to decompress to {claimed} (more than {MAX_RATIO}:1 or {MAX_CHUNK_BYTES >> 20} MiB)")
+
+
+def decompress(compression: str, data: bytes, claimed: int, prefix: bool = False) -> bytes:
+    """A chunk's data decompressed: exactly ``claimed`` bytes, checked before anything is
+    decompressed (:func:`check_chunk_size`) and never decompressed past it. With ``prefix``
+    (a chunk cut off or damaged): as much as decompresses, at most ``claimed`` bytes."""
+    import bz2
+
+    import lz4.frame
+    import zstandard
+
+    if not prefix:
+        check_chunk_size(claimed, len(data), compression)
+    parts: list[bytes] = []
+    try:
+        if compression in ("", "none"):
+            parts.append(bytes(data[: claimed + 1]))
+        elif compression == "zstd":
+            reader = zstandard.ZstdDecompressor().stream_reader(data)
+            while sum(map(len, parts)) <= claimed and (got := reader.read(min(claimed + 1, 1 << 20))):
+                parts.append(got)
+        elif compression in ("lz4", "bz2"):
+            stream = lz4.frame.LZ4FrameDecompressor() if compression == "lz4" else bz2.BZ2Decompressor()
+            parts.append(stream.decompress(bytes(data), max_length=claimed + 1))
+        else:
+            raise ValueError(f"unsupported chunk compression {compression!r}")
+    except (zstandard.ZstdError, RuntimeError, OSError, EOFError, ValueError):
+        if not prefix:
+            raise
+    out = b"".join(parts)
+    if prefix:
+        return out[:claimed]
+    if len(out) != claimed:
+        raise ValueError(f"decompressed to {'more than ' * (len(out) > claimed)}{min(len(out), claimed)} bytes, the chunk says {claimed}")
+    return out
+
 
 @dataclass(frozen=True)
 class TopicInfo:

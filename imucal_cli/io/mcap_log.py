@@ -13,7 +13,6 @@ channel and schema record. A file cut off mid-write has no summary: it is read u
 
 from __future__ import annotations
 
-import mmap
 import os
 import struct
 import time
@@ -29,7 +28,16 @@ from mcap.records import Channel, Chunk, ChunkIndex, Schema
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 
-from imucal_cli.io.base import LogReader, Loss, TopicInfo, read_ahead
+from imucal_cli.io.base import (
+    MAX_CHUNK_BYTES,
+    MAX_RATIO,
+    LogReader,
+    Loss,
+    TopicInfo,
+    check_chunk_size,
+    decompress,
+    read_ahead,
+)
 from imucal_cli.io.imu_msg import RawBatch, gather
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -41,8 +49,6 @@ _RECORD = struct.Struct("<BQ")  # opcode, length
 _FOOTER_OP, _SCHEMA_OP, _CHANNEL_OP, _MESSAGE_OP, _CHUNK_OP, _DATA_END_OP = 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F
 _MESSAGE_RECORD = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"), ("log_time", "<u8"), ("publish_time", "<u8")])
 _MESSAGE_HEADER = _MESSAGE_RECORD.itemsize  # 31 bytes before a message's data
-#: Largest decompressed chunk believed: an index claiming more is damaged.
-_MAX_CHUNK = 1 << 30
 REPAIR = "`mcap recover FILE -o FIXED.mcap` rewrites what is readable"
 
 
@@ -74,11 +80,16 @@ class McapLog(LogReader):
             return None
         if summary is None or not summary.chunk_indexes:
             return None
-        for index in summary.chunk_indexes:
+        size, end = os.fstat(self._file.fileno()).st_size, 0
+        for index in sorted(summary.chunk_indexes, key=lambda i: i.chunk_start_offset):
             if not index.message_index_offsets and index.uncompressed_size > 0:
                 return None
             if any(c not in summary.channels for c in index.message_index_offsets):
                 return None
+            # each chunk once and inside the file: what a read decompresses is bounded by the file
+            if index.chunk_start_offset < max(end, len(MAGIC)) or index.chunk_start_offset + index.chunk_length > size:
+                return None
+            end = index.chunk_start_offset + index.chunk_length
         return summary
 
     # ----------------------------------------------------------------- topics
@@ -135,41 +146,44 @@ class McapLog(LogReader):
     def follow(self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05) -> Iterator[RawBatch]:
         """A file still being written (follow mode): the wanted messages of each record as it
         completes, waiting ``poll_s`` for more; ends at the footer, or when ``stop()`` says."""
-        wanted, channels, pos = set(topics), {}, len(MAGIC)  # type: ignore[var-annotated]
-        while True:
-            size = os.fstat(self._file.fileno()).st_size
-            data = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) if size > pos else b""
-            while pos + 9 <= len(data):
-                opcode, length = _RECORD.unpack_from(data, pos)
-                if opcode in (_FOOTER_OP, _DATA_END_OP):
-                    return
-                if pos + 9 + length > len(data):
-                    break  # still being written
-                inner, found = self._messages_of(data, pos, channels, {}, note=True)
-                if len(found):
-                    yield from _channel_batches(inner, found, channels, wanted)
-                pos += 9 + length
-            if stop():
-                return
-            time.sleep(poll_s)
+        channels: dict[int, Channel] = {}
+        for data, at in self._walk(channels, {}, note=True, stop=stop, poll_s=poll_s):
+            yield from _channel_batches(data, at, channels, set(topics))
 
-    def _walk(self, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    def _record_at(self, pos: int) -> tuple[int, int, bytes] | None:
+        """The top-level record at ``pos``: its opcode, its length and as much of it as the
+        file holds now; ``None`` before a whole opcode and length. Read, not mapped: a file
+        that shrinks while mapped would kill the process (SIGBUS)."""
+        self._file.seek(pos)
+        head = self._file.read(9)
+        if len(head) < 9:
+            return None
+        opcode, length = _RECORD.unpack(head)
+        size = os.fstat(self._file.fileno()).st_size
+        return opcode, length, head + self._file.read(max(0, min(length, size - pos - 9)))
+
+    def _walk(self, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool, stop: Callable[[], bool] | None = None,
+              poll_s: float = 0.05) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """The file's records from its start: per chunk (and per top-level message) the data
         and the offsets of its Message records; channels and schemas collected on the way,
         their bodies parsed by the library. A record cut off ends the walk (a :class:`Loss`
-        where ``note``); a chunk cut off gives what decompresses of it."""
-        size = self._file.seek(0, 2)
-        data = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+        where ``note``); a chunk cut off gives what decompresses of it. With ``stop`` (a file
+        still being written), a record cut off is waited for until ``stop()`` says."""
         pos, messages, last_ns = len(MAGIC), 0, None
         try:
-            while pos + 9 <= len(data):
-                opcode, length = _RECORD.unpack_from(data, pos)
+            while True:
+                opcode, length, data = self._record_at(pos) or (-1, 0, b"")
                 if opcode in (_FOOTER_OP, _DATA_END_OP):
                     return
-                cut = pos + 9 + length > len(data)
+                cut = opcode < 0 or len(data) < 9 + length
+                if cut and stop is not None:
+                    if stop():
+                        return
+                    time.sleep(poll_s)
+                    continue
                 if cut and opcode != _CHUNK_OP:
                     break
-                inner, found = self._messages_of(data, pos, channels, schemas, note)
+                inner, found = self._messages_of(data, 0, channels, schemas, note)
                 if len(found):
                     messages += len(found)
                     last_ns = int(gather(inner, found + 15, 8, "<u8")[-1, 0])
@@ -177,22 +191,19 @@ class McapLog(LogReader):
                 if cut:
                     break
                 pos += 9 + length
-            if note and pos < len(data):
-                self.losses.append(Loss(
-                    f"the file is cut off after {messages} messages; what follows is lost; {REPAIR}",
-                    pos, len(data) - pos, last_ns, None,
-                ))
+            if note and pos < (size := os.fstat(self._file.fileno()).st_size):
+                self.losses.append(Loss(f"the file is cut off after {messages} messages; what follows is lost; {REPAIR}", pos, size - pos, last_ns, None))
         except Exception as exc:
             if note:
                 self.losses.append(Loss(
                     f"the file is damaged after {messages} messages ({type(exc).__name__}: {exc}); "
-                    f"what follows is lost; {REPAIR}", pos, len(data) - pos, last_ns, None,
+                    f"what follows is lost; {REPAIR}", pos, os.fstat(self._file.fileno()).st_size - pos, last_ns, None,
                 ))
         finally:
-            if note and not self.losses:
+            if note and stop is None and not self.losses:
                 self.losses.append(Loss("the file has no usable summary and indexes: read record by record", lost=False))
 
-    def _messages_of(self, data: bytes | mmap.mmap, pos: int, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _messages_of(self, data: bytes, pos: int, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool) -> tuple[np.ndarray, np.ndarray]:
         """The top-level record at ``pos``: its records (a chunk's decompressed, as much of a
         cut-off or damaged chunk as decodes: a whole chunk that does not is a :class:`Loss`
         where ``note``; any other record itself) and the offsets of their messages."""
@@ -200,11 +211,13 @@ class McapLog(LogReader):
         if opcode == _CHUNK_OP:
             chunk = Chunk.read(ReadDataStream(BytesIO(memoryview(data)[pos + 9 : pos + 9 + length])))
             try:
+                check_chunk_size(chunk.uncompressed_size, len(chunk.data), chunk.compression)
                 inner = _decompress(chunk, np.empty(chunk.uncompressed_size, dtype=np.uint8))
             except Exception as exc:  # cut off or damaged: the prefix that decodes
                 if note and pos + 9 + length <= len(data):
                     self.losses.append(Loss(f"chunk does not read ({exc}); what decodes of it is read; {REPAIR}", pos, 9 + length, chunk.message_start_time, chunk.message_end_time))
-                inner = _decompress_prefix(chunk)
+                limit = min(chunk.uncompressed_size, MAX_CHUNK_BYTES, MAX_RATIO * max(len(chunk.data), 1))
+                inner = np.frombuffer(decompress(chunk.compression, chunk.data, limit, prefix=True), dtype=np.uint8)
         else:
             inner = np.frombuffer(data, np.uint8, 9 + length, pos)
         return inner, self._records(inner, channels, schemas)
@@ -255,7 +268,8 @@ class McapLog(LogReader):
         """Chunks decompressed into one buffer, with their wanted message index entries
         (offsets into that buffer): one gather per field, channel and group, not per chunk.
         A chunk that does not read is a :class:`Loss`; the others are kept."""
-        buffer = np.empty(sum(min(index.uncompressed_size, _MAX_CHUNK) for index in group), dtype=np.uint8)
+        believed = [min(index.uncompressed_size, MAX_CHUNK_BYTES, MAX_RATIO * max(index.compressed_size, 1)) for index in group]
+        buffer = np.empty(sum(believed), dtype=np.uint8)
         entries: dict[int, list[np.ndarray]] = {}
         kept, size = [], 0
         for index in group:
@@ -263,11 +277,12 @@ class McapLog(LogReader):
                 found = self._message_indexes(index, channel_ids)
                 self._file.seek(index.chunk_start_offset)
                 record = self._file.read(index.chunk_length)
-                if index.uncompressed_size > _MAX_CHUNK:
-                    raise ValueError(f"the chunk index claims {index.uncompressed_size} bytes")
                 chunk = next(iter(StreamReader(BytesIO(record), skip_magic=True, emit_chunks=True).records))
                 if not isinstance(chunk, Chunk):
                     raise ValueError("the chunk index does not point at a chunk")
+                check_chunk_size(chunk.uncompressed_size, len(chunk.data), chunk.compression)
+                if (chunk.uncompressed_size, len(chunk.data)) != (index.uncompressed_size, index.compressed_size):
+                    raise ValueError(f"the chunk's sizes {chunk.uncompressed_size}/{len(chunk.data)} are not its index's")
                 if any(len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > chunk.uncompressed_size for e in found.values()):
                     raise ValueError("a message index points past the chunk's end")
                 _decompress(chunk, buffer[size : size + chunk.uncompressed_size])
@@ -346,38 +361,20 @@ def _groups(chunks: list[ChunkIndex], channel_ids: set[int]) -> Iterator[list[Ch
         yield group
 
 
-def _decompress_prefix(chunk: Chunk) -> np.ndarray:
-    """As much of a cut-off or damaged chunk's records as decompresses."""
-    import lz4.frame
-    import zstandard
-
-    streams = {"zstd": lambda: zstandard.ZstdDecompressor().decompressobj(), "lz4": lz4.frame.LZ4FrameDecompressor}
-    try:
-        out = streams[chunk.compression]().decompress(chunk.data) if chunk.compression in streams else chunk.data
-    except (zstandard.ZstdError, RuntimeError):
-        out = b""
-    return np.frombuffer(out, dtype=np.uint8)
-
-
 def _decompress(chunk: Chunk, out: np.ndarray) -> np.ndarray:
     """The chunk's records decompressed into ``out`` (its uncompressed size): zstd straight
-    into it (half the time of decompressing to bytes and copying those)."""
-    if chunk.compression == "zstd":
-        import zstandard
+    into it (half the time of decompressing to bytes and copying those), others by
+    :func:`~imucal_cli.io.base.decompress`."""
+    if chunk.compression != "zstd":
+        out[:] = np.frombuffer(decompress(chunk.compression, chunk.data, len(out)), np.uint8)
+        return out
+    import zstandard
 
-        reader = zstandard.ZstdDecompressor().stream_reader(chunk.data)
-        size = 0
-        while size < len(out) and (got := reader.readinto(out.data[size:])):
-            size += got
-        size += len(reader.read(1))  # (anything beyond is an error)
-    elif chunk.compression in ("lz4", ""):
-        import lz4.frame
-
-        data = lz4.frame.decompress(chunk.data) if chunk.compression else chunk.data
-        size = len(data)
-        out[: min(size, len(out))] = np.frombuffer(data, np.uint8, min(size, len(out)))
-    else:
-        raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
+    reader = zstandard.ZstdDecompressor().stream_reader(chunk.data)
+    size = 0
+    while size < len(out) and (got := reader.readinto(out.data[size:])):
+        size += got
+    size += len(reader.read(1))  # (anything beyond is an error)
     if size != len(out):
         raise ValueError(f"decompressed to {'more than ' * (size > len(out))}{min(size, len(out))} bytes, the chunk says {len(out)}")
     return out

@@ -11,8 +11,6 @@ from the start, chunks included, up to the cut, which is a :class:`Loss`.
 
 from __future__ import annotations
 
-import bz2
-import mmap
 import struct
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -20,7 +18,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from imucal_cli.io.base import Batcher, LogReader, Loss, TopicInfo, read_ahead
+from imucal_cli.io.base import Batcher, LogReader, Loss, TopicInfo, decompress, read_ahead
 from imucal_cli.io.imu_msg import RawBatch, gather
 
 MAGIC = b"#ROSBAG V2.0\n"
@@ -41,7 +39,7 @@ def _fields(header: bytes) -> dict[str, bytes]:
     return out
 
 
-def _record(buf: bytes | memoryview | mmap.mmap, pos: int) -> tuple[dict[str, bytes], int, int, int]:
+def _record(buf: bytes | memoryview, pos: int) -> tuple[dict[str, bytes], int, int, int]:
     """The record at ``pos``: its header fields, where its data start, its data length and
     where the next record starts. ``ValueError`` where it runs past the buffer."""
     if pos + 4 > len(buf):
@@ -62,19 +60,8 @@ def _op(fields: dict[str, bytes]) -> int:
 
 
 def _decompress(compression: bytes, data: bytes, size: int) -> bytes:
-    if compression == b"none":
-        out = data
-    elif compression == b"lz4":
-        import lz4.frame
-
-        out = lz4.frame.decompress(data)
-    elif compression == b"bz2":
-        out = bz2.decompress(data)
-    else:
-        raise ValueError(f"unsupported chunk compression {compression.decode('latin-1')!r}")
-    if len(out) != size:
-        raise ValueError(f"decompressed to {len(out)} bytes, the chunk says {size}")
-    return out
+    """A chunk decompressed, its claimed ``size`` checked first (:func:`~imucal_cli.io.base.decompress`)."""
+    return decompress(compression.decode("latin-1"), data, size)
 
 
 class Ros1Log(LogReader):
@@ -108,13 +95,16 @@ class Ros1Log(LogReader):
         if not len(MAGIC) < index_pos < self._size:
             raise ValueError(f"index_pos {index_pos} is outside the file (cut off while recording?)")
         tail = self._read(index_pos, self._size - index_pos)
-        pos = 0
+        pos, seen = 0, set()
         while pos < len(tail):
             fields, start, length, pos = _record(tail, pos)
             if _op(fields) == 0x07:
                 self._connection(fields, tail[start : start + length])
             elif _op(fields) == 0x06:
                 (chunk_pos,) = struct.unpack("<Q", fields["chunk_pos"])
+                if not len(MAGIC) <= chunk_pos < index_pos or chunk_pos in seen:  # (each chunk read once: bounded work)
+                    raise ValueError(f"the index names a chunk at byte {chunk_pos} {'twice' if chunk_pos in seen else 'outside the chunks'}")
+                seen.add(chunk_pos)
                 entries = np.frombuffer(tail, "<u4", length // 4, start).reshape(-1, 2)
                 per_conn = {int(c): int(n) for c, n in entries}
                 self.chunks.append((chunk_pos, per_conn))
@@ -178,7 +168,7 @@ class Ros1Log(LogReader):
         for chunk in group:
             chunk_pos, per_conn = chunk
             try:
-                fields, start, length, _ = self._chunk_header(chunk_pos, self._read(chunk_pos, 4096))
+                fields, start, length, _ = self._header(chunk_pos)
                 (claimed,) = _U32.unpack(fields["size"])
                 data = _decompress(fields["compression"], self._read(chunk_pos + start, length), claimed)
                 index = self._read(chunk_pos + start + length, sum(128 + 12 * n for n in per_conn.values()))
@@ -211,12 +201,15 @@ class Ros1Log(LogReader):
             messages[topic] = messages.get(topic, 0) + n
         self.losses.append(Loss(f"chunk does not read ({exc}); {REPAIR}", chunk[0], messages=messages))
 
-    def _chunk_header(self, chunk_pos: int, head: bytes) -> tuple[dict[str, bytes], int, int, int]:
+    def _header(self, pos: int, op: int | None = 0x05) -> tuple[dict[str, bytes], int, int, int]:
+        """The header of the record at ``pos`` (of opcode ``op``, a chunk by default): its
+        fields, where its data start and their length (from ``pos``), and its end."""
+        head = self._read(pos, 4096)
         (header_len,) = _U32.unpack_from(head, 0)
         if header_len + 8 > len(head):
-            head = self._read(chunk_pos, header_len + 8)
+            head = self._read(pos, header_len + 8)
         fields = _fields(head[4 : 4 + header_len])
-        if _op(fields) != 0x05:
+        if op is not None and _op(fields) != op:
             raise ValueError("the index does not point at a chunk")
         (data_len,) = _U32.unpack_from(head, 4 + header_len)
         return fields, 8 + header_len, data_len, 8 + header_len + data_len
@@ -225,22 +218,37 @@ class Ros1Log(LogReader):
 
     def _walk_records(self) -> Iterator[tuple[int, int, bytes]]:
         """Every message record ``(conn, time_ns, data)`` from the start, connections noted on
-        the way; the first record that does not read ends the walk with a :class:`Loss`."""
-        data = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ)
-        at = [len(MAGIC)]  # where the walk of the file is, for the loss
+        the way; the first record that does not read ends the walk with a :class:`Loss`. The
+        file is read record by record, not mapped (a file that shrinks while mapped would kill
+        the process with SIGBUS)."""
+        pos = len(MAGIC)
         try:
-            yield from self._records(data, at)
+            while pos < self._size:
+                record = self._top_record(pos)
+                yield from self._records(record, [0])
+                pos += len(record)
         except Exception as exc:
-            self.losses.append(Loss(f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}", at[0], self._size - at[0]))
+            self.losses.append(Loss(f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}", pos, self._size - pos))
 
-    def _records(self, buf: bytes | mmap.mmap, at: list[int]) -> Iterator[tuple[int, int, bytes]]:
+    def _top_record(self, pos: int) -> bytes:
+        """The whole top-level record at ``pos`` (``ValueError`` where the file ends first)."""
+        end = self._header(pos, op=None)[3]
+        if pos + end > self._size:
+            raise ValueError("record cut off")
+        return self._read(pos, end)
+
+    def _records(self, buf: bytes, at: list[int], top: bool = True) -> Iterator[tuple[int, int, bytes]]:
         """The message records of ``buf`` from ``at[0]`` (kept at the next record), those of
-        its chunks decompressed and walked too; connections noted on the way."""
+        its chunks decompressed and walked too (a chunk inside a chunk is damage: it would
+        multiply what a few bytes decompress to); connections noted on the way."""
         while at[0] < len(buf):
             fields, start, length, after = _record(buf, at[0])
             op = _op(fields)
+            if op == 0x05 and not top:
+                raise ValueError("a chunk inside a chunk")
             if op == 0x05:
-                yield from self._records(_decompress(fields["compression"], buf[start : start + length], _U32.unpack(fields["size"])[0]), [0])
+                data = _decompress(fields["compression"], buf[start : start + length], _U32.unpack(fields["size"])[0])
+                yield from self._records(data, [0], top=False)
             elif op == 0x07:
                 self._connection(fields, buf[start : start + length])
             elif op == 0x02:

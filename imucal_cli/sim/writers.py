@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import heapq
 import shutil
+import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 
 from imucal_cli.errors import InputError
 from imucal_cli.io.imu_msg import IMU_MSGTYPE
+from imucal_cli.paths import refuse_existing
 from imucal_cli.sim.serialize import serialize_cdr, serialize_ros1
 from imucal_cli.types import ImuStream
 
@@ -139,19 +141,22 @@ def _write_rosbag1(path: Path, topics: Mapping[str, TopicData], progress: Progre
     _fill_rosbags_writer(writer, topics, ros1=True, progress=progress)
 
 
-def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData], progress: Progress | None = None) -> Path:
+def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData], progress: Progress | None = None, replace: bool = False) -> Path:
     """Write IMU topics to ``out`` in format ``fmt`` (one of :data:`FORMATS`).
 
-    The log is built beside ``out`` under a temporary name and renamed into place once
-    complete, so an interrupted write leaves no partial log. An existing ``out`` is replaced.
+    The log is built in a new temporary folder beside ``out`` and renamed into place once
+    complete, so an interrupted write leaves no partial log. An existing ``out`` is an error;
+    with ``replace``, it is replaced if it is a log (:func:`~imucal_cli.paths.recognised_log`),
+    and nothing else ever is.
     """
     if fmt not in FORMATS:
         raise InputError(f"unknown log format {fmt!r} (expected one of: {', '.join(FORMATS)})")
     out = Path(out)
     if not out.parent.is_dir():
         raise InputError(f"{out}: output folder {out.parent} does not exist")
-    tmp = out.with_name(f".{out.name}.partial")
-    _remove(tmp)
+    refuse_existing(out, replace)
+    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))  # ours alone
+    tmp = work / out.name
     try:
         if fmt in ("mcap", "mcap-ros1"):
             _write_mcap(tmp, topics, ros1=fmt == "mcap-ros1", progress=progress)
@@ -159,36 +164,10 @@ def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData], pr
             _write_rosbag1(tmp, topics, progress)
         else:
             _write_rosbag2(tmp, topics, storage=fmt.removeprefix("rosbag2-"), progress=progress)
-            _rename_rosbag2_storage(tmp, out.name)
-        _remove(out)
+        if out.exists() or out.is_symlink():
+            refuse_existing(out, replace)  # (again: it may have appeared meanwhile)
+            shutil.rmtree(out) if out.is_dir() else out.unlink()
         tmp.rename(out)
-    except BaseException:
-        _remove(tmp)
-        raise
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     return out
-
-
-def _rename_rosbag2_storage(folder: Path, name: str) -> None:
-    """rosbags names the storage file after the (temporary) folder; name it after the final one."""
-    import yaml
-
-    metadata_path = folder / "metadata.yaml"
-    metadata = yaml.safe_load(metadata_path.read_text())
-    info = metadata["rosbag2_bagfile_information"]
-    renamed = []
-    for relative in info["relative_file_paths"]:
-        old = folder / relative
-        new_name = name + old.name.removeprefix(folder.name)
-        old.rename(folder / new_name)
-        renamed.append(new_name)
-    info["relative_file_paths"] = renamed
-    for entry, new_name in zip(info.get("files", []), renamed, strict=False):
-        entry["path"] = new_name
-    metadata_path.write_text(yaml.safe_dump(metadata, sort_keys=False))
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir():
-        shutil.rmtree(path)
-    elif path.exists() or path.is_symlink():
-        path.unlink()

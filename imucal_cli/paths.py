@@ -1,0 +1,92 @@
+"""Output paths that never cost a user a file.
+
+The rule every command follows: imucal never deletes or overwrites a file it did not create in
+this run, except an output the user named explicitly that is none of the run's inputs. So an
+output is checked, before any work, against every input (a rosbag2 log is its whole folder,
+also when it is given as its ``metadata.yaml``), and a log is only ever replaced (``simulate
+--force``) when it is recognisably a log.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+from imucal_cli.errors import InputError
+
+#: The files a rosbag2 folder holds (its metadata and its storage, with SQLite's side files).
+ROSBAG2_FILES = (".db3", ".mcap", ".db3-shm", ".db3-wal", ".db3-journal", ".zstd")
+#: The first bytes of the log files imucal reads.
+MAGICS = (b"\x89MCAP0\r\n", b"#ROSBAG V2.0\n")
+
+
+def log_folder(path: Path) -> Path:
+    """The log a path stands for: a rosbag2 folder for its ``metadata.yaml`` or for one of its
+    storage files; the path itself otherwise."""
+    if path.name == "metadata.yaml" or (path.suffix in ROSBAG2_FILES and (path.parent / "metadata.yaml").is_file()):
+        return path.parent
+    return path
+
+
+def _resolved(path: Path) -> Path:
+    return Path(os.path.realpath(path))
+
+
+def check_outputs(outputs: Mapping[str, Path | None], inputs: Iterable[Path | None]) -> None:
+    """Refuse, before any work, an output that is one of the inputs, lies inside an input's
+    folder (a rosbag2 log), is an existing folder, or is named twice. ``outputs`` maps how
+    each was given (``-o``, ``--junit``) to its path."""
+    roots: dict[Path, Path] = {}
+    for given in inputs:
+        if given is None:
+            continue
+        for path in {given, log_folder(given)}:
+            roots.setdefault(_resolved(path), given)
+    seen: dict[Path, str] = {}
+    for option, out in outputs.items():
+        if out is None:
+            continue
+        real = _resolved(out)
+        if real.is_dir():
+            raise InputError(f"{out}: {option} is a folder: give a file name")
+        if real in seen:
+            raise InputError(f"{out}: {option} and {seen[real]} name the same file")
+        seen[real] = option
+        for root, given in roots.items():
+            if real == root:
+                raise InputError(f"{out}: {option} is {given}, an input of this run: give another output")
+            if root.is_dir() and root in real.parents:
+                raise InputError(f"{out}: {option} lies inside {given}, an input of this run: give another output")
+
+
+def recognised_log(path: Path) -> bool:
+    """Whether ``path`` is something imucal could have written as a log: an MCAP or ROS 1 bag
+    file by its magic bytes, or a rosbag2 folder holding only its metadata and storage files."""
+    if path.is_symlink():
+        return False
+    if path.is_file():
+        with path.open("rb") as handle:
+            head = handle.read(16)
+        return any(head.startswith(magic) for magic in MAGICS)
+    if path.is_dir():
+        entries = list(path.iterdir())
+        return (path / "metadata.yaml").is_file() and all(
+            entry.is_file() and not entry.is_symlink() and (entry.name == "metadata.yaml" or entry.name.endswith(ROSBAG2_FILES))
+            for entry in entries
+        )
+    return False
+
+
+def refuse_existing(path: Path, force: bool, what: str = "a log") -> None:
+    """An existing ``path`` is kept unless ``force``, and then replaced only if it is ``what``
+    imucal recognises (:func:`recognised_log`); the current folder and those above it never."""
+    if not (path.exists() or path.is_symlink()):
+        return
+    real, here = _resolved(path), Path.cwd().resolve()
+    if real == here or real in here.parents:
+        raise InputError(f"{path}: is the current folder or one above it: name a new log")
+    if not force:
+        raise InputError(f"{path}: exists: name a new one, or give --force to replace it ({what} only)")
+    if not recognised_log(path):
+        raise InputError(f"{path}: exists and is not a log imucal recognises: not replaced")
