@@ -112,6 +112,10 @@ class StreamedLog:
     losses: list[Loss]  # parts of a damaged log that could not be read
     format_name: str
 
+    def counts(self) -> dict[str, dict[str, int]]:
+        """Per topic, what reading counted (:class:`ReadStats`), the calibrator's duplicates in."""
+        return {topic: stats.to_dict() | {"duplicates": stats.duplicates + self.duplicates.get(topic, 0)} for topic, stats in self.stats.items()}
+
 
 def stream_log(log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
@@ -151,7 +155,14 @@ def stream_log(log: str | Path, config: Config, progress: Callable[[int, int], N
 def stream_biases(log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
     :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length."""
-    from imucal_cli.pipeline import bias_trackers, biases_document
+    from imucal_cli.pipeline import (
+        bias_trackers,
+        biases_document,
+        dropped_document,
+        losses_document,
+        lost_seconds,
+        read_warnings,
+    )
 
     log = Path(log)
     names = imu_names(config)
@@ -167,7 +178,11 @@ def stream_biases(log: str | Path, config: Config, progress: Callable[[int, int]
     if empty:
         raise InputError(f"{log} [{empty[0]}]: too little data: no usable message{lost_summary(reader.losses)}")
     reports = {name: tracker.report() for name, tracker in trackers.items()}
-    return biases_document(min(r.first_ns for r in reports.values()), config, reports)
+    document = biases_document(min(r.first_ns for r in reports.values()), config, reports)
+    counts = {topic: stats.to_dict() for topic, stats in reader.stats.items()}
+    for topic, name in names.items():  # what reading lost and dropped, said where it happened
+        document["imus"][name]["warnings"] += read_warnings(topic, counts[topic])
+    return document | {"lost_s": lost_seconds(reader.losses), "losses": losses_document(reader.losses), "dropped": dropped_document(counts)}
 
 
 @dataclass
@@ -187,7 +202,7 @@ def calibrate_log(log: str | Path, config: Config | str | Path, progress: Callab
         config = load_config(config)
     streamed = stream_log(log, config, progress)
     result = estimate(streamed)
-    return LogCalibration(result, calibration_document(result, str(log), streamed.losses), streamed)
+    return LogCalibration(result, calibration_document(result, str(log), streamed.losses, streamed.counts()), streamed)
 
 
 def follow_log(
@@ -237,7 +252,7 @@ def follow_log(
     if result is None or t0_ns is None:
         raise InputError(f"{log}: too little data to estimate anything yet{lost_summary(reader.losses)}")
     streamed = StreamedLog(log, config, calibrator, t0_ns, reader.stats, {t: calibrator.duplicates(n) for t, n in names.items()}, reader.losses, reader.format_name)
-    document = calibration_document(result, str(log), reader.losses)
+    document = calibration_document(result, str(log), reader.losses, streamed.counts())
     for name, estimate in result.estimates.items():  # what each sensor still lacks of the stop: targets
         document["sensors"][name]["missing"] = missing_axes(estimate, config.stop)
     document["converged"] = good

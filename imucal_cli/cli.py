@@ -180,6 +180,8 @@ def _check_output(out: Path | None, *inputs: Path | None, junit: Path | None = N
     for path in (out, junit):
         if path is not None and not path.parent.is_dir():
             raise InputError(f"{path}: output folder {path.parent} does not exist")
+        if path is not None and not os.access(path.parent, os.W_OK):
+            raise InputError(f"{path}: output folder {path.parent} is not writable")
     check_outputs({"-o": out, "--junit": junit}, inputs)
 
 
@@ -322,6 +324,8 @@ def biases(
     cfg = load_config(config)
     with _progress(f"reading {log}") as progress:
         document = stream_biases(log, cfg, progress)
+    for loss in document["losses"]:
+        _err(f"imucal: warning: {log}: {loss['reason']}")
 
     def render(doc: dict[str, Any]) -> None:
         console = _print_table(
@@ -408,7 +412,7 @@ def calibrate(
 
     with _progress("calibrating"):
         result = estimate(streamed)
-    document = calibration_document(result, str(log), streamed.losses)
+    document = calibration_document(result, str(log), streamed.losses, streamed.counts())
 
     def render(doc: dict[str, Any]) -> None:
         from rich.text import Text

@@ -15,6 +15,8 @@ from dataclasses import fields as dataclass_fields
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
+
 from imucal_cli.errors import ConfigError, InputError
 from imucal_cli.names import name_problem, printable
 from imucal_cli.types import Transform
@@ -119,6 +121,25 @@ SECTIONS = {"rest": RestConfig, "gyro_bias": GyroBiasConfig, "segments": Segment
 #: Keys whose value may be zero (every other number must be positive), and keys with choices.
 MAY_BE_ZERO = {"rotation_floor_deg", "translation_floor_m", "max_time_offset_s"}
 CHOICES = {"accel_units": ("auto", "mps2", "g"), "gyro_units": ("auto", "radps", "dps")}
+#: Sane ranges of the numbers (inclusive), with why: a value outside is a mistake (a unit, a
+#: typo) or would cost unbounded work (``window_s: 1e-6`` over an hour is 3.6 G windows).
+RANGES: dict[str, tuple[float, float, str]] = {
+    "accel_tolerance_mps2": (0.0, 10.0, "m/s^2"),
+    "gyro_tolerance_radps": (0.0, 1.0, "rad/s"),
+    "min_duration_s": (0.0, 3600.0, "s"),
+    "process_noise_dps": (0.0, 100.0, "deg/s"),
+    "initial_std_dps": (0.0, 100.0, "deg/s"),
+    "window_s": (1.0, 600.0, "s: a window holds seconds of driving"),
+    "max_rotation_std_deg": (0.0, 180.0, "deg"),
+    "max_translation_std_m": (0.0, 10.0, "m"),
+    "resample_hz": (10.0, 1000.0, "Hz: the fit low-passes at 5 Hz; more only costs memory"),
+    "max_time_offset_s": (0.0, 1.0, "s: clocks further apart are another clock, not an offset"),
+    "translation_bound_m": (0.0, 10.0, "m"),
+    "rotation_floor_deg": (0.0, 90.0, "deg"),
+    "translation_floor_m": (0.0, 10.0, "m"),
+}
+#: A lidar's IMU lies inside its housing; a CAD prior inside the vehicle (m).
+MAX_IMU_IN_LIDAR_M, MAX_PRIOR_M = 1.0, 100.0
 #: Keys that hold a ROS name, and its kind (:func:`imucal_cli.names.name_problem`): they go into
 #: launch scripts, URDF and Kalibr files, so anything outside ROS's rules is refused here.
 NAME_KINDS = {"frame": "frame", "lidar_frame": "frame", "topic": "topic", "imu_topic": "topic"}
@@ -196,6 +217,9 @@ def _parse(value: Any, name: str, kind: Any, source: str, key: str) -> Any:
         raise ConfigError(source, key, f"expected a finite number, got {value!r}")
     if number < 0 or (number == 0 and name not in MAY_BE_ZERO):
         raise ConfigError(source, key, f"must be {'>= 0' if name in MAY_BE_ZERO else '> 0'}, got {value!r}")
+    low, high, unit = RANGES.get(name, (-math.inf, math.inf, ""))
+    if not low <= number <= high:
+        raise ConfigError(source, key, f"must be within {low:g} to {high:g} {unit}, got {value!r}")
     return number
 
 
@@ -214,6 +238,11 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         section = sensors_section.section(name, required=True)
         sensor = section.fields(SensorConfig, name=name)
         sensors.append(sensor if sensor.lidar_frame else replace(sensor, lidar_frame=f"{name}_lidar"))  # the default frame
+        for what, T, limit, hint in (("T_imu_lidar", sensor.T_imu_lidar, MAX_IMU_IN_LIDAR_M, "a lidar's IMU lies inside its housing: "
+                                      "given in mm? (Ouster's metadata is: divide by 1000)"), ("prior_T_base_imu", sensor.prior_T_base_imu, MAX_PRIOR_M, "")):
+            length = float(np.linalg.norm(T.translation))
+            if length > limit:
+                raise ConfigError(source, f"sensors.{name}.{what}.translation", f"{length:.4g} m from the origin, more than {limit:g} m{'; ' + hint if hint else ''}")
     topics: dict[str, str] = {base.topic: "base.topic"}
     frames: dict[str, str] = {base.frame: "base.frame"}
     for sensor in sensors:

@@ -14,9 +14,47 @@ import yaml
 
 from imucal_cli.errors import InputError
 
+#: The largest YAML/JSON document read (a config, truth, estimate or reference: a few kB each;
+#: a calibrate document of twenty sensors is under 100 kB). PyYAML parses about 300 kB/s.
+MAX_DOCUMENT_BYTES = 1 << 20
+#: The deepest nesting read (imucal's documents nest four deep) ...
+MAX_DEPTH = 32
+#: ... and the most values a document may expand to through its aliases (a "billion laughs"
+#: document of 2 kB expands to 10^9).
+MAX_VALUES = 200_000
+
 
 class _StrictLoader(yaml.SafeLoader):
-    """A safe loader that refuses duplicate mapping keys instead of keeping the last one."""
+    """A safe loader that refuses duplicate mapping keys instead of keeping the last one, and
+    documents nested deeper than :data:`MAX_DEPTH` or expanding to more than :data:`MAX_VALUES`."""
+
+    depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        self.depth += 1
+        if self.depth > MAX_DEPTH:
+            raise yaml.YAMLError(f"nested more than {MAX_DEPTH} deep")
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
+
+    def get_single_node(self) -> Any:
+        node = super().get_single_node()
+        if node is not None and _expanded(node, {}) > MAX_VALUES:
+            raise yaml.YAMLError(f"expands to more than {MAX_VALUES:,} values (through its aliases)")
+        return node
+
+
+def _expanded(node: yaml.Node, sizes: dict[int, int]) -> int:
+    """How many values ``node`` stands for with every alias expanded (each shared node counted
+    once per use, computed once: linear in the document's own size)."""
+    if id(node) not in sizes:
+        sizes[id(node)] = 1  # (a recursive alias counts once: the constructor refuses nothing here)
+        children = node.value if isinstance(node.value, list) else []
+        items = [n for pair in children for n in pair] if isinstance(node, yaml.MappingNode) else children
+        sizes[id(node)] = min(1 + sum(_expanded(n, sizes) for n in items), MAX_VALUES + 1)
+    return sizes[id(node)]
 
 
 def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
@@ -40,15 +78,20 @@ def load_document(path: str | Path) -> Any:
     """Load a YAML or JSON file (JSON is YAML). Raises :class:`InputError` naming the file."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        with path.open("rb") as handle:
+            data = handle.read(MAX_DOCUMENT_BYTES + 1)
+        if len(data) > MAX_DOCUMENT_BYTES:
+            raise InputError(f"{path}: larger than {MAX_DOCUMENT_BYTES >> 20} MiB: not a config or calibration document")
+        text = data.decode("utf-8")
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read: {exc}") from None
     try:
         return yaml.load(text, Loader=_StrictLoader)
-    except yaml.YAMLError as exc:
-        problem = str(exc).replace("\n", " ")
+    except (yaml.YAMLError, RecursionError) as exc:
+        problem = " ".join(str(exc).split())
+        problem = problem if len(problem) <= 300 else problem[:300] + " ..."  # (a message quotes the document)
         raise InputError(f"{path}: not valid YAML/JSON: {problem}") from None
 
 
@@ -107,7 +150,10 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise InputError(f"{path}: output folder {folder} does not exist")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    except OSError as exc:  # a read-only folder
+        raise InputError(f"{path}: cannot write in {folder}: {exc.strerror}") from None
     try:
         os.chmod(tmp_name, 0o666 & ~_umask())  # mkstemp makes 0600; use the usual mode
         with os.fdopen(fd, "wb") as handle:
@@ -115,9 +161,11 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp_name, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp_name)
         except FileNotFoundError:
             pass
+        if isinstance(exc, OSError):  # a full disk, say: one line, no partial file
+            raise InputError(f"{path}: cannot write: {exc.strerror or exc}") from None
         raise

@@ -209,9 +209,11 @@ def _kalibr_imu(ex: Extrinsics, key: str, rate: float | None, noise: dict[str, f
     if rate is None or not rate > 0:
         raise InputError(f"{ex.source}: {key}_rate_hz: missing: Kalibr needs the IMU's update_rate")
     lines = [f"  update_rate: {_f(rate)}"]
+    if noise is not None and not isinstance(noise, dict):
+        raise InputError(f"{ex.source}: {key}_noise: expected a mapping of Kalibr's noise figures, got {noise!r:.60}")
     for name in KALIBR_NOISE:
         value = (noise or {}).get(name)
-        if value is None or not value > 0:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
             raise InputError(f"{ex.source}: {key}_noise.{name}: missing (calibrate with this imucal version): Kalibr needs it")
         lines.append(f"  {name}: {_f(value)}")
     return lines

@@ -1,15 +1,17 @@
 """Fleet runs: one calibration per log, in local processes or on a Dask cluster, with a summary
 (CSV, JSON, JUnit XML) of every log and sensor against truth files or a reference calibration.
 
-Every task is :func:`run_one`: it calibrates one log, writes its calibrate document into the
-output folder and returns the summary rows; it never raises (a broken log is a failed row), so
-one bad log never stops the others. The same function runs under ``--jobs N``
-(``concurrent.futures`` processes) and ``--scheduler tcp://...`` (``dask.distributed``, the
-optional extra ``imucal[fleet]``); results do not depend on where a task ran.
+Every task is :func:`run_one`: it calibrates one log and returns the summary rows and its
+calibrate document, which the batch's own process writes into the output folder (a worker
+that is lost writes nothing); it never raises (a broken log is a failed row), so one bad log
+never stops the others. The same function runs under ``--jobs N`` (a process per log) and
+``--scheduler tcp://...`` (``dask.distributed``, the optional extra ``imucal[fleet]``); results
+do not depend on where a task ran.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -33,6 +35,8 @@ from imucal_cli.types import Transform
 #: combined std (largest axis of each); where a std is not known, the fallbacks below.
 MOVED_STD = 3.0
 MOVED_FALLBACK_DEG, MOVED_FALLBACK_M = 0.1, 0.02
+#: How long a batch waits for a Dask worker to join its scheduler (s).
+DASK_WORKERS_S = 30.0
 
 #: Log file suffixes a batch output's name drops (``2024.01.05.mcap`` -> ``2024.01.05.yaml``).
 LOG_SUFFIXES = (".mcap", ".bag", ".db3")
@@ -40,7 +44,7 @@ LOG_SUFFIXES = (".mcap", ".bag", ".db3")
 SUMMARY_COLUMNS = (
     "log", "sensor", "status", "x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg",
     "rotation_std_deg", "translation_std_m", "rotation_error_deg", "translation_error_m", "moved",
-    "lost_s", "warnings", "pass", "error",
+    "lost_s", "dropped", "warnings", "pass", "error",
 )
 
 
@@ -81,6 +85,7 @@ class Row:
     translation_error_m: float | None = None
     moved: bool | None = None  # against a reference: past a threshold
     lost_s: float | None = 0.0  # log time the read lost (None: not known, a log cut off mid-write)
+    dropped: int = 0  # samples the read dropped (not decodable, not finite, clipped, ...), every topic
     warnings: str = ""  # what reading lost and what the calibration warned of, "; "-separated
     passed: bool = False
     error: str = ""
@@ -93,25 +98,30 @@ class Row:
         return out
 
 
-def run_one(task: Task) -> list[Row]:
-    """Calibrate one log and compare; never raises. Safe to run in any process or worker."""
+Outcome = tuple[list["Row"], dict[str, Any] | None]
+
+
+def run_one(task: Task) -> Outcome:
+    """Calibrate one log and compare: the summary rows and the calibrate document (None where
+    it failed); never raises. Safe to run in any process or worker: it writes nothing (the
+    process that runs the batch writes each document as it arrives, :func:`deliver`)."""
     import time
 
     from imucal_cli.api import calibrate_log
-    from imucal_cli.documents import write_document
     from imucal_cli.pipeline import transform_errors
 
     start = time.perf_counter()
     try:
         run = calibrate_log(task.log, task.config)
-        write_document(task.out, run.document)
     except ImucalError as exc:
-        return [Row(task.name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)]
+        return [Row(task.name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)], None
     except Exception as exc:
         where = traceback.extract_tb(exc.__traceback__)[-1]
-        return [Row(task.name, "", "failed", error=f"internal error: {type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})", seconds=time.perf_counter() - start)]
-    lost_s, losses = run.document["lost_s"], run.document["losses"]
-    lost_ok = not losses or (task.max_lost_s is not None and lost_s is not None and lost_s <= task.max_lost_s)
+        error = f"internal error: {type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})"
+        return [Row(task.name, "", "failed", error=error, seconds=time.perf_counter() - start)], None
+    lost_s, losses, dropped = run.document["lost_s"], run.document["losses"], run.document["dropped"]
+    undecodable = sum(d.get("decode_errors", 0) for d in dropped.values())  # (counted in lost_s)
+    lost_ok = not (losses or undecodable) or (task.max_lost_s is not None and lost_s is not None and lost_s <= task.max_lost_s)
     rows = []
     for sensor, s in run.document["sensors"].items():
         T = run.result.T_base_lidar(sensor)
@@ -119,12 +129,13 @@ def run_one(task: Task) -> list[Row]:
         row = Row(
             task.name, sensor, s["status"], *map(float, T.translation), *map(float, np.degrees(T.rpy_rad)),
             None if std_r is None else float(max(std_r)), None if std_t is None else float(max(std_t)),
-            lost_s=lost_s, warnings="; ".join([x["reason"] for x in losses] + s["warnings"]),
+            lost_s=lost_s, dropped=sum(sum(d.values()) for d in dropped.values()), warnings="; ".join([x["reason"] for x in losses] + s["warnings"]),
         )
         row.passed = s["status"] == "ok" and lost_ok
         if not lost_ok:
             limit = "any loss fails (--max-lost-s)" if task.max_lost_s is None else f"--max-lost-s {task.max_lost_s:g}"
-            row.error = f"the read lost {'an unknown span' if lost_s is None else f'{lost_s:.2f} s'} of the log; {limit}"
+            lost = "an unknown span" if lost_s is None else f"{lost_s:.2f} s"
+            row.error = f"the read lost {lost} of the log{f' ({undecodable:,} messages not decodable)' if undecodable else ''}; {limit}"
         if task.against is not None and sensor in task.against:
             errors = transform_errors(T, task.against[sensor])
             row.rotation_error_deg = errors["rotation_error_deg"]
@@ -147,7 +158,25 @@ def run_one(task: Task) -> list[Row]:
     elapsed = time.perf_counter() - start
     for row in rows:
         row.seconds = elapsed
+    return rows, run.document
+
+
+def deliver(task: Task, outcome: Outcome) -> list[Row]:
+    """Write a task's document where it goes (in the process that runs the batch: a worker
+    that is lost writes nothing) and return its rows; a write that fails fails the rows."""
+    from imucal_cli.documents import write_document
+
+    rows, document = outcome
+    if document is not None:
+        try:
+            write_document(task.out, document)
+        except (OSError, ImucalError) as exc:
+            return [Row(task.name, "", "failed", error=f"{task.out}: cannot write: {getattr(exc, 'strerror', None) or exc}")]
     return rows
+
+
+def _failed(task: Task, why: str) -> Outcome:
+    return [Row(task.name, "", "failed", error=why)], None
 
 
 def _combined(now: float | None, before: float | None, fallback: float) -> float:
@@ -158,25 +187,66 @@ def _combined(now: float | None, before: float | None, fallback: float) -> float
 
 
 def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
-    """Every task in ``jobs`` local processes (in order of the tasks)."""
+    """Every task, ``jobs`` at a time, each in a process of its own: a process that dies (the
+    out-of-memory killer) fails its log alone, by name; a Ctrl-C stops the running ones and
+    starts no other."""
+    results: list[list[Row]] = [[] for _ in tasks]
     if jobs <= 1:
-        results = []
         for i, task in enumerate(tasks):
-            results.append(run_one(task))
+            results[i] = deliver(task, run_one(task))
             if on_done:
                 on_done(i, results[i])
         return results
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from multiprocessing.connection import wait
 
-    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method)) as pool:
-        futures = [pool.submit(run_one, task) for task in tasks]
-        return _collect(tasks, futures, as_completed(futures), on_done)
+    context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
+    waiting = list(enumerate(tasks))
+    running: dict[Any, tuple[int, Any]] = {}  # result pipe -> (task number, process)
+    try:
+        while waiting or running:
+            while waiting and len(running) < jobs:
+                i, task = waiting.pop(0)
+                receive, send = context.Pipe(duplex=False)
+                process = context.Process(target=_work, args=(task, send), name=f"imucal {task.name}", daemon=True)
+                process.start()
+                send.close()
+                running[receive] = (i, process)
+            for receive in wait(list(running)):
+                i, process = running.pop(receive)  # type: ignore[call-overload]
+                try:
+                    outcome = receive.recv()
+                except EOFError:  # it died before it answered
+                    process.join()
+                    outcome = _failed(tasks[i], f"the worker calibrating {tasks[i].log} died ({_death(process.exitcode)})")
+                process.join()
+                results[i] = deliver(tasks[i], outcome)
+                if on_done:
+                    on_done(i, results[i])
+    finally:
+        for _, process in running.values():  # interrupted: stop what runs, start nothing more
+            process.kill()
+            process.join()
+    return results
+
+
+def _work(task: Task, send: Any) -> None:
+    send.send(run_one(task))
+    send.close()
+
+
+def _death(exitcode: int | None) -> str:
+    import signal
+
+    if exitcode is not None and exitcode < 0:
+        name = signal.Signals(-exitcode).name
+        return f"killed by {name}" + (", as the out-of-memory killer does" if name == "SIGKILL" else "")
+    return f"exit code {exitcode}"
 
 
 def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
-    """Every task on the Dask cluster whose scheduler listens at ``address``."""
+    """Every task on the Dask cluster whose scheduler listens at ``address``; a scheduler
+    without workers is an error, one lost mid-batch fails the logs not yet done."""
     try:
         from dask.distributed import Client, as_completed
     except ImportError:
@@ -185,28 +255,34 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
         client = Client(address, timeout="10s")
     except Exception as exc:
         raise InputError(f"--scheduler {address}: cannot connect: {exc}") from None
+    results: list[list[Row] | None] = [None] * len(tasks)
     try:
-        futures = client.map(run_one, list(tasks), pure=False)
-        return _collect(tasks, futures, as_completed(futures), on_done)
-    finally:
-        client.close()
-
-
-def _collect(tasks: Sequence[Task], futures: Sequence[Any], completed: Iterable[Any], on_done: Callable[[int, list[Row]], None] | None) -> list[list[Row]]:
-    """The rows of every task, in the tasks' order, from ``futures`` (one per task, of
-    ``concurrent.futures`` or Dask) as ``completed`` yields them; a worker that failed is a
-    failed row, never a stopped run."""
-    index = {id(future): i for i, future in enumerate(futures)}  # (completed yields these objects)
-    results: list[list[Row]] = [[] for _ in tasks]
-    for future in completed:
-        i = index[id(future)]
         try:
-            results[i] = future.result()
-        except Exception as exc:
-            results[i] = [Row(tasks[i].name, "", "failed", error=f"worker failed: {type(exc).__name__}: {exc}")]
-        if on_done:
-            on_done(i, results[i])
-    return results
+            client.wait_for_workers(1, timeout=DASK_WORKERS_S)
+        except Exception:
+            raise InputError(f"--scheduler {address}: no worker joined within {DASK_WORKERS_S:g} s") from None
+        futures = client.map(run_one, list(tasks), pure=False)
+        index = {future.key: i for i, future in enumerate(futures)}
+        try:
+            for future in as_completed(futures):
+                i = index[future.key]
+                try:
+                    outcome = future.result()
+                except Exception as exc:
+                    outcome = _failed(tasks[i], f"worker failed: {type(exc).__name__}: {exc}")
+                results[i] = deliver(tasks[i], outcome)
+                if on_done:
+                    on_done(i, results[i])  # type: ignore[arg-type]
+        except Exception as exc:  # the scheduler went away
+            for i, task in enumerate(tasks):
+                if results[i] is None:
+                    results[i] = deliver(task, _failed(task, f"the scheduler at {address} was lost ({type(exc).__name__})"))
+                    if on_done:
+                        on_done(i, results[i])  # type: ignore[arg-type]
+    finally:
+        with contextlib.suppress(Exception):
+            client.close(timeout=5)
+    return [r or [] for r in results]
 
 
 def plan_tasks(
@@ -278,11 +354,19 @@ def _reference_std(path: str) -> dict[str, tuple[float | None, float | None]]:
     """Per sensor of a reference calibration: its largest rotation (deg) and translation (m) std."""
     from imucal_cli.documents import load_document
 
-    out = {}
-    for name, s in (load_document(path).get("sensors") or {}).items():
-        r, t = s.get("rotation_std_deg"), s.get("translation_std_m")
-        out[name] = (max(r) if r else None, max(t) if t else None)
-    return out
+    def largest(value: Any, key: str) -> float | None:
+        if value is None:
+            return None
+        if not isinstance(value, list) or not value or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            raise InputError(f"{path}: {key}: expected a list of numbers, got {value!r:.60}")
+        return float(max(value))
+
+    document = load_document(path)
+    sensors = document.get("sensors") if isinstance(document, dict) else None
+    if not isinstance(sensors, dict) or not all(isinstance(s, dict) for s in sensors.values()):
+        raise InputError(f"{path}: not a calibration (expected sensors: NAME: {{...}})")
+    return {name: (largest(s.get("rotation_std_deg"), f"sensors.{name}.rotation_std_deg"),
+                   largest(s.get("translation_std_m"), f"sensors.{name}.translation_std_m")) for name, s in sensors.items()}
 
 
 def read_manifest(path: Path) -> list[dict[str, str]]:
@@ -344,7 +428,7 @@ def junit_xml(rows: Sequence[Row]) -> str:
         figures = ", ".join(
             f"{k} {v:.6g}" if isinstance(v, float) else f"{k} {v}"
             for k, v in (("status", r.status), ("rotation_error_deg", r.rotation_error_deg), ("translation_error_m", r.translation_error_m),
-                         ("moved", r.moved), ("lost_s", r.lost_s)) if v is not None
+                         ("moved", r.moved), ("lost_s", r.lost_s), ("dropped", r.dropped)) if v is not None
         )
         out = f"<system-out>{escape(figures + (('; ' + r.warnings) if r.warnings else ''))}</system-out>"
         if r.status == "failed":

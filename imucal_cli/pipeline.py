@@ -261,17 +261,50 @@ def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
     }
 
 
-def calibration_document(result: CalibrationResult, log: str, losses: Sequence[Loss] = ()) -> dict[str, Any]:
+#: What reading drops from a topic (:class:`~imucal_cli.io.logs.ReadStats`), and how a warning says it.
+DROPPED = {"decode_errors": "not decodable", "non_finite": "not finite", "implausible": "beyond any IMU's range",
+           "saturated": "clipped at the sensor's range", "stamp_outliers": "with a damaged stamp", "duplicates": "with a duplicate stamp"}
+
+
+def dropped_document(counts: Mapping[str, Mapping[str, int]]) -> dict[str, dict[str, int]]:
+    """Per topic that dropped any, the samples reading dropped, by reason."""
+    out = {topic: {k: int(c.get(k, 0)) for k in DROPPED if c.get(k, 0)} for topic, c in counts.items()}
+    return {topic: d for topic, d in out.items() if d}
+
+
+def read_warnings(topic: str, counts: Mapping[str, int]) -> list[str]:
+    """What reading dropped from ``topic`` or found wrong with its clock, as warnings."""
+    dropped = {k: int(counts.get(k, 0)) for k in DROPPED if counts.get(k, 0)}
+    out = []
+    if dropped:
+        total, messages = sum(dropped.values()), max(int(counts.get("messages", 0)), 1)
+        out.append(f"{topic}: {total:,} of {messages:,} messages dropped ({100 * total / messages:.1f}%: "
+                   + ", ".join(f"{n:,} {DROPPED[k]}" for k, n in dropped.items()) + "); windows with a gap there are not used")
+    if counts.get("clock_jumps"):
+        out.append(f"{topic}: its stamps jump by a minute or more {counts['clock_jumps']} times; the windows across a jump are not used")
+    return out
+
+
+def calibration_document(result: CalibrationResult, log: str, losses: Sequence[Loss] = (), counts: Mapping[str, Mapping[str, int]] | None = None) -> dict[str, Any]:
     """The SPEC's calibrate document; ``losses`` (what reading the log could not read) go in
-    as ``losses`` and ``lost_s`` (None: a span not known)."""
+    as ``losses`` and ``lost_s`` (None: a span not known), undecodable messages counted in
+    ``lost_s`` at their topic's rate; ``counts`` (per topic, what reading counted) as
+    ``dropped`` and as each sensor's warnings (the base's in every sensor's)."""
     config = result.config
+    counts = counts or {}
+    lost_s = lost_seconds(losses)
+    for topic, name in [(config.base.topic, "base"), *((s.imu_topic, s.name) for s in config.sensors)]:
+        undecodable, rate = counts.get(topic, {}).get("decode_errors", 0), _rate(result, name)
+        if undecodable and lost_s is not None:
+            lost_s = None if rate is None else lost_s + undecodable / rate
+    base_warnings = [f"base: {w}" for w in read_warnings(config.base.topic, counts.get(config.base.topic, {}))]
     sensors: dict[str, Any] = {}
     for sensor in config.sensors:
         est = result.estimates[sensor.name]
         cov = est.covariance
         sensors[sensor.name] = {
             "status": est.status,
-            "warnings": list(est.warnings),
+            "warnings": [*est.warnings, *base_warnings, *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {}))],
             "imu_topic": sensor.imu_topic,
             "lidar_frame": sensor.lidar_frame,
             "imu_rate_hz": _rate(result, sensor.name),
@@ -313,8 +346,9 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
         "base_imu_noise": imu_noise(result, "base"),
         "sensors": sensors,
         "pairs": pairs,
-        "lost_s": lost_seconds(losses),
+        "lost_s": lost_s,
         "losses": losses_document(losses),
+        "dropped": dropped_document(counts),
     }
 
 

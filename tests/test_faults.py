@@ -585,3 +585,35 @@ def test_a_long_gap_in_one_imu_does_not_confuse_its_units_or_its_clock(tmp_path)
     for sensor in run.document["sensors"].values():
         assert not any("publishes" in w for w in sensor["warnings"])  # no unit conversion made up
     assert run.streamed.stats[name].gaps == 1
+
+
+def test_a_topic_that_stops_is_named_and_the_others_use_the_whole_log(tmp_path):
+    """A lidar IMU that stops sending a third of the way in (a driver that died): a warning
+    names it, its windows after that are not used, and the other sensor calibrates from the
+    whole log (it used to wait for the stopped one, buffering everything)."""
+    from imucal_cli.api import calibrate_log
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import TopicData
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=150.0, seed=4))
+    topics = drive.topics()
+    stopped = list(topics)[1]
+    data = topics[stopped]
+    end = data.stream.t_ns[0] + 50 * 10**9
+    keep = data.stream.t_ns < end
+    topics[stopped] = TopicData(data.stream.__class__(data.stream.t_ns[keep], data.stream.gyro[keep], data.stream.accel[keep], data.stream.frame_id), data.log_time_ns[keep] if data.log_time_ns is not None else None)
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", topics)
+    config = tmp_path / "c.yaml"
+    write_document(config, drive.config_document())
+    run = calibrate_log(log, config)
+    names = {s["imu_topic"]: n for n, s in drive.config_document()["sensors"].items()}
+    gone, other = names[stopped], next(n for t, n in names.items() if t != stopped)
+    sensors = run.document["sensors"]
+    assert any(stopped in w and "sent nothing from" in w for w in sensors[gone]["warnings"])
+    assert not any("sent nothing" in w for w in sensors[other]["warnings"])
+    total = sensors[other]["segments"]["total"]
+    assert total >= 13  # 150 s in 10 s windows, less the padding at the ends
+    assert sensors[gone]["segments"]["total"] == total  # counted alike; its late ones not used
+    assert sensors[gone]["segments"]["selected"] <= 5
+    assert sensors[other]["status"] == "ok"

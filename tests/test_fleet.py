@@ -236,3 +236,87 @@ def test_plan_takes_each_reference_std_from_its_own_file(tmp_path):
     assert task.against == {} and not task.reference
     with pytest.raises(InputError, match=r"nope\.truth\.yaml"):
         plan_tasks([{"log": str(logs[0]), "truth": str(tmp_path / "nope.truth.yaml")}], config, tmp_path / "out", truth_dir=tmp_path / "truths")
+
+
+def test_a_worker_killed_fails_its_own_log_by_name_and_no_other(fleet, tmp_path, monkeypatch):
+    """As the out-of-memory killer would: one log's worker dies; the others are calibrated, and
+    the failed row names the log and the signal (it used to fail every unfinished log as
+    "BrokenProcessPool")."""
+    import os
+    import signal
+
+    import imucal_cli.fleet as fleet_module
+
+    root, logs = fleet
+    victim = logs[1]
+    real = fleet_module.run_one
+
+    def dies_on_the_victim(task):
+        if task.log == str(victim):
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(task)
+
+    monkeypatch.setattr(fleet_module, "run_one", dies_on_the_victim)  # (the fork inherits it)
+    out = tmp_path / "out"
+    result = _run(root, logs[:3], out, "--jobs", "2")
+    assert result.exit_code == 1, result.output
+    rows = {r["log"]: r for r in _rows(out)}
+    killed = rows[victim.name]
+    assert killed["status"] == "failed" and str(victim) in killed["error"] and "SIGKILL" in killed["error"]
+    for log in (logs[0], logs[2]):
+        assert rows[log.name]["status"] == "ok", rows[log.name]
+    assert not (out / f"{victim.stem}.yaml").exists()
+
+
+def test_ctrl_c_during_a_batch_stops_it_and_starts_no_other_log(fleet, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from recorder import with_terminal_sigint
+
+    root, logs = fleet
+    many = [logs[k % 3] for k in range(3)]
+    copies = []
+    for k, log in enumerate(many * 3):
+        copies.append(tmp_path / f"c{k}.mcap")
+        copies[-1].write_bytes(log.read_bytes())
+    out = tmp_path / "out"
+    argv = [sys.executable, "-m", "imucal_cli.cli", "batch", *map(str, copies), "-c", str(root / "config.yaml"), "--out-dir", str(out), "--jobs", "2"]
+    process = subprocess.Popen(with_terminal_sigint(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (out.is_dir() and any(out.glob("*.yaml"))):
+        time.sleep(0.02)
+    os.killpg(process.pid, signal.SIGINT)
+    started = time.monotonic()
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 130, stderr
+    assert time.monotonic() - started < 10  # not the rest of the queue
+    assert b"interrupted" in stderr and b"Traceback" not in stderr
+    assert len(list(out.glob("c*.yaml"))) < len(copies)
+
+
+def test_a_scheduler_without_workers_is_an_error_not_a_hang(fleet, tmp_path, monkeypatch):
+    pytest.importorskip("dask.distributed")
+    import asyncio
+
+    from distributed import Scheduler
+
+    import imucal_cli.fleet as fleet_module
+
+    monkeypatch.setattr(fleet_module, "DASK_WORKERS_S", 2.0)
+    root, logs = fleet
+
+    async def scheduler_alone():
+        async with Scheduler(host="127.0.0.1", port=0, dashboard_address=None) as scheduler:
+            result = await asyncio.to_thread(
+                runner.invoke, app, ["batch", str(logs[0]), "-c", str(root / "config.yaml"), "--out-dir", str(tmp_path / "out"), "--scheduler", scheduler.address]
+            )
+            return result
+
+    result = asyncio.run(scheduler_alone())
+    assert result.exit_code == 2, result.output
+    assert "no worker joined" in result.stderr
+    assert not (tmp_path / "out" / "summary.csv").exists()

@@ -1,7 +1,8 @@
 """Per-IMU rests and biases without any other sensor (paper section IV-C, eqs. 5-9), streamed.
 
 - Samples are summed into short blocks (:data:`BLOCK_S`): count, mean and spread of the
-  accelerometer and the gyro. Memory: a few numbers a block, about 2 MB an hour.
+  accelerometer and the gyro. Memory: a few numbers a block that holds samples, about 2 MB an
+  hour of samples, whatever the span of their stamps.
 - Rest (eq. 5, with a test that does not depend on the bias it is about to estimate): blocks
   whose mean specific force is within ``accel_tolerance`` of its mean over the second around,
   and whose mean gyro magnitude is within ``gyro_tolerance``, held for ``min_duration_s``. An
@@ -69,15 +70,16 @@ class BiasReport:
 
 class BiasTracker:
     """One IMU's rests and biases; feed samples in time order with :meth:`add`, then
-    :meth:`report`."""
+    :meth:`report`. Only the blocks that hold samples are kept: memory follows the samples,
+    not the span of their stamps (a clock that jumps a year costs nothing)."""
 
     def __init__(self, accel_tolerance: float, gyro_tolerance: float, min_duration_s: float, process_noise: float, initial_std: float) -> None:
         self.accel_tolerance, self.gyro_tolerance, self.min_duration_s = accel_tolerance, gyro_tolerance, min_duration_s
         self.process_noise, self.initial_std = process_noise, initial_std
         self.first_ns: int | None = None
-        self.last_ns = 0
         self.reference = np.zeros(6)  # the first sample: sums of squares about it keep their digits
-        self.sums = np.zeros((0, 13))
+        self._blocks: list[np.ndarray] = []  # per batch: the blocks it fills (ascending) ...
+        self._sums: list[np.ndarray] = []  # ... and their sums (rows of 13)
 
     def add(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         if not len(t_ns):
@@ -85,39 +87,65 @@ class BiasTracker:
         if self.first_ns is None:
             self.first_ns = int(t_ns.min())
             self.reference = np.concatenate([accel[0], gyro[0]])
-        self.last_ns = max(self.last_ns, int(t_ns.max()))
         block = np.maximum((t_ns - self.first_ns) // int(BLOCK_S * 1e9), 0)
-        if block.max() >= len(self.sums):
-            self.sums = np.vstack([self.sums, np.zeros((int(block.max()) + 1 - len(self.sums) + 1024, 13))])
         a, w = accel - self.reference[:3], gyro - self.reference[3:]
-        columns = np.column_stack([np.ones(len(t_ns)), a, a * a, w, w * w])
+        self._add(block, np.column_stack([np.ones(len(t_ns)), a, a * a, w, w * w]))
+        if len(self._blocks) > 256:  # (merged now and then: the lists stay short)
+            self._add(*self.blocks())
+
+    def _add(self, block: np.ndarray, columns: np.ndarray) -> None:
         low, high = int(block.min()), int(block.max()) + 1
-        for k in range(13):
-            self.sums[low:high, k] += np.bincount(block - low, columns[:, k], high - low)
+        if high - low <= 4 * len(block) + 64:  # the usual batch: blocks side by side
+            index, blocks = block - low, np.arange(low, high)
+        else:  # stamps far apart (a clock jump): the blocks they fill, not the span between
+            blocks, index = np.unique(block, return_inverse=True)
+        sums = np.column_stack([np.bincount(index, columns[:, k], len(blocks)) for k in range(columns.shape[1])])
+        filled = sums[:, _N] > 0
+        self._blocks.append(blocks[filled])
+        self._sums.append(sums[filled])
+
+    def blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The blocks holding samples (ascending) and their sums, merged over every batch."""
+        if not self._blocks:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 13))
+        blocks, sums = np.concatenate(self._blocks), np.concatenate(self._sums)
+        self._blocks, self._sums = [], []
+        if len(blocks) > 1 and not (np.diff(blocks) > 0).all():
+            blocks, index = np.unique(blocks, return_inverse=True)
+            sums = np.column_stack([np.bincount(index, sums[:, k], len(blocks)) for k in range(13)])
+        self._blocks, self._sums = [blocks], [sums]
+        return blocks, sums
 
     def report(self) -> BiasReport:
-        n_blocks = int((self.last_ns - (self.first_ns or 0)) // int(BLOCK_S * 1e9)) + 1 if self.first_ns is not None else 0
-        sums = self.sums[:n_blocks]
-        n = np.maximum(sums[:, _N], 1.0)[:, None]
-        accel_mean, gyro_mean = sums[:, _FA] / n, sums[:, _W] / n + self.reference[3:]
+        blocks, sums = self.blocks()
+        # where blocks are missing, at most LOCAL_BLOCKS + 1 empty rows: the mean over the
+        # blocks around (below) sees the same blocks as in time, and a rest cannot span them
+        rows = np.concatenate([[0], np.cumsum(np.minimum(np.diff(blocks), LOCAL_BLOCKS + 1))]).astype(np.int64)
+        dense = np.zeros((rows[-1] + 1 if len(rows) else 0, 13))
+        dense[rows] = sums
+        n = np.maximum(dense[:, _N], 1.0)[:, None]
+        accel_mean, gyro_mean = dense[:, _FA] / n, dense[:, _W] / n + self.reference[3:]
         # the accelerometer's block mean against its mean over the blocks around (1 s): motion
         # moves it, a bias does not, and the noise is averaged down to a tenth of a second's
         kernel = np.ones(2 * LOCAL_BLOCKS + 1)
-        weight = np.convolve(sums[:, _N], kernel, mode="same")
-        local = np.column_stack([np.convolve(sums[:, k], kernel, mode="same") for k in range(_FA.start, _FA.stop)]) / np.maximum(weight, 1.0)[:, None]
+        weight = np.convolve(dense[:, _N], kernel, mode="same")
+        local = np.column_stack([np.convolve(dense[:, k], kernel, mode="same") for k in range(_FA.start, _FA.stop)]) / np.maximum(weight, 1.0)[:, None]
         still = (
-            (sums[:, _N] >= 2)
+            (dense[:, _N] >= 2)
             & (np.linalg.norm(accel_mean - local, axis=1) <= self.accel_tolerance)
             & (np.linalg.norm(gyro_mean, axis=1) <= self.gyro_tolerance)
         )
         rests = []
         edge = round(REST_EDGE_S / BLOCK_S)
+        block_of = np.zeros(len(dense), dtype=np.int64)
+        block_of[rows] = blocks  # (a rest lies in blocks side by side: rows and blocks agree there)
         for a, b in true_runs(still):
             if (b - a) * BLOCK_S < self.min_duration_s:
                 continue
             inner = slice(a + edge, b - edge) if b - a > 2 * edge + 1 else slice(a, b)
-            rests.append(self._rest(sums[inner], a * BLOCK_S, b * BLOCK_S))
-        return self._track(rests, sums)
+            rests.append(self._rest(dense[inner], block_of[a] * BLOCK_S, (block_of[b - 1] + 1) * BLOCK_S))
+        span_s = (int(blocks[-1]) + 1) * BLOCK_S if len(blocks) else 0.0
+        return self._track(rests, sums, span_s)
 
     def _rest(self, sums: np.ndarray, start_s: float, end_s: float) -> RestPeriod:
         count = float(sums[:, _N].sum())
@@ -130,8 +158,9 @@ class BiasTracker:
         var_w = np.maximum(sums[:, _W2].sum(axis=0) / count - mean_w**2, 1e-12)
         return RestPeriod(start_s, end_s, bias, std_a, mean_w + self.reference[3:], var_w, int(count))
 
-    def _track(self, rests: list[RestPeriod], sums: np.ndarray) -> BiasReport:
-        """The gyro bias Kalman filter over the rests (eqs. 7-9)."""
+    def _track(self, rests: list[RestPeriod], sums: np.ndarray, end_s: float) -> BiasReport:
+        """The gyro bias Kalman filter over the rests (eqs. 7-9), to ``end_s``; ``sums`` of the
+        blocks that hold samples."""
         q = self.process_noise**2
         x = rests[0].gyro_mean.copy() if rests else np.zeros(3)
         P = np.full(3, self.initial_std**2)
@@ -144,7 +173,6 @@ class BiasTracker:
             values.append(x.copy())
             durations.append(0.0)
             P, last_s = P_new, rest.start_s
-        end_s = len(sums) * BLOCK_S
         durations[-1] += end_s - last_s
         P = P + q * (end_s - last_s)
         v, d = np.array(values), np.array(durations)

@@ -77,6 +77,9 @@ REORDER_S = 0.5
 NOISE_BAND_HZ = (10.0, 20.0)
 #: Windows conditioned together (one spline and one filter pass per IMU and block).
 BLOCK_WINDOWS = 6
+#: An IMU with no sample for this long (s) while another goes on has stopped (a driver that
+#: died, a topic not recorded): the others' windows go on without it, its own are not used.
+STOPPED_S = 30.0
 #: Windows whose observability is computed together (bounds scratch memory).
 INFO_CHUNK = 128
 
@@ -373,6 +376,18 @@ def _reduce_block(
     return out
 
 
+#: Fewest samples of an IMU in a block for its windows there to be reduced.
+MIN_SPAN_SAMPLES = 8
+
+
+def _unused(number: int, start: float, end: float) -> WindowMoments:
+    """A window of an IMU that has no samples there (it stopped): kept in the count, not used."""
+    dim_g, dim_a = GYRO_DIM - OWN_ENTRIES[GYRO_DIM], ACCEL_DIM - OWN_ENTRIES[ACCEL_DIM]
+    shared = base_moments(np.zeros((dim_g, dim_g)), np.zeros((dim_a, dim_a)))
+    info = WindowInfo(start, end, 0.0, float("inf"), False, np.full(3, np.inf), np.zeros(3, dtype=bool), False)
+    return WindowMoments(number, start, end, False, shared, np.zeros((6, 6 + dim_g)), np.zeros((3, 3 + dim_a)), 0, info)
+
+
 def _longest_covered(grid: np.ndarray, covered: list[np.ndarray], margin: int) -> np.ndarray:
     """The longest stretch of ``grid`` that every IMU covers (no gap), less ``margin`` points at
     each end (where a filter would reach into the gap): the boot's units and clock offsets are
@@ -438,6 +453,9 @@ class StreamingCalibrator:
         self.block_windows = max(1, int(block_windows))
         #: How far out of order stamps may arrive (s): windows wait this long for them.
         self.reorder_s = reorder_s
+        #: Per IMU that stopped sending while the others went on: [from, to] seconds from the
+        #: origin of each silence (``to`` None while it lasts).
+        self.silences: dict[str, list[list[float | None]]] = {}
 
     # ---------------------------------------------------------------- input
 
@@ -471,9 +489,19 @@ class StreamingCalibrator:
         return PAD_S + self.max_offset
 
     def _covered_until(self) -> float:
-        """Seconds from the origin every IMU has data up to."""
+        """Seconds from the origin every IMU that has not stopped has data up to."""
         assert self.t_ref_ns is not None
-        return min((int(b.last_ns) - self.t_ref_ns) * 1e-9 for b in self.buffers.values())  # type: ignore[arg-type]
+        lasts = {name: (int(b.last_ns) - self.t_ref_ns) * 1e-9 for name, b in self.buffers.items()}  # type: ignore[arg-type]
+        lead = max(lasts.values())
+        for name, last in lasts.items():  # an IMU that has stopped, or that resumed
+            silences = self.silences.setdefault(name, [])
+            silent = bool(silences) and silences[-1][1] is None
+            if lead - last > max(STOPPED_S, 3 * self.window_s) and not silent:
+                silences.append([last, None])
+            elif silent and lead - last <= self.reorder_s + self.max_offset + PAD_S:
+                silences[-1][1] = last
+        running = [last for name, last in lasts.items() if not (self.silences[name] and self.silences[name][-1][1] is None)]
+        return min(running)
 
     def _boot(self, final: bool) -> bool:
         """Once enough data is buffered: each IMU's units and noise, each sensor's clock offset
@@ -640,7 +668,9 @@ class StreamingCalibrator:
         many of them."""
         assert self.t_ref_ns is not None
         firsts = []
-        for buffer in self.buffers.values():
+        for name, buffer in self.buffers.items():
+            if self.silences.get(name) and self.silences[name][-1][1] is None:
+                continue  # stopped: its windows are not used
             t, _ = buffer.arrays()
             if not len(t):
                 return
@@ -665,9 +695,11 @@ class StreamingCalibrator:
             t, both = self.buffers[name].cleaned()
             t = self._seconds(t)  # sorted (cleaned): the samples in the span are a slice
             a, b = int(np.searchsorted(t, first_s + tau, side="left")), int(np.searchsorted(t, last_s + tau, side="right"))
-            samples[name] = (tau, t[a:b], both[a:b])
-        for name, windows in _reduce_block(spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after, self.base_name, samples).items():
-            self.windows[name].extend(windows)
+            if b - a >= MIN_SPAN_SAMPLES:  # an IMU that stopped has none: its windows are not used
+                samples[name] = (tau, t[a:b], both[a:b])
+        reduced = _reduce_block(spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after, self.base_name, samples) if self.base_name in samples else {}
+        for name in self.sensors:
+            self.windows[name].extend(reduced.get(name) or [_unused(number, start, end) for number, start, end in spans])
 
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
         """Fill in the observability of windows that lack it (all at once)."""
@@ -721,8 +753,15 @@ class StreamingCalibrator:
         return out
 
     def _unit_notes(self, name: str) -> list[str]:
-        """The units converted on the way, the base's first."""
-        return [f"base: {w}" for w in self.unit_warnings.get(self.base_name, [])] + self.unit_warnings.get(name, [])
+        """The units converted on the way and the IMUs that stopped while others went on, the
+        base's first."""
+        notes = [f"base: {w}" for w in self.unit_warnings.get(self.base_name, [])] + self.unit_warnings.get(name, [])
+        for imu in (self.base_name, name):
+            for start, end in self.silences.get(imu, []):
+                topic = self.labels[imu][0] or imu
+                notes.append(f"{topic} sent nothing from {start:.1f} s" + (f" to {end:.1f} s" if end is not None else " to the end of the log")
+                             + " while the other IMUs went on: the windows there are not used for " + ("any sensor" if imu == self.base_name else "this sensor"))
+        return notes
 
     def window_infos(self, name: str) -> list[WindowInfo]:
         return [w.info for w in self._ensure_infos(name) if w.info is not None]

@@ -98,14 +98,14 @@ class McapLog(LogReader):
         """Channels, schemas and message counts per channel id."""
         if self._summary is not None:
             s = self._summary
-            if s.statistics is not None and s.statistics.channel_message_counts:
-                counts = dict(s.statistics.channel_message_counts)
-            else:
-                counts = {}
-                for index in s.chunk_indexes:
+            counts = dict(s.statistics.channel_message_counts) if s.statistics is not None else {}
+            try:
+                for index in s.chunk_indexes if not counts else ():
                     for channel_id, entries in self._message_indexes(index, set(index.message_index_offsets)).items():
                         counts[channel_id] = counts.get(channel_id, 0) + len(entries)
-            return dict(s.channels), dict(s.schemas), counts
+                return dict(s.channels), dict(s.schemas), counts
+            except (ValueError, struct.error):  # a damaged message index: the records themselves
+                self._summary = None
         if self._scanned is None:
             channels: dict[int, Channel] = {}
             schemas: dict[int, Schema] = {}

@@ -63,7 +63,10 @@ class Rosbag2Log(LogReader):
             self._storage = [McapLog(f) for f in mcaps]
         elif info.get("storage_identifier") == "mcap" and not info.get("compression_format"):
             self.format_name = "rosbag2-mcap"
-            files = [self.path / Path(p).name for p in info.get("relative_file_paths", [])]
+            relative = info.get("relative_file_paths", [])
+            if not isinstance(relative, list) or not all(isinstance(p, str) for p in relative):
+                raise self.error(f"metadata.yaml: relative_file_paths is not a list of file names; {REINDEX}")
+            files = [self.path / Path(p).name for p in relative]
             missing = [f.name for f in files if not f.is_file()]
             if missing:
                 raise self.error(f"storage file {missing[0]} of metadata.yaml is missing")
