@@ -10,7 +10,11 @@
    A case fails if it raised anything but a clean exit, printed a traceback, exited 2 with
    more than one line or without naming the file, or left an output file behind on failure.
 
-Run: ``python benchmarks/faults.py [--cases 1000] [--seed 1]``. Everything runs in-process
+0. The probes of hostile input (:mod:`hostile`): bombs, output paths, names, interrupts, each
+   run as a process of its own and held to exit 0 or 2, no user file changed, 1 GB and a time
+   bound; ``--probes`` runs these alone.
+
+Run: ``python benchmarks/faults.py [--probes] [--cases 1000] [--seed 1]``. Everything runs in-process
 through Typer's CliRunner (a traceback shows as an exception that is not SystemExit).
 """
 
@@ -160,12 +164,19 @@ def main() -> None:
     parser.add_argument("--cases", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--only", type=lambda v: {int(x) for x in v.split(",")}, default=None, help="replay these fuzz cases")
+    parser.add_argument("--probes", action="store_true", help="only the probes of hostile input (benchmarks/hostile.py)")
+    parser.add_argument("--probe", default="", help="only the probes whose name holds this")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="imucal-faults-"))
     try:
         if args.only is None:
+            from hostile import probes
+
+            probes(work / "probes", args.probe)
+        if args.only is None and not args.probes:
             matrix(work)
-        fuzz(work, args.cases, args.seed, args.only)
+        if not args.probes:
+            fuzz(work, args.cases, args.seed, args.only)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -231,6 +231,9 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
 
 
 def _work(task: Task, send: Any) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the batch's to handle: it kills this process
     send.send(run_one(task))
     send.close()
 
