@@ -34,7 +34,7 @@ from typer.testing import CliRunner
 
 from imucal_cli.cli import app
 from imucal_cli.documents import write_document
-from imucal_cli.io.logs import read_imu
+from imucal_cli.reading import read_imu
 from imucal_cli.sim import DriveOptions, simulate_drive
 from imucal_cli.sim.writers import FORMATS, TopicData, write_imu_log
 from imucal_cli.types import ImuStream

@@ -5,7 +5,7 @@ decoding nothing):
 
 - ``imports``: a fresh process importing what ``imucal calibrate`` imports;
 - ``imports + read``: what a calibration whose math took no time at all would take (the
-  imports, then :class:`~imucal_cli.io.logs.ImuBatches` over every IMU topic);
+  imports, then :class:`~imucal_cli.reading.ImuBatches` over every IMU topic);
 - ``one process``: imports, read, windows and solve in one fresh process (``calibrate``
   without its document);
 - ``two halves``: the log split in time between two processes on the machine's two cores,
@@ -38,7 +38,7 @@ start = time.perf_counter()
 import imucal_cli.cli
 from imucal_cli.api import estimate, imu_names, stream_log
 from imucal_cli.config import load_config
-from imucal_cli.io.logs import ImuBatches
+from imucal_cli.reading import ImuBatches
 imported = time.perf_counter()
 config = load_config(sys.argv[2])
 if sys.argv[3] == "read":

@@ -5,7 +5,7 @@ four lidar IMUs at 200 Hz (900 messages/s) driving in town, and measures per for
 
 - floor: read the container and decompress it, decoding nothing (MCAP and ROS 1: every chunk;
   rosbag2 sqlite3: SQLite's fetch of every row);
-- read: :class:`~imucal_cli.io.logs.ImuBatches` over every IMU topic (decode and screening);
+- read: :class:`~imucal_cli.reading.ImuBatches` over every IMU topic (decode and screening);
 - each command (``calibrate``, ``inspect``, ``biases``, ``segments``) end to end in a fresh
   process: wall time and peak RSS (``ru_maxrss`` of the process);
 - the largest error of ``T_base_lidar`` over the four lidars against the simulator's truth.
@@ -97,7 +97,7 @@ def floor(log: Path, fmt: str) -> float:
 
 def read(log: Path, config: Path) -> tuple[float, int]:
     from imucal_cli.config import load_config
-    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.reading import ImuBatches
 
     cfg = load_config(config)
     start = time.perf_counter()

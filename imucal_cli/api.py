@@ -22,8 +22,9 @@ import numpy as np
 from imucal_cli.config import Config, load_config
 from imucal_cli.core.streaming import StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
-from imucal_cli.io.logs import ImuBatches, Loss, ReadStats
+from imucal_cli.io.base import Loss
 from imucal_cli.pipeline import CalibrationResult, calibration_document, make_calibrator
+from imucal_cli.reading import ImuBatches, ReadStats
 from imucal_cli.types import Transform
 
 #: Follow mode: how far out of order a recording's stamps may arrive (s). A recorder appends in

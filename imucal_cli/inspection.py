@@ -11,7 +11,8 @@ import numpy as np
 
 from imucal_cli.io.base import Loss
 from imucal_cli.io.imu_msg import decode_imu
-from imucal_cli.io.logs import GAP_MEDIAN_PERIODS, open_log
+from imucal_cli.io.logs import open_log
+from imucal_cli.reading import GAP_MEDIAN_PERIODS
 
 
 @dataclass(frozen=True)

@@ -261,7 +261,7 @@ def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
     }
 
 
-#: What reading drops from a topic (:class:`~imucal_cli.io.logs.ReadStats`), and how a warning says it.
+#: What reading drops from a topic (:class:`~imucal_cli.reading.ReadStats`), and how a warning says it.
 DROPPED = {"decode_errors": "not decodable", "non_finite": "not finite", "implausible": "beyond any IMU's range",
            "saturated": "clipped at the sensor's range", "stamp_outliers": "with a damaged stamp", "duplicates": "with a duplicate stamp"}
 

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from imucal_cli.cli import app
 from imucal_cli.config import load_config
-from imucal_cli.io.logs import read_imu
+from imucal_cli.reading import read_imu
 
 runner = CliRunner()
 

@@ -12,7 +12,8 @@ from recorder import with_terminal_sigint
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
-from imucal_cli.io.logs import open_log, read_imu
+from imucal_cli.io.logs import open_log
+from imucal_cli.reading import read_imu
 from imucal_cli.sim.writers import FORMATS, write_imu_log
 
 runner = CliRunner()
@@ -210,7 +211,7 @@ def test_non_finite_and_clipped_samples_are_dropped_and_counted(tmp_path, short_
     accel[1500:1503, 0] = -2 * 9.80665  # a +-2 g part, three samples
     topics[name] = TopicData(_with(data.stream, gyro, accel), data.log_time_ns)
     log = write_imu_log(tmp_path / NAMES[fmt], fmt, topics)
-    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.reading import ImuBatches
 
     reader = ImuBatches(log, list(topics))
     kept = [t for topic, t, *_ in reader if topic == name]
@@ -228,7 +229,7 @@ def test_non_finite_and_clipped_samples_are_dropped_and_counted(tmp_path, short_
 
 
 def test_clock_jump_is_counted(tmp_path, short_drive):
-    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.reading import ImuBatches
     from imucal_cli.sim.writers import TopicData
 
     topics = short_drive.topics()
@@ -288,7 +289,7 @@ def test_sensor_rates_up_to_400_hz(tmp_path, rate):
 
 
 def test_gap_is_counted_and_windows_across_it_are_not_used(tmp_path, short_drive):
-    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.reading import ImuBatches
     from imucal_cli.sim.writers import TopicData
 
     topics = short_drive.topics()
@@ -324,7 +325,7 @@ def test_gap_is_counted_and_windows_across_it_are_not_used(tmp_path, short_drive
 
 
 def test_damaged_stamp_runs_and_absurd_values_are_dropped_and_counted(tmp_path, short_drive):
-    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.reading import ImuBatches
     from imucal_cli.sim.writers import TopicData
     from imucal_cli.types import ImuStream
 
@@ -417,7 +418,7 @@ def test_ctrl_c_leaves_no_partial_file_and_keeps_the_old_one(tmp_path):
 
 
 def test_damaged_stamp_run_after_a_clock_jump_is_still_found():
-    from imucal_cli.io.logs import _stamp_outliers
+    from imucal_cli.reading import _stamp_outliers
 
     t = np.arange(1000, dtype=np.int64) * 10_000_000 + 1_700_000_000 * 10**9
     t[300:] += 300 * 10**9  # a real jump: the clock stays moved
@@ -455,7 +456,7 @@ def test_groups_of_any_size_read_the_same_and_lose_the_same_chunks(logs, fmt, mo
 def test_a_lively_sensor_past_the_saturation_floors_loses_nothing(tmp_path, short_drive):
     """Values past the clipping floors (2 rad/s, 1.5 g) that never sit at their extreme for a
     run are measurements, kept whole; a run at the extreme among them is still dropped."""
-    from imucal_cli.io.logs import ImuBatches
+    from imucal_cli.reading import ImuBatches
     from imucal_cli.sim.writers import TopicData
 
     topics = short_drive.topics()

@@ -7,7 +7,8 @@ import pytest
 
 from imucal_cli.errors import LogError
 from imucal_cli.inspection import summarize_log
-from imucal_cli.io.logs import open_log, read_imu
+from imucal_cli.io.logs import open_log
+from imucal_cli.reading import read_imu
 from imucal_cli.sim.writers import FORMATS, TopicData, write_imu_log
 from imucal_cli.types import ImuStream
 

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
-from imucal_cli.io.logs import read_imu
+from imucal_cli.reading import read_imu
 from imucal_cli.sim.writers import _messages, _msgdef, _serialized, write_imu_log
 
 runner = CliRunner()

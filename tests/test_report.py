@@ -13,11 +13,11 @@ from imucal_cli.cli import app
 
 
 def test_report_for_the_sample_drive(tmp_path, monkeypatch):
-    from imucal_cli.io import logs
+    from imucal_cli import reading
 
     opened = []
-    real_open = logs.open_log
-    monkeypatch.setattr(logs, "open_log", lambda path: opened.append(path) or real_open(path))
+    real_open = reading.open_log
+    monkeypatch.setattr(reading, "open_log", lambda path: opened.append(path) or real_open(path))
     out, report = tmp_path / "e.yaml", tmp_path / "report"
     result = CliRunner().invoke(
         app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out), "--report", str(report)]

@@ -8,7 +8,7 @@ import yaml
 from conftest import ROOT, SAMPLE_DATA
 
 from imucal_cli.config import load_config
-from imucal_cli.io.logs import read_imu
+from imucal_cli.reading import read_imu
 from imucal_cli.sim import DriveOptions, simulate_drive
 from imucal_cli.types import Transform
 

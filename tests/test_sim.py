@@ -221,7 +221,7 @@ def test_four_sensors_and_rates():
 
 
 def test_writing_a_log_reports_its_progress_to_the_total(tmp_path, short_drive):
-    from imucal_cli.io.logs import read_imu
+    from imucal_cli.reading import read_imu
     from imucal_cli.sim.writers import write_imu_log
 
     for fmt, name in (("mcap", "p.mcap"), ("rosbag1", "p.bag")):

@@ -11,7 +11,7 @@ from conftest import DATA
 
 from imucal_cli.errors import LogError
 from imucal_cli.inspection import summarize_log
-from imucal_cli.io.logs import read_imu
+from imucal_cli.reading import read_imu
 
 COUNT, T0_S = 150, 1_600_000_000
 

@@ -211,8 +211,8 @@ class McapLog(LogReader):
         if opcode == _CHUNK_OP:
             chunk = Chunk.read(ReadDataStream(BytesIO(memoryview(data)[pos + 9 : pos + 9 + length])))
             try:
-                check_chunk_size(chunk.uncompressed_size, len(chunk.data), chunk.compression)
-                inner = _decompress(chunk, np.empty(chunk.uncompressed_size, dtype=np.uint8))
+                check_chunk_size(chunk.uncompressed_size, len(chunk.data), chunk.compression)  # (before the room is made)
+                inner = decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=np.empty(chunk.uncompressed_size, dtype=np.uint8))
             except Exception as exc:  # cut off or damaged: the prefix that decodes
                 if note and pos + 9 + length <= len(data):
                     self.losses.append(Loss(f"chunk does not read ({exc}); what decodes of it is read; {REPAIR}", pos, 9 + length, chunk.message_start_time, chunk.message_end_time))
@@ -285,7 +285,7 @@ class McapLog(LogReader):
                     raise ValueError(f"the chunk's sizes {chunk.uncompressed_size}/{len(chunk.data)} are not its index's")
                 if any(len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > chunk.uncompressed_size for e in found.values()):
                     raise ValueError("a message index points past the chunk's end")
-                _decompress(chunk, buffer[size : size + chunk.uncompressed_size])
+                decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=buffer[size : size + chunk.uncompressed_size])
             except Exception as exc:
                 self._lose_chunk(index, exc)
                 continue
@@ -359,22 +359,3 @@ def _groups(chunks: list[ChunkIndex], channel_ids: set[int]) -> Iterator[list[Ch
             group, size = [], 0
     if group:
         yield group
-
-
-def _decompress(chunk: Chunk, out: np.ndarray) -> np.ndarray:
-    """The chunk's records decompressed into ``out`` (its uncompressed size): zstd straight
-    into it (half the time of decompressing to bytes and copying those), others by
-    :func:`~imucal_cli.io.base.decompress`."""
-    if chunk.compression != "zstd":
-        out[:] = np.frombuffer(decompress(chunk.compression, chunk.data, len(out)), np.uint8)
-        return out
-    import zstandard
-
-    reader = zstandard.ZstdDecompressor().stream_reader(chunk.data)
-    size = 0
-    while size < len(out) and (got := reader.readinto(out.data[size:])):
-        size += got
-    size += len(reader.read(1))  # (anything beyond is an error)
-    if size != len(out):
-        raise ValueError(f"decompressed to {'more than ' * (size > len(out))}{min(size, len(out))} bytes, the chunk says {len(out)}")
-    return out

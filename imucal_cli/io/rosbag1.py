@@ -59,11 +59,6 @@ def _op(fields: dict[str, bytes]) -> int:
     return fields.get("op", b"\xff")[0]
 
 
-def _decompress(compression: bytes, data: bytes, size: int) -> bytes:
-    """A chunk decompressed, its claimed ``size`` checked first (:func:`~imucal_cli.io.base.decompress`)."""
-    return decompress(compression.decode("latin-1"), data, size)
-
-
 class Ros1Log(LogReader):
     format_name = "rosbag1"
 
@@ -170,7 +165,7 @@ class Ros1Log(LogReader):
             try:
                 fields, start, length, _ = self._header(chunk_pos)
                 (claimed,) = _U32.unpack(fields["size"])
-                data = _decompress(fields["compression"], self._read(chunk_pos + start, length), claimed)
+                data = decompress(fields["compression"].decode("latin-1"), self._read(chunk_pos + start, length), claimed)
                 index = self._read(chunk_pos + start + length, sum(128 + 12 * n for n in per_conn.values()))
                 pos, found = 0, {}
                 for _ in per_conn:
@@ -247,7 +242,7 @@ class Ros1Log(LogReader):
             if op == 0x05 and not top:
                 raise ValueError("a chunk inside a chunk")
             if op == 0x05:
-                data = _decompress(fields["compression"], buf[start : start + length], _U32.unpack(fields["size"])[0])
+                data = decompress(fields["compression"].decode("latin-1"), buf[start : start + length], _U32.unpack(fields["size"])[0])
                 yield from self._records(data, [0], top=False)
             elif op == 0x07:
                 self._connection(fields, buf[start : start + length])
