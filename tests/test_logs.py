@@ -122,3 +122,38 @@ def test_garbage_with_log_suffix_is_a_log_error(tmp_path, suffix):
     with pytest.raises(LogError) as info:
         read_imu(path, ["/imu"])
     assert str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_inspect_timing_streamed_agrees_with_sorting_every_stamp(seed):
+    """The streamed clock of ``inspect`` (memory flat in the log's length) gives what sorting
+    all the stamps gives: count, span, backwards, duplicates and gaps exactly, the median
+    period to its rounding (50 ns once the steps have more than 16384 lengths)."""
+    from imucal_cli.inspection import COARSE_NS, REORDER_NS, _Clock, _timing
+    from imucal_cli.reading import GAP_MEDIAN_PERIODS
+
+    rng = np.random.default_rng(seed)
+    n = 200_000
+    period = int(1e9 / rng.choice([100.0, 200.0, 400.0]))
+    jitter = int(rng.choice([0, 300_000]))
+    t = np.arange(n, dtype=np.int64) * period + rng.integers(-jitter, jitter + 1, n)
+    t[rng.choice(n, 50, replace=False)] += int(rng.integers(20, 200)) * period  # gaps (moved stamps)
+    for i in rng.choice(n - 1, 100, replace=False):  # reordered within the reordering window
+        t[i], t[i + 1] = t[i + 1], t[i]
+    dup = rng.choice(n - 1, 30, replace=False)
+    t[dup + 1] = t[dup]
+    t = t[t.argsort(kind="stable")] if seed == 0 else t  # one sorted case
+    assert REORDER_NS > 200 * period
+    clock = _Clock()
+    for part in np.array_split(t, 37):
+        clock.add(part)
+    got = _timing("x", "m", clock, int(t.min()), "header.stamp")
+    s = np.sort(t)
+    steps = np.diff(s)
+    median = float(np.median(steps[steps > 0]))
+    gaps = [((a - t.min()) * 1e-9, (b - t.min()) * 1e-9) for a, b, d in zip(s[:-1], s[1:], steps, strict=True) if d > GAP_MEDIAN_PERIODS * median]
+    assert got.count == n and got.duration_s == (s[-1] - s[0]) * 1e-9
+    assert got.backwards == int(np.count_nonzero(np.diff(t) < 0))
+    assert got.duplicates == int(np.count_nonzero(steps == 0))
+    assert got.gaps == gaps
+    assert abs(1e9 / got.rate_hz - median) <= (COARSE_NS / 2 if jitter else 0.5)
