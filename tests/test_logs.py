@@ -143,7 +143,7 @@ def test_inspect_timing_streamed_agrees_with_sorting_every_stamp(seed):
     dup = rng.choice(n - 1, 30, replace=False)
     t[dup + 1] = t[dup]
     t = t[t.argsort(kind="stable")] if seed == 0 else t  # one sorted case
-    assert REORDER_NS > 200 * period
+    assert 200 * period < REORDER_NS
     clock = _Clock()
     for part in np.array_split(t, 37):
         clock.add(part)
