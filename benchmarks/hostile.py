@@ -358,8 +358,9 @@ def cases(work: Path) -> list[Case]:
     for label, jump in (("10 days", 10 * 86400), ("1 year", 365 * 86400)):
         f = folder(f"clock jump {label}")
         log_in(f, topics=with_topics(drive, lambda t, d, jump=jump: shifted(d, 0.5, jump * 10**9) if t == base_topic else d))
-        add(f"biases, base clock jumps {label} mid-log", ["biases", "d.mcap", "-c", "config.yaml"], f, expect=0)
-        add(f"calibrate, base clock jumps {label} mid-log", ["calibrate", "d.mcap", "-c", "config.yaml"], f)
+        add(f"inspect, base clock jumps {label} mid-log", ["inspect", "d.mcap"], f, expect=0)
+        for command in ("biases", "segments", "calibrate"):
+            add(f"{command}, base clock jumps {label} mid-log", [command, "d.mcap", "-c", "config.yaml"], f, expect=0)
     # 11 config numbers
     f = folder("config numbers")
     log_in(f)
