@@ -70,21 +70,23 @@ def floor(log: Path, fmt: str) -> float:
         from mcap.records import Chunk
         from mcap.stream_reader import StreamReader
 
-        from imucal_cli.io.mcap_log import McapLog, _decompress
+        from imucal_cli.io.base import decompress
+        from imucal_cli.io.mcap_log import McapLog
 
         with McapLog(log) as reader, log.open("rb") as handle:
             for index in reader._summary.chunk_indexes:
                 handle.seek(index.chunk_start_offset)
                 chunk = next(iter(StreamReader(handle, skip_magic=True, emit_chunks=True).records))
                 assert isinstance(chunk, Chunk)
-                _decompress(chunk, np.empty(chunk.uncompressed_size, dtype=np.uint8))
+                decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=np.empty(chunk.uncompressed_size, dtype=np.uint8))
     elif fmt == "rosbag1":
-        from imucal_cli.io.rosbag1 import _U32, Ros1Log, _decompress
+        from imucal_cli.io.base import decompress
+        from imucal_cli.io.rosbag1 import _U32, Ros1Log
 
         with Ros1Log(log) as reader:
             for chunk_pos, _ in reader.chunks:
-                fields, begin, length, _ = reader._chunk_header(chunk_pos, reader._read(chunk_pos, 4096))
-                _decompress(fields["compression"], reader._read(chunk_pos + begin, length), _U32.unpack(fields["size"])[0])
+                fields, begin, length, _ = reader._header(chunk_pos)
+                decompress(fields["compression"].decode("latin-1"), reader._read(chunk_pos + begin, length), _U32.unpack(fields["size"])[0])
     else:
         for db in sorted(log.glob("*.db3")):
             connection = sqlite3.connect(f"file:{db}?mode=ro", uri=True)

@@ -185,8 +185,18 @@ def unobservable(prior: Transform, windows: list[WindowInfo], tau: float) -> Sen
         windows=windows,
         residual_rms_gyro=None,
         residual_rms_accel=None,
-        warnings=["no window carried enough motion: the prior is returned"],
+        warnings=[_unobservable_reason(windows)],
     )
+
+
+def _unobservable_reason(windows: list[WindowInfo]) -> str:
+    """Why no window was selected: gaps in the data (dropped or missing samples), or motion."""
+    broken = sum(not w.valid for w in windows)
+    if windows and broken == len(windows):
+        return f"every window ({broken}) has a gap in the data (samples missing or dropped): the prior is returned"
+    if broken:
+        return f"no window carried enough motion ({broken} of {len(windows)} have a gap in the data): the prior is returned"
+    return "no window carried enough motion: the prior is returned"
 
 
 GYRO_DIM = 14
