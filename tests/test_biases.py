@@ -56,3 +56,33 @@ def test_no_rest_says_so():
     gyro[:, 2] += 0.5  # always turning
     report = _tracker(t, gyro, accel)
     assert not report.rest_periods and report.warnings and np.all(report.gyro_bias_final == 0)
+
+
+def test_many_small_batches_equal_one_batch_through_the_merges():
+    """Hundreds of batches (the tracker merges its blocks every 256): every figure as from one
+    batch, the rests' sample counts included (a merge that counted its blocks twice doubled
+    them)."""
+    data = _drive(np.array([0.1, -0.2, 0.3]), np.array([0.001, 0.0, -0.002]), seed=2)
+    whole, pieces = _tracker(*data), _tracker(*data, step=7)
+    assert [(r.start_s, r.end_s, r.samples) for r in whole.rest_periods] == [(r.start_s, r.end_s, r.samples) for r in pieces.rest_periods]
+    for name in ("accel_bias", "accel_noise_std", "gyro_bias_final", "gyro_bias_track_std", "gyro_bias_final_std"):
+        np.testing.assert_allclose(getattr(pieces, name), getattr(whole, name), rtol=1e-9, atol=1e-15, err_msg=name)
+
+
+def test_memory_follows_the_samples_not_the_span_of_their_stamps():
+    """A clock that jumps a year mid-log: the tracker keeps the blocks that hold samples (it
+    used to keep every 0.1 s block of the span: 30 GiB for a year), and the rest before the
+    jump is still found."""
+    import tracemalloc
+
+    t, gyro, accel = _drive(np.zeros(3), np.zeros(3), seed=3)
+    t = t.copy()
+    t[len(t) // 2 :] += 365 * 86400 * 10**9
+    tracemalloc.start()
+    try:
+        report = _tracker(t, gyro, accel, step=500)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 20 << 20
+    assert [round(r.start_s) for r in report.rest_periods][:1] == [0]

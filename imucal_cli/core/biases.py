@@ -91,7 +91,7 @@ class BiasTracker:
         a, w = accel - self.reference[:3], gyro - self.reference[3:]
         self._add(block, np.column_stack([np.ones(len(t_ns)), a, a * a, w, w * w]))
         if len(self._blocks) > 256:  # (merged now and then: the lists stay short)
-            self._add(*self.blocks())
+            self.blocks()
 
     def _add(self, block: np.ndarray, columns: np.ndarray) -> None:
         low, high = int(block.min()), int(block.max()) + 1
