@@ -254,6 +254,10 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
         from dask.distributed import Client, as_completed
     except ImportError:
         raise InputError("--scheduler needs dask.distributed: pip install 'imucal[fleet]'") from None
+    import logging
+
+    for name in [n for n in logging.root.manager.loggerDict if n.startswith("distributed")]:
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)  # a lost scheduler is said in the rows, once
     try:
         client = Client(address, timeout="10s")
     except Exception as exc:
@@ -272,7 +276,9 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
                 try:
                     outcome = future.result()
                 except Exception as exc:
-                    outcome = _failed(tasks[i], f"worker failed: {type(exc).__name__}: {exc}")
+                    lost = "connection-lost" in str(exc)
+                    why = f"the scheduler at {address} was lost" if lost else f"worker failed: {type(exc).__name__}: {(str(exc).splitlines() or [''])[0]}"
+                    outcome = _failed(tasks[i], why)
                 results[i] = deliver(tasks[i], outcome)
                 if on_done:
                     on_done(i, results[i])  # type: ignore[arg-type]

@@ -320,3 +320,52 @@ def test_a_scheduler_without_workers_is_an_error_not_a_hang(fleet, tmp_path, mon
     assert result.exit_code == 2, result.output
     assert "no worker joined" in result.stderr
     assert not (tmp_path / "out" / "summary.csv").exists()
+
+
+def test_a_scheduler_killed_mid_batch_fails_the_rest_and_nothing_is_written_for_them(fleet, tmp_path):
+    """The scheduler dies (SIGKILL) while the batch runs: the logs not done are failed rows
+    that say so, the batch exits 1 without a traceback, and no output exists for a failed log
+    (workers write nothing: the batch's own process writes each document)."""
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("dask.distributed")
+    dask = shutil.which("dask", path=str(Path(sys.executable).parent))
+    if dask is None:
+        pytest.skip("no dask command")
+    root, logs = fleet
+    copies = []
+    for k in range(40):
+        copies.append(tmp_path / f"c{k}.mcap")
+        copies[-1].write_bytes(logs[k % 3].read_bytes())
+    scheduler_file = tmp_path / "scheduler.json"
+    processes = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(scheduler_file)],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while not scheduler_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(scheduler_file.read_text())["address"]
+        processes.append(subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        out = tmp_path / "out"
+        batch = subprocess.Popen([sys.executable, "-m", "imucal_cli.cli", "batch", *map(str, copies), "-c", str(root / "config.yaml"), "--out-dir", str(out),
+                                  "--scheduler", address], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not (out.is_dir() and len(list(out.glob("c*.yaml"))) >= 2):
+            time.sleep(0.05)
+        processes[0].send_signal(signal.SIGKILL)
+        _, stderr = batch.communicate(timeout=120)
+    finally:
+        for process in reversed(processes):
+            process.kill()
+            process.wait(timeout=30)
+    assert batch.returncode == 1, stderr
+    assert "Traceback" not in stderr and "ERROR" not in stderr, stderr[-3000:]
+    rows = {r["log"]: r for r in _rows(out)}
+    failed = [log for log, r in rows.items() if r["status"] == "failed"]
+    assert failed and all("scheduler" in rows[log]["error"] and "lost" in rows[log]["error"] for log in failed)
+    assert all(not (out / log.replace(".mcap", ".yaml")).exists() for log in failed)
