@@ -86,3 +86,40 @@ def test_memory_follows_the_samples_not_the_span_of_their_stamps():
         tracemalloc.stop()
     assert peak < 20 << 20
     assert [round(r.start_s) for r in report.rest_periods][:1] == [0]
+
+
+def _stop_and_go(seed: int, stops: int = 8):
+    """Drive 20 s, rest 10 s, repeated: stamps, gyro, accel (200 Hz)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(30 * stops * RATE)) / RATE
+    moving = (t % 30) < 20
+    w = np.zeros((len(t), 3))
+    w[moving, 2] = 0.3 * np.sin(2 * np.pi * 0.2 * t[moving])
+    f = np.tile([0.0, 0.0, GRAVITY_MPS2], (len(t), 1))
+    f[moving, 0] = 2.0 * np.sin(2 * np.pi * 0.3 * t[moving])
+    gyro = w + np.array([0.002, -0.001, 0.003]) + rng.normal(0, NOISE_W, w.shape)
+    accel = f + np.array([0.05, 0.0, 0.2]) + rng.normal(0, NOISE_A, f.shape)
+    return (t * 1e9).astype(np.int64) + 10**18, gyro, accel
+
+
+def test_blocks_judged_as_they_settle_give_what_judging_all_at_the_end_gives(monkeypatch):
+    """The tracker judges and lets go of the blocks no sample can still change (memory flat in
+    the log's length): with passes every few seconds, every rest and figure is what one pass
+    over the whole log gives."""
+    import imucal_cli.core.biases as biases
+
+    data = _stop_and_go(seed=4)
+    whole = _tracker(*data, step=50)  # (4 minutes: under one pass of the default)
+    monkeypatch.setattr(biases, "JUDGE_BLOCKS", 150)
+    monkeypatch.setattr(biases, "SETTLE_BLOCKS", 20)
+    tracker = BiasTracker(0.1, 0.02, 2.0, np.radians(0.1), np.radians(0.3))
+    held = []
+    for a in range(0, len(data[0]), 50):
+        tracker.add(*(x[a : a + 50] for x in data))
+        held.append(len(tracker.blocks()[0]))
+    passes = tracker.report()
+    assert max(held) < 600 < len(data[0]) / RATE / 0.1  # blocks held, against blocks in the log
+    assert len(whole.rest_periods) == 8
+    assert [(r.start_s, r.end_s, r.samples) for r in passes.rest_periods] == [(r.start_s, r.end_s, r.samples) for r in whole.rest_periods]
+    for name in ("accel_bias", "accel_noise_std", "gyro_bias_final", "gyro_bias_track_std", "gyro_bias_final_std"):
+        np.testing.assert_allclose(getattr(passes, name), getattr(whole, name), rtol=1e-9, atol=1e-15, err_msg=name)

@@ -33,6 +33,10 @@ BLOCK_S = 0.1
 LOCAL_BLOCKS = 5
 #: Seconds dropped at each end of a rest before averaging (settling, creeping off).
 REST_EDGE_S = 1.0
+#: Blocks behind the newest that samples may still come for (reordering): judged later.
+SETTLE_BLOCKS = 100
+#: Blocks held before the tracker judges those it can (10 minutes; 13 numbers a block).
+JUDGE_BLOCKS = 6000
 # block sums: n, then sum and sum of squares of (accel - reference) and (gyro - reference)
 _N, _FA, _FA2, _W, _W2 = 0, slice(1, 4), slice(4, 7), slice(7, 10), slice(10, 13)
 
@@ -70,8 +74,10 @@ class BiasReport:
 
 class BiasTracker:
     """One IMU's rests and biases; feed samples in time order with :meth:`add`, then
-    :meth:`report`. Only the blocks that hold samples are kept: memory follows the samples,
-    not the span of their stamps (a clock that jumps a year costs nothing)."""
+    :meth:`report`. Blocks are judged (rest or not) once no sample can still come for them
+    (:data:`SETTLE_BLOCKS`) and no rest spans them, and are then let go: memory follows the
+    longest rest, not the log's length or the span of its stamps (a clock that jumps a year
+    costs nothing)."""
 
     def __init__(self, accel_tolerance: float, gyro_tolerance: float, min_duration_s: float, process_noise: float, initial_std: float) -> None:
         self.accel_tolerance, self.gyro_tolerance, self.min_duration_s = accel_tolerance, gyro_tolerance, min_duration_s
@@ -80,6 +86,12 @@ class BiasTracker:
         self.reference = np.zeros(6)  # the first sample: sums of squares about it keep their digits
         self._blocks: list[np.ndarray] = []  # per batch: the blocks it fills (ascending) ...
         self._sums: list[np.ndarray] = []  # ... and their sums (rows of 13)
+        self._rests: list[RestPeriod] = []  # found in the blocks judged
+        self._judged_to = 0  # the blocks before this one are judged (and those kept, context)
+        self._spreads: list[np.ndarray] = []  # the judged blocks' accelerometer spread, while no rest is found (the fallback)
+        self._last_block = -1
+        self._rows = 0  # blocks held (about: before merging)
+        self._next_judge = JUDGE_BLOCKS
 
     def add(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         if not len(t_ns):
@@ -88,10 +100,21 @@ class BiasTracker:
             self.first_ns = int(t_ns.min())
             self.reference = np.concatenate([accel[0], gyro[0]])
         block = np.maximum((t_ns - self.first_ns) // int(BLOCK_S * 1e9), 0)
+        late = block < self._judged_to  # (later than the settling allows: not placed)
+        if late.any():
+            block, gyro, accel = block[~late], gyro[~late], accel[~late]
+            if not len(block):
+                return
         a, w = accel - self.reference[:3], gyro - self.reference[3:]
-        self._add(block, np.column_stack([np.ones(len(t_ns)), a, a * a, w, w * w]))
-        if len(self._blocks) > 256:  # (merged now and then: the lists stay short)
-            self.blocks()
+        self._add(block, np.column_stack([np.ones(len(block)), a, a * a, w, w * w]))
+        self._last_block = max(self._last_block, int(block.max()))
+        self._rows += len(self._blocks[-1])
+        if self._rows > self._next_judge or len(self._blocks) > 256:  # (the lists stay short)
+            self._rows = len(self.blocks()[0])
+            if self._rows > self._next_judge:
+                self._judge(final=False)
+                self._rows = len(self.blocks()[0])
+                self._next_judge = self._rows + JUDGE_BLOCKS  # (a long rest held: not judged again at once)
 
     def _add(self, block: np.ndarray, columns: np.ndarray) -> None:
         low, high = int(block.min()), int(block.max()) + 1
@@ -105,21 +128,21 @@ class BiasTracker:
         self._sums.append(sums[filled])
 
     def blocks(self) -> tuple[np.ndarray, np.ndarray]:
-        """The blocks holding samples (ascending) and their sums, merged over every batch."""
+        """The blocks held (ascending: those not judged yet, and the context before them) and
+        their sums, merged over every batch."""
         if not self._blocks:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 13))
         blocks, sums = np.concatenate(self._blocks), np.concatenate(self._sums)
-        self._blocks, self._sums = [], []
         if len(blocks) > 1 and not (np.diff(blocks) > 0).all():
             blocks, index = np.unique(blocks, return_inverse=True)
             sums = np.column_stack([np.bincount(index, sums[:, k], len(blocks)) for k in range(13)])
         self._blocks, self._sums = [blocks], [sums]
         return blocks, sums
 
-    def report(self) -> BiasReport:
-        blocks, sums = self.blocks()
-        # where blocks are missing, at most LOCAL_BLOCKS + 1 empty rows: the mean over the
-        # blocks around (below) sees the same blocks as in time, and a rest cannot span them
+    def _still(self, blocks: np.ndarray, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The blocks laid out in time (where blocks are missing, at most LOCAL_BLOCKS + 1 empty
+        rows: the mean over the blocks around sees the same blocks as in time, and a rest
+        cannot span them), each block's row there, and which rows are at rest (eq. 5)."""
         rows = np.concatenate([[0], np.cumsum(np.minimum(np.diff(blocks), LOCAL_BLOCKS + 1))]).astype(np.int64)
         dense = np.zeros((rows[-1] + 1 if len(rows) else 0, 13))
         dense[rows] = sums
@@ -135,17 +158,48 @@ class BiasTracker:
             & (np.linalg.norm(accel_mean - local, axis=1) <= self.accel_tolerance)
             & (np.linalg.norm(gyro_mean, axis=1) <= self.gyro_tolerance)
         )
-        rests = []
-        edge = round(REST_EDGE_S / BLOCK_S)
-        block_of = np.zeros(len(dense), dtype=np.int64)
+        return dense, rows, still
+
+    def _judge(self, final: bool) -> None:
+        """Find the rests among the blocks held, up to the last block that is not at rest and
+        whose neighbourhood no sample can still change (all of them when ``final``); keep only
+        what follows it, and the blocks before it that its neighbours' test looks at."""
+        blocks, sums = self.blocks()
+        if not len(blocks):
+            return
+        dense, rows, still = self._still(blocks, sums)
+        if final:
+            cut = len(dense)
+        else:
+            settled = rows[int(np.searchsorted(blocks, self._last_block - SETTLE_BLOCKS))] - LOCAL_BLOCKS
+            moving = np.flatnonzero(~still[: max(settled, 0)])
+            if not len(moving):
+                return  # a rest may go on: hold every block
+            cut = int(moving[-1])
+        block_of = np.full(len(dense), -1, dtype=np.int64)
         block_of[rows] = blocks  # (a rest lies in blocks side by side: rows and blocks agree there)
-        for a, b in true_runs(still):
-            if (b - a) * BLOCK_S < self.min_duration_s:
-                continue
+        edge = round(REST_EDGE_S / BLOCK_S)
+        for a, b in true_runs(still[:cut]):
+            if block_of[a] < self._judged_to or (b - a) * BLOCK_S < self.min_duration_s:
+                continue  # (a run in the context kept from before was judged then)
             inner = slice(a + edge, b - edge) if b - a > 2 * edge + 1 else slice(a, b)
-            rests.append(self._rest(dense[inner], block_of[a] * BLOCK_S, (block_of[b - 1] + 1) * BLOCK_S))
-        span_s = (int(blocks[-1]) + 1) * BLOCK_S if len(blocks) else 0.0
-        return self._track(rests, sums, span_s)
+            self._rests.append(self._rest(dense[inner], block_of[a] * BLOCK_S, (block_of[b - 1] + 1) * BLOCK_S))
+        cut_block = int(blocks[-1]) + 1 if final else int(block_of[cut])
+        if self._rests:  # the fallback's spreads are not needed any more
+            self._spreads = []
+        else:
+            judged = (blocks >= self._judged_to) & (blocks < cut_block)
+            n = np.maximum(sums[judged, _N], 1.0)[:, None]
+            self._spreads.append(np.sqrt(np.maximum(sums[judged, _FA2] / n - (sums[judged, _FA] / n) ** 2, 0.0)))
+        keep = rows >= cut - LOCAL_BLOCKS  # the context of the blocks still to judge
+        self._blocks, self._sums = [blocks[keep]], [sums[keep]]
+        self._judged_to = cut_block
+
+    def report(self) -> BiasReport:
+        self._judge(final=True)
+        spread = np.concatenate(self._spreads) if self._spreads else np.zeros((0, 3))
+        span_s = (self._last_block + 1) * BLOCK_S if self._last_block >= 0 else 0.0
+        return self._track(list(self._rests), spread, span_s)
 
     def _rest(self, sums: np.ndarray, start_s: float, end_s: float) -> RestPeriod:
         count = float(sums[:, _N].sum())
@@ -158,9 +212,9 @@ class BiasTracker:
         var_w = np.maximum(sums[:, _W2].sum(axis=0) / count - mean_w**2, 1e-12)
         return RestPeriod(start_s, end_s, bias, std_a, mean_w + self.reference[3:], var_w, int(count))
 
-    def _track(self, rests: list[RestPeriod], sums: np.ndarray, end_s: float) -> BiasReport:
-        """The gyro bias Kalman filter over the rests (eqs. 7-9), to ``end_s``; ``sums`` of the
-        blocks that hold samples."""
+    def _track(self, rests: list[RestPeriod], block_spread: np.ndarray, end_s: float) -> BiasReport:
+        """The gyro bias Kalman filter over the rests (eqs. 7-9), to ``end_s``; ``block_spread``
+        the accelerometer's spread in each block that holds samples (the fallback without a rest)."""
         q = self.process_noise**2
         x = rests[0].gyro_mean.copy() if rests else np.zeros(3)
         P = np.full(3, self.initial_std**2)
@@ -179,13 +233,11 @@ class BiasTracker:
         weights = d / d.sum() if d.sum() > 0 else np.full(len(d), 1.0 / len(d))
         mean = weights @ v
         last = rests[-1] if rests else None
-        n = np.maximum(sums[:, _N], 1.0)[:, None]
-        block_spread = np.sqrt(np.maximum(sums[:, _FA2] / n - (sums[:, _FA] / n) ** 2, 0.0))
         return BiasReport(
             first_ns=self.first_ns or 0,
             rest_periods=rests,
             accel_bias=last.accel_bias if last else np.zeros(3),
-            accel_noise_std=last.accel_noise_std if last else (np.median(block_spread, axis=0) if len(sums) else np.zeros(3)),
+            accel_noise_std=last.accel_noise_std if last else (np.median(block_spread, axis=0) if len(block_spread) else np.zeros(3)),
             gyro_bias_initial=values[0],
             gyro_bias_final=x,
             gyro_bias_track_std=np.sqrt(weights @ (v - mean) ** 2),
