@@ -198,21 +198,30 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
                 on_done(i, results[i])
         return results
     import multiprocessing
+    import signal
+    import threading
     from multiprocessing.connection import wait
 
     context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
     waiting = list(enumerate(tasks))
     running: dict[Any, tuple[int, Any]] = {}  # result pipe -> (task number, process)
+    # A Ctrl-C is noted and acted on here, between two steps: raised anywhere (in a pipe's
+    # finaliser, a fork) Python may print it and carry on with the whole queue
+    interrupted: list[int] = []
+    main = threading.current_thread() is threading.main_thread()  # (only there can a handler be set)
+    previous = signal.signal(signal.SIGINT, lambda number, frame: interrupted.append(number)) if main else None
     try:
         while waiting or running:
-            while waiting and len(running) < jobs:
+            while waiting and len(running) < jobs and not interrupted:
                 i, task = waiting.pop(0)
                 receive, send = context.Pipe(duplex=False)
                 process = context.Process(target=_work, args=(task, send), name=f"imucal {task.name}", daemon=True)
                 process.start()
                 send.close()
                 running[receive] = (i, process)
-            for receive in wait(list(running)):
+            if interrupted:
+                raise KeyboardInterrupt
+            for receive in wait(list(running), timeout=0.2):
                 i, process = running.pop(receive)  # type: ignore[call-overload]
                 try:
                     outcome = receive.recv()
@@ -224,6 +233,8 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
                 if on_done:
                     on_done(i, results[i])
     finally:
+        if main:
+            signal.signal(signal.SIGINT, previous)
         for _, process in running.values():  # interrupted: stop what runs, start nothing more
             process.kill()
             process.join()
