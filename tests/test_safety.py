@@ -283,3 +283,68 @@ def test_printable_keeps_plain_text_and_shows_what_it_removed():
     assert printable("front_left_top: ok, 3.2 deg, é ü") == "front_left_top: ok, 3.2 deg, é ü"
     assert printable("a\x1b[2Kb\rc\nd\x9b") == "a\\x1b[2Kb\\rc\\nd\\x9b"
     assert os.linesep not in printable("x\ny")
+
+
+# ------------------------------------------------------------------ 13. crashes become one line
+
+
+def test_mcap_without_statistics_whose_message_index_offset_is_off_is_read_from_its_records(tmp_path, short_drive):
+    """An indexed MCAP with no Statistics record whose chunk index points 3 bytes past its
+    message index: counted from the records themselves (it was a traceback, exit 1)."""
+    import struct
+
+    from mcap.data_stream import RecordBuilder
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    from imucal_cli.reading import read_imu
+
+    topics = short_drive.topics()
+    good = write_imu_log(tmp_path / "good.mcap", "mcap", topics)
+    plain = tmp_path / "plain.mcap"
+    with good.open("rb") as handle, plain.open("wb") as out:
+        reader = make_reader(handle)
+        writer = Writer(out, use_statistics=False)
+        writer.start(profile="ros2", library="test")
+        ids: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.id not in ids:
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                ids[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schema_id)
+            writer.add_message(ids[channel.id], message.log_time, message.data, message.publish_time, message.sequence)
+        writer.finish()
+    with plain.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    assert summary.statistics is None
+    data = plain.read_bytes()
+    (summary_start,) = struct.unpack_from("<QQI", data, len(data) - 8 - 20)[:1]
+    builder = RecordBuilder()
+    for record in (*summary.schemas.values(), *summary.channels.values()):
+        record.write(builder)
+    for k, index in enumerate(summary.chunk_indexes):
+        if k == 0:
+            index.message_index_offsets = {c: o + 3 for c, o in index.message_index_offsets.items()}
+        index.write(builder)
+    footer = struct.pack("<BQ", 0x02, 20) + struct.pack("<QQI", summary_start, 0, 0)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(data[:summary_start] + bytes(builder.end()) + footer + b"\x89MCAP0\r\n")
+    result = runner.invoke(app, ["inspect", str(bad), "--json"])
+    assert result.exit_code == 0, result.output
+    got = read_imu(bad, list(topics))
+    assert all(len(got[t].stream) == len(topics[t].stream) for t in topics)
+
+
+def test_a_full_disk_at_the_end_is_one_line_and_leaves_no_file(tmp_path, monkeypatch):
+    import errno
+
+    from conftest import SAMPLE_DATA
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    out = tmp_path / "e.yaml"
+    result = runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)])
+    assert result.exit_code == 2 and "No space left on device" in result.stderr and str(out) in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
