@@ -618,3 +618,23 @@ def test_a_topic_that_stops_is_named_and_the_others_use_the_whole_log(tmp_path):
     assert sensors[gone]["segments"]["total"] == total  # counted alike; its late ones not used
     assert sensors[gone]["segments"]["selected"] <= 5
     assert sensors[other]["status"] == "ok"
+
+
+def test_a_log_too_short_for_one_window_is_too_little_data_exit_2(tmp_path):
+    """5 s of a drive (a log cut after 5 s): exit 2 saying how much data there was and how
+    much one window needs (it was exit 0 with every sensor unobservable), the cut's place said
+    before the repair hint."""
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=60.0, seed=7))
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics())
+    data = log.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 5 // 60])
+    write_document(tmp_path / "c.yaml", drive.config_document())
+    result = runner.invoke(app, ["calibrate", str(cut), "-c", str(tmp_path / "c.yaml")])
+    assert result.exit_code == 2, result.output
+    line = result.stderr.strip()
+    assert len(line.splitlines()) == 1 and "too little data: the IMUs overlap for" in line and "needs" in line
+    assert "not read from byte" in line and line.index("not read from byte") < line.index("mcap recover")

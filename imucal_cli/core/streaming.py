@@ -519,10 +519,7 @@ class StreamingCalibrator:
         grid = np.arange(self._grid_start, end, 1.0 / self.rate)
         if len(grid) < 10:
             if final:
-                raise TooLittleData(
-                    f"too little data: the IMUs overlap for {max(covered, 0.0):.1f} s; calibration "
-                    f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window"
-                )
+                raise TooLittleData(self._too_little(covered))
             return False
         patient = not final and self._boot_horizon_s < MAX_BOOT_S  # may wait for more motion
         self._boot_horizon_s += BOOT_RETRY_S  # the next attempt's, should this one wait
@@ -654,7 +651,13 @@ class StreamingCalibrator:
                 buffer.drop_before(self.t_ref_ns + int(keep_from * 1e9))
             if partial or len(spans) < self.block_windows:
                 break
+        if final and not any(self.windows.values()):
+            raise TooLittleData(self._too_little(covered))
         return count
+
+    def _too_little(self, covered: float) -> str:
+        return (f"too little data: the IMUs overlap for {max(covered, 0.0):.1f} s; calibration "
+                f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window")
 
     def _need(self, number: int, final: bool) -> float:
         """Seconds from the origin every IMU must cover before window ``number`` is reduced:

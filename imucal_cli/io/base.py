@@ -123,7 +123,7 @@ class Loss:
         count = ""
         if self.messages:
             count = ", " + ", ".join(f"{n} messages of {t}" for t, n in sorted(self.messages.items()))
-        return f"not read: {self.reason} at byte {self.offset} ({self.nbytes} bytes{span}{count})"
+        return f"not read from byte {self.offset} ({self.nbytes} bytes{span}{count}): {self.reason}"
 
 
 class LogReader:
