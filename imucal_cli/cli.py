@@ -611,8 +611,8 @@ def batch(
     scheduler: Annotated[str | None, typer.Option("--scheduler", help="Dask scheduler address (tcp://host:port); needs imucal\\[fleet].")] = None,
     truth_dir: Annotated[Path | None, typer.Option("--truth-dir", help="Folder of STEM.truth.yaml files to compare against.")] = None,
     reference: Annotated[Path | None, typer.Option("--reference", help="The vehicle's previous calibration: sensors past the thresholds are flagged as moved.")] = None,
-    max_rotation_deg: Annotated[float | None, typer.Option("--max-rotation-deg", help="Pass threshold on the rotation error (deg).")] = None,
-    max_translation_m: Annotated[float | None, typer.Option("--max-translation-m", help="Pass threshold on the translation error (m).")] = None,
+    max_rotation_deg: Annotated[float | None, typer.Option("--max-rotation-deg", min=0.0, help="Pass threshold on the rotation error against --truth-dir or --reference (deg).")] = None,
+    max_translation_m: Annotated[float | None, typer.Option("--max-translation-m", min=0.0, help="Pass threshold on the translation error against --truth-dir or --reference (m).")] = None,
     junit: Annotated[Path | None, typer.Option("--junit", help="Write JUnit XML here (for CI).")] = None,
     max_lost_s: Annotated[float | None, typer.Option("--max-lost-s", min=0.0, help="Pass a log whose read lost at most this many seconds (default: any loss fails).")] = None,
     force: Annotated[bool, typer.Option("--force", metavar="", help="Replace the outputs an earlier batch left in --out-dir.")] = False,
@@ -640,6 +640,10 @@ def batch(
     if junit is not None and not junit.parent.is_dir() and junit.parent.resolve() != out_dir.resolve():
         raise InputError(f"{junit}: folder {junit.parent} does not exist")
     entries = [{"log": str(p)} for p in logs or []] + (read_manifest(manifest) if manifest is not None else [])
+    thresholds = [name for name, value in (("--max-rotation-deg", max_rotation_deg), ("--max-translation-m", max_translation_m)) if value is not None]
+    if thresholds and truth_dir is None and reference is None and not all(e.get("truth") or e.get("reference") for e in entries):
+        raise InputError(f"{thresholds[0]}: nothing to compare with: give --truth-dir or --reference "
+                         "(or truth/reference columns in the manifest for every log)")
     tasks = plan_tasks(entries, config, out_dir, truth_dir, reference, max_rotation_deg, max_translation_m, max_lost_s)
     if reference is not None and (max_rotation_deg is None or max_translation_m is None):
         _err(f"imucal: --reference: a sensor moved past {MOVED_STD:g} combined std of the two calibrations "

@@ -165,7 +165,7 @@ def test_a_real_dask_cluster_started_in_another_folder_gives_the_local_summary(s
     pytest.importorskip("dask.distributed")
     dask = shutil.which("dask", path=str(Path(sys.executable).parent))
     if dask is None:
-        pytest.skip("no dask command")
+        pytest.skip("Dask's `dask` command (pip install 'imucal[fleet]') is not installed")
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     monkeypatch.chdir(six)
@@ -335,7 +335,7 @@ def test_a_scheduler_killed_mid_batch_fails_the_rest_and_nothing_is_written_for_
     pytest.importorskip("dask.distributed")
     dask = shutil.which("dask", path=str(Path(sys.executable).parent))
     if dask is None:
-        pytest.skip("no dask command")
+        pytest.skip("Dask's `dask` command (pip install 'imucal[fleet]') is not installed")
     root, logs = fleet
     copies = []
     for k in range(40):
@@ -369,3 +369,15 @@ def test_a_scheduler_killed_mid_batch_fails_the_rest_and_nothing_is_written_for_
     failed = [log for log, r in rows.items() if r["status"] == "failed"]
     assert failed and all("scheduler" in rows[log]["error"] and "lost" in rows[log]["error"] for log in failed)
     assert all(not (out / log.replace(".mcap", ".yaml")).exists() for log in failed)
+
+
+def test_thresholds_without_truth_or_reference_are_refused(fleet, tmp_path):
+    """A threshold with nothing to compare against did nothing (exit 0); a negative one was
+    accepted. Both exit 2 naming the option, before any work."""
+    root, logs = fleet
+    base = ["batch", str(logs[0]), "-c", str(root / "config.yaml"), "--out-dir", str(tmp_path / "out")]
+    result = runner.invoke(app, [*base, "--max-rotation-deg", "0.0001"])
+    assert result.exit_code == 2 and "--max-rotation-deg" in result.stderr and "--truth-dir or --reference" in result.stderr
+    assert not (tmp_path / "out").exists()
+    result = runner.invoke(app, [*base, "--truth-dir", str(root), "--max-translation-m", "-1"])
+    assert result.exit_code == 2 and "--max-translation-m" in result.stderr

@@ -71,3 +71,20 @@ def test_sizes():
     assert sum(n for p, n in lines.items() if p.parent.name == "io") <= 1500
     readme = PACKAGE.parent / "README.md"
     assert len(readme.read_text().splitlines()) <= 150
+
+
+def test_the_license_pyproject_names_is_there():
+    """pyproject.toml says MIT: the LICENSE file holds its text (it was missing)."""
+    root = PACKAGE.parent
+    assert (root / "LICENSE").read_text().startswith("MIT License")
+    assert 'license = { file = "LICENSE" }' in (root / "pyproject.toml").read_text()
+
+
+def test_skip_reasons_speak_to_a_user_not_of_this_workplace():
+    """A skipped test says what is missing in words a user of a clone understands, never a
+    path of the developers' machines (``../shared/...``)."""
+    import re
+
+    for path in (PACKAGE.parent / "tests").glob("*.py"):
+        for reason in re.findall(r"(?:pytest\.skip\(|reason=)f?\"([^\"]*)\"", path.read_text()):
+            assert "shared" not in reason and "not present" not in reason and "not here" not in reason, (path.name, reason)

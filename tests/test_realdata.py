@@ -31,7 +31,7 @@ EDGE_S = 0.5
 def load(trial: str):
     path = BROAD / f"{trial}.hdf5"
     if not path.exists():
-        pytest.skip(f"{path} not present")
+        pytest.skip(f"the BROAD recording {trial} (a real IMU with motion capture, kept outside this repository) is not on this machine")
     with h5py.File(path) as f:
         rate = float(f.attrs["sampling_rate"])
         gyro, accel = np.array(f["imu_gyr"]), np.array(f["imu_acc"])
@@ -94,7 +94,7 @@ def test_real_highway_drive_is_reported_unobservable():
     from imucal_cli.sim.rig import DEFAULT_MOUNTS, cad_prior
 
     if not (COMMA / "processed_log_IMU_gyro_t.npy").exists():
-        pytest.skip("comma2k19 example not present")
+        pytest.skip("the comma2k19 example drive (a real car's IMU, kept outside this repository) is not on this machine")
     t = np.load(COMMA / "processed_log_IMU_gyro_t.npy")
     device_to_base = np.diag([1.0, -1.0, -1.0])  # [forward, right, down] -> [forward, left, up]
     w_B = np.load(COMMA / "processed_log_IMU_gyro_value.npy") @ device_to_base
