@@ -295,10 +295,12 @@ def export_extrinsics(
 
 
 def evaluate(
-    estimate: str | Path, truth: str | Path, max_rotation_deg: float | None = None, max_translation_m: float | None = None, allow_missing: bool = False,
+    estimate: str | Path | Mapping[str, Any], truth: str | Path | Mapping[str, Any], max_rotation_deg: float | None = None,
+    max_translation_m: float | None = None, allow_missing: bool = False,
 ) -> dict[str, Any]:
-    """The SPEC's evaluate document of a calibrate output (or any file with ``sensors: NAME:
-    T_base_lidar``) against a truth file; ``document["pass"]`` is the verdict."""
+    """The SPEC's evaluate document of a calibrate output (or any document with ``sensors:
+    NAME: T_base_lidar``) against a truth, each a file or the document itself (``run.document``);
+    ``document["pass"]`` is the verdict."""
     from imucal_cli.pipeline import evaluate_document
 
     estimates, truths = load_transforms(estimate), load_transforms(truth)
@@ -315,13 +317,23 @@ def write_report(out_dir: str | Path, run: LogCalibration) -> list[Path]:
     return draw(Path(out_dir), run.streamed.log, run.result, run.streamed, run.document)
 
 
-def load_transforms(path: str | Path, key: str = "T_base_lidar") -> dict[str, Transform]:
-    """``key`` of every sensor of a calibrate output or truth file (``sensors: NAME: key``);
-    :class:`InputError` naming the file and the key path when one is missing or malformed."""
+def write_document(path: str | Path, document: Any) -> None:
+    """Write a document (``run.document``, an evaluate or biases document) as YAML or JSON by
+    the suffix of ``path``, atomically, as the commands' ``-o`` does."""
+    from imucal_cli.documents import write_document as write
+
+    write(path, document)
+
+
+def load_transforms(path: str | Path | Mapping[str, Any], key: str = "T_base_lidar") -> dict[str, Transform]:
+    """``key`` of every sensor of a calibrate output or truth (``sensors: NAME: key``), a file
+    or the document itself; :class:`InputError` naming the file and the key path when one is
+    missing or malformed."""
     from imucal_cli.documents import load_document
     from imucal_cli.errors import ConfigError
 
-    document = load_document(path)
+    document = path if isinstance(path, Mapping) else load_document(path)
+    path = "<document>" if isinstance(path, Mapping) else path
     if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict):
         raise InputError(f"{path}: expected a mapping with 'sensors'")
     out = {}

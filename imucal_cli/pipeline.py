@@ -146,7 +146,7 @@ def biases_document(t0_ns: int, config: Config, reports: Mapping[str, BiasReport
             },
             "warnings": report.warnings,
         }
-    return {"imucal_version": __version__, "t0_ns": t0_ns, "imus": imus}
+    return to_plain({"imucal_version": __version__, "t0_ns": t0_ns, "imus": imus})
 
 
 # --------------------------------------------------------------------------- segments
@@ -176,13 +176,13 @@ def segments_document(t0_ns: int, config: Config, calibrator: StreamingCalibrato
                 for w in windows
             ],
         }
-    return {
+    return to_plain({
         "imucal_version": __version__,
         "t0_ns": t0_ns,
         "window_s": config.segments.window_s,
         "max_rotation_std_deg": config.segments.max_rotation_std_deg,
         "sensors": sensors,
-    }
+    })
 
 
 # --------------------------------------------------------------------------- calibrate
@@ -337,7 +337,7 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
         f"{a}/{b}": (result.T_base_lidar(a).inverse() * result.T_base_lidar(b)).to_dict()
         for a, b in combinations(names, 2)
     }
-    return {
+    return to_plain({  # plain types: yaml.safe_dump and json.dumps take it as it is
         "imucal_version": __version__,
         "log": log,
         "base_frame": config.base.frame,
@@ -349,7 +349,7 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
         "lost_s": lost_s,
         "losses": losses_document(losses),
         "dropped": dropped_document(counts),
-    }
+    })
 
 
 # --------------------------------------------------------------------------- evaluate
@@ -392,10 +392,10 @@ def evaluate_document(
         passed &= all(r["rotation_error_deg"] <= max_rotation_deg for r in rows)
     if max_translation_m is not None:
         passed &= all(r["translation_error_m"] <= max_translation_m for r in rows)
-    return {
+    return to_plain({
         "sensors": sensors,
         "pairs": pairs,
         "thresholds": {"max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m},
         "missing": missing,
         "pass": passed,
-    }
+    })

@@ -40,3 +40,25 @@ def test_the_documented_api_calibrates_with_progress_evaluates_exports_and_repor
     assert "base_link" in imucal_cli.export_extrinsics(run.document, "autoware")["main"]
     written = imucal_cli.write_report(tmp_path / "report", run)
     assert written[-1].name == "report.html" and all(p.is_file() for p in written)
+
+
+def test_documents_are_plain_and_evaluate_takes_them_in_memory(tmp_path):
+    """``run.document`` holds plain values (it held numpy arrays: neither yaml.safe_dump nor
+    json.dumps took it); evaluate takes a document as well as a file; the public writer writes
+    what calibrate -o writes (issue 32, item 8)."""
+    import json
+
+    import yaml
+
+    import imucal_cli
+    from conftest import SAMPLE_DATA
+
+    run = imucal_cli.calibrate_log(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
+    assert yaml.safe_load(yaml.safe_dump(run.document)) == run.document
+    assert json.loads(json.dumps(run.document)) == run.document
+    truth = SAMPLE_DATA / "aggressive.truth.yaml"
+    in_memory = imucal_cli.evaluate(run.document, truth, max_rotation_deg=0.1)
+    imucal_cli.write_document(tmp_path / "estimate.yaml", run.document)
+    from_file = imucal_cli.evaluate(tmp_path / "estimate.yaml", truth, max_rotation_deg=0.1)
+    assert in_memory == from_file and json.loads(json.dumps(in_memory)) == in_memory
+    assert yaml.safe_load(yaml.safe_dump(imucal_cli.stream_biases(SAMPLE_DATA / "aggressive.mcap", imucal_cli.load_config(SAMPLE_DATA / "aggressive.config.yaml"))))
