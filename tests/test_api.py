@@ -49,9 +49,9 @@ def test_documents_are_plain_and_evaluate_takes_them_in_memory(tmp_path):
     import json
 
     import yaml
+    from conftest import SAMPLE_DATA
 
     import imucal_cli
-    from conftest import SAMPLE_DATA
 
     run = imucal_cli.calibrate_log(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
     assert yaml.safe_load(yaml.safe_dump(run.document)) == run.document
