@@ -701,11 +701,23 @@ def evaluate(
         write_text_atomic(junit, evaluate_junit(document, str(estimate), str(truth)))
 
     def render(doc: dict[str, Any]) -> None:
+        limits = doc["thresholds"]
+
+        def over(r: dict[str, Any]) -> list[str]:  # the thresholds a row exceeds, named
+            return [f"{key.removeprefix('max_').replace('_', ' ')} > {limits[key]:g}" for key, value in
+                    (("max_rotation_deg", "rotation_error_deg"), ("max_translation_m", "translation_error_m")) if limits[key] is not None and r[value] > limits[key]]
+
+        rows = {**doc["sensors"], **doc["pairs"]}
         console = _print_table(
-            f"{estimate} vs {truth}", ("sensor / pair", "rotation error deg", "translation error m", "eq. 20 m"),
-            ((name, f"{r['rotation_error_deg']:.4f}", f"{r['translation_error_m']:.4f}", f"{r['translation_error_eq20_m']:.4f}") for name, r in {**doc["sensors"], **doc["pairs"]}.items()),
+            f"{estimate} vs {truth}", ("sensor / pair", "rotation error deg", "translation error m", "eq. 20 m", "over"),
+            ((name, f"{r['rotation_error_deg']:.4f}", f"{r['translation_error_m']:.4f}", f"{r['translation_error_eq20_m']:.4f}", ", ".join(over(r)) or "-")
+             for name, r in rows.items()),
+            right=("rotation error deg", "translation error m", "eq. 20 m"),
         )
-        console.print("pass" if doc["pass"] else "fail", style="green" if doc["pass"] else "red")
+        failed = [name for name, r in rows.items() if over(r)]
+        missing = [name for names in doc["missing"].values() for name in names]
+        why = [f"{len(failed)} over a threshold ({', '.join(failed)})"] * bool(failed) + [f"in one file only: {', '.join(missing)}"] * bool(missing and not doc["pass"])
+        console.print("pass" if doc["pass"] else "fail: " + "; ".join(why), style="green" if doc["pass"] else "red")
 
     _emit(document, out, as_json, render)
     if not document["pass"]:

@@ -148,12 +148,20 @@ def run_one(task: Task) -> Outcome:
             over = (limit_r is not None and row.rotation_error_deg > limit_r) or (limit_t is not None and row.translation_error_m > limit_t)
             if over and task.reference:
                 row.error = row.error or f"moved: {row.rotation_error_deg:.4f} deg (limit {limit_r:.4g}), {row.translation_error_m:.4f} m (limit {limit_t:.4g})"
+            elif over:  # the threshold that failed, as evaluate names it
+                row.error = row.error or "; ".join(
+                    f"{name} {value:.6g} > {option} {limit:g}"
+                    for name, value, option, limit in (("rotation_error_deg", row.rotation_error_deg, "--max-rotation-deg", limit_r),
+                                                       ("translation_error_m", row.translation_error_m, "--max-translation-m", limit_t))
+                    if limit is not None and value > limit
+                )
             if task.reference:
                 row.moved = bool(over)
             row.passed = row.passed and not over
         elif task.against is not None:
             row.passed = False
-            row.error = f"{task.against_source}: no entry for sensor {sensor}"
+            missing_file = task.against_source and not Path(task.against_source).is_file()
+            row.error = f"{task.against_source}: no such truth file for this log" if missing_file else f"{task.against_source}: no entry for sensor {sensor}"
         rows.append(row)
     elapsed = time.perf_counter() - start
     for row in rows:

@@ -381,3 +381,26 @@ def test_thresholds_without_truth_or_reference_are_refused(fleet, tmp_path):
     assert not (tmp_path / "out").exists()
     result = runner.invoke(app, [*base, "--truth-dir", str(root), "--max-translation-m", "-1"])
     assert result.exit_code == 2 and "--max-translation-m" in result.stderr
+
+
+def test_failures_name_what_failed(fleet, tmp_path):
+    """A batch JUnit failure names the threshold exceeded (as evaluate's do), a log without a
+    truth file says so (it said 'no entry for sensor'), and evaluate's table marks each row over
+    a threshold (issue 32, item 7)."""
+    root, logs = fleet
+    truths = tmp_path / "truths"
+    truths.mkdir()
+    (truths / f"{logs[0].stem}.truth.yaml").write_text((root / f"{logs[0].stem}.truth.yaml").read_text())
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["batch", str(logs[0]), str(logs[1]), "-c", str(root / "config.yaml"), "--out-dir", str(out), "--truth-dir", str(truths),
+                                 "--max-rotation-deg", "0.000001", "--junit", str(tmp_path / "j.xml")])
+    assert result.exit_code == 1, result.output
+    failures = [f.get("message") for f in ET.parse(tmp_path / "j.xml").getroot().iter("failure")]
+    over = [m for m in failures if "rotation_error_deg" in m]
+    assert over and all("> --max-rotation-deg 1e-06" in m for m in over)
+    assert any("no such truth file for this log" in m for m in failures)
+    estimate = out / f"{logs[0].stem}.yaml"
+    shown = runner.invoke(app, ["evaluate", str(estimate), str(truths / f"{logs[0].stem}.truth.yaml"), "--max-rotation-deg", "0.000001"])
+    assert shown.exit_code == 1
+    assert shown.stdout.count("rotation deg > 1e-06") == 3  # two sensors and their pair
+    assert "fail: 3 over a threshold" in shown.stdout
