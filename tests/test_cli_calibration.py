@@ -168,7 +168,7 @@ def test_names_and_paths_are_printed_as_they_are(tmp_path):
     result = runner.invoke(app, ["evaluate", str(folder / "a.yaml"), str(folder / "b.yaml"), "--max-translation-m", "0.1"], env={"COLUMNS": "240"})
     assert result.exit_code == 1, result.output  # a failed check
     assert "lidar[front]" in result.stdout and "[night]" in result.stdout
-    assert result.stdout.rstrip().endswith("fail")
+    assert result.stdout.rstrip().splitlines()[-1] == "fail: 1 over a threshold (lidar[front])"  # the verdict names the row
 
 
 def test_evaluate_fails_on_a_sensor_missing_from_the_truth_unless_allowed(estimate_path, tmp_path):
