@@ -329,10 +329,13 @@ def biases(
 
     def render(doc: dict[str, Any]) -> None:
         console = _print_table(
-            f"IMU biases: {log}", ("IMU", "rests", "rest s", "accel bias m/s^2", "gyro bias rad/s (final)", "final std rad/s"),
-            ((name, str(len(imu["rest_periods"])), f"{sum(b - a for a, b in imu['rest_periods']):.1f}", _fmt(imu["accel_bias_mps2"], 4),
+            f"IMU biases: {log}", ("IMU", "rests", "rest s", "accel bias along g m/s^2", "gyro bias rad/s (final)", "final std rad/s"),
+            ((name, str(len(imu["rest_periods"])), f"{sum(b - a for a, b in imu['rest_periods']):.1f}",
+              "n/a" if imu["accel_bias_along_gravity_mps2"] is None else f"{imu['accel_bias_along_gravity_mps2']:.4f}",
               _fmt(imu["gyro_bias_radps"]["final"], 5), _fmt(imu["gyro_bias_radps"]["final_std"], 5)) for name, imu in doc["imus"].items()),
         )
+        console.print("accel bias: at rest only its component along gravity is seen; the full vector, relative to the "
+                      "base IMU, is calibrate's accel_bias_mps2")
         for name, imu in doc["imus"].items():
             for warning in imu["warnings"]:
                 console.print(printable(f"{name}: {warning}"), style="yellow")

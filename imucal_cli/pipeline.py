@@ -136,7 +136,11 @@ def biases_document(t0_ns: int, config: Config, reports: Mapping[str, BiasReport
         imus[name] = {
             "topic": topics[name],
             "rest_periods": [[offset + r.start_s, offset + r.end_s] for r in report.rest_periods],
+            # at one rest pose only the bias along gravity separates from the tilt: this vector
+            # is that component (the full one, relative to the base, is calibrate's)
             "accel_bias_mps2": report.accel_bias,
+            "accel_bias_along_gravity_mps2": report.rest_periods[-1].accel_bias_along_gravity if report.rest_periods else None,
+            "accel_bias_resolved": "along gravity only (the full vector: imucal calibrate, accel_bias_mps2)",
             "accel_noise_std_mps2": report.accel_noise_std,
             "gyro_bias_radps": {
                 "initial": report.gyro_bias_initial,

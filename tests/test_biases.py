@@ -123,3 +123,33 @@ def test_blocks_judged_as_they_settle_give_what_judging_all_at_the_end_gives(mon
     assert [(r.start_s, r.end_s, r.samples) for r in passes.rest_periods] == [(r.start_s, r.end_s, r.samples) for r in whole.rest_periods]
     for name in ("accel_bias", "accel_noise_std", "gyro_bias_final", "gyro_bias_track_std", "gyro_bias_final_std"):
         np.testing.assert_allclose(getattr(passes, name), getattr(whole, name), rtol=1e-9, atol=1e-15, err_msg=name)
+
+
+def test_the_accelerometer_bias_at_rest_is_said_to_be_its_part_along_gravity():
+    """At one rest pose only the bias along gravity separates from the tilt: the report gives
+    that number (|g + b| - g), and the biases document and table say so (they printed a
+    3-vector whose horizontal parts are not the bias's, issue 32, item 3)."""
+    bias_a = np.array([0.3, -0.2, 0.5])
+    report = _tracker(*_drive(bias_a, np.zeros(3)))
+    rest = report.rest_periods[-1]
+    expected = float(np.linalg.norm(np.array([0.0, 0.0, GRAVITY_MPS2]) + bias_a) - GRAVITY_MPS2)
+    assert abs(rest.accel_bias_along_gravity - expected) < 4 * NOISE_A / np.sqrt(rest.samples)
+
+
+def test_biases_table_and_document_label_the_accelerometer_bias(tmp_path, short_drive):
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim.writers import write_imu_log
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    write_document(tmp_path / "c.yaml", short_drive.config_document())
+    runner = CliRunner()
+    table = runner.invoke(app, ["biases", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "200"})
+    assert "accel bias along g" in table.stdout and "calibrate's accel_bias_mps2" in table.stdout
+    document = runner.invoke(app, ["biases", str(log), "-c", str(tmp_path / "c.yaml"), "--json"])
+    import json
+
+    for imu in json.loads(document.stdout)["imus"].values():
+        assert "accel_bias_along_gravity_mps2" in imu and imu["accel_bias_resolved"].startswith("along gravity only")

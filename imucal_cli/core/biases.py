@@ -20,7 +20,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -50,6 +50,13 @@ class RestPeriod:
     gyro_mean: np.ndarray  # (3,) rad/s
     gyro_noise_var: np.ndarray  # (3,) per-sample variance, (rad/s)^2
     samples: int
+
+    @property
+    def accel_bias_along_gravity(self) -> float:
+        """The bias along the measured specific force (up): ``|mean f| - g``, m/s^2."""
+        return float(np.sum(self.accel_bias * self.accel_up))
+
+    accel_up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # (3,) mean f / |mean f|
 
 
 @dataclass(frozen=True)
@@ -210,7 +217,7 @@ class BiasTracker:
         bias = (float(np.linalg.norm(f)) - GRAVITY_MPS2) * up
         mean_w = sums[:, _W].sum(axis=0) / count
         var_w = np.maximum(sums[:, _W2].sum(axis=0) / count - mean_w**2, 1e-12)
-        return RestPeriod(start_s, end_s, bias, std_a, mean_w + self.reference[3:], var_w, int(count))
+        return RestPeriod(start_s, end_s, bias, std_a, mean_w + self.reference[3:], var_w, int(count), up)
 
     def _track(self, rests: list[RestPeriod], block_spread: np.ndarray, end_s: float) -> BiasReport:
         """The gyro bias Kalman filter over the rests (eqs. 7-9), to ``end_s``; ``block_spread``
