@@ -54,7 +54,7 @@ class Task:
     worker started anywhere (another folder, another machine with the same mounts) runs it."""
 
     log: str  # absolute
-    name: str  # the log as the summary names it (its path relative to the logs' common folder)
+    name: str  # the log as the summary names it: its full path
     config: Config
     out: str  # absolute: where the calibrate document goes
     against: dict[str, Transform] | None = None  # truth or reference T_base_lidar per sensor
@@ -318,7 +318,7 @@ def plan_tasks(
     max_rotation_deg: float | None = None, max_translation_m: float | None = None, max_lost_s: float | None = None,
 ) -> list[Task]:
     """One :class:`Task` per manifest entry (``log``, optional ``config``, ``truth``,
-    ``reference``), named by its path below the logs' common folder. Every path is resolved and
+    ``reference``), named by its full path, its output ``out_dir/STEM.yaml`` (:func:`_output_names`). Every path is resolved and
     every file read here: a worker started anywhere runs the task."""
     from imucal_cli.api import load_transforms
     from imucal_cli.config import load_config
@@ -334,18 +334,14 @@ def plan_tasks(
     configs: dict[str, Config] = {}
     loaded: dict[str, tuple[dict[str, Transform], dict[str, tuple[float | None, float | None]]]] = {}  # truth or reference files
     tasks: list[Task] = []
-    seen: set[str] = set()
-    for entry, log in zip(entries, paths, strict=True):
+    stems = [log.relative_to(root).as_posix().removesuffix(log.suffix if log.suffix in LOG_SUFFIXES else "") for log in paths]
+    outputs = _output_names(stems, paths)  # vehicle/2024.01.05.mcap -> 2024.01.05
+    for entry, log, stem, output in zip(entries, paths, stems, outputs, strict=True):
         cfg = entry.get("config") or (str(config) if config else None)
         if cfg is None:
             raise InputError(f"{log}: no config: give -c CFG or a config column in the manifest")
         if cfg not in configs:
             configs[cfg] = load_config(cfg)
-        name = log.relative_to(root).as_posix()
-        stem = name.removesuffix(log.suffix) if log.suffix in LOG_SUFFIXES else name  # vehicle/2024.01.05.mcap -> vehicle/2024.01.05
-        if stem in seen:
-            raise InputError(f"{log}: two logs named {stem}: their outputs would collide in {out_dir}")
-        seen.add(stem)
         optional = False  # a truth file the folder may not have (then: nothing to compare with)
         if entry.get("reference") or entry.get("truth"):
             source, is_reference = entry.get("reference") or entry["truth"], bool(entry.get("reference"))
@@ -357,9 +353,31 @@ def plan_tasks(
         if source and source not in loaded and not (optional and not Path(source).is_file()):
             loaded[source] = load_transforms(source), _reference_std(source) if is_reference else {}
         against, std = loaded.get(source, ({} if source else None, {}))
-        tasks.append(Task(str(log), name, configs[cfg], str((out_dir / f"{stem}.yaml").resolve()), against, source, is_reference,
+        tasks.append(Task(str(log), str(log), configs[cfg], str((out_dir / f"{output}.yaml").resolve()), against, source, is_reference,
                           max_rotation_deg, max_translation_m, max_lost_s, std if is_reference else {}))
     return tasks
+
+
+def _output_names(stems: Sequence[str], paths: Sequence[Path]) -> list[str]:
+    """Each log's output name in the one output folder: its file name without the log suffix,
+    and where two logs share that, as many of its folders before it as tell them apart
+    (``truck0/2026-11-01/drive.mcap`` and ``truck1/2026-11-02/drive.mcap``: ``2026-11-01_drive``,
+    ``2026-11-02_drive``)."""
+    parts = [stem.split("/") for stem in stems]
+    depth = [1] * len(parts)
+    while True:
+        names = ["_".join(p[-d:]) for p, d in zip(parts, depth, strict=True)]
+        clashes = {n for n in names if names.count(n) > 1}
+        if not clashes:
+            return names
+        grown = False
+        for k, name in enumerate(names):
+            if name in clashes and depth[k] < len(parts[k]):
+                depth[k] += 1
+                grown = True
+        if not grown:
+            k = next(k for k, name in enumerate(names) if name in clashes)
+            raise InputError(f"{paths[k]}: given twice: its outputs would collide")
 
 
 def check_batch_outputs(tasks: Sequence[Task], files: Sequence[Path], inputs: Sequence[Path | None], force: bool) -> None:

@@ -54,7 +54,8 @@ def test_jobs_and_dask_cluster_give_identical_results(fleet, tmp_path):
     serial = _run(root, logs, tmp_path / "one", "--jobs", "1")
     assert serial.exit_code == 1, serial.output  # the broken log fails; the others pass
     rows = _rows(tmp_path / "one")
-    assert [r["log"] for r in rows] == ["d1.mcap"] * 2 + ["d2.mcap"] * 2 + ["d3.mcap"] * 2 + ["broken.mcap"]
+    assert [Path(r["log"]).name for r in rows] == ["d1.mcap"] * 2 + ["d2.mcap"] * 2 + ["d3.mcap"] * 2 + ["broken.mcap"]
+    assert all(Path(r["log"]).is_absolute() for r in rows)  # the full path, not a trimmed one
     assert all(r["pass"] == "True" for r in rows[:-1]) and rows[-1]["status"] == "failed" and "broken.mcap" in rows[-1]["error"]
     for log in logs[:-1]:  # each calibration written in full
         assert yaml.safe_load((tmp_path / "one" / f"{log.stem}.yaml").read_text())["sensors"]
@@ -126,9 +127,10 @@ def test_logs_of_one_name_in_other_folders_and_a_fresh_out_folder(six, tmp_path)
     result = _batch(six / "drives.csv", tmp_path / "fresh")  # the README's example: out and its junit made here
     assert result.exit_code in (0, 1), result.output
     names = [r["log"] for r in _rows(tmp_path / "fresh")]
-    assert "truck0/2026-11-01/drive.mcap" in names and "truck1/2026-11-02/drive.mcap" in names
-    assert (tmp_path / "fresh" / "truck0" / "2026-11-01" / "drive.yaml").is_file()
-    assert (tmp_path / "fresh" / "truck1" / "2026-11-02" / "drive.yaml").is_file()
+    assert str(six / "truck0/2026-11-01/drive.mcap") in names and str(six / "truck1/2026-11-02/drive.mcap") in names
+    # DIR/STEM.yaml, with as many folders before the stem as tell two logs of one name apart
+    assert (tmp_path / "fresh" / "2026-11-01_drive.yaml").is_file() and (tmp_path / "fresh" / "2026-11-02_drive.yaml").is_file()
+    assert (tmp_path / "fresh" / "drive3.yaml").is_file()
     assert ET.parse(tmp_path / "fresh" / "junit.xml").getroot().find("testsuite").get("tests") == str(len(names))
 
 
@@ -141,12 +143,12 @@ def test_a_damaged_log_fails_its_rows_and_says_what_was_lost_everywhere(six, tmp
     log.write_bytes(log.read_bytes()[: int(log.stat().st_size * 0.4)])  # cut at 40%, as a killed recorder leaves it
     result = _batch(work / "drives.csv", tmp_path / "out")
     assert result.exit_code == 1
-    rows = [r for r in _rows(tmp_path / "out") if r["log"] == "truck0/2026-11-01/drive.mcap"]
+    rows = [r for r in _rows(tmp_path / "out") if r["log"] == str(log)]
     assert rows and all(r["pass"] == "False" and "cut off" in r["warnings"] and "read lost" in r["error"] for r in rows)
     assert all(r["lost_s"] == "" for r in rows)  # a cut's span is not known: never passes for a number
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert all("cut off" in r["warnings"] for r in summary["rows"] if r["log"] == rows[0]["log"])
-    document = yaml.safe_load((tmp_path / "out" / "truck0" / "2026-11-01" / "drive.yaml").read_text())
+    document = yaml.safe_load((tmp_path / "out" / "2026-11-01_drive.yaml").read_text())
     assert document["losses"] and "cut off" in document["losses"][0]["reason"] and document["lost_s"] is None
     cases = [c for c in ET.parse(tmp_path / "out" / "junit.xml").getroot().iter("testcase") if c.get("classname") == rows[0]["log"]]
     assert cases and all(c.find("failure") is not None and "cut off" in c.find("system-out").text for c in cases)
@@ -260,7 +262,7 @@ def test_a_worker_killed_fails_its_own_log_by_name_and_no_other(fleet, tmp_path,
     out = tmp_path / "out"
     result = _run(root, logs[:3], out, "--jobs", "2")
     assert result.exit_code == 1, result.output
-    rows = {r["log"]: r for r in _rows(out)}
+    rows = {Path(r["log"]).name: r for r in _rows(out)}
     killed = rows[victim.name]
     assert killed["status"] == "failed" and str(victim) in killed["error"] and "SIGKILL" in killed["error"]
     for log in (logs[0], logs[2]):
@@ -365,7 +367,7 @@ def test_a_scheduler_killed_mid_batch_fails_the_rest_and_nothing_is_written_for_
             process.wait(timeout=30)
     assert batch.returncode == 1, stderr
     assert "Traceback" not in stderr and "ERROR" not in stderr, stderr[-3000:]
-    rows = {r["log"]: r for r in _rows(out)}
+    rows = {Path(r["log"]).name: r for r in _rows(out)}
     failed = [log for log, r in rows.items() if r["status"] == "failed"]
     assert failed and all("scheduler" in rows[log]["error"] and "lost" in rows[log]["error"] for log in failed)
     assert all(not (out / log.replace(".mcap", ".yaml")).exists() for log in failed)
@@ -404,3 +406,17 @@ def test_failures_name_what_failed(fleet, tmp_path):
     assert shown.exit_code == 1
     assert shown.stdout.count("rotation deg > 1e-06") == 3  # two sensors and their pair
     assert "fail: 3 over a threshold" in shown.stdout
+
+
+def test_absolute_manifest_paths_give_flat_outputs_and_full_paths(six, tmp_path):
+    """A manifest of absolute paths: each output is DIR/STEM.yaml (it was nested under the
+    paths' folders), and the summary keeps each log's full path (issue 32, item 6)."""
+    manifest = tmp_path / "absolute.csv"
+    lines = (six / "drives.csv").read_text().splitlines()
+    manifest.write_text("\n".join([lines[0], *(",".join(str(six / v) for v in line.split(",")) for line in lines[1:]), ""]))
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["batch", "--manifest", str(manifest), "--out-dir", str(out)])
+    assert result.exit_code in (0, 1), result.output
+    assert sorted(p.name for p in out.glob("*.yaml")) == ["2026-11-01_drive.yaml", "2026-11-02_drive.yaml", "drive2.yaml", "drive3.yaml", "drive4.yaml", "drive5.yaml"]
+    assert not [p for p in out.iterdir() if p.is_dir()]
+    assert {r["log"] for r in _rows(out)} == {str(six / line.split(",")[0]) for line in lines[1:]}
