@@ -186,7 +186,11 @@ def kalibr(ex: Extrinsics) -> str:
     """A Kalibr IMU chain (``imu_chain.yaml``): ``imu0`` is the base IMU (identity), then one
     entry per sensor IMU with ``T_i_b``, the base expressed in that IMU: ``T_base_imu^-1``.
     ``time_offset`` is added to the IMU's stamps to get the base's time (``-time_offset_s``)."""
-    lines = ["# imucal: IMU chain in Kalibr's layout; imu0 is the base IMU", "imu0:", "  T_i_b:"]
+    # the YAML directive OpenCV's FileStorage (OpenVINS reads the chain with it) requires; a
+    # directive PyYAML (Kalibr) reads too
+    lines = ["%YAML 1.0", "---", "# imucal: IMU chain in Kalibr's layout; imu0 is the base IMU",
+             "# noise densities: measured above the motion; random walks: from the joint fit's relative bias",
+             "# knots (sensor minus base), upper bounds; the base's, the smallest of its sensors'", "imu0:", "  T_i_b:"]
     lines += _matrix_rows(np.eye(4), "    ")
     lines += ["  model: calibrated", f"  rostopic: {ex.base_topic or ''}", "  time_offset: 0.0"]
     lines += _kalibr_imu(ex, "base_imu", ex.base_imu_rate_hz, ex.base_imu_noise)

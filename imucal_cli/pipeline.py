@@ -247,21 +247,23 @@ MIN_RANDOM_WALK = 1e-9
 
 
 def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
-    """An IMU's noise in Kalibr's terms: white-noise densities measured above the motion, the
-    gyro bias random walk of the config (``gyro_bias.process_noise_dps``) and the accelerometer
-    bias random walk from the knots of the relative bias the fit estimated (sensor minus base:
-    for each IMU an upper bound); the base's accelerometer walk is the smallest sensor's."""
+    """An IMU's noise in Kalibr's terms: white-noise densities measured above the motion, and
+    the gyro and accelerometer bias random walks measured from the knots of the relative biases
+    the fit estimated (sensor minus base, one knot a window: for each IMU an upper bound); the
+    base's walks are the smallest of its sensors' (the tightest upper bound the log gives)."""
     gyro, accel = result.noise_density.get(name, (None, None))
-    walk_g = float(np.radians(result.config.gyro_bias.process_noise_dps))
-    walks = []
+    walks: dict[str, list[float]] = {"gyro": [], "accel": []}
     for sensor, est in result.estimates.items():
-        knots = est.accel_bias_knots
-        if len(knots) > 2 and (name == "base" or sensor == name):
-            walks.append(float(np.sqrt(np.mean(np.diff(knots, axis=0) ** 2) / result.config.segments.window_s)))
-    walk_a = (min(walks) if name == "base" else walks[0]) if walks else None
+        if name != "base" and sensor != name:
+            continue
+        for key, knots in (("gyro", est.gyro_bias_knots), ("accel", est.accel_bias_knots)):
+            if len(knots) > 2:
+                walks[key].append(float(np.sqrt(np.mean(np.diff(knots, axis=0) ** 2) / result.config.segments.window_s)))
+    walk_g, walk_a = (min(w) if w else None for w in (walks["gyro"], walks["accel"]))
     return {
         "gyroscope_noise_density": gyro, "accelerometer_noise_density": accel,
-        "gyroscope_random_walk": max(walk_g, MIN_RANDOM_WALK), "accelerometer_random_walk": None if walk_a is None else max(walk_a, MIN_RANDOM_WALK),
+        "gyroscope_random_walk": None if walk_g is None else max(walk_g, MIN_RANDOM_WALK),
+        "accelerometer_random_walk": None if walk_a is None else max(walk_a, MIN_RANDOM_WALK),
     }
 
 

@@ -292,3 +292,37 @@ def test_a_sensor_not_ok_goes_out_only_when_allowed_and_an_unobserved_offset_is_
     entry = next(k for k, v in yaml.safe_load(result.stdout).items() if v["rostopic"] == document["sensors"][name]["imu_topic"])
     block = result.stdout.split(f"\n{entry}:\n")[1].split("\nimu")[0]
     assert "time_offset: 0.0  # not observable" in block
+
+
+def test_kalibr_export_reads_in_opencv_filestorage_as_openvins_reads_it(tmp_path):
+    """OpenVINS reads the IMU chain with OpenCV's cv::FileStorage, which refused the file
+    without its YAML directive ('Input file is invalid'); every IMU's keys read back equal to
+    what Kalibr's YAML reader reads (issue 32, item 1)."""
+    cv2 = pytest.importorskip("cv2")
+    from conftest import SAMPLE_DATA
+
+    out = tmp_path / "ext.yaml"
+    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    chain = tmp_path / "kalibr_imu_chain.yaml"
+    assert runner.invoke(app, ["export", str(out), "--format", "kalibr", "-o", str(chain)]).exit_code == 0
+    data = yaml.safe_load(chain.read_text())  # as Kalibr reads it
+    storage = cv2.FileStorage(str(chain), cv2.FILE_STORAGE_READ)
+    assert storage.isOpened()
+    for name, imu in data.items():
+        node = storage.getNode(name)
+        assert not node.empty(), name
+        T = node.getNode("T_i_b")
+        read = np.array([[T.at(i).at(j).real() for j in range(4)] for i in range(4)])
+        np.testing.assert_array_equal(read, np.array(imu["T_i_b"]))
+        assert node.getNode("rostopic").string() == imu["rostopic"] and node.getNode("model").string() == imu["model"]
+        for key in ("update_rate", "time_offset", *KALIBR_KEYS):
+            assert node.getNode(key).real() == imu[key], (name, key)
+    storage.release()
+    # the base's random walks are measured (not the config's gyro filter setting, not a sensor's)
+    document = yaml.safe_load(out.read_text())
+    assert data["imu0"]["gyroscope_random_walk"] != pytest.approx(np.radians(0.1))
+    walks = [s["imu_noise"]["accelerometer_random_walk"] for s in document["sensors"].values()]
+    assert data["imu0"]["accelerometer_random_walk"] == min(walks)
+
+
+KALIBR_KEYS = ("accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk")
