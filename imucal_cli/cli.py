@@ -363,7 +363,7 @@ def segments(
         for name, sensor in doc["sensors"].items():
             _print_table(
                 f"{name}: {sensor['selected']} of {sensor['total']} windows selected (rotation std < {doc['max_rotation_std_deg']:g} deg)",
-                columns := ("start s", "end s", "min singular value", "rotation std deg", "selected", "translation observable x y z"),
+                columns := ("start s", "end s", "min singular value 1/rad^2", "rotation std deg", "selected", "translation observable x y z"),
                 ((f"{w['start_s']:.1f}", f"{w['end_s']:.1f}", f"{w['min_singular_value']:.4g}", "inf" if w["rotation_std_deg"] is None else f"{w['rotation_std_deg']:.4f}",
                   "yes" if w["selected"] else "no", " ".join("y" if v else "n" for v in w["translation_observable"])) for w in sensor["windows"]),
                 right=columns,
@@ -591,7 +591,7 @@ def export(
     if out is None:
         typer.echo(files["main"], nl=False)  # one file: the launch file needs -o
         if "launch" in files:
-            _err(f"imucal: note: the {LAUNCH_SUFFIX[fmt]} launch file is written beside -o OUT")
+            _err(f"imucal: note: printed the command lines only; give -o OUT to write them and the {LAUNCH_SUFFIX[fmt]} launch file beside OUT")
         return
     for key, path in targets.items():
         write_text_atomic(path, files[key])

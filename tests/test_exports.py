@@ -326,3 +326,17 @@ def test_kalibr_export_reads_in_opencv_filestorage_as_openvins_reads_it(tmp_path
 
 
 KALIBR_KEYS = ("accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk")
+
+
+def test_tf_static_without_out_says_how_to_get_the_launch_file(tmp_path):
+    """Without -o only the command lines are printed; the note said the launch file 'is written
+    beside -o OUT', though nothing was written (issue 32, item 9)."""
+    document = {"base_frame": "base_link", "sensors": {"front": {"status": "ok", "lidar_frame": "front_lidar",
+                "T_base_lidar": {"translation": [1.0, 0.0, 2.0], "rotation": [0.0, 0.0, 0.0, 1.0]},
+                "T_base_imu": {"translation": [1.0, 0.0, 2.0], "rotation": [0.0, 0.0, 0.0, 1.0]}}}}
+    path = tmp_path / "e.yaml"
+    path.write_text(yaml.safe_dump(document))
+    result = runner.invoke(app, ["export", str(path), "--format", "tf-static-ros2"])
+    assert result.exit_code == 0 and "static_transform_publisher" in result.stdout
+    assert "give -o OUT to write them and the .launch.xml launch file" in result.stderr and "is written" not in result.stderr
+    assert list(tmp_path.iterdir()) == [path]

@@ -74,3 +74,19 @@ def test_window_information_from_moments_equals_the_sample_sums():
     assert c.min_singular_value == pytest.approx(sigma_min, rel=1e-9)
     np.testing.assert_allclose(c.translation_std_m, t_std, rtol=1e-9)
     assert c.selected == (np.degrees(1.0 / np.sqrt(sigma_min)) < 1.0)
+
+
+def test_segments_table_gives_the_unit_of_the_min_singular_value(tmp_path, short_drive):
+    """The rotation Fisher information's smallest singular value is in 1/rad^2: the table says
+    so (it had no unit, issue 32, item 9)."""
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim.writers import write_imu_log
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    write_document(tmp_path / "c.yaml", short_drive.config_document())
+    result = CliRunner().invoke(app, ["segments", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert "min singular value 1/rad^2" in result.stdout
