@@ -109,7 +109,7 @@ def to_plain(value: Any) -> Any:
         return int(value)
     if isinstance(value, (np.floating, float)):
         f = float(value)
-        return f if math.isfinite(f) else None
+        return f + 0.0 if math.isfinite(f) else None  # (+ 0.0: -0.0 is written 0.0)
     return value
 
 

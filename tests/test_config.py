@@ -167,3 +167,14 @@ def test_a_key_left_empty_takes_its_default(base_dict):
     base_dict["sensors"][name]["translation_bound_m"] = None
     sensor = parse_config(base_dict, "x.yaml").sensor(name)
     assert sensor.lidar_frame == f"{name}_lidar" and sensor.translation_bound_m == 0.3
+
+
+def test_check_config_prints_no_negative_zero():
+    """An angle that is zero is printed 0.0, not -0.0 (issue 32, item 9)."""
+    from typer.testing import CliRunner
+
+    from conftest import SAMPLE_DATA
+    from imucal_cli.cli import app
+
+    result = CliRunner().invoke(app, ["check-config", str(SAMPLE_DATA / "aggressive.config.yaml")])
+    assert result.exit_code == 0 and "rpy_deg: [0.0, 0.0, 180.0]" in result.stdout and "-0.0," not in result.stdout
