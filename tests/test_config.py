@@ -171,9 +171,9 @@ def test_a_key_left_empty_takes_its_default(base_dict):
 
 def test_check_config_prints_no_negative_zero():
     """An angle that is zero is printed 0.0, not -0.0 (issue 32, item 9)."""
+    from conftest import SAMPLE_DATA
     from typer.testing import CliRunner
 
-    from conftest import SAMPLE_DATA
     from imucal_cli.cli import app
 
     result = CliRunner().invoke(app, ["check-config", str(SAMPLE_DATA / "aggressive.config.yaml")])
