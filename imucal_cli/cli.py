@@ -365,7 +365,7 @@ def segments(
                 f"{name}: {sensor['selected']} of {sensor['total']} windows selected (rotation std < {doc['max_rotation_std_deg']:g} deg)",
                 columns := ("start s", "end s", "min singular value 1/rad^2", "rotation std deg", "selected", "translation observable x y z"),
                 ((f"{w['start_s']:.1f}", f"{w['end_s']:.1f}", f"{w['min_singular_value']:.4g}", "inf" if w["rotation_std_deg"] is None else f"{w['rotation_std_deg']:.4f}",
-                  "yes" if w["selected"] else "no", " ".join("y" if v else "n" for v in w["translation_observable"])) for w in sensor["windows"]),
+                  "yes" if w["selected"] else ("no: gap in the data" if w.get("gap") else "no: too little motion"), " ".join("y" if v else "n" for v in w["translation_observable"])) for w in sensor["windows"]),
                 right=columns,
             )
 

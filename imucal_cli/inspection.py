@@ -13,7 +13,7 @@ import numpy as np
 from imucal_cli.io.base import Loss
 from imucal_cli.io.imu_msg import decode_imu
 from imucal_cli.io.logs import open_log
-from imucal_cli.reading import GAP_MEDIAN_PERIODS
+from imucal_cli.types import GAP_PERIODS
 
 
 @dataclass(frozen=True)
@@ -102,7 +102,7 @@ class _Clock:
                 coarse[value // COARSE_NS] += n
             self.steps, self.coarse = coarse, True
         median = self.median()
-        for i in np.flatnonzero(steps > 0.5 * GAP_MEDIAN_PERIODS * median):
+        for i in np.flatnonzero(steps > 0.5 * GAP_PERIODS * median):
             self.long.append((int(t[i]), int(t[i + 1])))
         self.placed = int(t[-1])
 
@@ -122,7 +122,7 @@ def _timing(topic: str, msgtype: str, clock: _Clock | None, t0_ns: int, time_sou
     clock.place()
     median = clock.median()
     rate = 1e9 / median if median > 0 else 0.0
-    gaps = [((a - t0_ns) * 1e-9, (b - t0_ns) * 1e-9) for a, b in clock.long if median > 0 and b - a > GAP_MEDIAN_PERIODS * median]
+    gaps = [((a - t0_ns) * 1e-9, (b - t0_ns) * 1e-9) for a, b in clock.long if median > 0 and b - a > GAP_PERIODS * median]
     duration = float(clock.high - clock.low) * 1e-9  # type: ignore[operator]
     return TopicTiming(topic, msgtype, clock.count, rate, duration, gaps, clock.backwards, clock.duplicates, time_source)
 

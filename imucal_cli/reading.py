@@ -20,6 +20,7 @@ import numpy as np
 from imucal_cli.io.base import LogReader, Loss
 from imucal_cli.io.imu_msg import DecodedBatch, RawBatch, decode_imu
 from imucal_cli.io.logs import check_topics, open_log, open_recording
+from imucal_cli.types import GAP_PERIODS
 
 if TYPE_CHECKING:
     from imucal_cli.types import ImuStream
@@ -37,7 +38,7 @@ class ReadStats:
     non_finite: int = 0  # a NaN or infinite gyro or accelerometer value: dropped
     saturated: int = 0  # a gyro or accelerometer axis clipped at its range: dropped
     clock_jumps: int = 0  # stamps leaping by more than CLOCK_JUMP_S (forwards or back)
-    gaps: int = 0  # steps over GAP_MEDIAN_PERIODS median periods: windows spanning them are not used
+    gaps: int = 0  # steps over GAP_PERIODS median periods: windows spanning them are not used
     implausible: int = 0  # values no IMU measures (|gyro| > 100 rad/s, |accel| > 2000 m/s^2): dropped
     stamp_outliers: int = 0  # a lone stamp far from both neighbours (a damaged message): dropped
     frame_ids: list[str] = field(default_factory=list)
@@ -56,7 +57,7 @@ class ImuRead:
 
 def _finish_topic(t_ns: np.ndarray, log_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, stats: ReadStats) -> ImuRead:
     """One topic's samples (in log order) sorted by stamp, duplicate stamps removed, counted."""
-    from imucal_cli.types import ImuStream  # imported here: reading needs no scipy
+    from imucal_cli.types import ImuStream
 
     stats.backwards = int(np.count_nonzero(np.diff(t_ns) < 0))
     order = np.argsort(t_ns, kind="stable")
@@ -68,8 +69,6 @@ def _finish_topic(t_ns: np.ndarray, log_ns: np.ndarray, gyro: np.ndarray, accel:
     return ImuRead(ImuStream(t_ns[index], gyro[index].reshape(-1, 3), accel[index].reshape(-1, 3), frame_id), stats, log_ns[index])
 
 
-#: A gap is a step between consecutive stamps longer than this many median periods.
-GAP_MEDIAN_PERIODS = 5.0
 #: A step between consecutive stamps of one topic longer than this (s) is a clock jump.
 CLOCK_JUMP_S = 60.0
 #: Smallest magnitude a run of identical extreme samples must have to be called clipped: a
@@ -225,7 +224,7 @@ class ImuBatches:
                 if len(positive) >= 10:
                     period = self._period[topic] = float(np.median(positive))
             if period is not None:
-                st.gaps += int(np.count_nonzero((steps > GAP_MEDIAN_PERIODS * period) & ~jumps))
+                st.gaps += int(np.count_nonzero((steps > GAP_PERIODS * period) & ~jumps))
             self._last_stamp[topic] = int(stamps[-1])
         for name in frame_ids:
             if name not in st.frame_ids:

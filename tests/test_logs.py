@@ -130,7 +130,7 @@ def test_inspect_timing_streamed_agrees_with_sorting_every_stamp(seed):
     all the stamps gives: count, span, backwards, duplicates and gaps exactly, the median
     period to its rounding (50 ns once the steps have more than 16384 lengths)."""
     from imucal_cli.inspection import COARSE_NS, REORDER_NS, _Clock, _timing
-    from imucal_cli.reading import GAP_MEDIAN_PERIODS
+    from imucal_cli.types import GAP_PERIODS
 
     rng = np.random.default_rng(seed)
     n = 200_000
@@ -151,7 +151,7 @@ def test_inspect_timing_streamed_agrees_with_sorting_every_stamp(seed):
     s = np.sort(t)
     steps = np.diff(s)
     median = float(np.median(steps[steps > 0]))
-    gaps = [((a - t.min()) * 1e-9, (b - t.min()) * 1e-9) for a, b, d in zip(s[:-1], s[1:], steps, strict=True) if d > GAP_MEDIAN_PERIODS * median]
+    gaps = [((a - t.min()) * 1e-9, (b - t.min()) * 1e-9) for a, b, d in zip(s[:-1], s[1:], steps, strict=True) if d > GAP_PERIODS * median]
     assert got.count == n and got.duration_s == (s[-1] - s[0]) * 1e-9
     assert got.backwards == int(np.count_nonzero(np.diff(t) < 0))
     assert got.duplicates == int(np.count_nonzero(steps == 0))

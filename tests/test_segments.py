@@ -90,3 +90,50 @@ def test_segments_table_gives_the_unit_of_the_min_singular_value(tmp_path, short
     result = CliRunner().invoke(app, ["segments", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     assert "min singular value 1/rad^2" in result.stdout
+
+
+def test_a_short_gap_is_bridged_and_a_long_one_is_said_in_the_table(tmp_path):
+    """Three dropped messages in a row (a 20 ms step at 200 Hz) cost a whole 10 s window (over
+    3 periods, the calibrator's gap, where inspect reported none); a gap is now what inspect
+    calls one (over 5 median periods, :data:`~imucal_cli.types.GAP_PERIODS`), and segments'
+    table says why a window was not used (issue 32, item 5)."""
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import TopicData, write_imu_log
+    from imucal_cli.types import ImuStream
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=40.0, seed=9, lidar_rate_hz=200.0))
+    topics = drive.topics()
+    sensor = list(topics)[1]
+    data = topics[sensor]
+
+    def without(seconds_from: float, count: int) -> dict:
+        t = data.stream.t_ns
+        at = int(np.searchsorted(t, t[0] + int(seconds_from * 1e9)))
+        keep = np.ones(len(t), dtype=bool)
+        keep[at : at + count] = False
+        s = data.stream
+        log_ns = data.log_time_ns[keep] if data.log_time_ns is not None else None
+        return {**topics, sensor: TopicData(ImuStream(s.t_ns[keep], s.gyro[keep], s.accel[keep], s.frame_id), log_ns)}
+
+    write_document(tmp_path / "c.yaml", drive.config_document())
+    runner = CliRunner()
+    documents = {}
+    for name, changed in (("intact", topics), ("short", without(17.0, 3)), ("long", without(17.0, 40))):
+        log = write_imu_log(tmp_path / f"{name}.mcap", "mcap", changed)
+        result = runner.invoke(app, ["segments", str(log), "-c", str(tmp_path / "c.yaml"), "--json"])
+        assert result.exit_code == 0, result.output
+        import json
+
+        documents[name] = json.loads(result.stdout)["sensors"]
+        if name == "long":
+            table = runner.invoke(app, ["segments", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "220"})
+            assert "no: gap in the data" in table.stdout
+    gone = next(n for n, s in drive.config_document()["sensors"].items() if s["imu_topic"] == sensor)
+    intact, short, long = (documents[k][gone]["windows"] for k in ("intact", "short", "long"))
+    assert [w["selected"] for w in short] == [w["selected"] for w in intact]  # three dropped messages bridged
+    assert not any(w.get("gap") for w in short)
+    assert sum(bool(w.get("gap")) for w in long) == 1  # 40 messages (200 ms): a gap, one window

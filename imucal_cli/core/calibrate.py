@@ -57,9 +57,6 @@ from imucal_cli.types import GRAVITY_MPS2, Transform
 ACCEL_BIAS_WALK = 0.01
 #: Prior standard deviation of the accelerometer bias (m/s^2): keeps knots without data defined.
 ACCEL_BIAS_PRIOR_STD = 1.0
-#: A gap is a step between stamps longer than this many median periods: windows holding one
-#: are not used (the spline cannot bridge it).
-GAP_PERIODS = 3.0
 
 
 @dataclass(frozen=True)

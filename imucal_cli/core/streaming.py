@@ -38,7 +38,6 @@ from scipy.linalg.lapack import dptsv
 
 from imucal_cli.core.calibrate import (
     ACCEL_DIM,
-    GAP_PERIODS,
     GYRO_DIM,
     OWN_ENTRIES,
     CalibrationOptions,
@@ -59,7 +58,7 @@ from imucal_cli.core.signals import (
 )
 from imucal_cli.core.timing import TimeOffset, time_offset_shown
 from imucal_cli.errors import ImucalError
-from imucal_cli.types import GRAVITY_MPS2, Transform
+from imucal_cli.types import GAP_PERIODS, GRAVITY_MPS2, Transform
 
 #: Padding on each side of a window for the spline and the low-pass (s). The filter's impulse
 #: response has decayed by far more than double precision within it.
