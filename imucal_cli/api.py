@@ -223,11 +223,14 @@ def follow_log(
     calibrator = make_calibrator(config, block_windows=1, reorder_s=FOLLOW_REORDER_S)
     done = [False]
     reader = ImuBatches(log, names, follow=lambda: done[0] or stop())
+    clocks = _ClockCheck(log, config.base.topic, config.calibration.max_time_offset_s)  # as stream_log
     windows, result, good = 0, None, False
     t0_ns: int | None = None
     interrupted = False
     try:
-        for topic, stamps, _, gyro, accel in reader:
+        for topic, stamps, log_times, gyro, accel in reader:
+            clocks.add(topic, stamps, log_times)
+            clocks.check(list(names))
             if len(stamps):
                 t0_ns = int(stamps.min()) if t0_ns is None else min(t0_ns, int(stamps.min()))
             calibrator.add(names[topic], stamps, gyro, accel)
@@ -243,13 +246,14 @@ def follow_log(
                         done[0] = True
     except KeyboardInterrupt:
         interrupted = True
-    if not done[0]:  # the recording ended, or time is up: what is buffered, reduced
+    if not done[0]:  # the recording ended, time is up, or a Ctrl-C: what is buffered, reduced
         try:
             calibrator.process(final=True)
             result = _estimate_now(calibrator, config) or result
             good = result is not None and converged(result)
-        except ImucalError:
-            pass
+        except ImucalError as exc:  # as stream_log says it (after a Ctrl-C: the estimate so far)
+            if not interrupted:
+                raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost_summary(reader.losses)}") from None
     if result is None or t0_ns is None:
         raise InputError(f"{log}: too little data to estimate anything yet{lost_summary(reader.losses)}")
     streamed = StreamedLog(log, config, calibrator, t0_ns, reader.stats, {t: calibrator.duplicates(n) for t, n in names.items()}, reader.losses, reader.format_name)

@@ -638,3 +638,25 @@ def test_a_log_too_short_for_one_window_is_too_little_data_exit_2(tmp_path):
     line = result.stderr.strip()
     assert len(line.splitlines()) == 1 and "too little data: the IMUs overlap for" in line and "needs" in line
     assert "not read from byte" in line and line.index("not read from byte") < line.index("mcap recover")
+
+
+def test_follow_runs_the_clock_check_calibrate_runs(tmp_path, short_drive):
+    """--follow on a finished log with a sensor on another clock: the same one line and exit 2
+    as calibrate (follow mode did not compare the clocks, and swallowed what the last windows
+    raised: issue 29's one read loop, in part)."""
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim.writers import TopicData
+
+    topics = short_drive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    topics[name] = TopicData(_with(data.stream, t_ns=data.stream.t_ns - data.stream.t_ns[0] + 12_345_000_000), data.log_time_ns)
+    log = write_imu_log(tmp_path / "p.mcap", "mcap", topics)
+    config = tmp_path / "c.yaml"
+    write_document(config, short_drive.config_document())
+    lines = []
+    for extra in ([], ["--follow", "--timeout", "60"]):
+        result = runner.invoke(app, ["calibrate", str(log), "-c", str(config), *extra])
+        assert result.exit_code == 2, (extra, result.output)
+        lines.append(result.stderr.strip())
+    assert lines[0] == lines[1] and name in lines[0] and "max_time_offset_s" in lines[0]
