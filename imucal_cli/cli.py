@@ -278,10 +278,13 @@ def _note_read(log: Path, topic: str, counts: dict[str, int]) -> None:
 
 
 def _note_losses(log: Path, losses: list[Any]) -> None:
-    """One line on stderr per part of the log that could not be read (at most five, then a count)."""
+    """One line on stderr per part of the log that could not be read (at most five, then a
+    count); ``losses`` are :class:`~imucal_cli.io.base.Loss` es or a document's ``losses``."""
     for loss in losses[:5]:
-        kind = "warning" if loss.lost else "note"  # a note says how the log was read, nothing lost
-        _err(f"imucal: {kind}: {log}: {loss.describe()}")
+        if isinstance(loss, dict):  # (a document lists only what was lost)
+            _err(f"imucal: warning: {log}: {loss['reason']}")
+        else:  # a note says how the log was read, nothing lost
+            _err(f"imucal: {'warning' if loss.lost else 'note'}: {log}: {loss.describe()}")
     if len(losses) > 5:
         _err(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read")
 
@@ -324,8 +327,7 @@ def biases(
     cfg = load_config(config)
     with _progress(f"reading {log}") as progress:
         document = stream_biases(log, cfg, progress)
-    for loss in document["losses"]:
-        _err(f"imucal: warning: {log}: {loss['reason']}")
+    _note_losses(log, document["losses"])
 
     def render(doc: dict[str, Any]) -> None:
         console = _print_table(

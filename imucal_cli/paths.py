@@ -17,8 +17,6 @@ from imucal_cli.errors import InputError
 
 #: The files a rosbag2 folder holds (its metadata and its storage, with SQLite's side files).
 ROSBAG2_FILES = (".db3", ".mcap", ".db3-shm", ".db3-wal", ".db3-journal", ".zstd")
-#: The first bytes of the log files imucal reads.
-MAGICS = (b"\x89MCAP0\r\n", b"#ROSBAG V2.0\n")
 
 
 def log_folder(path: Path) -> Path:
@@ -66,9 +64,11 @@ def recognised_log(path: Path) -> bool:
     if path.is_symlink():
         return False
     if path.is_file():
+        from imucal_cli.io.logs import MCAP_MAGIC, ROSBAG1_MAGIC  # (the readers' own)
+
         with path.open("rb") as handle:
             head = handle.read(16)
-        return any(head.startswith(magic) for magic in MAGICS)
+        return head.startswith((MCAP_MAGIC, ROSBAG1_MAGIC))
     if path.is_dir():
         entries = list(path.iterdir())
         return (path / "metadata.yaml").is_file() and all(

@@ -50,13 +50,12 @@ class RestPeriod:
     gyro_mean: np.ndarray  # (3,) rad/s
     gyro_noise_var: np.ndarray  # (3,) per-sample variance, (rad/s)^2
     samples: int
+    accel_up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # (3,) mean f / |mean f|
 
     @property
     def accel_bias_along_gravity(self) -> float:
         """The bias along the measured specific force (up): ``|mean f| - g``, m/s^2."""
         return float(np.sum(self.accel_bias * self.accel_up))
-
-    accel_up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # (3,) mean f / |mean f|
 
 
 @dataclass(frozen=True)

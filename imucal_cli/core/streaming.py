@@ -493,14 +493,17 @@ class StreamingCalibrator:
         lasts = {name: (int(b.last_ns) - self.t_ref_ns) * 1e-9 for name, b in self.buffers.items()}  # type: ignore[arg-type]
         lead = sorted(lasts.values())[len(lasts) // 2]  # where most IMUs are: one whose clock leapt ahead leads nothing
         for name, last in lasts.items():  # an IMU that has stopped, or that resumed
-            silences = self.silences.setdefault(name, [])
-            silent = bool(silences) and silences[-1][1] is None
+            silent = self._stopped(name)
             if lead - last > max(STOPPED_S, 3 * self.window_s) and not silent:
-                silences.append([last, None])
+                self.silences.setdefault(name, []).append([last, None])
             elif silent and lead - last <= self.reorder_s + self.max_offset + PAD_S:
-                silences[-1][1] = last
-        running = [last for name, last in lasts.items() if not (self.silences[name] and self.silences[name][-1][1] is None)]
-        return min(running)
+                self.silences[name][-1][1] = last
+        return min(last for name, last in lasts.items() if not self._stopped(name))
+
+    def _stopped(self, name: str) -> bool:
+        """Whether IMU ``name`` is silent now while the others go on."""
+        silences = self.silences.get(name)
+        return bool(silences) and silences[-1][1] is None  # type: ignore[index]
 
     def _boot(self, final: bool) -> bool:
         """Once enough data is buffered: each IMU's units and noise, each sensor's clock offset
@@ -671,8 +674,8 @@ class StreamingCalibrator:
         assert self.t_ref_ns is not None
         firsts = []
         for name, buffer in self.buffers.items():
-            if self.silences.get(name) and self.silences[name][-1][1] is None:
-                continue  # stopped: its windows are not used
+            if self._stopped(name):
+                continue  # its windows are not used
             t, _ = buffer.arrays()
             if not len(t):
                 return
