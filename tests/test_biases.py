@@ -153,3 +153,11 @@ def test_biases_table_and_document_label_the_accelerometer_bias(tmp_path, short_
 
     for imu in json.loads(document.stdout)["imus"].values():
         assert "accel_bias_along_gravity_mps2" in imu and imu["accel_bias_resolved"].startswith("along gravity only")
+
+
+def test_fewer_blocks_than_the_rest_test_looks_at_do_not_break_it():
+    """Half a second of samples (5 blocks, fewer than the 11 the rest test averages over): no
+    rest, no error (the fuzzer's damaged bag left so few at the end of a log: a traceback)."""
+    t, gyro, accel = _drive(np.zeros(3), np.zeros(3))
+    report = _tracker(t[:100], gyro[:100], accel[:100])
+    assert not report.rest_periods and report.warnings

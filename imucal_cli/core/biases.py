@@ -157,8 +157,12 @@ class BiasTracker:
         # the accelerometer's block mean against its mean over the blocks around (1 s): motion
         # moves it, a bias does not, and the noise is averaged down to a tenth of a second's
         kernel = np.ones(2 * LOCAL_BLOCKS + 1)
-        weight = np.convolve(dense[:, _N], kernel, mode="same")
-        local = np.column_stack([np.convolve(dense[:, k], kernel, mode="same") for k in range(_FA.start, _FA.stop)]) / np.maximum(weight, 1.0)[:, None]
+
+        def around(column: np.ndarray) -> np.ndarray:  # each block's sum over the blocks around it
+            return np.convolve(column, kernel)[LOCAL_BLOCKS : LOCAL_BLOCKS + len(column)]  # ("same", also when shorter than the kernel)
+
+        weight = around(dense[:, _N])
+        local = np.column_stack([around(dense[:, k]) for k in range(_FA.start, _FA.stop)]) / np.maximum(weight, 1.0)[:, None]
         still = (
             (dense[:, _N] >= 2)
             & (np.linalg.norm(accel_mean - local, axis=1) <= self.accel_tolerance)
