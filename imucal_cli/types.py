@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
 
-def _rotation() -> type[Rotation]:
+def rotation_type() -> type[Rotation]:
     """scipy's Rotation, imported when a rotation is first made: ``scipy.spatial`` takes 0.3 s
     to import, which commands that make none (``inspect``) need not pay."""
     from scipy.spatial.transform import Rotation
@@ -89,7 +89,7 @@ class ImuStream:
 def rpy_to_rotation(rpy_rad: np.ndarray) -> Rotation:
     """ROS RPY (roll, pitch, yaw in rad) to a rotation ``Rz(yaw) Ry(pitch) Rx(roll)``."""
     # Extrinsic x-y-z (lower case in scipy) composes as Rz @ Ry @ Rx.
-    return _rotation().from_euler("xyz", np.asarray(rpy_rad, dtype=np.float64))
+    return rotation_type().from_euler("xyz", np.asarray(rpy_rad, dtype=np.float64))
 
 
 def rotation_to_rpy(rotation: Rotation) -> np.ndarray:
@@ -103,7 +103,7 @@ def rotation_to_rpy(rotation: Rotation) -> np.ndarray:
     R = rotation.as_matrix()
     pitch = float(np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0])))
     yaw = float(np.arctan2(R[1, 0], R[0, 0]))
-    rest = (_rotation().from_euler("z", yaw) * _rotation().from_euler("y", pitch)).inv().as_matrix() @ R
+    rest = (rotation_type().from_euler("z", yaw) * rotation_type().from_euler("y", pitch)).inv().as_matrix() @ R
     roll = float(np.arctan2(rest[2, 1], rest[1, 1]))
     return np.array([roll, pitch, yaw])
 
@@ -144,13 +144,13 @@ class Transform:
 
     @staticmethod
     def identity() -> Transform:
-        return Transform(_rotation().identity(), np.zeros(3))
+        return Transform(rotation_type().identity(), np.zeros(3))
 
     @staticmethod
     def from_matrix(matrix: np.ndarray) -> Transform:
         """From a 4x4 homogeneous matrix."""
         matrix = np.asarray(matrix, dtype=np.float64)
-        return Transform(_rotation().from_matrix(matrix[:3, :3]), matrix[:3, 3])
+        return Transform(rotation_type().from_matrix(matrix[:3, :3]), matrix[:3, 3])
 
     @staticmethod
     def from_rpy(rpy_rad: np.ndarray, translation: np.ndarray) -> Transform:
@@ -239,7 +239,7 @@ class Transform:
                     sub("rotation"),
                     f"quaternion norm is {norm:.6g}, not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})",
                 )
-            rotation = _rotation().from_quat(quat / norm)
+            rotation = rotation_type().from_quat(quat / norm)
         if "rpy_deg" in data:
             rpy = np.radians(_vector3(data["rpy_deg"], source, sub("rpy_deg")))
             rotation_rpy = rpy_to_rotation(rpy)

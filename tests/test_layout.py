@@ -85,6 +85,6 @@ def test_skip_reasons_speak_to_a_user_not_of_this_workplace():
     path of the developers' machines (``../shared/...``)."""
     import re
 
-    for path in (PACKAGE.parent / "tests").glob("*.py"):
+    for path in (PACKAGE.parent / "tests").rglob("*.py"):
         for reason in re.findall(r"(?:pytest\.skip\(|reason=)f?\"([^\"]*)\"", path.read_text()):
             assert "shared" not in reason and "not present" not in reason and "not here" not in reason, (path.name, reason)

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from imucal_cli.core.model import ACCEL_DATA, GYRO_DATA, kron_t
+
 #: A translation axis counts as observed when its standard deviation is below this fraction of
 #: the search half-width ``translation_bound_m``.
 OBSERVABLE_FRACTION_OF_BOUND = 1.0 / 3.0
@@ -84,16 +86,16 @@ def window_infos_from_moments(
         trace = np.trace(C, axis1=1, axis2=2)[:, None, None]
         return (trace * np.eye(3) - C) / std**2
 
-    one_a = S_accel.shape[1] - 2  # the constant column of x_a
-    P_w = slice(6, 9)  # w_B in the gyro data vector [w_I, f_I, w_B, dw_B, 1, u]
-    P_v = np.zeros((3, S_accel.shape[1]))
-    P_v[:, 3:6] = np.eye(3)
-    P_v[:, 9:18] = np.hstack([lever_arm[0] * np.eye(3), lever_arm[1] * np.eye(3), lever_arm[2] * np.eye(3)])
-    info = rotation_info(centred(S_gyro, P_w, S_gyro.shape[1] - 2), gyro_noise_std) + rotation_info(centred(S_accel, P_v, one_a), accel_noise_std)
+    one_g, one_a = GYRO_DATA.index("one"), ACCEL_DATA.index("one")
+    P_v = np.zeros((3, ACCEL_DATA.size))  # v = f_B + A t at the prior's lever arm
+    P_v[:, ACCEL_DATA["f_B"]] = np.eye(3)
+    P_v[:, ACCEL_DATA["vec_A"]] = kron_t(lever_arm)
+    info = rotation_info(centred(S_gyro, GYRO_DATA["w_B"], one_g), gyro_noise_std)
+    info += rotation_info(centred(S_accel, P_v, one_a), accel_noise_std)
     sigma_min = np.clip(np.linalg.eigvalsh(info)[:, 0], 0.0, None)
     with np.errstate(divide="ignore"):
         std_deg = np.where(sigma_min > 0, np.degrees(1.0 / np.sqrt(sigma_min)), np.inf)
-    C_A = centred(S_accel, slice(9, 18), one_a).reshape(-1, 3, 3, 3, 3)  # blocks (j, k) of vec A
+    C_A = centred(S_accel, ACCEL_DATA["vec_A"], one_a).reshape(-1, 3, 3, 3, 3)  # blocks (j, k) of vec A
     # sum A^T A, less what the angular acceleration's noise adds (E [n]x^T [n]x = 2 s^2 I):
     # information the noise fakes is none
     t_info = (np.einsum("kjala->kjl", C_A) - n * 2.0 * dw_noise_var * np.eye(3)) / accel_noise_std**2

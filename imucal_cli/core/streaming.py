@@ -4,27 +4,11 @@ IMU samples are fed as they are read (:meth:`StreamingCalibrator.add`). Every wi
 ``window_s`` that all IMUs cover is conditioned once (cubic-spline resampling onto the grid and
 the common zero-phase low-pass of :mod:`imucal_cli.core.signals`, computed on the window plus
 :data:`PAD_S` of padding on each side, which reproduces a whole-log filter to round-off), its
-observability is analysed (eqs. 18-19), and it is reduced to *sufficient statistics*: the second
-moments ``S = sum x x^T`` of the data vectors
-
-- gyro (eq. 10): ``x_g = [w_I, f_I, w_B, dw_B, 1, u]``
-- accelerometer (eq. 11): ``x_a = [f_I, f_B, df_B, vec A, vec dA, q, 1, u]``
-
-with ``A = [w_B]x^2 + [dw_B]x`` (eq. 12), ``q`` the products of the base's specific force a
-tilting mount adds (:func:`imucal_cli.core.calibrate._tilt_columns`) and ``u`` the time within
-the window (0..1). Every
-residual of the model is linear in ``x`` with coefficients that depend on the parameters:
-
-- ``r_g = w_I(t + tau0) - G f_I(t + tau0) - R^T (w_B - dtau dw_B) - b_g(t)`` (``G``: the gyro's g-sensitivity)
-- ``r_a = f_I(t + tau0) - R^T (f_B - dtau df_B + (A - dtau dA) t_BI) - b_a(t)``
-
-(``r = C(params) x``; the clock offset is ``tau0 + dtau``, ``tau0`` from the cross-correlation of
-``|w|`` over the first minute), so each window's cost ``tr(C S C^T)`` and its Gauss-Newton
-derivatives are exact for any rotation, lever arm and bias. The raw samples are dropped once a
-window is reduced; what is kept per window and sensor is two small matrices. The joint estimate
-(:func:`solve`) is the one of :mod:`imucal_cli.core.calibrate`: relative biases piecewise linear
-with a knot per window, eliminated by a banded Schur complement, the lever arm inside its box
-(eq. 16), covariance from the Fisher information scaled by the residual variance.
+observability is analysed (eqs. 18-19), and it is reduced to the second moments of the data
+vectors of :mod:`imucal_cli.core.model` (:mod:`imucal_cli.core.moments`), the sensor resampled
+at ``t + tau0`` (``tau0`` from the cross-correlation of ``|w|`` over the first minute). The raw
+samples are dropped once a window is reduced; what is kept per window and sensor is two small
+matrices, and :func:`imucal_cli.core.calibrate.solve` estimates from them.
 """
 
 from __future__ import annotations
@@ -37,17 +21,14 @@ from numpy.lib.stride_tricks import as_strided
 from scipy.linalg.lapack import dptsv
 
 from imucal_cli.core.calibrate import (
-    ACCEL_DIM,
-    GYRO_DIM,
-    OWN_ENTRIES,
     CalibrationOptions,
+    ClockEvidence,
     SensorEstimate,
-    WindowMoments,
-    assemble_moments,
-    base_moments,
     solve,
     unobservable,
 )
+from imucal_cli.core.model import ACCEL_BASE, GYRO_BASE, GYRO_DATA, GYRO_OWN, Layout
+from imucal_cli.core.moments import WindowMoments, assemble_moments, base_moments
 from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
 from imucal_cli.core.signals import (
     Lowpass,
@@ -303,6 +284,12 @@ def _vec_of_sum(upper: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
         (np.add if sign > 0 else np.subtract)(upper[:, _FROM_UPPER[3 * r + c]], v[:, component], out=out[:, r + 3 * c])
 
 
+#: The base's terms the low-pass filters: [w, f], [dw, df], ddw, the symmetric 3x3 terms by
+#: their upper triangles, [w]x^2 and [dw]x[w]x + [w]x[dw]x (halved: the sum of a, b and b, a),
+#: and the tilt terms.
+_TERMS = Layout(("w_f", 6), ("dw_df", 6), ("ddw", 3), ("ww", 6), ("dw_w", 6), ("q", 4))
+
+
 def _reduce_block(
     spans: list[tuple[int, float, float]], rate: float, window_s: float, lp: Lowpass, n_pad: int, n_block: int, n_after: int,
     base_name: str, samples: dict[str, tuple[float, np.ndarray, np.ndarray]],
@@ -315,48 +302,55 @@ def _reduce_block(
     base = _Spline(t_b, both_b, rate)
     values, first, second = base(grid, 2)
     # the terms of the base's side of the equations side by side, each column contiguous (as
-    # the low-pass takes them): [w, f], [dw, df], ddw, and the symmetric 3x3 terms by their
-    # upper triangles, [w]x^2 and [dw]x[w]x + [w]x[dw]x (halved: the sum of a, b and b, a)
-    terms = np.empty((31, len(grid))).T
-    terms[:, 0:6], terms[:, 6:12], terms[:, 12:15] = values, first, second[:, 0:3]
+    # the low-pass takes them, :data:`_TERMS`)
+    T = _TERMS
+    terms = np.empty((T.size, len(grid))).T
+    terms[:, T["w_f"]], terms[:, T["dw_df"]], terms[:, T["ddw"]] = values, first, second[:, 0:3]
     w_raw, dw_raw, f_raw = values[:, 0:3], first[:, 0:3], values[:, 3:6]
-    _upper_symmetric_products(w_raw, w_raw, terms[:, 15:21])
-    terms[:, 15:21] *= 0.5
-    _upper_symmetric_products(dw_raw, w_raw, terms[:, 21:27])
-    # the tilt columns of a mount leaning with the specific force (calibrate._tilt_columns):
+    _upper_symmetric_products(w_raw, w_raw, terms[:, T["ww"]])
+    terms[:, T["ww"]] *= 0.5
+    _upper_symmetric_products(dw_raw, w_raw, terms[:, T["dw_w"]])
+    # the tilt terms of a mount leaning with the specific force (model.tilt_columns):
     # [f_y f_z, f_y^2, f_x f_z, f_x^2]
-    np.multiply(f_raw[:, 1], f_raw[:, 2], out=terms[:, 27])
-    np.multiply(f_raw[:, 1], f_raw[:, 1], out=terms[:, 28])
-    np.multiply(f_raw[:, 0], f_raw[:, 2], out=terms[:, 29])
-    np.multiply(f_raw[:, 0], f_raw[:, 0], out=terms[:, 30])
+    q = T["q"].start
+    for k, (i, j) in enumerate(((1, 2), (1, 1), (0, 2), (0, 0))):
+        np.multiply(f_raw[:, i], f_raw[:, j], out=terms[:, q + k])
     names = [name for name in samples if name != base_name]
     # one zero-phase low-pass for every term of every equation (linear filters commute);
     # the symmetric 3x3 terms are filtered by their upper triangles
     rows = lp(terms)[n_pad : n_pad + n_block]
     t_rows = grid[n_pad : n_pad + n_block]
     # every data vector of the block side by side, so that each window's moments are one
-    # Gram matrix: x_g = [w_I, f_I, w, dw, 1, u], x_a = [f_I, f, df, vec A, vec dA, q, 1, u],
-    # each column written once into X (the sensors' columns at the end)
-    n_g, n_a = GYRO_DIM - OWN_ENTRIES[GYRO_DIM], ACCEL_DIM - OWN_ENTRIES[ACCEL_DIM]
-    X = np.empty((n_block, n_g + n_a + 6 * len(names)))
-    w, f, dw, df, ddw = (rows[:, k : k + 3] for k in (0, 3, 6, 9, 12))
-    X[:, 0:3], X[:, 3:6], X[:, 6], X[:, 7] = w, dw, 1.0, 0.0
-    X[:, 8:11], X[:, 11:14], X[:, 32:36], X[:, 36] = f, df, rows[:, 27:31], 1.0
+    # Gram matrix: the base's part of x_g, of x_a, then each sensor's [w_I, f_I]; each
+    # column written once into X
+    B_g, n_g, n_a = GYRO_BASE, GYRO_BASE.size, ACCEL_BASE.size
+
+    def accel(name: str) -> slice:  # x_a's base part, after x_g's in X
+        return ACCEL_BASE.shifted(name, n_g)
+
+    X = np.empty((n_block, n_g + n_a + GYRO_OWN * len(names)))
+    w, f = rows[:, T["w_f"]][:, 0:3], rows[:, T["w_f"]][:, 3:6]
+    dw, df, ddw = rows[:, T["dw_df"]][:, 0:3], rows[:, T["dw_df"]][:, 3:6], rows[:, T["ddw"]]
+    X[:, B_g["w_B"]], X[:, B_g["dw_B"]], X[:, B_g["one"]], X[:, B_g["u"]] = w, dw, 1.0, 0.0
+    X[:, accel("f_B")], X[:, accel("df_B")], X[:, accel("one")] = f, df, 1.0
+    X[:, accel("tilt_terms")] = rows[:, T["q"]]
     # vec A = vec([w]x^2 + [dw]x) (column-major), from the symmetric part's upper triangle and
     # the skew part (eq. 12); vec dA likewise from ([dw]x[w]x + [w]x[dw]x) and [ddw]x
-    _vec_of_sum(rows[:, 15:21], dw, X[:, 14:23])
-    _vec_of_sum(rows[:, 21:27], ddw, X[:, 23:32])
+    _vec_of_sum(rows[:, T["ww"]], dw, X[:, accel("vec_A")])
+    _vec_of_sum(rows[:, T["dw_w"]], ddw, X[:, accel("vec_dA")])
     # each window's rows in the block
     at = [(round((start - block_start) * rate), round((end - start) * rate)) for _, start, end in spans]
+    u_g, u_a = B_g.index("u"), accel("u").start
     for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
-        X[i0 : i0 + n_win, 7] = (t_rows[i0 : i0 + n_win] - start) / window_s
-    X[:, 37] = X[:, 7]
+        X[i0 : i0 + n_win, u_g] = (t_rows[i0 : i0 + n_win] - start) / window_s
+    X[:, u_a] = X[:, u_g]
     sensors = {}
     for k, name in enumerate(names):
         tau, t_s, both_s = samples[name]
         # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
         sensors[name] = _Spline(t_s, both_s, rate, smooth=lp)
-        X[:, n_g + n_a + 6 * k : n_g + n_a + 6 * k + 6] = sensors[name](t_rows + tau)[0]
+        own = n_g + n_a + GYRO_OWN * k  # the sensor's [w_I, f_I], as x_g starts
+        X[:, own : own + GYRO_OWN] = sensors[name](t_rows + tau)[0]
     # where each stream has data (no gap), once for the block
     base_covered = base.covered(t_rows)
     sensor_covered = {name: sensors[name].covered(t_rows + samples[name][0]) for name in names}
@@ -367,9 +361,10 @@ def _reduce_block(
         shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
         valid_base = bool(base_covered[i0 : i0 + n_win].all())
         for k, name in enumerate(names):
-            wi = n_g + n_a + 6 * k
-            rows_g = np.hstack([G[wi : wi + 6, wi : wi + 6], G[wi : wi + 6, :n_g]])  # [w_I, f_I]^T x_g
-            rows_a = np.hstack([G[wi + 3 : wi + 6, wi + 3 : wi + 6], G[wi + 3 : wi + 6, n_g : n_g + n_a]])
+            gyro = slice(n_g + n_a + GYRO_OWN * k, n_g + n_a + GYRO_OWN * (k + 1))  # [w_I, f_I]
+            f_I = GYRO_DATA.shifted("f_I", gyro.start)
+            rows_g = np.hstack([G[gyro, gyro], G[gyro, :n_g]])  # [w_I, f_I]^T x_g
+            rows_a = np.hstack([G[f_I, f_I], G[f_I, n_g : n_g + n_a]])  # f_I^T x_a
             valid = valid_base and bool(sensor_covered[name][i0 : i0 + n_win].all())
             out[name].append(WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win))
     return out
@@ -381,7 +376,7 @@ MIN_SPAN_SAMPLES = 8
 
 def _unused(number: int, start: float, end: float) -> WindowMoments:
     """A window of an IMU that has no samples there (it stopped): kept in the count, not used."""
-    dim_g, dim_a = GYRO_DIM - OWN_ENTRIES[GYRO_DIM], ACCEL_DIM - OWN_ENTRIES[ACCEL_DIM]
+    dim_g, dim_a = GYRO_BASE.size, ACCEL_BASE.size
     shared = base_moments(np.zeros((dim_g, dim_g)), np.zeros((dim_a, dim_a)))
     info = WindowInfo(start, end, 0.0, float("inf"), False, np.full(3, np.inf), np.zeros(3, dtype=bool), False)
     return WindowMoments(number, start, end, False, shared, np.zeros((6, 6 + dim_g)), np.zeros((3, 3 + dim_a)), 0, info)
@@ -748,10 +743,9 @@ class StreamingCalibrator:
             if not any(w.info is not None and w.info.selected for w in windows):
                 estimate = unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0)
             else:
+                clock = ClockEvidence(tau0, offset is None or offset.shown, offset.reason if offset is not None else "")
                 estimate = solve(
-                    windows, setup.prior_T_base_imu, setup.options, tau0, self.sigma[name], self.lowpass,
-                    time_offset_shown=offset is None or offset.shown,
-                    time_offset_reason=offset.reason if offset is not None else "",
+                    windows, setup.prior_T_base_imu, setup.options, clock, self.sigma[name], self.lowpass,
                     dw_noise_var=self.dw_noise_var,
                 )
             out[name] = replace(estimate, warnings=self._unit_notes(name) + estimate.warnings)

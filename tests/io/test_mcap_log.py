@@ -14,7 +14,7 @@ from imucal_cli.reading import read_imu
 from imucal_cli.sim.writers import _messages, _msgdef, _serialized, write_imu_log
 
 runner = CliRunner()
-CONFORMANCE = Path(__file__).resolve().parents[2] / "shared" / "conformance" / "mcap"
+CONFORMANCE = Path(__file__).resolve().parents[3] / "shared" / "conformance" / "mcap"
 
 
 def _expected() -> dict[str, dict[str, int]]:

@@ -66,7 +66,8 @@ def test_window_information_from_moments_equals_the_sample_sums():
     lever = np.array([4.0, 1.0, 3.0])
     ones, u = np.ones((n, 1)), np.linspace(0, 1, n)[:, None]
     x_g = np.hstack([rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), w, rng.normal(size=(n, 3)), ones, u])  # [w_I, f_I, w_B, dw_B, 1, u]
-    x_a = np.hstack([rng.normal(size=(n, 3)), f, rng.normal(size=(n, 3)), _vec(A), _vec(rng.normal(size=(n, 3, 3))), ones, u])
+    q = rng.normal(size=(n, 4))  # the tilt terms
+    x_a = np.hstack([rng.normal(size=(n, 3)), f, rng.normal(size=(n, 3)), _vec(A), _vec(rng.normal(size=(n, 3, 3))), q, ones, u])
     sigma_min, t_std = _plain_window_info(w, f, A, lever, 0.01, 0.02)
     (c,) = window_infos_from_moments(
         [(0.0, 10.0, True)], np.array([n]), (x_g.T @ x_g)[None], (x_a.T @ x_a)[None], lever, 0.01, 0.02, 1.0, 0.3

@@ -1,0 +1,193 @@
+"""Tests of the model on the data, each a figure and a verdict (the sentences: :mod:`status`).
+
+- the sensor's own errors (each triad's axis errors, the gyro's g-sensitivity): estimated where
+  the drive determines them and a chi-square test finds them;
+- the rigid mount: a tilt with the vehicle's specific force (chi-square, 2 dof);
+- the rotation from the gyro alone against the one from the accelerometer alone (3 dof);
+- the residual levels against the noise the data imply.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from imucal_cli.core.model import (
+    ACCEL_AXES,
+    ACCEL_GLOBALS,
+    G_SENSITIVITY,
+    GYRO_AXES,
+    N_PARAMETERS,
+    ROTATION,
+    SENSOR_ERRORS,
+    TILT,
+    TIME_OFFSET,
+)
+from imucal_cli.core.solver import Fit, Problem
+from imucal_cli.types import GRAVITY_MPS2
+
+#: Residual std over the noise the data imply, above which the model does not explain the data.
+RESIDUAL_LEVEL_MAX = 2.0
+#: What the grid's interpolation and filtering leave of a signal, relative to its RMS about each
+#: window's mean: a residual level counts only above it. (Noise-free drives leave 1e-4 of the
+#: gyro's and 3e-4 of the accelerometer's.)
+PIPELINE_FLOOR = 1e-3
+#: A triad's axis errors are estimated where the drive determines them this well (1% of scale,
+#: 0.6 deg of non-orthogonality).
+INTRINSICS_MAX_STD = 0.01
+#: The gyro's g-sensitivity likewise (rad/s per m/s^2): 0.1 deg/s per g, a MEMS part's.
+G_SENSITIVITY_MAX_STD = np.radians(0.1) / GRAVITY_MPS2
+#: What the checks take as numerically zero (rad, and rad per m/s^2): on noise-free data the
+#: Fisher std is round-off, and so is any difference the checks see.
+NUMERICAL_ZERO = 1e-6
+#: The sensor's own errors, in groups each tested apart: (name, globals, std to be estimated).
+OWN_ERRORS = (
+    ("accelerometer", ACCEL_AXES, INTRINSICS_MAX_STD),
+    ("gyro", GYRO_AXES, INTRINSICS_MAX_STD),
+    ("g-sensitivity", G_SENSITIVITY, G_SENSITIVITY_MAX_STD),
+)
+
+
+@dataclass(frozen=True)
+class Check:
+    """One model-consistency test of the estimate (SPEC ``checks``)."""
+
+    name: str
+    passed: bool
+    figures: dict[str, Any]
+    #: Variance inflation the failed check calls for (1 where it passed).
+    inflation: float = 1.0
+
+
+def chi2_limit(dof: int, alpha: float) -> float:
+    """The chi-square quantile a false alarm rate ``alpha`` allows (``chi2.ppf(1 - alpha)``,
+    from ``scipy.special``: ``scipy.stats`` takes 0.8 s to import)."""
+    from scipy.special import chdtri
+
+    return float(chdtri(dof, alpha))
+
+
+def _chi2(value: np.ndarray, covariance: np.ndarray) -> float:
+    """``v^T C^-1 v``, what is below :data:`NUMERICAL_ZERO` counting as zero."""
+    regular = covariance + NUMERICAL_ZERO**2 * np.eye(len(value))
+    return float(value @ np.linalg.solve(regular, value))
+
+
+def rotation_difference(a: Any, b: Any) -> np.ndarray:
+    """Rotation vector of ``a b^-1`` (about the base axes)."""
+    return (a * b.inv()).as_rotvec()
+
+
+def _without_errors(fit: Fit, keep: np.ndarray) -> Fit:
+    """The fit with the sensor's errors not in ``keep`` (over :data:`SENSOR_ERRORS`) zeroed."""
+    point = replace(fit.point, errors=np.where(keep, fit.point.errors, 0.0))
+    return replace(fit, point=point)
+
+
+def own_errors(problem: Problem, fit: Fit, alpha: float) -> tuple[Fit, dict[str, dict[str, Any]]]:
+    """The sensor's own errors (:data:`OWN_ERRORS`) from one joint fit: the components the
+    drive determines to their group's std, a group kept where a chi-square test at ``alpha``
+    finds it. Returns the fit (with the groups kept) and per group ``estimated`` and, where any
+    component was determined, ``chi2``, ``dof``, ``value`` and ``std`` (NaN: not determined)."""
+    free = fit.free.copy()
+    free[SENSOR_ERRORS] = True
+    joint = problem.fit(fit, free)
+    std = joint.std()
+    shown = np.zeros(N_PARAMETERS, dtype=bool)
+    for _, which, max_std in OWN_ERRORS:
+        shown[which] = std[which] <= max_std
+    if not shown.any():
+        return fit, {name: {"estimated": False} for name, _, _ in OWN_ERRORS}
+    free[SENSOR_ERRORS] = shown[SENSOR_ERRORS]
+    joint = problem.fit(_without_errors(joint, shown[SENSOR_ERRORS]), free)
+    found: dict[str, dict[str, Any]] = {}
+    kept = fit.free.copy()
+    for name, which, _ in OWN_ERRORS:
+        group = shown[which]
+        if not group.any():
+            found[name] = {"estimated": False}
+            continue
+        value = joint.point.own(which)
+        chi2 = _chi2(value[group], joint.covariance[which, which][np.ix_(group, group)])
+        present = chi2 > chi2_limit(int(group.sum()), alpha)
+        found[name] = {
+            "estimated": bool(present), "chi2": chi2, "dof": int(group.sum()), "value": value.copy(),
+            "std": np.where(group, joint.std()[which], np.nan),
+        }
+        kept[which] = group & present
+    if not kept[SENSOR_ERRORS].any():
+        return fit, found
+    if np.array_equal(kept, free):
+        return joint, found
+    return problem.fit(_without_errors(joint, kept[SENSOR_ERRORS]), kept), found
+
+
+def rigid_mount(problem: Problem, fit: Fit, alpha: float) -> tuple[Check, Fit]:
+    """The mount's tilt with the vehicle's specific force, with the sensor's errors found in
+    the model (an accelerometer's scale factors look like a tilt where they are not). Returns
+    the check and the fit with the tilt estimated (the estimate where the check fails: the
+    tilting mount's, at rest)."""
+    with_tilt = fit.free.copy()
+    with_tilt[TILT] = True
+    tilted = problem.fit(fit, with_tilt)
+    k, cov_k = tilted.point.tilt, tilted.covariance[TILT, TILT]
+    chi2 = _chi2(k, cov_k)
+    figures = {
+        "tilt_deg_per_mps2": np.degrees(k).tolist(),
+        "std": np.degrees(np.sqrt(np.diag(cov_k))).tolist(), "chi2": chi2, "dof": 2,
+    }
+    return Check("rigid_mount", chi2 <= chi2_limit(2, alpha), figures), tilted
+
+
+def rotation_agreement(problem: Problem, fit: Fit, alpha: float) -> Check:
+    """The rotation from the gyro alone against the one from the accelerometer alone: one
+    linear step each from the joint solution (a direction one equation alone leaves free stays
+    put, with its large covariance, instead of wandering off)."""
+    rotation_only = np.zeros(N_PARAMETERS, dtype=bool)
+    rotation_only[ROTATION] = True
+    by_gyro = problem.fit(fit, rotation_only, use=(True, False), max_iterations=1, rotation_prior_std=1.0)
+    accel_only = np.zeros(N_PARAMETERS, dtype=bool)  # the free globals the accelerometer holds, but tau
+    accel_only[ACCEL_GLOBALS] = fit.free[ACCEL_GLOBALS]
+    accel_only[TIME_OFFSET] = False
+    by_accel = problem.fit(fit, accel_only, use=(False, True), max_iterations=1, rotation_prior_std=1.0)
+    delta = rotation_difference(by_accel.point.R, by_gyro.point.R)
+    chi2 = _chi2(delta, by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base())
+    figures = {"chi2": chi2, "dof": 3, "difference_deg": float(np.degrees(np.linalg.norm(delta)))}
+    return Check("gyro_vs_accel_rotation", chi2 <= chi2_limit(3, alpha), figures, max(1.0, chi2 / 3))
+
+
+def residual_level(problem: Problem, fit: Fit) -> Check:
+    """The residuals' std against the noise the data imply (and what the pipeline leaves)."""
+    noise = np.array(problem.sigma) * np.sqrt(problem.gain)
+    expected = np.hypot(noise, PIPELINE_FLOOR * np.array(problem.signal_rms))
+    accel = np.sqrt(max(fit.scale_a**2 - problem.eiv_variance(fit.point.t), 0.0))
+    levels = np.array([fit.scale_g, accel]) / expected
+    passed = bool(np.all(levels <= RESIDUAL_LEVEL_MAX))
+    figures = {"gyro": float(levels[0]), "accel": float(levels[1])}
+    return Check("residual_level", passed, figures, float(max(1.0, np.max(levels) ** 2)))
+
+
+def axes_figures(found: dict[str, Any]) -> dict[str, Any]:
+    """A triad's axis errors as the calibrate document gives them."""
+    if "value" not in found:
+        return found
+    value, std = found["value"], found["std"]
+    return {
+        "estimated": found["estimated"], "chi2": found["chi2"], "dof": found["dof"],
+        "scale": value[:3].tolist(), "nonorthogonality_deg": np.degrees(value[3:]).tolist(),
+        "scale_std": std[:3].tolist(), "nonorthogonality_std_deg": np.degrees(std[3:]).tolist(),
+    }
+
+
+def g_sensitivity_figures(found: dict[str, Any]) -> dict[str, Any]:
+    """The gyro's g-sensitivity ``G`` (the IMU's axes) in deg/s per g."""
+    if "value" not in found:
+        return found
+    per_g = np.degrees(1.0) * GRAVITY_MPS2
+    return {
+        "estimated": found["estimated"], "chi2": found["chi2"], "dof": found["dof"],
+        "dps_per_g": (per_g * found["value"]).reshape(3, 3).tolist(),
+        "std_dps_per_g": (per_g * found["std"]).reshape(3, 3).tolist(),
+    }

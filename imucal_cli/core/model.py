@@ -1,0 +1,279 @@
+"""The measurement model of one sensor IMU against the base IMU, stated once (paper eqs. 10-12).
+
+With ``R = R_base_imu``, ``t = t_base_imu`` (the lever arm), the clock offset ``tau = tau0 +
+dtau`` (stamp of the sensor minus stamp of the base; ``tau0`` from the boot's correlation),
+both triads resampled onto the base's grid at ``t + tau0`` and low-passed alike:
+
+- gyro (eq. 10)::
+
+      w_I = (I + E_g) R^T (w_B - dtau dw_B) + G f_I + b_g(t)
+
+- accelerometer (eqs. 11-12)::
+
+      f_I = (I + E_a) R^T (f_B - dtau df_B + (A - dtau dA) t + f_B x theta) + b_a(t)
+
+  with ``A = [w_B]x^2 + [dw_B]x`` (centripetal and Euler terms) and ``dA`` its derivative.
+
+The sensor's own errors: ``E_a``, ``E_g`` each triad's axis errors (symmetric: scale factors
+on the diagonal, non-orthogonality off it, :data:`SYMMETRIC`), ``G`` the gyro's g-sensitivity
+(rad/s per m/s^2, acting on the sensor's own specific force), ``theta = (k_roll f_y, k_pitch
+f_x, 0)`` a mount that tilts with the vehicle's specific force (base axes), ``b_g``, ``b_a`` the
+relative biases, piecewise linear in time with a knot every window.
+
+Every residual is linear in a data vector ``x``, ``r = C(p) x``:
+
+- ``x_g`` (:data:`GYRO_DATA`) = ``[w_I, f_I, w_B, dw_B, 1, u]``
+- ``x_a`` (:data:`ACCEL_DATA`) = ``[f_I, f_B, df_B, vec A, vec dA, q, 1, u]``
+
+(``u`` the time within the window, 0..1; ``q`` the products of ``f_B`` a tilting mount adds),
+so a window's cost ``tr(C S C^T)`` and its Gauss-Newton derivatives are exact functions of its
+moments ``S = sum x x^T``. This module owns the layout of the parameters (:data:`PARAMETERS`)
+and of both data vectors by name, the coefficients ``C``, and their derivatives; adding an error
+term is a block in :data:`PARAMETERS`, its columns here, and its case in
+``tests/core/test_model.py``, which checks every derivative against finite differences.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from imucal_cli.core.so3 import skew
+from imucal_cli.types import rotation_type
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
+
+
+class Layout:
+    """Named consecutive blocks of a vector: ``layout["name"]`` is the block's slice."""
+
+    def __init__(self, *blocks: tuple[str, int]) -> None:
+        self.slices: dict[str, slice] = {}
+        start = 0
+        for name, size in blocks:
+            self.slices[name] = slice(start, start + size)
+            start += size
+        self.size = start
+
+    def __getitem__(self, name: str) -> slice:
+        return self.slices[name]
+
+    def index(self, name: str) -> int:
+        """The position of a one-entry block."""
+        block = self.slices[name]
+        assert block.stop - block.start == 1, name
+        return block.start
+
+    def indices(self, *names: str) -> np.ndarray:
+        """The positions of several blocks, in the order named."""
+        return np.concatenate([np.arange(self.slices[n].start, self.slices[n].stop) for n in names])
+
+    def without(self, *names: str) -> Layout:
+        """The layout of the other blocks, in order, packed from 0."""
+        return Layout(*((n, s.stop - s.start) for n, s in self.slices.items() if n not in names))
+
+    def shifted(self, name: str, offset: int) -> slice:
+        """The block's slice ``offset`` entries further on (the layout inside a larger one)."""
+        block = self.slices[name]
+        return slice(block.start + offset, block.stop + offset)
+
+
+#: The estimate's global unknowns. ``rotation``: a step right-multiplied onto ``R_base_imu``
+#: (IMU axes); ``tilt``: roll per lateral and pitch per longitudinal specific force (rad per
+#: m/s^2); ``accel_axes`` and ``gyro_axes``: each triad's ``E`` by :data:`SYMMETRIC`;
+#: ``g_sensitivity``: ``G`` row-major (the IMU's axes).
+PARAMETERS = Layout(
+    ("rotation", 3), ("translation", 3), ("time_offset", 1), ("tilt", 2),
+    ("accel_axes", 6), ("gyro_axes", 6), ("g_sensitivity", 9),
+)
+N_PARAMETERS = PARAMETERS.size
+ROTATION, TRANSLATION, TILT = PARAMETERS["rotation"], PARAMETERS["translation"], PARAMETERS["tilt"]
+TIME_OFFSET = PARAMETERS.index("time_offset")
+ACCEL_AXES, GYRO_AXES = PARAMETERS["accel_axes"], PARAMETERS["gyro_axes"]
+G_SENSITIVITY = PARAMETERS["g_sensitivity"]
+#: The sensor's own errors, as :attr:`Point.errors` holds them.
+SENSOR_ERRORS = slice(ACCEL_AXES.start, G_SENSITIVITY.stop)
+#: The extrinsics and the clock: what the jackknife and the reported covariance cover.
+EXTRINSICS = slice(ROTATION.start, TIME_OFFSET + 1)
+#: The globals each equation holds, in the order of its derivatives' columns.
+GYRO_GLOBALS = PARAMETERS.indices("rotation", "time_offset", "gyro_axes", "g_sensitivity")
+ACCEL_GLOBALS = PARAMETERS.indices("rotation", "translation", "time_offset", "tilt", "accel_axes")
+
+GYRO_DATA = Layout(("w_I", 3), ("f_I", 3), ("w_B", 3), ("dw_B", 3), ("one", 1), ("u", 1))
+ACCEL_DATA = Layout(
+    ("f_I", 3), ("f_B", 3), ("df_B", 3), ("vec_A", 9), ("vec_dA", 9), ("tilt_terms", 4),
+    ("one", 1), ("u", 1),
+)
+#: The base's part of each data vector, shared by every sensor.
+GYRO_BASE, ACCEL_BASE = GYRO_DATA.without("w_I", "f_I"), ACCEL_DATA.without("f_I")
+#: The sensor's own leading entries of each data vector.
+GYRO_OWN = GYRO_DATA.size - GYRO_BASE.size
+ACCEL_OWN = ACCEL_DATA.size - ACCEL_BASE.size
+
+#: Bias unknowns per knot.
+KNOT = Layout(("gyro_bias", 3), ("accel_bias", 3))
+
+SYMMETRIC = np.zeros((6, 3, 3))
+for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+    SYMMETRIC[_k, _i, _j] = SYMMETRIC[_k, _j, _i] = 1.0
+
+#: ``vec([n]x) = VEC_SKEW n`` (column-major vec): how the angular acceleration's noise enters
+#: the ``vec A`` columns of x_a.
+VEC_SKEW = np.zeros((9, 3))
+for _column, _row, _component, _sign in (
+    (0, 1, 2, 1), (0, 2, 1, -1), (1, 0, 2, -1), (1, 2, 0, 1), (2, 0, 1, 1), (2, 1, 0, -1)
+):
+    VEC_SKEW[3 * _column + _row, _component] = _sign
+
+
+@dataclass
+class Point:
+    """Where the model is evaluated: the extrinsics, the clock, the tilt, the sensor's errors."""
+
+    R: Rotation  # R_base_imu
+    t: np.ndarray  # t_base_imu (3,)
+    dtau: float  # the clock offset beyond the boot's
+    tilt: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    errors: np.ndarray = field(default_factory=lambda: np.zeros(SENSOR_ERRORS.stop - SENSOR_ERRORS.start))
+
+    def own(self, block: slice) -> np.ndarray:
+        """One block of the sensor's errors (:data:`ACCEL_AXES`, ...)."""
+        return self.errors[block.start - SENSOR_ERRORS.start : block.stop - SENSOR_ERRORS.start]
+
+    def moved(self, step: np.ndarray) -> Point:
+        """The point after a step of the globals (:data:`PARAMETERS`)."""
+        return Point(
+            self.R * rotation_type().from_rotvec(step[ROTATION]), self.t + step[TRANSLATION],
+            self.dtau + step[TIME_OFFSET], self.tilt + step[TILT], self.errors + step[SENSOR_ERRORS],
+        )
+
+    def key(self) -> bytes:
+        """Equal for equal points (a cache key)."""
+        parts = (self.R.as_quat(), self.t, self.dtau, self.tilt, self.errors)
+        return b"".join(np.asarray(v, dtype=np.float64).tobytes() for v in parts)
+
+
+def triad_axes(errors: np.ndarray) -> np.ndarray:
+    """``I + E``: a triad's axes from its six axis errors."""
+    return np.eye(3) + np.tensordot(errors, SYMMETRIC, axes=1)
+
+
+def kron_t(t: np.ndarray) -> np.ndarray:
+    """``t^T (x) I3``: (3, 9) with ``A t = (t^T (x) I3) vec A``."""
+    return np.hstack([t[0] * np.eye(3), t[1] * np.eye(3), t[2] * np.eye(3)])
+
+
+def tilt_columns(Rt: np.ndarray, tilt: np.ndarray) -> np.ndarray:
+    """Coefficients (3, 4) of the tilt terms ``q = [f_y f_z, f_y^2, f_x f_z, f_x^2]`` of x_a.
+
+    A mount leaning by ``theta = (k_roll f_y, k_pitch f_x, 0)`` (base axes) turns the specific
+    force it sees into ``R^T exp(-[theta]x) f ~ R^T (f + f x theta)``, and
+    ``f x theta = k_roll (0, q1, -q2) + k_pitch (-q3, 0, q4)``."""
+    k_roll, k_pitch = tilt
+    return np.stack(
+        [-k_roll * Rt[:, 1], k_roll * Rt[:, 2], k_pitch * Rt[:, 0], -k_pitch * Rt[:, 2]], axis=-1
+    )
+
+
+def _bias_columns(C: np.ndarray, layout: Layout, bj: np.ndarray, bk: np.ndarray) -> None:
+    """The bias, linear between the window's knots ``bj`` and ``bk`` (K, 3): on ``1`` and ``u``."""
+    C[:, :, layout.index("one")] = -bj
+    C[:, :, layout.index("u")] = -(bk - bj)
+
+
+def gyro_coefficients(point: Point, bj: np.ndarray, bk: np.ndarray) -> np.ndarray:
+    """``C`` of ``r_g = C x_g`` per window, (K, 3, 14), the gyro biases at the window's knots."""
+    D = GYRO_DATA
+    Rt = triad_axes(point.own(GYRO_AXES)) @ point.R.inv().as_matrix()
+    C = np.zeros((len(bj), 3, D.size))
+    C[:, :, D["w_I"]] = np.eye(3)
+    C[:, :, D["f_I"]] = -point.own(G_SENSITIVITY).reshape(3, 3)
+    C[:, :, D["w_B"]] = -Rt
+    C[:, :, D["dw_B"]] = point.dtau * Rt
+    _bias_columns(C, D, bj, bk)
+    return C
+
+
+def accel_coefficients(point: Point, aj: np.ndarray, ak: np.ndarray) -> np.ndarray:
+    """``C`` of ``r_a = C x_a`` per window, (K, 3, 33), the accelerometer biases at the knots."""
+    D = ACCEL_DATA
+    Rt = triad_axes(point.own(ACCEL_AXES)) @ point.R.inv().as_matrix()
+    T = kron_t(point.t)
+    C = np.zeros((len(aj), 3, D.size))
+    C[:, :, D["f_I"]] = np.eye(3)
+    C[:, :, D["f_B"]] = -Rt
+    C[:, :, D["df_B"]] = point.dtau * Rt
+    C[:, :, D["vec_A"]] = -Rt @ T
+    C[:, :, D["vec_dA"]] = point.dtau * Rt @ T
+    C[:, :, D["tilt_terms"]] = tilt_columns(Rt, point.tilt)
+    _bias_columns(C, D, aj, ak)
+    return C
+
+
+def _rotating(C: np.ndarray, layout: Layout, fixed: Sequence[str]) -> np.ndarray:
+    """``C`` without the columns that do not turn with ``(I + E) R^T``."""
+    out = C.copy()
+    for name in fixed:
+        out[:, :, layout[name]] = 0.0
+    return out
+
+
+def _axis_derivatives(D: np.ndarray, columns: Sequence[int], rotating: np.ndarray, axes: np.ndarray) -> None:
+    """Every column ``-(I + E) R^T K`` (``K`` data-free) under a rotation step (``R^T -> (I -
+    [d]x) R^T``) takes ``-(I + E) [d]x (I + E)^-1`` of itself, and under an axis error ``E_b``
+    ``S_b (I + E)^-1`` of itself; ``columns``: the rotation's three, then the axis errors' six."""
+    inverse = np.linalg.inv(axes)
+    for m in range(3):
+        D[:, columns[m]] = -(axes @ skew(np.eye(3)[m]) @ inverse) @ rotating
+    for b in range(6):
+        D[:, columns[3 + b]] = (SYMMETRIC[b] @ inverse) @ rotating
+
+
+def gyro_derivatives(point: Point, C: np.ndarray) -> np.ndarray:
+    """``dC_g / dp`` for the globals in :data:`GYRO_GLOBALS`: (K, 19, 3, 14). The biases'
+    derivatives are constant (the solver's own, on ``1`` and ``u``)."""
+    D, P = GYRO_DATA, list(GYRO_GLOBALS)
+    axes = triad_axes(point.own(GYRO_AXES))
+    Rt = axes @ point.R.inv().as_matrix()
+    out = np.zeros((len(C), len(P), 3, D.size))
+    rotating = _rotating(C, D, ("w_I", "f_I", "one", "u"))
+    axis_columns = [P.index(p) for p in (*range(3), *range(GYRO_AXES.start, GYRO_AXES.stop))]
+    _axis_derivatives(out, axis_columns, rotating, axes)
+    out[:, P.index(TIME_OFFSET), :, D["dw_B"]] = Rt
+    f_I = D["f_I"].start
+    for i in range(3):
+        for j in range(3):  # G_ij: row i of f_I's block takes -1 in column j
+            out[:, P.index(G_SENSITIVITY.start + 3 * i + j), i, f_I + j] = -1.0
+    return out
+
+
+def accel_derivatives(point: Point, C: np.ndarray) -> np.ndarray:
+    """``dC_a / dp`` for the globals in :data:`ACCEL_GLOBALS`: (K, 15, 3, 33). The biases'
+    derivatives are constant (the solver's own, on ``1`` and ``u``)."""
+    D, P = ACCEL_DATA, list(ACCEL_GLOBALS)
+    axes = triad_axes(point.own(ACCEL_AXES))
+    Rt = axes @ point.R.inv().as_matrix()
+    out = np.zeros((len(C), len(P), 3, D.size))
+    rotating = _rotating(C, D, ("f_I", "one", "u"))
+    axis_columns = [P.index(p) for p in (*range(3), *range(ACCEL_AXES.start, ACCEL_AXES.stop))]
+    _axis_derivatives(out, axis_columns, rotating, axes)
+    for m in range(3):
+        E = kron_t(np.eye(3)[m])
+        out[:, P.index(TRANSLATION.start + m), :, D["vec_A"]] = -Rt @ E
+        out[:, P.index(TRANSLATION.start + m), :, D["vec_dA"]] = point.dtau * Rt @ E
+    tau = P.index(TIME_OFFSET)
+    out[:, tau, :, D["df_B"]] = Rt
+    out[:, tau, :, D["vec_dA"]] = Rt @ kron_t(point.t)
+    for k, unit in enumerate(np.eye(2)):
+        out[:, P.index(TILT.start + k), :, D["tilt_terms"]] = tilt_columns(Rt, unit)
+    return out
+
+
+def angular_acceleration_noise(samples: np.ndarray, variance: float) -> np.ndarray:
+    """What the angular acceleration's white noise (``variance`` per axis and sample) adds to
+    each window's ``vec A`` block of the accelerometer's moments, (K, 9, 9)."""
+    return samples[:, None, None] * (variance * VEC_SKEW @ VEC_SKEW.T)

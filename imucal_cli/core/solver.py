@@ -1,0 +1,482 @@
+"""Gauss-Newton on the windows' moments, the biases eliminated by a banded Schur complement.
+
+The model (:mod:`imucal_cli.core.model`) makes each window's cost and derivatives exact
+functions of its moments, so iterating never revisits the signals. The relative biases are
+piecewise linear with a knot per window; their block of the normal equations is banded (a
+window couples two knots), so it is factored by LAPACK's banded Cholesky and eliminated, and
+the small problem left in the globals takes the translation box of eq. 16 through
+``scipy.optimize.lsq_linear`` where the box binds. Everything here returns figures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+from scipy.linalg import cho_solve_banded, cholesky_banded
+
+from imucal_cli.core.model import (
+    ACCEL_DATA,
+    ACCEL_GLOBALS,
+    GYRO_DATA,
+    GYRO_GLOBALS,
+    KNOT,
+    N_PARAMETERS,
+    ROTATION,
+    SENSOR_ERRORS,
+    TILT,
+    TRANSLATION,
+    Point,
+    accel_coefficients,
+    accel_derivatives,
+    angular_acceleration_noise,
+    gyro_coefficients,
+    gyro_derivatives,
+)
+from imucal_cli.core.moments import WindowMoments, assemble_moments
+from imucal_cli.types import rotation_type
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
+
+    from imucal_cli.core.signals import Lowpass
+
+#: Upper bandwidth of the biases' block of the normal equations: a window couples the biases
+#: of its two knots, at most ``2 KNOT.size - 1`` apart.
+BAND = 2 * KNOT.size - 1
+#: Windows whose normal equations are formed together (bounds the estimator's scratch memory).
+SOLVE_CHUNK = 128
+#: The accelerometer's full moments are kept through the iterations up to this size (about 13 h
+#: of 10 s windows); beyond it they are stacked again, a chunk at a time, every iteration.
+SOLVE_CACHE_BYTES = 32 << 20
+#: Relative resolution of a residual computed from second moments (double precision squares).
+RESOLUTION = 1e-7
+#: Random walk of the accelerometer bias allowed between knots (m/s^2/sqrt(s)): loose, a few
+#: times what MEMS parts drift, so the data decide.
+ACCEL_BIAS_WALK = 0.01
+#: Prior standard deviation of the accelerometer bias (m/s^2): keeps knots without data defined.
+ACCEL_BIAS_PRIOR_STD = 1.0
+
+
+@dataclass(frozen=True)
+class BiasModel:
+    """How the relative biases may drift between knots and how large they may be."""
+
+    spacing_s: float
+    walks: tuple[float, float]  # gyro (rad/s/sqrt(s)), accelerometer (m/s^2/sqrt(s))
+    prior_stds: tuple[float, float]  # gyro (rad/s), accelerometer (m/s^2)
+
+
+def bias_prior(n_knots: int, biases: BiasModel) -> np.ndarray:
+    """Information of each bias component's random walk between knots plus a weak absolute
+    prior, in LAPACK's upper banded storage (``BAND + 1`` rows, ``KNOT.size n_knots``
+    columns, knots in the order of :data:`KNOT`)."""
+    width = KNOT.size
+    band = np.zeros((BAND + 1, width * n_knots))
+    for c in range(width):
+        walk, prior_std = biases.walks[c // 3], biases.prior_stds[c // 3]
+        info = 1.0 / (walk**2 * biases.spacing_s)
+        diagonal = np.full(n_knots, 2.0 * info)  # sum of d^T d: 1 at the ends, 2 inside
+        diagonal[[0, -1]] = info if n_knots > 1 else 0.0
+        band[BAND, c::width] = diagonal + 1.0 / prior_std**2
+        band[BAND - width, width + c :: width] = -info  # between neighbouring knots
+    return band
+
+
+def band_times(band: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The symmetric matrix held in upper banded storage times ``x``."""
+    u = len(band) - 1
+    y = band[u] * x
+    for d in range(1, u + 1):
+        upper = band[u - d, d:]  # entries (i, i + d)
+        y[:-d] += upper * x[d:]
+        y[d:] += upper * x[:-d]
+    return y
+
+
+def normal_equations(
+    D: np.ndarray, S: np.ndarray, C: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per window: the GN Hessian ``tr(D_p S D_q^T)``, gradient ``tr(D_p S C^T)`` and cost
+    ``tr(C S C^T)``, over the parameters whose derivatives ``D`` (K, P, 3, dim) gives, then the
+    window's two bias knots (3 + 3): ``(K, P + 6, P + 6)``, ``(K, P + 6)``, ``(K,)``.
+
+    A bias knot's derivative is constant and sparse: the residual's row ``m`` takes ``-b_j`` on
+    the constant column ``a`` of ``x`` and ``-(b_k - b_j)`` on the time column ``b`` (the last
+    two of either data vector), so its products with ``S`` are entries of ``D S``, ``C S`` and
+    ``S`` itself: only the other parameters' ``D S`` is multiplied out."""
+    K, P, rows, dim = D.shape
+    a, b = dim - 2, dim - 1
+    assert (a, b) in ((GYRO_DATA.index("one"), GYRO_DATA.index("u")),
+                      (ACCEL_DATA.index("one"), ACCEL_DATA.index("u")))
+    DS = (D.reshape(K, P * rows, dim) @ S).reshape(K, P, rows, dim)
+    CS = C @ S
+    H = np.zeros((K, P + 6, P + 6))
+    H[:, :P, :P] = DS.reshape(K, P, rows * dim) @ D.reshape(K, P, rows * dim).transpose(0, 2, 1)
+    H[:, :P, P : P + 3] = DS[:, :, :, b] - DS[:, :, :, a]  # b_j: -e_a + e_b on row m
+    H[:, :P, P + 3 :] = -DS[:, :, :, b]  # b_k: -e_b on row m
+    H[:, P:, :P] = H[:, :P, P:].transpose(0, 2, 1)
+    S_aa, S_ab, S_bb = S[:, a, a], S[:, a, b], S[:, b, b]
+    for m in range(3):
+        H[:, P + m, P + m] = S_aa - 2.0 * S_ab + S_bb
+        H[:, P + m, P + 3 + m] = H[:, P + 3 + m, P + m] = S_ab - S_bb
+        H[:, P + 3 + m, P + 3 + m] = S_bb
+    g = np.empty((K, P + 6))
+    g[:, :P] = (DS.reshape(K, P, rows * dim) @ C.reshape(K, rows * dim, 1))[:, :, 0]
+    g[:, P : P + 3] = CS[:, :, b] - CS[:, :, a]
+    g[:, P + 3 :] = -CS[:, :, b]
+    cost = np.sum(CS * C, axis=(1, 2))
+    return H, g, cost
+
+
+def bounded_step(
+    L: np.ndarray, s: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The step minimising ``|L^T x - L^-1 s|^2`` (``x^T S x / 2 - s^T x`` with ``S = L L^T``)
+    inside the box ``[lower, upper]``, and the unconstrained minimiser ``S^-1 s``. The cost is
+    strictly convex, so where the unconstrained minimiser lies in the box it is the answer;
+    otherwise the box is taken by ``scipy.optimize.lsq_linear`` (bounded-variable least
+    squares; imported only then)."""
+    target = np.linalg.solve(L, s)
+    free = np.linalg.solve(L.T, target)
+    if np.all(free >= lower) and np.all(free <= upper):
+        return free, free
+    from scipy.optimize import lsq_linear
+
+    bounded = lsq_linear(L.T, target, bounds=(lower, upper), method="bvls", tol=1e-12)
+    return bounded.x, free
+
+
+def kabsch_rotation(S_gyro: np.ndarray, samples: np.ndarray) -> Rotation:
+    """``R_base_imu`` minimising ``sum |R^T w_B - w_I|^2`` over windows, each centred (eq. 10).
+
+    From the gyro moments (K, 14, 14): centring per window removes a constant relative gyro
+    bias. Kabsch/Horn: with the centred cross covariance ``sum w_I w_B^T = U diag(s) V^T``,
+    ``R_imu_base = U diag(1, 1, det) V^T``.
+    """
+    n = samples[:, None, None]
+    one, w_I, w_B = GYRO_DATA.index("one"), GYRO_DATA["w_I"], GYRO_DATA["w_B"]
+    mean_I, mean_B = S_gyro[:, w_I, one][:, :, None] / n, S_gyro[:, w_B, one][:, :, None] / n
+    cross = np.sum(S_gyro[:, w_I, w_B] - n * mean_I @ mean_B.transpose(0, 2, 1), axis=0)
+    U, _, Vt = np.linalg.svd(cross)
+    d = np.sign(np.linalg.det(U @ Vt))
+    R_imu_base = U @ np.diag([1.0, 1.0, d]) @ Vt
+    return rotation_type().from_matrix(R_imu_base.T)
+
+
+@dataclass
+class Fit:
+    """One Gauss-Newton solution of the joint problem and its Fisher information."""
+
+    point: Point
+    knots: np.ndarray  # (n_knots, KNOT.size)
+    free: np.ndarray  # (N_PARAMETERS,) bool: the globals estimated
+    scale_g: float  # residual std per grid sample (rad/s, m/s^2), from the fit
+    scale_a: float
+    #: Of the free globals (rotation: IMU axes).
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((N_PARAMETERS, N_PARAMETERS)))
+    unconstrained_t: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the box not binding
+    cost_g: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per window
+    cost_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    bias_std: np.ndarray | None = None  # (KNOT.size,) of the last knot
+    iterations: int = 0
+
+    def std(self) -> np.ndarray:
+        """(N_PARAMETERS,) standard deviations; inf where not estimated."""
+        variance = np.clip(np.diag(self.covariance), 0.0, None)
+        return np.where(self.free, np.sqrt(variance), np.inf)
+
+    def rotation_covariance_base(self) -> np.ndarray:
+        """3x3 covariance of the rotation about the base axes."""
+        Rm = self.point.R.as_matrix()
+        return Rm @ self.covariance[ROTATION, ROTATION] @ Rm.T
+
+
+class Linearisation(NamedTuple):
+    """Every window's unweighted normal equations at a point, each equation's."""
+
+    H_g: np.ndarray
+    g_g: np.ndarray
+    cost_g: np.ndarray
+    H_a: np.ndarray
+    g_a: np.ndarray
+    cost_a: np.ndarray
+
+
+class _Reduced(NamedTuple):
+    """The normal equations with the biases eliminated: ``S step = s`` over the free globals."""
+
+    S: np.ndarray
+    s: np.ndarray
+    factor: tuple[np.ndarray, bool]  # the biases' banded Cholesky factor
+    H_gb: np.ndarray  # the free globals' coupling to the biases
+    grad_b: np.ndarray
+    X: np.ndarray  # H_bb^-1 H_gb^T
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What the solver takes from the calibration's options."""
+
+    translation_prior: np.ndarray  # t_base_imu of the prior: the box's centre
+    translation_bound_m: float
+    biases: BiasModel
+    max_iterations: int
+
+
+class Problem:
+    """The normal equations' parts of one sensor's selected windows that stay fixed over
+    iterations: moments, where each window's entries go, the bias prior. :meth:`fit` solves it
+    for any set of free globals, either equation alone, and any subset of windows (the
+    jackknife)."""
+
+    def __init__(
+        self, windows: list[WindowMoments], settings: Settings, sigma: tuple[float, float],
+        lowpass: Lowpass, dw_noise_var: float,
+    ) -> None:
+        used = [w for w in windows if w.info is not None and w.info.selected]
+        self.used, self.settings, self.sigma, self.dw_noise_var = used, settings, sigma, dw_noise_var
+        self.numbers = np.array([w.number for w in used])
+        self.n_knots = int(max(w.number for w in windows)) + 2
+        self.S_g = assemble_moments(used, "gyro")  # (K, 14, 14): small
+        self.starts = range(0, len(used), SOLVE_CHUNK)
+        # the accelerometer's moments, stacked once where they are small, else a chunk at a time
+        small = len(used) * ACCEL_DATA.size**2 * 8 <= SOLVE_CACHE_BYTES
+        self.cached = [self._S_a(a) for a in self.starts] if small else None
+        self.samples_per_window = np.array([w.samples for w in used], dtype=float)
+        self.samples = float(self.samples_per_window.sum())
+        self.gain = lowpass.white_noise_gain()
+        self._floors_and_signal()
+        self.prior_band = bias_prior(self.n_knots, settings.biases)
+        self._layout_biases()
+        self._last: tuple[bytes, Linearisation] | None = None
+
+    def _floors_and_signal(self) -> None:
+        """A cost from moments is a difference of large sums: below :data:`RESOLUTION` times
+        the signal's RMS the residual is round-off, not noise (noise-free data). And the
+        sensor's signal about each window's mean, per axis (RMS)."""
+        used, f_I = self.used, ACCEL_DATA["f_I"]
+        trace_f = float(sum(np.trace(w.rows_accel[:, f_I]) for w in used))
+        w_I = GYRO_DATA["w_I"]
+        self.floor_g = (RESOLUTION**2) * np.trace(self.S_g[:, w_I, w_I].sum(axis=0)) / (3 * self.samples)
+        self.floor_a = (RESOLUTION**2) * trace_f / (3 * self.samples)
+
+        def spread(rows: np.ndarray, n: int, one: int) -> float:  # sum |x - mean|^2
+            return float(np.trace(rows[:, 0:3]) - rows[:, one] @ rows[:, one] / n)
+
+        one_g, one_a = GYRO_DATA.index("one"), ACCEL_DATA.index("one")
+        gyro = sum(spread(w.rows_gyro[w_I], w.samples, one_g) for w in used)
+        accel = sum(spread(w.rows_accel, w.samples, one_a) for w in used)
+        self.signal_rms = (
+            float(np.sqrt(gyro / (3 * self.samples))), float(np.sqrt(accel / (3 * self.samples)))
+        )
+
+    def _layout_biases(self) -> None:
+        """Where each window's normal equations go (the same every iteration). Unknowns: the
+        globals, then the biases, per knot as :data:`KNOT`. A window's gyro equations hold
+        their globals and its two knots' gyro biases, its accelerometer's likewise."""
+        n_bias = self.n_bias = KNOT.size * self.n_knots
+        width = KNOT.size
+
+        def at_knots(block: slice) -> np.ndarray:  # (K, 6): the block at knot j, then j + 1
+            own = np.arange(block.start, block.stop)
+            return width * self.numbers[:, None] + np.concatenate([own, width + own])
+
+        self.biases_g, self.biases_a = at_knots(KNOT["gyro_bias"]), at_knots(KNOT["accel_bias"])
+        upper6 = self.upper6 = np.triu_indices(6)  # a window's bias indices increase
+
+        def band_at(biases: np.ndarray) -> np.ndarray:  # flat index into the (BAND + 1, n_bias) band
+            i, j = biases[:, upper6[0]], biases[:, upper6[1]]
+            return ((BAND + i - j) * n_bias + j).ravel()
+
+        self.band_g, self.band_a = band_at(self.biases_g), band_at(self.biases_a)
+        self.cross_g = (GYRO_GLOBALS[None, :, None] * n_bias + self.biases_g[:, None, :]).ravel()
+        self.cross_a = (ACCEL_GLOBALS[None, :, None] * n_bias + self.biases_a[:, None, :]).ravel()
+
+    def _S_a(self, a: int) -> np.ndarray:
+        """The accelerometer's moments of a chunk of windows, less what the angular
+        acceleration's noise adds to the ``vec A`` block (errors in variables: uncorrected,
+        it counts as lever-arm information and pulls the lever arm towards the origin)."""
+        windows = self.used[a : a + SOLVE_CHUNK]
+        S = assemble_moments(windows, "accel")
+        samples = np.array([w.samples for w in windows], dtype=float)
+        vec_A = ACCEL_DATA["vec_A"]
+        S[:, vec_A, vec_A] -= angular_acceleration_noise(samples, self.dw_noise_var)
+        return S
+
+    def accel_moments(self) -> list[np.ndarray]:
+        """The accelerometer's moments, a chunk of windows at a time."""
+        if self.cached is not None:
+            return self.cached
+        return [self._S_a(a) for a in self.starts]
+
+    def linearised(self, point: Point, knots: np.ndarray) -> Linearisation:
+        """Every window's unweighted normal equations at a point (:func:`normal_equations`).
+        The last point's are kept: the jackknife's replicates and the one-equation checks all
+        take their one step from the same fit."""
+        key = point.key() + knots.tobytes()
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
+        bj, bk = knots[self.numbers], knots[self.numbers + 1]
+        gyro, accel = KNOT["gyro_bias"], KNOT["accel_bias"]
+        Cg = gyro_coefficients(point, bj[:, gyro], bk[:, gyro])
+        Ca = accel_coefficients(point, bj[:, accel], bk[:, accel])
+        parts_g, parts_a = [], []
+        for a, S_a in zip(self.starts, self.accel_moments(), strict=True):
+            chunk = slice(a, a + SOLVE_CHUNK)  # the derivatives are large: in slices
+            parts_g.append(normal_equations(gyro_derivatives(point, Cg[chunk]), self.S_g[chunk], Cg[chunk]))
+            parts_a.append(normal_equations(accel_derivatives(point, Ca[chunk]), S_a, Ca[chunk]))
+        g_parts, a_parts = (
+            [np.concatenate([p[i] for p in parts]) for i in range(3)] for parts in (parts_g, parts_a)
+        )
+        self._last = (key, Linearisation(*g_parts, *a_parts))
+        return self._last[1]
+
+    def translation_information_diagonal(self) -> np.ndarray:
+        """Per axis, the lever arm's information ``sum (A - mean A)^T (A - mean A)`` over the
+        windows (each centred), less the angular acceleration's noise (unit residual)."""
+        total = np.zeros(3)
+        one, vec_A = ACCEL_DATA.index("one"), ACCEL_DATA["vec_A"]
+        for S in self.accel_moments():
+            n = S[:, one, one]
+            mean = S[:, vec_A, one] / n[:, None]
+            centred = S[:, vec_A, vec_A] - n[:, None, None] * mean[:, :, None] * mean[:, None, :]
+            blocks = centred.sum(axis=0).reshape(3, 3, 3, 3)  # (j, a, l, b) of vec A = A[a, j]
+            total += np.einsum("jaja->j", blocks)
+        return total
+
+    def eiv_variance(self, t: np.ndarray) -> float:
+        """Per-axis variance the angular acceleration's noise adds to the accelerometer's
+        residual at lever arm ``t``: ``E |n x t|^2 / 3``."""
+        return 2.0 / 3.0 * self.dw_noise_var * float(t @ t)
+
+    def start(self) -> Fit:
+        """The starting point: Kabsch/Horn over the windows (eq. 10), the prior's translation,
+        the extrinsics and the clock free."""
+        R = kabsch_rotation(self.S_g, self.samples_per_window)
+        scale_g, scale_a = (s * np.sqrt(self.gain) for s in self.sigma)
+        free = np.ones(N_PARAMETERS, dtype=bool)
+        free[TILT] = False
+        free[SENSOR_ERRORS] = False
+        point = Point(R, self.settings.translation_prior.copy(), 0.0)
+        return Fit(point, np.zeros((self.n_knots, KNOT.size)), free, scale_g, scale_a)
+
+    def fit(
+        self, start: Fit, free: np.ndarray, use: tuple[bool, bool] = (True, True),
+        window_weights: np.ndarray | None = None, estimate_scale: bool = False,
+        max_iterations: int | None = None, rotation_prior_std: float | None = None,
+    ) -> Fit:
+        """Gauss-Newton from ``start`` over the ``free`` globals (and every bias knot), with the
+        gyro and accelerometer equations as ``use`` says, each window weighted by
+        ``window_weights`` (0 leaves it out). The residual scales are re-estimated from the
+        fit where ``estimate_scale``, else kept from ``start``. ``rotation_prior_std`` (rad)
+        keeps a rotation that one equation alone leaves free defined."""
+        point, knots = start.point, start.knots.copy()
+        scales = (start.scale_g, start.scale_a)
+        weights = np.ones(len(self.used)) if window_weights is None else window_weights
+        free_idx = np.flatnonzero(free)
+        unconstrained, reduced, S_inv, iterations = point.t.copy(), None, None, 0
+        lin = None
+        for iterations in range(1, (max_iterations or self.settings.max_iterations) + 1):
+            lin = self.linearised(point, knots)
+            if estimate_scale and iterations > 1:
+                scales = self._scales(lin, weights, point.t)
+            reduced = self._reduce(lin, scales, use, weights, knots, free_idx, rotation_prior_std)
+            step, unconstrained = self._step(reduced, point.t, free_idx)
+            step_bias = cho_solve_banded(reduced.factor, reduced.grad_b - reduced.H_gb.T @ step[free_idx])
+            point, knots = point.moved(step), knots + step_bias.reshape(self.n_knots, KNOT.size)
+            S_inv = np.linalg.inv(reduced.S)
+            small = np.max(np.abs(step[ROTATION])) < 1e-10 and np.max(np.abs(step[ROTATION.stop :])) < 1e-8
+            if small and (iterations > 2 or not estimate_scale):
+                break
+        assert reduced is not None and S_inv is not None and lin is not None
+        covariance = np.zeros((N_PARAMETERS, N_PARAMETERS))
+        covariance[np.ix_(free_idx, free_idx)] = S_inv
+        return Fit(
+            point, knots, free.copy(), *scales, covariance, unconstrained, lin.cost_g, lin.cost_a,
+            self._last_knot_std(reduced, S_inv), iterations,
+        )
+
+    def _scales(self, lin: Linearisation, weights: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+        """The residual std per grid sample from the fit, above what the moments resolve."""
+        samples = float(np.sum(weights * self.samples_per_window))
+        variance_g = np.dot(weights, lin.cost_g) / (3 * samples)
+        variance_a = np.dot(weights, lin.cost_a) / (3 * samples) + self.eiv_variance(t)
+        return float(np.sqrt(max(variance_g, self.floor_g))), float(np.sqrt(max(variance_a, self.floor_a)))
+
+    def _reduce(
+        self, lin: Linearisation, scales: tuple[float, float], use: tuple[bool, bool],
+        weights: np.ndarray, knots: np.ndarray, free_idx: np.ndarray, rotation_prior_std: float | None,
+    ) -> _Reduced:
+        """The weighted normal equations, the biases eliminated (Schur complement)."""
+        wg = self.gain / scales[0] ** 2 * use[0] * weights
+        wa = self.gain / scales[1] ** 2 * use[1] * weights
+        Hg, gg = wg[:, None, None] * lin.H_g, wg[:, None] * lin.g_g
+        Ha, ga = wa[:, None, None] * lin.H_a, wa[:, None] * lin.g_a
+        H_gg_all, H_gb_all, H_bb, grad_g, grad_b = self._assemble(Hg, gg, Ha, ga, knots)
+        H_gg, H_gb = H_gg_all[np.ix_(free_idx, free_idx)], H_gb_all[free_idx]
+        factor = (cholesky_banded(H_bb, lower=False), False)
+        X = cho_solve_banded(factor, H_gb.T)
+        S = H_gg - H_gb @ X
+        s = grad_g[free_idx] - X.T @ grad_b
+        if rotation_prior_std is not None:
+            rotation = free_idx < ROTATION.stop
+            S[rotation, rotation] += 1.0 / rotation_prior_std**2
+        return _Reduced(S, s, factor, H_gb, grad_b, X)
+
+    def _assemble(
+        self, Hg: np.ndarray, gg: np.ndarray, Ha: np.ndarray, ga: np.ndarray, knots: np.ndarray
+    ) -> tuple[np.ndarray, ...]:
+        """The normal equations: the globals' block, their coupling to the biases, the biases'
+        banded block (with the prior), and the gradient's two parts."""
+        n_bias, P_g, P_a = self.n_bias, len(GYRO_GLOBALS), len(ACCEL_GLOBALS)
+        H_gg = np.zeros((N_PARAMETERS, N_PARAMETERS))
+        H_gg[np.ix_(GYRO_GLOBALS, GYRO_GLOBALS)] += Hg[:, :P_g, :P_g].sum(axis=0)
+        H_gg[np.ix_(ACCEL_GLOBALS, ACCEL_GLOBALS)] += Ha[:, :P_a, :P_a].sum(axis=0)
+        H_gb = (
+            np.bincount(self.cross_g, Hg[:, :P_g, P_g:].ravel(), N_PARAMETERS * n_bias)
+            + np.bincount(self.cross_a, Ha[:, :P_a, P_a:].ravel(), N_PARAMETERS * n_bias)
+        ).reshape(N_PARAMETERS, n_bias)
+        size, u6 = (BAND + 1) * n_bias, self.upper6
+        H_bb = (
+            np.bincount(self.band_g, Hg[:, P_g:, P_g:][:, u6[0], u6[1]].ravel(), size)
+            + np.bincount(self.band_a, Ha[:, P_a:, P_a:][:, u6[0], u6[1]].ravel(), size)
+        ).reshape(BAND + 1, n_bias)
+        H_bb += self.prior_band
+        grad_g = np.zeros(N_PARAMETERS)
+        grad_g[ACCEL_GLOBALS] -= ga[:, :P_a].sum(axis=0)
+        grad_g[GYRO_GLOBALS] -= gg[:, :P_g].sum(axis=0)
+        grad_b = -(
+            np.bincount(self.biases_g.ravel(), gg[:, P_g:].ravel(), n_bias)
+            + np.bincount(self.biases_a.ravel(), ga[:, P_a:].ravel(), n_bias)
+        )
+        grad_b -= band_times(self.prior_band, knots.ravel())
+        return H_gg, H_gb, H_bb, grad_g, grad_b
+
+    def _step(self, reduced: _Reduced, t: np.ndarray, free_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The step of the globals with the translation inside its box (eq. 16), and where the
+        translation would go without the box."""
+        prior, bound = self.settings.translation_prior, self.settings.translation_bound_m
+        lower, upper = np.full(len(free_idx), -np.inf), np.full(len(free_idx), np.inf)
+        translation = (free_idx >= TRANSLATION.start) & (free_idx < TRANSLATION.stop)
+        axes = free_idx[translation] - TRANSLATION.start
+        lower[translation] = prior[axes] - bound - t[axes]
+        upper[translation] = prior[axes] + bound - t[axes]
+        step_free, unbounded = bounded_step(np.linalg.cholesky(reduced.S), reduced.s, lower, upper)
+        step = np.zeros(N_PARAMETERS)
+        step[free_idx] = step_free
+        unconstrained = t.copy()
+        unconstrained[axes] += unbounded[translation]
+        return step, unconstrained
+
+    def _last_knot_std(self, reduced: _Reduced, S_inv: np.ndarray) -> np.ndarray:
+        """The std of the last knot's biases, the globals marginalised."""
+        width = KNOT.size
+        last = [width * (self.n_knots - 1) + a for a in range(width)]
+        E = np.zeros((self.n_bias, width))
+        E[last, np.arange(width)] = 1.0
+        Y = cho_solve_banded(reduced.factor, E)
+        XtE = reduced.X.T @ E
+        block = Y[last] + XtE.T @ S_inv @ XtE
+        return np.sqrt(np.clip(np.diag(block), 0.0, None))

@@ -1,0 +1,123 @@
+"""The status of an estimate and every sentence the estimator says, from the figures.
+
+``ok``: every check passed, every axis determined, the clock placed, the std checked against
+the data's spread. ``inconsistent``: a check failed. ``partial``: the rest of a result.
+``unobservable``: no window with enough motion (the prior is returned).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from imucal_cli.core.checks import Check
+from imucal_cli.core.segments import WindowInfo
+from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S
+from imucal_cli.core.uncertainty import Uncertainty
+from imucal_cli.types import GRAVITY_MPS2
+
+
+def status(checks: Sequence[Check], observable: np.ndarray, clock_placed: bool, spread: Uncertainty) -> str:
+    """ok, partial or inconsistent (see the module's text)."""
+    if any(not c.passed for c in checks):
+        return "inconsistent"
+    if not observable.all() or spread.on_box.any() or not clock_placed or not spread.jackknifed:
+        return "partial"
+    return "ok"
+
+
+def unobservable_reason(windows: Sequence[WindowInfo]) -> str:
+    """Why no window was selected: gaps in the data (dropped or missing samples), or motion."""
+    broken = sum(not w.valid for w in windows)
+    if windows and broken == len(windows):
+        return (f"every window ({broken}) has a gap in the data (samples missing or dropped): "
+                "the prior is returned")
+    if broken:
+        return (f"no window carried enough motion ({broken} of {len(windows)} have a gap in the "
+                "data): the prior is returned")
+    return "no window carried enough motion: the prior is returned"
+
+
+def own_error_sentences(found: dict[str, dict[str, Any]]) -> list[str]:
+    """The sensor's own errors the model took in."""
+    out = []
+    for name, group in found.items():
+        if not group["estimated"]:
+            continue
+        value = group["value"]
+        if name == "g-sensitivity":
+            what = "gyro g-sensitivity"
+            detail = f"largest {np.degrees(np.max(np.abs(value))) * GRAVITY_MPS2:.3f} deg/s per g"
+        else:
+            what = f"{name} axis errors"
+            detail = ("scale " + ", ".join(f"{100 * v:+.2f}%" for v in value[:3])
+                      + "; non-orthogonality "
+                      + ", ".join(f"{v:+.3f}" for v in np.degrees(value[3:])) + " deg")
+        out.append(f"{what} estimated with the extrinsics: {detail} "
+                   f"(chi2 {group['chi2']:.0f}, {group['dof']} dof)")
+    return out
+
+
+def check_sentences(checks: Sequence[Check]) -> list[str]:
+    """What each failed check means."""
+    out = []
+    for check in checks:
+        if check.passed:
+            continue
+        f = check.figures
+        if check.name == "rigid_mount":
+            roll, pitch = f["tilt_deg_per_mps2"]
+            out.append(
+                f"the mount is not rigid: it tilts {roll:.3f} deg (roll) and {pitch:.3f} deg "
+                "(pitch) per m/s^2 of the vehicle's lateral and longitudinal specific force "
+                f"(chi2 {f['chi2']:.1f}, 2 dof); the rotation given is the mount's at rest"
+            )
+        elif check.name == "gyro_vs_accel_rotation":
+            out.append(
+                f"the gyro and the accelerometer disagree on the rotation by "
+                f"{f['difference_deg']:.3f} deg (chi2 {f['chi2']:.1f}, 3 dof): their axes are "
+                "misaligned differently, or the mount moves"
+            )
+        elif check.name == "residual_level":
+            out.append(
+                f"residuals {f['gyro']:.1f}x (gyro) and {f['accel']:.1f}x (accelerometer) the "
+                "noise the data imply: the model does not explain the data (units, a moving "
+                "mount, a time-varying offset?)"
+            )
+    return out
+
+
+def clock_sentence(shown: bool, reason: str, std_s: float | None, tau0_s: float) -> list[str]:
+    """Why the clock offset was not estimated: the correlation could not place it (``shown``
+    False, ``reason``), or the fit's std ``std_s`` was too large (kept at ``tau0_s``)."""
+    if not shown:
+        why = reason or "the drive does not show it"
+        return [f"clock offset not observable ({why}): not estimated, kept at 0"]
+    if std_s is not None:
+        return [
+            f"clock offset not observable: std {std_s * 1e3:.1f} ms > "
+            f"{TIME_OFFSET_MAX_STD_S * 1e3:g} ms; kept at the correlation's {tau0_s * 1e3:.1f} ms"
+        ]
+    return []
+
+
+def uncertainty_sentences(
+    spread: Uncertainty, windows: int, prior_t: np.ndarray, bound: float, observable: np.ndarray
+) -> list[str]:
+    """Too few windows for the jackknife, axes on their box, axes kept at the prior."""
+    out = []
+    if not spread.jackknifed:
+        out.append(f"only {windows} window(s) with enough motion: too few to check the std "
+                   "against the data's spread")
+    for axis in np.flatnonzero(spread.on_box).tolist():
+        out.append(
+            f"translation {'xyz'[axis]} rests on its box (prior {prior_t[axis]:+.3f} +- "
+            f"{bound:g} m): the data pull it {spread.pulls_m[axis]:.3f} m further; the prior may "
+            "be wrong"
+        )
+    if not observable.all():
+        missing = ", ".join("xyz"[a] for a in np.flatnonzero(~observable))
+        out.append(f"translation {missing} not determined by the drive: kept at the prior")
+    return out
