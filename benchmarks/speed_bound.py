@@ -36,7 +36,7 @@ import os, sys, time
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as imucal's entry point sets it
 start = time.perf_counter()
 import imucal_cli.cli
-from imucal_cli.api import estimate, imu_names, stream_log
+from imucal_cli.pipeline import estimate, imu_names, stream_log
 from imucal_cli.config import load_config
 from imucal_cli.reading import ImuBatches
 imported = time.perf_counter()

@@ -121,7 +121,7 @@ def command(name: str, log: Path, config: Path, out: Path) -> tuple[float, float
 
 def errors(estimate: Path, truth: Path) -> tuple[float, float]:
     from imucal_cli.api import load_transforms
-    from imucal_cli.pipeline import transform_errors
+    from imucal_cli.outputs import transform_errors
 
     est, tru = load_transforms(estimate), load_transforms(truth)
     found = [transform_errors(est[n], tru[n]) for n in tru]

@@ -8,15 +8,11 @@ __all__ = ["__version__", "calibrate_log", "evaluate", "export_extrinsics", "loa
 
 
 def __getattr__(name: str):
-    if name == "__version__":  # importlib.metadata takes 50 ms to import: not before it is asked
-        from importlib.metadata import PackageNotFoundError, version
+    if name == "__version__":
+        from imucal_cli.version import version
 
-        try:
-            value = version("imucal")
-        except PackageNotFoundError:  # running from a source tree that is not installed
-            value = "0.1.0"
-        globals()["__version__"] = value
-        return value
+        globals()["__version__"] = version()
+        return globals()["__version__"]
     if name in ("calibrate_log", "evaluate", "export_extrinsics", "stream_biases", "write_document", "write_report"):
         from imucal_cli import api
 

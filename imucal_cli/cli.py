@@ -17,9 +17,9 @@ from typing import Annotated, Any, ParamSpec, TypeVar
 
 import typer
 
-from imucal_cli import __version__
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.names import printable
+from imucal_cli.version import version
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -60,7 +60,7 @@ class LogFormat(StrEnum):
 
 def _version(value: bool) -> None:
     if value:
-        typer.echo(f"imucal {__version__}")
+        typer.echo(f"imucal {version()}")
         raise typer.Exit()
 
 
@@ -356,7 +356,7 @@ def segments(
     """Per sensor: each window's Fisher-information min singular value, rotation std, selected or not."""
     _check_output(out, log, config)
     cfg, streamed = _stream_log(log, config)
-    from imucal_cli.pipeline import segments_document
+    from imucal_cli.outputs import segments_document
 
     calibrator, t0_ns = streamed.calibrator, streamed.t0_ns
     document = segments_document(t0_ns, cfg, calibrator)
@@ -413,7 +413,7 @@ def calibrate(
         pyplot()  # fail before the work when matplotlib is missing
     _cfg, streamed = _stream_log(log, config)
     from imucal_cli.api import estimate
-    from imucal_cli.pipeline import calibration_document
+    from imucal_cli.outputs import calibration_document
 
     with _progress("calibrating"):
         result = estimate(streamed)

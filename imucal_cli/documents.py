@@ -169,3 +169,33 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
         if isinstance(exc, OSError):  # a full disk, say: one line, no partial file
             raise InputError(f"{path}: cannot write: {exc.strerror or exc}") from None
         raise
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+
+

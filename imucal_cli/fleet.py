@@ -108,7 +108,7 @@ def run_one(task: Task) -> Outcome:
     import time
 
     from imucal_cli.api import calibrate_log
-    from imucal_cli.pipeline import transform_errors
+    from imucal_cli.outputs import transform_errors
 
     start = time.perf_counter()
     try:
@@ -126,8 +126,10 @@ def run_one(task: Task) -> Outcome:
     for sensor, s in run.document["sensors"].items():
         T = run.result.T_base_lidar(sensor)
         std_r, std_t = s["rotation_std_deg"], s["translation_std_m"]
+        x, y, z = (float(v) for v in T.translation)
+        roll, pitch, yaw = (float(v) for v in np.degrees(T.rpy_rad))
         row = Row(
-            task.name, sensor, s["status"], *map(float, T.translation), *map(float, np.degrees(T.rpy_rad)),
+            task.name, sensor, s["status"], x, y, z, roll, pitch, yaw,
             None if std_r is None else float(max(std_r)), None if std_t is None else float(max(std_t)),
             lost_s=lost_s, dropped=sum(sum(d.values()) for d in dropped.values()), warnings="; ".join([x["reason"] for x in losses] + s["warnings"]),
         )
@@ -210,7 +212,8 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
     import threading
     from multiprocessing.connection import wait
 
-    context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
+    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    context: Any = multiprocessing.get_context(method)
     waiting = list(enumerate(tasks))
     running: dict[Any, tuple[int, Any]] = {}  # result pipe -> (task number, process)
     # A Ctrl-C is noted and acted on here, between two steps: raised anywhere (in a pipe's
@@ -229,8 +232,9 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
                 running[receive] = (i, process)
             if interrupted:
                 raise KeyboardInterrupt
-            for receive in wait(list(running), timeout=0.2):
-                i, process = running.pop(receive)  # type: ignore[call-overload]
+            ready: list[Any] = wait(list(running), timeout=0.2)
+            for receive in ready:
+                i, process = running.pop(receive)
                 try:
                     outcome = receive.recv()
                 except EOFError:  # it died before it answered

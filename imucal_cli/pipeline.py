@@ -1,27 +1,28 @@
-"""Glue of the core stages behind ``biases``, ``segments``, ``calibrate`` and ``evaluate``.
-
-No I/O: functions take streams and a config, return results, and build the SPEC's documents
-(plain dicts) from them. The CLI reads the logs and writes the documents.
+"""The one pipeline that ``calibrate``, ``--follow``, ``biases``, ``segments``, ``batch`` and
+the Python API run: one read loop (:func:`read_log`, with the clock comparison) feeding a
+streaming calibrator (or the bias trackers), the final reduction and its checks
+(:func:`_finish`), the solve, and the document (:mod:`imucal_cli.documents`). Nothing here
+prints; the CLI draws progress and writes the documents.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from itertools import combinations
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from imucal_cli import __version__
-from imucal_cli.config import Config, SensorConfig
-from imucal_cli.core.biases import BiasReport, BiasTracker
+from imucal_cli.config import Config, SensorConfig, load_config
+from imucal_cli.core.biases import BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
-from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
-from imucal_cli.documents import to_plain
+from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.base import Loss
-from imucal_cli.types import ImuStream, Transform
+from imucal_cli.reading import ImuBatches, ReadStats
+from imucal_cli.result import CalibrationResult
+from imucal_cli.types import ImuStream
 
 
 @dataclass(frozen=True)
@@ -118,95 +119,11 @@ def feed(calibrator: StreamingCalibrator, streams: DriveStreams, block_s: float 
                 cursors[name] = stop
 
 
-# --------------------------------------------------------------------------- biases
-
-
 def bias_trackers(config: Config) -> dict[str, BiasTracker]:
     """A :class:`BiasTracker` per IMU (``base`` first, then each sensor), as the config says."""
     rest, gyro = config.rest, config.gyro_bias
     args = (rest.accel_tolerance_mps2, rest.gyro_tolerance_radps, rest.min_duration_s, np.radians(gyro.process_noise_dps), np.radians(gyro.initial_std_dps))
     return {name: BiasTracker(*args) for name in ["base", *(s.name for s in config.sensors)]}
-
-
-def biases_document(t0_ns: int, config: Config, reports: Mapping[str, BiasReport]) -> dict[str, Any]:
-    topics = {"base": config.base.topic} | {s.name: s.imu_topic for s in config.sensors}
-    imus: dict[str, Any] = {}
-    for name, report in reports.items():
-        offset = (report.first_ns - t0_ns) * 1e-9
-        imus[name] = {
-            "topic": topics[name],
-            "rest_periods": [[offset + r.start_s, offset + r.end_s] for r in report.rest_periods],
-            # at one rest pose only the bias along gravity separates from the tilt: this vector
-            # is that component (the full one, relative to the base, is calibrate's)
-            "accel_bias_mps2": report.accel_bias,
-            "accel_bias_along_gravity_mps2": report.rest_periods[-1].accel_bias_along_gravity if report.rest_periods else None,
-            "accel_bias_resolved": "along gravity only (the full vector: imucal calibrate, accel_bias_mps2)",
-            "accel_noise_std_mps2": report.accel_noise_std,
-            "gyro_bias_radps": {
-                "initial": report.gyro_bias_initial,
-                "final": report.gyro_bias_final,
-                "track_std": report.gyro_bias_track_std,
-                "final_std": report.gyro_bias_final_std,
-            },
-            "warnings": report.warnings,
-        }
-    return to_plain({"imucal_version": __version__, "t0_ns": t0_ns, "imus": imus})
-
-
-# --------------------------------------------------------------------------- segments
-
-
-def segments_document(t0_ns: int, config: Config, calibrator: StreamingCalibrator) -> dict[str, Any]:
-    assert calibrator.t_ref_ns is not None
-    offset = (calibrator.t_ref_ns - t0_ns) * 1e-9
-    sensors: dict[str, Any] = {}
-    for sensor in config.sensors:
-        windows = calibrator.window_infos(sensor.name)
-        sensors[sensor.name] = {
-            "total": len(windows),
-            "selected": sum(w.selected for w in windows),
-            "time_offset_s": calibrator.tau0.get(sensor.name, 0.0),
-            "windows": [
-                {
-                    "start_s": offset + w.start_s,
-                    "end_s": offset + w.end_s,
-                    "min_singular_value": w.min_singular_value,
-                    "rotation_std_deg": w.rotation_std_deg if np.isfinite(w.rotation_std_deg) else None,
-                    "selected": w.selected,
-                    "translation_observable": w.translation_observable,
-                    "translation_std_m": [v if np.isfinite(v) else None for v in w.translation_std_m],
-                    **({} if w.valid else {"gap": True}),
-                }
-                for w in windows
-            ],
-        }
-    return to_plain({
-        "imucal_version": __version__,
-        "t0_ns": t0_ns,
-        "window_s": config.segments.window_s,
-        "max_rotation_std_deg": config.segments.max_rotation_std_deg,
-        "sensors": sensors,
-    })
-
-
-# --------------------------------------------------------------------------- calibrate
-
-
-@dataclass(frozen=True)
-class CalibrationResult:
-    estimates: dict[str, SensorEstimate]
-    config: Config
-    #: Median sample rate of each IMU ("base" and the sensor names), where measured (Hz).
-    rates_hz: Mapping[str, float] = field(default_factory=dict)
-    #: White-noise density of each IMU's gyro and accelerometer (rad/s/sqrt(Hz), m/s^2/sqrt(Hz)).
-    noise_density: Mapping[str, tuple[float, float]] = field(default_factory=dict)
-
-    def T_base_lidar(self, name: str) -> Transform:
-        return self.estimates[name].T_base_imu * self.config.sensor(name).T_imu_lidar
-
-    @property
-    def all_ok(self) -> bool:
-        return all(e.status == "ok" for e in self.estimates.values())
 
 
 def run_calibrate(streams: DriveStreams, config: Config) -> CalibrationResult:
@@ -217,191 +134,276 @@ def run_calibrate(streams: DriveStreams, config: Config) -> CalibrationResult:
     return CalibrationResult(estimates, config, dict(calibrator.rates_hz), dict(calibrator.noise))
 
 
-def _std_list(values: np.ndarray | None) -> list[float] | None:
-    return None if values is None else [float(v) for v in values]
+# --------------------------------------------------------------------------- one run over a log
+
+#: Follow mode: how far out of order a recording's stamps may arrive (s). A recorder appends in
+#: receive order, so a window waits less for stragglers than in a file (0.5 s), and its
+#: estimate comes sooner.
+FOLLOW_REORDER_S = 0.2
+#: Spread of receive latencies allowed between topics when their clocks are compared (s).
+CLOCK_COMPARE_SLACK_S = 0.05
+#: Samples at the start of each topic whose ``stamp - log_time`` gives its clock's offset.
+CLOCK_COMPARE_SAMPLES = 200
 
 
-def _rate(result: CalibrationResult, name: str) -> float | None:
-    rate = result.rates_hz.get(name)
-    return None if rate is None else round(float(rate), 6)
+def imu_names(config: Config) -> dict[str, str]:
+    """Every configured IMU topic and the name the calibrator knows it by ("base", sensors')."""
+    return {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
 
 
-def lost_seconds(losses: Sequence[Loss]) -> float | None:
-    """Seconds of log time the read lost: 0 without a loss, None where a loss's span is not
-    known (a log cut off mid-write: its end is not recorded anywhere)."""
-    spans = [(x.start_ns, x.end_ns) for x in losses if x.lost]
-    if any(a is None or b is None for a, b in spans):
-        return None
-    return float(sum((b - a) * 1e-9 for a, b in spans if a is not None and b is not None))
+def lost_summary(losses: Sequence[Loss]) -> str:
+    """For an error message: what of the log could not be read, if anything."""
+    real = [x for x in losses if x.lost]
+    if not real:
+        return ""
+    more = f" and {len(real) - 1} more" if len(real) > 1 else ""
+    return f" (damaged parts were skipped: {real[0].describe()}{more})"
 
 
-def losses_document(losses: Sequence[Loss]) -> list[dict[str, Any]]:
-    return [
-        {"reason": x.describe(), "offset": x.offset, "bytes": x.nbytes, "start_ns": x.start_ns, "end_ns": x.end_ns, "messages": x.messages}
-        for x in losses if x.lost
-    ]
+class _ClockCheck:
+    """Compares each IMU's stamps with the recorder's log (receive) times, which all topics
+    share: the median of ``stamp - log_time`` over a topic's first samples is its clock's offset
+    from the recorder's. A sensor whose offset differs from the base's by more than
+    ``max_time_offset_s`` (plus receive-latency slack) is on another clock (stamped from
+    power-on, say), which the time-offset search cannot bridge."""
+
+    def __init__(self, log: Path, base_topic: str, max_offset_s: float) -> None:
+        self.log, self.base_topic, self.max_offset_s = log, base_topic, max_offset_s
+        self.offsets: dict[str, float] = {}
+        self.checked = False
+
+    def add(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, topics: list[str]) -> None:
+        if topic not in self.offsets and len(stamps):
+            first = slice(0, CLOCK_COMPARE_SAMPLES)  # a clock that jumps later is a jump
+            offset = np.median((stamps[first] - log_times[first]).astype(np.float64))
+            self.offsets[topic] = float(offset) * 1e-9
+        if self.checked or not all(t in self.offsets for t in topics):
+            return
+        self.checked = True
+        base = self.offsets[self.base_topic]
+        for other in topics:
+            difference = self.offsets[other] - base
+            if abs(difference) > self.max_offset_s + CLOCK_COMPARE_SLACK_S:
+                raise InputError(
+                    f"{self.log} [{other}]: stamps are {difference:+.3f} s from the base IMU's "
+                    f"({self.base_topic}), measured against the log's receive times; "
+                    f"calibration.max_time_offset_s is {self.max_offset_s:g} s: fix the sensor's "
+                    "clock, or raise max_time_offset_s if the offset is real"
+                )
 
 
-#: Smallest random walk written (Kalibr refuses zero): 1e-9 per sqrt(s).
-MIN_RANDOM_WALK = 1e-9
+@dataclass
+class StreamedLog:
+    """A log streamed through a calibrator: windows reduced, nothing solved yet."""
 
+    log: Path
+    config: Config
+    calibrator: StreamingCalibrator
+    t0_ns: int  # first IMU stamp: the origin of report times
+    stats: dict[str, ReadStats]  # per topic: what reading counted
+    duplicates: dict[str, int]  # per topic: duplicate stamps the calibrator removed
+    losses: list[Loss]  # parts of a damaged log that could not be read
+    format_name: str
 
-def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
-    """An IMU's noise in Kalibr's terms: white-noise densities measured above the motion, and
-    the gyro and accelerometer bias random walks measured from the knots of the relative biases
-    the fit estimated (sensor minus base, one knot a window: for each IMU an upper bound); the
-    base's walks are the smallest of its sensors' (the tightest upper bound the log gives)."""
-    gyro, accel = result.noise_density.get(name, (None, None))
-    walks: dict[str, list[float]] = {"gyro": [], "accel": []}
-    for sensor, est in result.estimates.items():
-        if name != "base" and sensor != name:
-            continue
-        for key, knots in (("gyro", est.gyro_bias_knots), ("accel", est.accel_bias_knots)):
-            if len(knots) > 2:
-                walks[key].append(float(np.sqrt(np.mean(np.diff(knots, axis=0) ** 2) / result.config.segments.window_s)))
-    walk_g, walk_a = (min(w) if w else None for w in (walks["gyro"], walks["accel"]))
-    return {
-        "gyroscope_noise_density": gyro, "accelerometer_noise_density": accel,
-        "gyroscope_random_walk": None if walk_g is None else max(walk_g, MIN_RANDOM_WALK),
-        "accelerometer_random_walk": None if walk_a is None else max(walk_a, MIN_RANDOM_WALK),
-    }
-
-
-#: What reading drops from a topic (:class:`~imucal_cli.reading.ReadStats`), and how a warning says it.
-DROPPED = {"decode_errors": "not decodable", "non_finite": "not finite", "implausible": "beyond any IMU's range",
-           "saturated": "clipped at the sensor's range", "stamp_outliers": "with a damaged stamp", "duplicates": "with a duplicate stamp"}
-
-
-def dropped_document(counts: Mapping[str, Mapping[str, int]]) -> dict[str, dict[str, int]]:
-    """Per topic that dropped any, the samples reading dropped, by reason."""
-    out = {topic: {k: int(c.get(k, 0)) for k in DROPPED if c.get(k, 0)} for topic, c in counts.items()}
-    return {topic: d for topic, d in out.items() if d}
-
-
-def read_warnings(topic: str, counts: Mapping[str, int]) -> list[str]:
-    """What reading dropped from ``topic`` or found wrong with its clock, as warnings."""
-    dropped = {k: int(counts.get(k, 0)) for k in DROPPED if counts.get(k, 0)}
-    out = []
-    if dropped:
-        total, messages = sum(dropped.values()), max(int(counts.get("messages", 0)), 1)
-        out.append(f"{topic}: {total:,} of {messages:,} messages dropped ({100 * total / messages:.1f}%: "
-                   + ", ".join(f"{n:,} {DROPPED[k]}" for k, n in dropped.items()) + "); windows with a gap there are not used")
-    if counts.get("clock_jumps"):
-        out.append(f"{topic}: its stamps jump by a minute or more {counts['clock_jumps']} times; the windows across a jump are not used")
-    return out
-
-
-def calibration_document(result: CalibrationResult, log: str, losses: Sequence[Loss] = (), counts: Mapping[str, Mapping[str, int]] | None = None) -> dict[str, Any]:
-    """The SPEC's calibrate document; ``losses`` (what reading the log could not read) go in
-    as ``losses`` and ``lost_s`` (None: a span not known), undecodable messages counted in
-    ``lost_s`` at their topic's rate; ``counts`` (per topic, what reading counted) as
-    ``dropped`` and as each sensor's warnings (the base's in every sensor's)."""
-    config = result.config
-    counts = counts or {}
-    lost_s = lost_seconds(losses)
-    for topic, name in [(config.base.topic, "base"), *((s.imu_topic, s.name) for s in config.sensors)]:
-        undecodable, rate = counts.get(topic, {}).get("decode_errors", 0), _rate(result, name)
-        if undecodable and lost_s is not None:
-            lost_s = None if rate is None else lost_s + undecodable / rate
-    base_warnings = [f"base: {w}" for w in read_warnings(config.base.topic, counts.get(config.base.topic, {}))]
-    sensors: dict[str, Any] = {}
-    for sensor in config.sensors:
-        est = result.estimates[sensor.name]
-        cov = est.covariance
-        sensors[sensor.name] = {
-            "status": est.status,
-            "warnings": [*est.warnings, *base_warnings, *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {}))],
-            "imu_topic": sensor.imu_topic,
-            "lidar_frame": sensor.lidar_frame,
-            "imu_rate_hz": _rate(result, sensor.name),
-            "imu_noise": imu_noise(result, sensor.name),
-            "T_base_imu": est.T_base_imu.to_dict(),
-            "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
-            "rotation_std_deg": _std_list(est.rotation_std_deg),
-            "translation_std_m": _std_list(est.translation_std_m),
-            "covariance": None if cov is None else {
-                "of": "T_base_imu",
-                "order": ["rx", "ry", "rz", "tx", "ty", "tz"],
-                "rotation_axes": "base",
-                "units": ["rad", "rad", "rad", "m", "m", "m"],
-                "matrix": [[float(v) for v in row] for row in cov],
-            },
-            "translation_observable": [bool(v) for v in est.translation_observable],
-            "time_offset_s": est.time_offset_s,
-            "time_offset_std_s": est.time_offset_std_s,
-            "time_offset_observable": bool(est.time_offset_observable),
-            "checks": to_plain(est.checks),
-            "accel_intrinsics": to_plain(est.accel_intrinsics) if est.accel_intrinsics else None,
-            "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,
-            "gyro_bias_radps": est.gyro_bias,
-            "accel_bias_mps2": est.accel_bias,
-            "segments": {"total": len(est.windows), "selected": sum(w.selected for w in est.windows)},
-            "residual_rms": {"gyro_radps": est.residual_rms_gyro, "accel_mps2": est.residual_rms_accel},
+    def counts(self) -> dict[str, dict[str, int]]:
+        """Per topic, what reading counted (:class:`ReadStats`), the calibrator's duplicates in."""
+        return {
+            topic: stats.to_dict() | {"duplicates": stats.duplicates + self.duplicates.get(topic, 0)}
+            for topic, stats in self.stats.items()
         }
-    names = sorted(s.name for s in config.sensors)
-    pairs = {
-        f"{a}/{b}": (result.T_base_lidar(a).inverse() * result.T_base_lidar(b)).to_dict()
-        for a, b in combinations(names, 2)
-    }
-    return to_plain({  # plain types: yaml.safe_dump and json.dumps take it as it is
-        "imucal_version": __version__,
-        "log": log,
-        "base_frame": config.base.frame,
-        "base_topic": config.base.topic,
-        "base_imu_rate_hz": _rate(result, "base"),
-        "base_imu_noise": imu_noise(result, "base"),
-        "sensors": sensors,
-        "pairs": pairs,
-        "lost_s": lost_s,
-        "losses": losses_document(losses),
-        "dropped": dropped_document(counts),
-    })
 
 
-# --------------------------------------------------------------------------- evaluate
+Sink = Callable[[str, np.ndarray, np.ndarray, np.ndarray], object]
 
 
-def transform_errors(estimate: Transform, truth: Transform) -> dict[str, Any]:
-    """Rotation error (paper eq. 21), translation error norm and eq. 20 (norm / 3)."""
-    delta = estimate.translation - truth.translation
-    norm = float(np.linalg.norm(delta))
-    return {
-        "rotation_error_deg": rotation_angle_deg(estimate.rotation, truth.rotation),
-        "translation_error_m": norm,
-        "translation_error_eq20_m": norm / 3.0,
-        "translation_error_xyz_m": [float(v) for v in delta],
-    }
+def read_log(
+    reader: ImuBatches, config: Config, sink: Sink, clocks: bool = True,
+    progress: Callable[[int, int], None] | None = None, after: Callable[[], None] | None = None,
+) -> int | None:
+    """The one read loop: every IMU batch of ``reader`` to ``sink(name, stamps, gyro,
+    accel)`` (``name``: "base" or the sensor's), the clocks compared (``clocks``),
+    ``progress(messages read, messages in the log)`` and ``after()`` after each batch. Returns
+    the first stamp (ns), None where no message was read."""
+    names = imu_names(config)
+    check = _ClockCheck(reader.path, config.base.topic, config.calibration.max_time_offset_s)
+    topics, t0_ns, count = list(names), None, 0
+    for topic, stamps, log_times, gyro, accel in reader:
+        if clocks:
+            check.add(topic, stamps, log_times, topics)
+        if len(stamps):
+            first = int(stamps.min())
+            t0_ns = first if t0_ns is None else min(t0_ns, first)
+        sink(names[topic], stamps, gyro, accel)
+        count += len(stamps)
+        if progress is not None:
+            progress(count, sum(reader.expected.values()))
+        if after is not None:
+            after()
+    return t0_ns
 
 
-def evaluate_document(
-    estimates: Mapping[str, Transform],
-    truths: Mapping[str, Transform],
-    max_rotation_deg: float | None,
-    max_translation_m: float | None,
-    allow_missing: bool = False,
-) -> dict[str, Any]:
-    """Every sensor present in both, and every pair ``T_a_b = T_base_a^-1 T_base_b``. A sensor
-    in one file and not the other fails the evaluation unless ``allow_missing``."""
-    names = sorted(set(estimates) & set(truths))
-    missing = {"estimate_only": sorted(set(estimates) - set(truths)), "truth_only": sorted(set(truths) - set(estimates))}
-    sensors = {n: transform_errors(estimates[n], truths[n]) for n in names}
-    pairs = {}
-    for a, b in combinations(names, 2):
-        errors = transform_errors(
-            estimates[a].inverse() * estimates[b], truths[a].inverse() * truths[b]
-        )
-        del errors["translation_error_xyz_m"]
-        pairs[f"{a}/{b}"] = errors
-    rows = list(sensors.values()) + list(pairs.values())
-    passed = bool(names) and (allow_missing or not (missing["estimate_only"] or missing["truth_only"]))
-    if max_rotation_deg is not None:
-        passed &= all(r["rotation_error_deg"] <= max_rotation_deg for r in rows)
-    if max_translation_m is not None:
-        passed &= all(r["translation_error_m"] <= max_translation_m for r in rows)
-    return to_plain({
-        "sensors": sensors,
-        "pairs": pairs,
-        "thresholds": {"max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m},
-        "missing": missing,
-        "pass": passed,
-    })
+def _finish(reader: ImuBatches, calibrator: StreamingCalibrator, t0_ns: int | None, config: Config) -> StreamedLog:
+    """What is left reduced, once the reading has ended; the topics that gave too little
+    data named."""
+    log, lost = reader.path, lost_summary(reader.losses)
+    for topic, stats in reader.stats.items():
+        if stats.usable() < 10:
+            raise InputError(f"{log} [{topic}]: too little data: {stats.usable()} usable messages{lost}")
+    if calibrator.t_ref_ns is None or t0_ns is None:
+        raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
+    try:
+        calibrator.process(final=True)
+    except ImucalError as exc:
+        raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
+    duplicates = {topic: calibrator.duplicates(name) for topic, name in imu_names(config).items()}
+    return StreamedLog(log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name)
+
+
+def stream_log(log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None) -> StreamedLog:
+    """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
+    log's length: windows reduced, nothing solved yet."""
+    reader = ImuBatches(Path(log), imu_names(config))
+    calibrator = make_calibrator(config)
+    t0_ns = read_log(reader, config, calibrator.add, progress=progress)
+    return _finish(reader, calibrator, t0_ns, config)
+
+
+def stream_biases(log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
+    :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length."""
+    from imucal_cli.outputs import (
+        biases_document,
+        dropped_document,
+        losses_document,
+        lost_seconds,
+        read_warnings,
+    )
+
+    names = imu_names(config)
+    trackers = bias_trackers(config)
+    reader = ImuBatches(Path(log), names)
+    read_log(reader, config, lambda name, t, w, f: trackers[name].add(t, w, f), clocks=False, progress=progress)
+    empty = [topic for topic, name in names.items() if trackers[name].first_ns is None]
+    if empty:
+        raise InputError(f"{log} [{empty[0]}]: too little data: no usable message{lost_summary(reader.losses)}")
+    reports = {name: tracker.report() for name, tracker in trackers.items()}
+    document = biases_document(min(r.first_ns for r in reports.values()), config, reports)
+    counts = {topic: stats.to_dict() for topic, stats in reader.stats.items()}
+    for topic, name in names.items():  # what reading lost and dropped, said where it happened
+        document["imus"][name]["warnings"] += read_warnings(topic, counts[topic])
+    return document | {"lost_s": lost_seconds(reader.losses), "losses": losses_document(reader.losses), "dropped": dropped_document(counts)}
+
+
+@dataclass
+class LogCalibration:
+    """The outcome of :func:`calibrate_log` and :func:`follow_log`."""
+
+    result: CalibrationResult  # estimates per sensor; ``result.T_base_lidar(name)``
+    document: dict[str, Any]  # the SPEC's calibrate document (what ``imucal calibrate -o`` writes)
+    streamed: StreamedLog  # what reading found: counts per topic, losses
+
+
+def calibrate_log(log: str | Path, config: Config | str | Path, progress: Callable[[int, int], None] | None = None) -> LogCalibration:
+    """Calibrate every sensor of ``config`` from the IMU topics of ``log`` (MCAP, rosbag2 or
+    ROS 1 bag). ``config`` is a :class:`Config` or the path of its YAML file; ``progress`` is
+    called with (messages read, messages in the log) as reading goes."""
+    if not isinstance(config, Config):
+        config = load_config(config)
+    streamed = stream_log(log, config, progress)
+    return _calibration(streamed, estimate(streamed))
+
+
+def _calibration(streamed: StreamedLog, result: CalibrationResult) -> LogCalibration:
+    from imucal_cli.outputs import calibration_document
+
+    document = calibration_document(result, str(streamed.log), streamed.losses, streamed.counts())
+    return LogCalibration(result, document, streamed)
+
+
+def follow_log(
+    log: str | Path, config: Config, on_update: Callable[[CalibrationResult, int], None] | None = None,
+    stop: Callable[[], bool] = lambda: False, until_converged: bool = False,
+) -> tuple[LogCalibration, bool, bool]:
+    """Follow a log that is still being written (an MCAP file, or a rosbag2 folder recording
+    to mcap or sqlite3 storage): the estimate after every window, ``on_update(result,
+    windows)``, until the recording ends, ``stop()`` says so, or (``until_converged``) every
+    sensor is within the config's ``stop:`` targets. The read loop, its checks and the final
+    reduction are :func:`calibrate_log`'s. Returns the last calibration (its document with each
+    sensor's ``missing`` axes and ``converged``), whether it converged, and whether a Ctrl-C
+    ended it (the estimate so far is returned all the same)."""
+    calibrator = make_calibrator(config, block_windows=1, reorder_s=FOLLOW_REORDER_S)
+    done = [False]
+    reader = ImuBatches(Path(log), imu_names(config), follow=lambda: done[0] or stop())
+    state: dict[str, Any] = {"windows": 0, "result": None}
+
+    def update() -> None:
+        reduced = min(len(w) for w in calibrator.windows.values())
+        if reduced <= state["windows"]:
+            return
+        state["windows"] = reduced
+        result = _estimate_now(calibrator, config)
+        if result is not None:
+            state["result"] = result
+            if on_update is not None:
+                on_update(result, reduced)
+            done[0] = done[0] or (until_converged and converged(result))
+
+    t0_ns, interrupted = None, False
+    try:
+        t0_ns = read_log(reader, config, calibrator.add, after=update)
+    except KeyboardInterrupt:
+        interrupted = True
+        t0_ns = _first_stamp(calibrator)
+    if done[0] and not stop():  # converged: the estimate that did
+        duplicates = {t: calibrator.duplicates(n) for t, n in imu_names(config).items()}
+        streamed = StreamedLog(Path(log), config, calibrator, int(t0_ns or 0), reader.stats,
+                               duplicates, reader.losses, reader.format_name)
+        result = state["result"]
+    else:  # the recording ended, time is up, or a Ctrl-C: what is buffered, reduced
+        try:
+            streamed = _finish(reader, calibrator, t0_ns, config)
+        except ImucalError:
+            if not interrupted or state["result"] is None:  # after a Ctrl-C: the estimate so far
+                raise
+            streamed = StreamedLog(Path(log), config, calibrator, int(t0_ns or 0), reader.stats, {},
+                                   reader.losses, reader.format_name)
+        result = _estimate_now(calibrator, config) or state["result"]
+    if result is None:
+        raise InputError(f"{log}: too little data to estimate anything yet{lost_summary(reader.losses)}")
+    run = _calibration(streamed, result)
+    good = converged(result)
+    for name, sensor in result.estimates.items():  # what each sensor still lacks of the targets
+        run.document["sensors"][name]["missing"] = missing_axes(sensor, config.stop)
+    run.document["converged"] = good
+    return run, good, interrupted
+
+
+def _first_stamp(calibrator: StreamingCalibrator) -> int | None:
+    firsts = [b.first_ns for b in calibrator.buffers.values() if b.first_ns is not None]
+    return min(firsts) if firsts else None
+
+
+def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> CalibrationResult | None:
+    """The estimate from the windows so far, or None before the calibrator has booted."""
+    if not calibrator.tau0:
+        return None
+    with np.errstate(all="ignore"):
+        try:
+            estimates = calibrator.estimates()
+        except (ImucalError, np.linalg.LinAlgError, ValueError):
+            return None
+    return CalibrationResult(estimates, config, dict(calibrator.rates_hz), dict(calibrator.noise))
+
+
+def estimate(streamed: StreamedLog) -> CalibrationResult:
+    """Solve for every sensor from a streamed log."""
+    try:
+        with np.errstate(all="ignore"):
+            estimates = streamed.calibrator.estimates()
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        # only data no IMU produces get here (the reader drops what it can recognise)
+        raise InputError(
+            f"{streamed.log}: the IMU data are numerically degenerate ({exc}); the log may hold "
+            "damaged samples"
+        ) from None
+    return CalibrationResult(estimates, streamed.config, dict(streamed.calibrator.rates_hz), dict(streamed.calibrator.noise))

@@ -43,6 +43,11 @@ class ReadStats:
     stamp_outliers: int = 0  # a lone stamp far from both neighbours (a damaged message): dropped
     frame_ids: list[str] = field(default_factory=list)
 
+    def usable(self) -> int:
+        """The messages read less those dropped."""
+        dropped = self.decode_errors + self.non_finite + self.saturated + self.implausible
+        return self.messages - dropped - self.stamp_outliers
+
     def to_dict(self) -> dict[str, Any]:
         """The counts (every field but the frame ids)."""
         return {k: v for k, v in asdict(self).items() if k != "frame_ids"}

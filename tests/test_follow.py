@@ -160,3 +160,64 @@ def test_ctrl_c_while_following_writes_the_last_estimate_and_exits_130(aggressiv
     assert process.returncode == 130, stderr
     assert b"Traceback" not in stderr and b"interrupted" in stderr
     assert yaml.safe_load(out.read_text())["sensors"]
+
+
+def _kinds(warnings):
+    """A warning's sentence up to its first figure (the figures are compared apart)."""
+    return [w.split(next((c for c in w if c.isdigit()), "\0"))[0] for w in warnings]
+
+
+def test_follow_on_a_finished_log_runs_the_same_checks_and_gives_the_same_document():
+    """``follow_log`` and ``calibrate_log`` share the read loop, its checks, the final reduction
+    and the document. On a finished log they differ only in how windows are conditioned (one
+    at a time live, six at a time in batch: the filter's padding at a block's edges), which
+    moves the estimate by far less than its std."""
+    from conftest import SAMPLE_DATA
+
+    from imucal_cli.api import follow_log
+    from imucal_cli.config import load_config
+
+    config = load_config(SAMPLE_DATA / "aggressive.config.yaml")
+    batch = calibrate_log(SAMPLE_DATA / "aggressive.mcap", config).document
+    run, _, interrupted = follow_log(SAMPLE_DATA / "aggressive.mcap", config, stop=lambda: True)
+    followed = run.document
+    assert not interrupted
+    assert set(followed) - set(batch) == {"converged"}
+    for key in ("counts", "dropped", "losses", "lost_s", "pairs"):
+        assert (key in followed) == (key in batch)
+        if key in batch and key != "pairs":
+            assert followed[key] == batch[key], key
+    for name, s in batch["sensors"].items():
+        f = followed["sensors"][name]
+        assert set(f) - set(s) == {"missing"}
+        assert f["status"] == s["status"]
+        assert {k: v["pass"] for k, v in f["checks"].items()} == {k: v["pass"] for k, v in s["checks"].items()}
+        assert _kinds(f["warnings"]) == _kinds(s["warnings"])
+        assert f["segments"]["total"] == s["segments"]["total"] and f["segments"]["selected"] == s["segments"]["selected"]
+        for key, std in (("translation", "translation_std_m"), ("rpy_deg", "rotation_std_deg")):
+            d = np.abs(np.array(f["T_base_imu"][key]) - s["T_base_imu"][key])
+            assert np.all(d <= 1e-3 * np.array(s[std])), (name, key, d, s[std])
+        np.testing.assert_allclose(f[std], s[std], rtol=1e-3)
+
+
+@pytest.mark.parametrize("follow", [False, True])
+def test_a_sensor_on_another_clock_stops_calibrate_and_follow_alike(tmp_path, aggressive, follow):
+    """The clock comparison runs in the one read loop: ``--follow`` refuses a sensor stamped
+    from power-on as ``calibrate`` does."""
+    from imucal_cli.sim.writers import TopicData, write_imu_log
+    from imucal_cli.types import ImuStream
+
+    topics = aggressive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    boot = data.stream.t_ns - data.stream.t_ns[0] + 12_345_000_000
+    stream = ImuStream(boot, data.stream.gyro, data.stream.accel, data.stream.frame_id)
+    topics[name] = TopicData(stream, data.log_time_ns)
+    log = write_imu_log(tmp_path / "p.mcap", "mcap", topics)
+    config = tmp_path / "c.yaml"
+    write_document(config, aggressive.config_document())
+    argv = ["calibrate", str(log), "-c", str(config), "-o", str(tmp_path / "e.yaml")]
+    result = runner.invoke(app, argv + (["--follow", "--timeout", "5"] if follow else []))
+    assert result.exit_code == 2, result.output
+    assert name in result.stderr and "max_time_offset_s" in result.stderr
+    assert not (tmp_path / "e.yaml").exists()

@@ -18,7 +18,8 @@ from imucal_cli.core.signals import (
 from imucal_cli.core.streaming import UnitsError
 from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S, time_offset_shown
 from imucal_cli.errors import ConfigError, ImucalError
-from imucal_cli.pipeline import DriveStreams, calibration_document, run_calibrate
+from imucal_cli.outputs import calibration_document
+from imucal_cli.pipeline import DriveStreams, run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
 from imucal_cli.sim.imu import MEMS_LIDAR
 from imucal_cli.types import ImuStream
