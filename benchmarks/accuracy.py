@@ -81,7 +81,9 @@ class DriveRun:
 
 
 def run_one(scenario: str, errors: str, seed: int) -> DriveRun:
-    drive = simulate_drive(with_errors(DriveOptions(scenario=scenario, seed=seed, sensors=4), errors))
+    drive = simulate_drive(
+        with_errors(DriveOptions(scenario=scenario, seed=seed, sensors=4), errors)
+    )
     streams, config = drive.streams(), drive.config()
     start = time.perf_counter()
     result = run_calibrate(streams, config)
@@ -107,7 +109,9 @@ def run_one(scenario: str, errors: str, seed: int) -> DriveRun:
                 estimate.status,
                 rotation_angle_deg(T.rotation, mount.T_base_lidar.rotation),
                 float(np.linalg.norm(translation_error)),
-                normalized, std_r, std_t,
+                normalized,
+                std_r,
+                std_t,
                 list(getattr(estimate, "warnings", [])),
                 rigid.get("tilt_deg_per_mps2"),
                 true_tilt,
@@ -117,7 +121,10 @@ def run_one(scenario: str, errors: str, seed: int) -> DriveRun:
     pair_est = estimates[a.name].inverse() * estimates[b.name]
     pair_true = a.T_base_lidar.inverse() * b.T_base_lidar
     return DriveRun(
-        scenario, errors, seed, sensors,
+        scenario,
+        errors,
+        seed,
+        sensors,
         rotation_angle_deg(pair_est.rotation, pair_true.rotation),
         float(np.linalg.norm(pair_est.translation - pair_true.translation)) / 3.0,
         seconds,
@@ -137,7 +144,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--cases", nargs="+", default=[f"{s}/{e}" for s, e in CASES], help="scenario/errors")
+    parser.add_argument(
+        "--cases", nargs="+", default=[f"{s}/{e}" for s, e in CASES], help="scenario/errors"
+    )
     args = parser.parse_args()
     cases = [tuple(c.split("/")) for c in args.cases]
     seeds = list(range(1, args.seeds + 1))
@@ -148,8 +157,12 @@ def main() -> None:
     by_case = {case: [r for r in runs if (r.scenario, r.errors) == case] for case in cases}
 
     print(f"## Accuracy and honesty: {len(seeds)} seeds x 4 lidars per case, T_base_lidar\n")
-    print("| scenario | errors | runs | " + "/".join(STATUSES) + " | median dR deg | max dR deg | median abs dt m | "
-          "max abs dt m | ok beyond 4 std | axes inside 3 std | median std deg | median std m |")
+    print(
+        "| scenario | errors | runs | "
+        + "/".join(STATUSES)
+        + " | median dR deg | max dR deg | median abs dt m | "
+        "max abs dt m | ok beyond 4 std | axes inside 3 std | median std deg | median std m |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     total_ok_wrong, all_norm = 0, []
     for case in cases:
@@ -163,15 +176,21 @@ def main() -> None:
         total_ok_wrong += ok_wrong
         inside = f"{(np.abs(norm) < 3).mean():.1%}" if norm.size else "-"
         print(
-            f"| {case[0]} | {case[1]} | {len(rows)} | {'/'.join(str(statuses.count(s)) for s in STATUSES)} | "
-            f"{np.median(rot):.4f} | {rot.max():.4f} | {np.median(trans):.4f} | {trans.max():.4f} | {ok_wrong} | {inside} | "
-            f"{_median([r.rotation_std_deg for r in rows])} | {_median([r.translation_std_m for r in rows])} |"
+            f"| {case[0]} | {case[1]} | {len(rows)} | "
+            f"{'/'.join(str(statuses.count(s)) for s in STATUSES)} | "
+            f"{np.median(rot):.4f} | {rot.max():.4f} | {np.median(trans):.4f} | {trans.max():.4f} "
+            f"| {ok_wrong} | {inside} | "
+            f"{_median([r.rotation_std_deg for r in rows])} | "
+            f"{_median([r.translation_std_m for r in rows])} |"
         )
     norm = np.concatenate(all_norm)
     n_runs = sum(len(d.sensors) for d in runs)
-    print(f"\n**All cases: {n_runs} sensor runs; `ok` with an axis beyond 4 std: {total_ok_wrong} (must be 0); "
-          f"axes inside 3 std: {(np.abs(norm) < 3).mean():.1%} of {norm.size} (goal >= 95%); "
-          f"inside 1 std: {(np.abs(norm) < 1).mean():.1%} (Gaussian: 68%).**\n")
+    print(
+        f"\n**All cases: {n_runs} sensor runs; `ok` with an axis beyond 4 std: {total_ok_wrong} "
+        "(must be 0); "
+        f"axes inside 3 std: {(np.abs(norm) < 3).mean():.1%} of {norm.size} (goal >= 95%); "
+        f"inside 1 std: {(np.abs(norm) < 1).mean():.1%} (Gaussian: 68%).**\n"
+    )
 
     print("## Clean scenarios against their targets (median over sensors and seeds)\n")
     print("| scenario | median dR deg | median abs dt m | target | met | share ok |")
@@ -184,10 +203,16 @@ def main() -> None:
         trans = np.median([r.translation_error_m for r in rows])
         met = "yes" if rot <= target_rot and trans <= target_trans else "NO"
         ok = sum(r.status == "ok" for r in rows) / len(rows)
-        print(f"| {scenario} | {rot:.4f} | {trans:.4f} | <= {target_rot} deg, <= {target_trans * 100:g} cm | {met} | {ok:.0%} |")
+        print(
+            f"| {scenario} | {rot:.4f} | {trans:.4f} | <= {target_rot} deg, <= "
+            f"{target_trans * 100:g} cm | {met} | {ok:.0%} |"
+        )
 
     print("\n## Against the paper (lidar pair T_GT = T_BL1^-1 T_BL2; paper: real drives)\n")
-    print("| drive | paper dR deg (eq. 21) | paper dt m (eq. 20) | imucal median dR deg | imucal median dt m (eq. 20) |")
+    print(
+        "| drive | paper dR deg (eq. 21) | paper dt m (eq. 20) | imucal median dR deg | imucal "
+        "median dt m (eq. 20) |"
+    )
     print("|---|---|---|---|---|")
     for scenario, (name, paper_rot, paper_trans) in PAPER.items():
         drive_runs = by_case.get((scenario, "none"))
@@ -196,31 +221,55 @@ def main() -> None:
             trans = float(np.median([d.pair_eq20_m for d in drive_runs]))
             print(f"| {name} | {paper_rot} | {paper_trans} | {rot:.4f} | {trans:.5f} |")
 
-    tilting = [s for (sc, e), d in by_case.items() if e == "tilting-mount" for r in d for s in r.sensors]
+    tilting = [
+        s for (sc, e), d in by_case.items() if e == "tilting-mount" for r in d for s in r.sensors
+    ]
     if tilting:
         print("\n## Tilting mount: estimated tilt against the simulated one (deg per m/s^2)\n")
-        print("| runs | not ok | simulated roll, pitch | median estimate roll, pitch | max relative error | within 30% |")
+        print(
+            "| runs | not ok | simulated roll, pitch | median estimate roll, pitch | max relative "
+            "error | within 30% |"
+        )
         print("|---|---|---|---|---|---|")
         truth = np.array(tilting[0].true_tilt_deg_per_mps2)
-        est = np.array([r.tilt_deg_per_mps2 if r.tilt_deg_per_mps2 is not None else [np.nan, np.nan] for r in tilting])
+        est = np.array(
+            [
+                r.tilt_deg_per_mps2 if r.tilt_deg_per_mps2 is not None else [np.nan, np.nan]
+                for r in tilting
+            ]
+        )
         rel = np.abs(est - truth) / np.abs(truth)
-        print(f"| {len(tilting)} | {sum(r.status != 'ok' for r in tilting)} | {truth.round(3).tolist()} | "
-              f"{np.nanmedian(est, axis=0).round(3).tolist()} | {np.nanmax(rel):.1%} | {int(np.sum(np.all(rel <= 0.3, axis=1)))}/{len(tilting)} |")
+        print(
+            f"| {len(tilting)} | {sum(r.status != 'ok' for r in tilting)} | "
+            f"{truth.round(3).tolist()} | "
+            f"{np.nanmedian(est, axis=0).round(3).tolist()} | {np.nanmax(rel):.1%} | "
+            f"{int(np.sum(np.all(rel <= 0.3, axis=1)))}/{len(tilting)} |"
+        )
 
     units = [c for c in cases if c[1] in ("accel-g", "gyro-dps") and (c[0], "none") in by_case]
     if units:
         print("\n## Units: detected and calibrated as well as the SI twin (same seeds)\n")
-        print("| case | runs | warned of the units | median dR deg (SI twin) | median abs dt m (SI twin) | statuses equal |")
+        print(
+            "| case | runs | warned of the units | median dR deg (SI twin) | median abs dt m (SI "
+            "twin) | statuses equal |"
+        )
         print("|---|---|---|---|---|---|")
         for case in units:
             rows = [s for d in by_case[case] for s in d.sensors]
             twin = [s for d in by_case[(case[0], "none")] for s in d.sensors]
             warned = sum(any("publishes" in w for w in r.warnings) for r in rows)
             same = sum(a.status == b.status for a, b in zip(rows, twin, strict=True))
-            print(f"| {case[0]}/{case[1]} | {len(rows)} | {warned} | {np.median([r.rotation_error_deg for r in rows]):.4f} "
-                  f"({np.median([r.rotation_error_deg for r in twin]):.4f}) | {np.median([r.translation_error_m for r in rows]):.4f} "
-                  f"({np.median([r.translation_error_m for r in twin]):.4f}) | {same}/{len(rows)} |")
-    print(f"\n({len(jobs)} drives in {time.perf_counter() - started:.0f} s with {args.jobs} processes.)")
+            print(
+                f"| {case[0]}/{case[1]} | {len(rows)} | {warned} | "
+                f"{np.median([r.rotation_error_deg for r in rows]):.4f} "
+                f"({np.median([r.rotation_error_deg for r in twin]):.4f}) | "
+                f"{np.median([r.translation_error_m for r in rows]):.4f} "
+                f"({np.median([r.translation_error_m for r in twin]):.4f}) | {same}/{len(rows)} |"
+            )
+    print(
+        f"\n({len(jobs)} drives in {time.perf_counter() - started:.0f} s with {args.jobs} "
+        "processes.)"
+    )
 
 
 if __name__ == "__main__":

@@ -38,11 +38,16 @@ def build(hours: int) -> tuple[Path, Path]:
     from imucal_cli.sim.writers import _merged, _msgdef, _serialized
 
     CACHE.mkdir(exist_ok=True)
-    log, config = CACHE / f"town_{hours}h_repeated.mcap", CACHE / f"town_{hours}h_repeated.config.yaml"
+    log, config = (
+        CACHE / f"town_{hours}h_repeated.mcap",
+        CACHE / f"town_{hours}h_repeated.config.yaml",
+    )
     if log.exists() and config.exists():
         return log, config
     start = time.perf_counter()
-    drive = simulate_drive(DriveOptions(scenario="urban", duration_s=3600.0, seed=1, sensors=4, lidar_rate_hz=200.0))
+    drive = simulate_drive(
+        DriveOptions(scenario="urban", duration_s=3600.0, seed=1, sensors=4, lidar_rate_hz=200.0)
+    )
     topics = drive.topics()
     blobs = _serialized(topics, ros1=False)  # CDR: header.stamp.sec is bytes 4-8 of each message
     order = list(_merged(topics))
@@ -52,7 +57,10 @@ def build(hours: int) -> tuple[Path, Path]:
         writer = Writer(handle, compression=CompressionType.ZSTD, chunk_size=1 << 20)
         writer.start(profile="ros2", library="imucal benchmark")
         schema = writer.register_schema(name=IMU_MSGTYPE, encoding="ros2msg", data=msgdef.encode())
-        channels = {t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema) for t in topics}
+        channels = {
+            t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema)
+            for t in topics
+        }
         sequence = dict.fromkeys(topics, 0)
         for hour in range(hours):
             shifted = {}
@@ -63,9 +71,18 @@ def build(hours: int) -> tuple[Path, Path]:
                 shifted[topic] = moved
             for log_ns, topic, i in order:
                 t = log_ns + hour * 3_600_000_000_000
-                writer.add_message(channel_id=channels[topic], log_time=t, data=shifted[topic][i].tobytes(), publish_time=t, sequence=sequence[topic])
+                writer.add_message(
+                    channel_id=channels[topic],
+                    log_time=t,
+                    data=shifted[topic][i].tobytes(),
+                    publish_time=t,
+                    sequence=sequence[topic],
+                )
                 sequence[topic] += 1
-            print(f"hour {hour + 1} of {hours} written ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
+            print(
+                f"hour {hour + 1} of {hours} written ({time.perf_counter() - start:.0f} s)",
+                file=sys.stderr,
+            )
         writer.finish()
     partial.rename(log)
     write_document(config, drive.config_document())
@@ -78,12 +95,19 @@ def main() -> None:
     args = parser.parse_args()
     log, config = build(args.hours)
     size = log.stat().st_size / 1e6
-    print(f"## Day-long log: {args.hours} h, {size:,.0f} MB, {args.hours * 3_237_168:,} messages (about)\n")
+    print(
+        f"## Day-long log: {args.hours} h, {size:,.0f} MB, {args.hours * 3_237_168:,} messages "
+        "(about)\n"
+    )
     print("| command | wall s | peak RSS MB | exit |")
     print("|---|---|---|---|")
     for command in ("inspect", "biases", "segments", "calibrate"):
-        argv = [sys.executable, "-m", "imucal_cli.cli", command, str(log)] + ([] if command == "inspect" else ["-c", str(config)])
-        wall, rss_kb, code = subprocess.run([sys.executable, "-c", MEASURE, *argv], capture_output=True, text=True, check=True).stdout.split()
+        argv = [sys.executable, "-m", "imucal_cli.cli", command, str(log)] + (
+            [] if command == "inspect" else ["-c", str(config)]
+        )
+        wall, rss_kb, code = subprocess.run(
+            [sys.executable, "-c", MEASURE, *argv], capture_output=True, text=True, check=True
+        ).stdout.split()
         print(f"| {command} | {float(wall):.1f} | {int(rss_kb) / 1024:.0f} | {code} |")
         sys.stdout.flush()
 

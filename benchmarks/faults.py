@@ -14,8 +14,8 @@
    run as a process of its own and held to exit 0 or 2, no user file changed, 1 GB and a time
    bound; ``--probes`` runs these alone.
 
-Run: ``python benchmarks/faults.py [--probes] [--cases 1000] [--seed 1]``. Everything runs in-process
-through Typer's CliRunner (a traceback shows as an exception that is not SystemExit).
+Run: ``python benchmarks/faults.py [--probes] [--cases 1000] [--seed 1]``. Everything runs
+in-process through Typer's CliRunner (a traceback shows as an exception that is not SystemExit).
 """
 
 from __future__ import annotations
@@ -40,7 +40,13 @@ from imucal_cli.sim.writers import FORMATS, TopicData, write_imu_log
 from imucal_cli.types import ImuStream
 
 ROOT = Path(__file__).resolve().parent.parent
-NAMES = {"mcap": "d.mcap", "mcap-ros1": "d.mcap", "rosbag2-sqlite3": "d", "rosbag2-mcap": "d", "rosbag1": "d.bag"}
+NAMES = {
+    "mcap": "d.mcap",
+    "mcap-ros1": "d.mcap",
+    "rosbag2-sqlite3": "d",
+    "rosbag2-mcap": "d",
+    "rosbag1": "d.bag",
+}
 runner = CliRunner()
 
 
@@ -106,7 +112,12 @@ def broken_metadata(log: Path) -> bool:
 def edit_topic(drive, name: str, change) -> dict[str, TopicData]:
     topics = drive.topics()
     data = topics[name]
-    t, g, a, log_ns = change(data.stream.t_ns.copy(), data.stream.gyro.copy(), data.stream.accel.copy(), data.log_time_ns.copy())
+    t, g, a, log_ns = change(
+        data.stream.t_ns.copy(),
+        data.stream.gyro.copy(),
+        data.stream.accel.copy(),
+        data.log_time_ns.copy(),
+    )
     order_free = ImuStream.__new__(ImuStream)  # out-of-order stamps are the point of some faults
     object.__setattr__(order_free, "t_ns", t)
     object.__setattr__(order_free, "gyro", g)
@@ -163,8 +174,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--only", type=lambda v: {int(x) for x in v.split(",")}, default=None, help="replay these fuzz cases")
-    parser.add_argument("--probes", action="store_true", help="only the probes of hostile input (benchmarks/hostile.py)")
+    parser.add_argument(
+        "--only",
+        type=lambda v: {int(x) for x in v.split(",")},
+        default=None,
+        help="replay these fuzz cases",
+    )
+    parser.add_argument(
+        "--probes",
+        action="store_true",
+        help="only the probes of hostile input (benchmarks/hostile.py)",
+    )
     parser.add_argument("--probe", default="", help="only the probes whose name holds this")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="imucal-faults-"))
@@ -196,8 +216,12 @@ def run(argv: list[str], out: Path | None) -> dict:
         trace = "".join(tb.format_exception(*result.exc_info)[-3:])
     return {
         "trace": trace,
-        "code": result.exit_code, "traceback": traceback or "Traceback" in result.output, "partial": partial,
-        "error": errors[0] if errors else "", "lines": lines, "stderr": result.stderr,
+        "code": result.exit_code,
+        "traceback": traceback or "Traceback" in result.output,
+        "partial": partial,
+        "error": errors[0] if errors else "",
+        "lines": lines,
+        "stderr": result.stderr,
     }
 
 
@@ -260,9 +284,17 @@ def matrix(work: Path) -> None:
                 kind, value = fault
                 if kind == "topics":
                     topic = base_topics[0] if value is clock_jump else sensor
-                    log = write_imu_log(target.with_suffix(clean.suffix) if clean.suffix else target, fmt, edit_topic(drive, topic, value))
+                    log = write_imu_log(
+                        target.with_suffix(clean.suffix) if clean.suffix else target,
+                        fmt,
+                        edit_topic(drive, topic, value),
+                    )
                 elif kind == "drive":
-                    log = write_imu_log(target.with_suffix(clean.suffix) if clean.suffix else target, fmt, value.topics())
+                    log = write_imu_log(
+                        target.with_suffix(clean.suffix) if clean.suffix else target,
+                        fmt,
+                        value.topics(),
+                    )
                 elif kind == "config":
                     log, cfg = clean, value
                 else:
@@ -276,20 +308,48 @@ def matrix(work: Path) -> None:
             except Exception:
                 recovered = 0
             message = result["error"] or next(
-                (line for key in ("not read", "warning", "note") for line in result["lines"] if key in line), ""
+                (
+                    line
+                    for key in ("not read", "warning", "note")
+                    for line in result["lines"]
+                    if key in line
+                ),
+                "",
             )
             message = message.replace(str(work) + "/", "")
             if result["code"] == 0 and out.exists():
                 import yaml
 
-                statuses = sorted({s["status"] for s in yaml.safe_load(out.read_text())["sensors"].values()})
+                statuses = sorted(
+                    {s["status"] for s in yaml.safe_load(out.read_text())["sensors"].values()}
+                )
                 message = f"status {'/'.join(statuses)}" + (f"; {message}" if message else "")
-            rows.append((name, fmt, result["code"], recovered, sum(written.values()), message[:150], result["traceback"], result["partial"]))
-    print(f"## Fault matrix ({len(rows)} runs of `imucal calibrate -o`, {time.perf_counter() - start:.0f} s)\n")
-    print("| fault | format | exit | messages recovered / written | first error, warning or note on stderr | traceback | partial output |")
+            rows.append(
+                (
+                    name,
+                    fmt,
+                    result["code"],
+                    recovered,
+                    sum(written.values()),
+                    message[:150],
+                    result["traceback"],
+                    result["partial"],
+                )
+            )
+    print(
+        f"## Fault matrix ({len(rows)} runs of `imucal calibrate -o`, "
+        f"{time.perf_counter() - start:.0f} s)\n"
+    )
+    print(
+        "| fault | format | exit | messages recovered / written | first error, warning or note on "
+        "stderr | traceback | partial output |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, fmt, code, recovered, total, message, tb, partial in rows:
-        print(f"| {name} | {fmt} | {code} | {recovered:,} / {total:,} | {message.replace('|', '/')} | {'YES' if tb else 'no'} | {'YES' if partial else 'no'} |")
+        print(
+            f"| {name} | {fmt} | {code} | {recovered:,} / {total:,} | {message.replace('|', '/')} "
+            f"| {'YES' if tb else 'no'} | {'YES' if partial else 'no'} |"
+        )
     print(f"\nTracebacks: {tracebacks}. Partial output files: {partials}.\n")
     sys.stdout.flush()
 
@@ -306,7 +366,9 @@ def mutate(data: bytes, rng: np.random.Generator) -> tuple[bytes, str]:
         for _ in range(int(rng.integers(1, 5))):
             width = int(rng.choice([4, 8]))
             pos = int(rng.integers(0, max(1, n - width)))
-            value = [0, (1 << (8 * width)) - 1, int(rng.integers(0, 1 << 31))][int(rng.integers(0, 3))]
+            value = [0, (1 << (8 * width)) - 1, int(rng.integers(0, 1 << 31))][
+                int(rng.integers(0, 3))
+            ]
             out[pos : pos + width] = value.to_bytes(width, "little")
     if kind in ("truncate", "flip+truncate"):
         out = out[: int(rng.integers(0, n))]
@@ -322,14 +384,21 @@ def fuzz(work: Path, cases: int, seed: int, only: set[int] | None = None) -> Non
     document = drive.config_document()
     document["base"]["topic"] = "/imu/data"
     first = next(iter(document["sensors"]))
-    document["sensors"] = {first: dict(document["sensors"][first], imu_topic="/chatter")}  # wrong type: exit 2 naming both
+    document["sensors"] = {
+        first: dict(document["sensors"][first], imu_topic="/chatter")
+    }  # wrong type: exit 2 naming both
     write_document(fixture_config, document)
     seeds: list[tuple[Path, Path]] = []
     for fmt in FORMATS:
         (work / "fz" / fmt).mkdir(parents=True)
         seeds.append((write_imu_log(work / "fz" / fmt / NAMES[fmt], fmt, drive.topics()), config))
     data = ROOT / "tests" / "data"
-    for name in ("ros1_rosbag.bag", "ros1_mcap_ros1_writer.mcap", "ros2_mcap_ros2_writer.mcap", "rosbag2_converted_sqlite3"):
+    for name in (
+        "ros1_rosbag.bag",
+        "ros1_mcap_ros1_writer.mcap",
+        "ros2_mcap_ros2_writer.mcap",
+        "rosbag2_converted_sqlite3",
+    ):
         seeds.append((data / name, fixture_config))
     outcomes: Counter[str] = Counter()
     failures: list[str] = []
@@ -348,7 +417,10 @@ def fuzz(work: Path, cases: int, seed: int, only: set[int] | None = None) -> Non
         out = work / "case" / f"{case}.yaml"
         commands = [["inspect", str(log)], ["calibrate", str(log), "-c", str(cfg), "-o", str(out)]]
         if case % 10 == 0:  # the other commands that read logs, on every tenth case
-            commands += [["segments", str(log), "-c", str(cfg), "-o", str(out)], ["biases", str(log), "-c", str(cfg), "-o", str(out)]]
+            commands += [
+                ["segments", str(log), "-c", str(cfg), "-o", str(out)],
+                ["biases", str(log), "-c", str(cfg), "-o", str(out)],
+            ]
         for command in commands:
             result = run(command, out if command[0] != "inspect" else None)
             outcomes[f"{command[0]} exit {result['code']}"] += 1
@@ -357,16 +429,24 @@ def fuzz(work: Path, cases: int, seed: int, only: set[int] | None = None) -> Non
                 problem = "traceback"
             elif result["partial"]:
                 problem = "partial output"
-            elif result["code"] == 2 and (len(result["lines"]) != 1 or str(log) not in result["error"]):
+            elif result["code"] == 2 and (
+                len(result["lines"]) != 1 or str(log) not in result["error"]
+            ):
                 problem = "exit 2 without one line naming the file"
             elif result["code"] not in (0, 1, 2):
                 problem = f"exit {result['code']}"
             if problem:
-                failures.append(f"case {case} ({source.name}, {kind}, {command[0]}): {problem}: {(result['trace'] or result['stderr'])[-400:]!r}")
+                failures.append(
+                    f"case {case} ({source.name}, {kind}, {command[0]}): {problem}: "
+                    f"{(result['trace'] or result['stderr'])[-400:]!r}"
+                )
         shutil.rmtree(log, ignore_errors=True) if log.is_dir() else log.unlink()
         if out.exists():
             out.unlink()
-    print(f"## Fuzzer ({cases} mutated logs, seed {seed}, {sum(outcomes.values())} runs, {time.perf_counter() - start:.0f} s)\n")
+    print(
+        f"## Fuzzer ({cases} mutated logs, seed {seed}, {sum(outcomes.values())} runs, "
+        f"{time.perf_counter() - start:.0f} s)\n"
+    )
     print("| outcome | runs |")
     print("|---|---|")
     for key, count in sorted(outcomes.items()):

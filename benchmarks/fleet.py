@@ -30,7 +30,9 @@ def build(folder: Path, count: int, duration: float) -> list[Path]:
     for seed in range(1, count + 1):
         log = folder / f"town{seed:02d}.mcap"
         if not log.exists():
-            drive = simulate_drive(DriveOptions(scenario="urban", duration_s=duration, seed=seed, sensors=4))
+            drive = simulate_drive(
+                DriveOptions(scenario="urban", duration_s=duration, seed=seed, sensors=4)
+            )
             write_imu_log(log, "mcap", drive.topics())
             write_document(folder / f"town{seed:02d}.truth.yaml", drive.truth_document())
             write_document(folder / "config.yaml", drive.config_document())
@@ -38,10 +40,30 @@ def build(folder: Path, count: int, duration: float) -> list[Path]:
     return logs
 
 
-def batch(folder: Path, logs: list[Path], out: Path, extra: list[str]) -> tuple[float, list[dict[str, str]]]:
+def batch(
+    folder: Path, logs: list[Path], out: Path, extra: list[str]
+) -> tuple[float, list[dict[str, str]]]:
     shutil.rmtree(out, ignore_errors=True)
-    command = [sys.executable, "-m", "imucal_cli.cli", "batch", *map(str, logs), "-c", str(folder / "config.yaml"), "--out-dir", str(out),
-               "--truth-dir", str(folder), "--max-rotation-deg", "0.1", "--max-translation-m", "0.03", "--junit", str(out) + ".xml", *extra]
+    command = [
+        sys.executable,
+        "-m",
+        "imucal_cli.cli",
+        "batch",
+        *map(str, logs),
+        "-c",
+        str(folder / "config.yaml"),
+        "--out-dir",
+        str(out),
+        "--truth-dir",
+        str(folder),
+        "--max-rotation-deg",
+        "0.1",
+        "--max-translation-m",
+        "0.03",
+        "--junit",
+        str(out) + ".xml",
+        *extra,
+    ]
     start = time.perf_counter()
     result = subprocess.run(command, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - start
@@ -80,21 +102,46 @@ def main() -> None:
         ("Dask LocalCluster, 1 worker (glibc malloc defaults)", tuned, 1),
         ("Dask LocalCluster, 2 workers (glibc malloc defaults)", tuned, 2),
     ):
-        with dask.config.set(settings), LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-        ) as cluster:
-            wall, rows = batch(folder, logs, work / "dask", ["--scheduler", cluster.scheduler_address])
+        with (
+            dask.config.set(settings),
+            LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,
+            ) as cluster,
+        ):
+            wall, rows = batch(
+                folder, logs, work / "dask", ["--scheduler", cluster.scheduler_address]
+            )
         if workers == 1:
             one_worker = wall
         runs.append((label, wall, rows, one_worker if workers == 2 and settings else None))
     passed = sum(r["pass"] == "True" for r in rows1)
-    print(f"## imucal batch: {len(logs)} simulated logs ({args.duration:.0f} s urban, 4 lidars each), 2-core machine\n")
-    print("| run | wall s | x of --jobs 1 | x of the same scheduler with 1 worker | rows | passed | identical to --jobs 1 |")
+    print(
+        f"## imucal batch: {len(logs)} simulated logs ({args.duration:.0f} s urban, 4 lidars "
+        "each), 2-core machine\n"
+    )
+    print(
+        "| run | wall s | x of --jobs 1 | x of the same scheduler with 1 worker | rows | passed | "
+        "identical to --jobs 1 |"
+    )
     print("|---|---|---|---|---|---|---|")
     for name, wall, rows, single in runs:
-        same = f"{wall / t1:.2f}" if name == "--jobs 2" else ("-" if single is None else f"{wall / single:.2f}")
-        print(f"| {name} | {wall:.1f} | {wall / t1:.2f} | {same} | {len(rows)} | {sum(r['pass'] == 'True' for r in rows)} | {'yes' if rows == rows1 else 'NO'} |")
-    print(f"\nJUnit XML parsed for every run; {passed} of {len(rows1)} sensor rows pass 0.1 deg / 3 cm against truth.")
+        same = (
+            f"{wall / t1:.2f}"
+            if name == "--jobs 2"
+            else ("-" if single is None else f"{wall / single:.2f}")
+        )
+        print(
+            f"| {name} | {wall:.1f} | {wall / t1:.2f} | {same} | {len(rows)} | "
+            f"{sum(r['pass'] == 'True' for r in rows)} | {'yes' if rows == rows1 else 'NO'} |"
+        )
+    print(
+        f"\nJUnit XML parsed for every run; {passed} of {len(rows1)} sensor rows pass 0.1 deg / 3 "
+        "cm against truth."
+    )
 
 
 if __name__ == "__main__":

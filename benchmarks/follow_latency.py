@@ -34,9 +34,15 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=5.0)
-    parser.add_argument("--factor", type=float, default=1.0, help="times real time the recorder writes at")
+    parser.add_argument(
+        "--factor", type=float, default=1.0, help="times real time the recorder writes at"
+    )
     args = parser.parse_args()
-    drive = simulate_drive(DriveOptions(scenario="urban", duration_s=60 * args.minutes, seed=5, sensors=4, lidar_rate_hz=200.0))
+    drive = simulate_drive(
+        DriveOptions(
+            scenario="urban", duration_s=60 * args.minutes, seed=5, sensors=4, lidar_rate_hz=200.0
+        )
+    )
     config = drive.config()
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "live.mcap"
@@ -45,7 +51,9 @@ def main() -> None:
         recorder.started_writing.wait(30)
         start_wall = time.monotonic()
         updates: list[tuple[float, int]] = []
-        run, _, _ = follow_log(path, config, lambda result, windows: updates.append((time.monotonic(), windows)))
+        run, _, _ = follow_log(
+            path, config, lambda result, windows: updates.append((time.monotonic(), windows))
+        )
         recorder.join()
     # the recorder writes log time t at wall time start + (t - t0) / factor: a window k (grid
     # clock) is complete once every topic reached its end + PAD_S + max_offset
@@ -65,10 +73,16 @@ def main() -> None:
     # windows reduced at the boot (60 s of data in one go) wait for it by design: shown apart
     boot_windows = updates[0][1] if updates else 0
     after = lat[boot_windows:]
-    print("| recording | windows | updates | latency median s (after boot) | latency worst s (after boot) | first estimate after s of log |")
+    print(
+        "| recording | windows | updates | latency median s (after boot) | latency worst s (after "
+        "boot) | first estimate after s of log |"
+    )
     print("|---|---|---|---|---|---|")
     first = (updates[0][0] - start_wall) * args.factor if updates else float("nan")
-    print(f"| {args.minutes:g} min, 5 IMUs, {args.factor:g}x real time | {seen} | {len(updates)} | {np.median(after):.3f} | {np.max(after):.3f} | {first:.1f} |")
+    print(
+        f"| {args.minutes:g} min, 5 IMUs, {args.factor:g}x real time | {seen} | {len(updates)} | "
+        f"{np.median(after):.3f} | {np.max(after):.3f} | {first:.1f} |"
+    )
 
 
 if __name__ == "__main__":

@@ -55,20 +55,25 @@ sys.exit(os.waitstatus_to_exitcode(status) % 256)
 """
 
 
-
 @dataclass
 class Case:
     name: str
     argv: list[str]  # imucal's arguments
     folder: Path
-    outputs: set[str] = field(default_factory=set)  # files (relative to folder) the run may create or replace
+    outputs: set[str] = field(
+        default_factory=set
+    )  # files (relative to folder) the run may create or replace
     expect: int | None = None  # the exit code this case must give (None: 0 or 2)
     check: Callable[[subprocess.CompletedProcess], str] | None = None  # "" or what is wrong
     signal_after_s: float | None = None  # send SIGINT to the group after this long
 
 
 def _snapshot(folder: Path) -> dict[str, str]:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file() and not p.is_symlink()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and not p.is_symlink()
+    }
 
 
 def _size_mb(folder: Path) -> float:
@@ -81,11 +86,16 @@ def run_case(case: Case) -> dict:
     start = time.perf_counter()
     # spawned (not forked: a fork's peak RSS would start at this process's), its own session,
     # its output in files; reaped here with os.wait4 for its own peak RSS
-    out_path, err_path = case.folder.parent / f".{case.folder.name}.out", case.folder.parent / f".{case.folder.name}.err"
+    out_path, err_path = (
+        case.folder.parent / f".{case.folder.name}.out",
+        case.folder.parent / f".{case.folder.name}.err",
+    )
     rss_path = case.folder.parent / f".{case.folder.name}.rss"
     argv = [sys.executable, "-c", LAUNCHER, str(rss_path), str(LIMIT_AS), *case.argv]
-    actions = [(os.POSIX_SPAWN_OPEN, 1, str(out_path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644),
-               (os.POSIX_SPAWN_OPEN, 2, str(err_path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)]
+    actions = [
+        (os.POSIX_SPAWN_OPEN, 1, str(out_path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644),
+        (os.POSIX_SPAWN_OPEN, 2, str(err_path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644),
+    ]
     here = os.getcwd()
     os.chdir(case.folder)
     try:
@@ -137,8 +147,18 @@ def run_case(case: Case) -> dict:
         why = case.check(subprocess.CompletedProcess(case.argv, code, out, err))
         if why:
             problems.append(why)
-    first = next((line for line in lines if line.startswith("imucal: error")), lines[-1] if lines else "")
-    return {"case": case.name, "exit": code, "wall": wall, "bound": bound, "rss": rss_mb, "message": first, "problems": problems}
+    first = next(
+        (line for line in lines if line.startswith("imucal: error")), lines[-1] if lines else ""
+    )
+    return {
+        "case": case.name,
+        "exit": code,
+        "wall": wall,
+        "bound": bound,
+        "rss": rss_mb,
+        "message": first,
+        "problems": problems,
+    }
 
 
 # ------------------------------------------------------------------ bombs, built here
@@ -154,13 +174,20 @@ def _string(text: str) -> bytes:
 
 
 def _mcap_chunk(claimed: int, compression: str, data: bytes) -> bytes:
-    body = struct.pack("<QQQI", 0, 0, claimed, 0) + _string(compression) + struct.pack("<Q", len(data)) + data
+    body = (
+        struct.pack("<QQQI", 0, 0, claimed, 0)
+        + _string(compression)
+        + struct.pack("<Q", len(data))
+        + data
+    )
     return _mcap_record(0x06, body)
 
 
 def mcap_without_summary(path: Path, chunks: list[bytes]) -> Path:
     """An MCAP file as a killed recorder leaves it: magic, header, chunks, no summary."""
-    path.write_bytes(b"\x89MCAP0\r\n" + _mcap_record(0x01, _string("ros2") + _string("probe")) + b"".join(chunks))
+    path.write_bytes(
+        b"\x89MCAP0\r\n" + _mcap_record(0x01, _string("ros2") + _string("probe")) + b"".join(chunks)
+    )
     return path
 
 
@@ -172,7 +199,11 @@ def mcap_zstd_bomb(path: Path, chunks: int = 40) -> Path:
 
 def mcap_claiming(path: Path, claimed: int, compression: str = "zstd", chunks: int = 40) -> Path:
     """Small real chunks each claiming ``claimed`` bytes."""
-    data = zstandard.ZstdCompressor().compress(bytes(1024)) if compression == "zstd" else __import__("lz4.frame").frame.compress(bytes(1024))
+    data = (
+        zstandard.ZstdCompressor().compress(bytes(1024))
+        if compression == "zstd"
+        else __import__("lz4.frame").frame.compress(bytes(1024))
+    )
     return mcap_without_summary(path, [_mcap_chunk(claimed, compression, data)] * chunks)
 
 
@@ -208,7 +239,10 @@ def mcap_index_claiming(source: Path, path: Path, claimed: int) -> Path:
     data = bytearray(source.read_bytes())
     first = sorted(summary.chunk_indexes, key=lambda i: i.chunk_start_offset)[0]
     old = struct.pack("<Q", first.uncompressed_size)
-    for at in (first.chunk_start_offset + 9 + 16, data.index(struct.pack("<Q", first.compressed_size) + old) + 8):
+    for at in (
+        first.chunk_start_offset + 9 + 16,
+        data.index(struct.pack("<Q", first.compressed_size) + old) + 8,
+    ):
         assert bytes(data[at : at + 8]) == old
         data[at : at + 8] = struct.pack("<Q", claimed)
     path.write_bytes(bytes(data))
@@ -216,15 +250,28 @@ def mcap_index_claiming(source: Path, path: Path, claimed: int) -> Path:
 
 
 def _ros1_record(fields: dict[str, bytes], data: bytes) -> bytes:
-    header = b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items())
+    header = b"".join(
+        struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in fields.items()
+    )
     return struct.pack("<I", len(header)) + header + struct.pack("<I", len(data)) + data
 
 
 def ros1_bomb(path: Path, compression: str, claimed: int, data: bytes, chunks: int = 8) -> Path:
     """A ROS 1 bag without an index (index_pos 0: a recorder killed) whose chunks are bombs."""
-    head = _ros1_record({"op": b"\x03", "index_pos": struct.pack("<Q", 0), "conn_count": struct.pack("<I", 0), "chunk_count": struct.pack("<I", chunks)}, b"")
+    head = _ros1_record(
+        {
+            "op": b"\x03",
+            "index_pos": struct.pack("<Q", 0),
+            "conn_count": struct.pack("<I", 0),
+            "chunk_count": struct.pack("<I", chunks),
+        },
+        b"",
+    )
     head = head[:-4] + struct.pack("<I", 4096 - len(head)) + b" " * (4096 - len(head))
-    chunk = _ros1_record({"op": b"\x05", "compression": compression.encode(), "size": struct.pack("<I", claimed)}, data)
+    chunk = _ros1_record(
+        {"op": b"\x05", "compression": compression.encode(), "size": struct.pack("<I", claimed)},
+        data,
+    )
     path.write_bytes(b"#ROSBAG V2.0\n" + head + chunk * chunks)
     return path
 
@@ -236,7 +283,9 @@ def alias_bomb(path: Path, levels: int = 9) -> Path:
     return path
 
 
-def with_topics(drive, change: Callable[[str, TopicData], TopicData | None]) -> dict[str, TopicData]:
+def with_topics(
+    drive, change: Callable[[str, TopicData], TopicData | None]
+) -> dict[str, TopicData]:
     out = {}
     for topic, data in drive.topics().items():
         changed = change(topic, data)
@@ -256,7 +305,10 @@ def shifted(data: TopicData, from_fraction: float, by_ns: int) -> TopicData:
 def cut(data: TopicData, seconds: float) -> TopicData:
     keep = data.stream.t_ns < data.stream.t_ns[0] + int(seconds * 1e9)
     s = data.stream
-    return TopicData(ImuStream(s.t_ns[keep], s.gyro[keep], s.accel[keep], s.frame_id), data.log_time_ns[keep] if data.log_time_ns is not None else None)
+    return TopicData(
+        ImuStream(s.t_ns[keep], s.gyro[keep], s.accel[keep], s.frame_id),
+        data.log_time_ns[keep] if data.log_time_ns is not None else None,
+    )
 
 
 def nan_fraction(data: TopicData, fraction: float) -> TopicData:
@@ -265,7 +317,12 @@ def nan_fraction(data: TopicData, fraction: float) -> TopicData:
     gyro[rng.random(len(gyro)) < fraction, 0] = np.nan
     s = data.stream
     order_free = ImuStream.__new__(ImuStream)
-    for name, value in (("t_ns", s.t_ns), ("gyro", gyro), ("accel", s.accel), ("frame_id", s.frame_id)):
+    for name, value in (
+        ("t_ns", s.t_ns),
+        ("gyro", gyro),
+        ("accel", s.accel),
+        ("frame_id", s.frame_id),
+    ):
         object.__setattr__(order_free, name, value)
     return TopicData(order_free, data.log_time_ns)
 
@@ -285,7 +342,9 @@ def cases(work: Path) -> list[Case]:
         write_document(path / "config.yaml", config_doc)
         return path
 
-    def log_in(path: Path, name: str = "d.mcap", fmt: str = "mcap", topics: dict | None = None) -> Path:
+    def log_in(
+        path: Path, name: str = "d.mcap", fmt: str = "mcap", topics: dict | None = None
+    ) -> Path:
         return write_imu_log(path / name, fmt, topics if topics is not None else drive.topics())
 
     def add(name: str, argv: list[str], path: Path, **kw) -> None:
@@ -296,19 +355,49 @@ def cases(work: Path) -> list[Case]:
     (f / "work").mkdir()
     (f / "work" / "thesis.tex").write_text("years of work")
     add("simulate DIR (an existing folder)", ["simulate", "work", "--duration", "2"], f, expect=2)
-    add("simulate DIR --force (not a log)", ["simulate", "work", "--duration", "2", "--force"], f, expect=2)
+    add(
+        "simulate DIR --force (not a log)",
+        ["simulate", "work", "--duration", "2", "--force"],
+        f,
+        expect=2,
+    )
     (f / "inner").mkdir()
-    add("simulate .. (the parent folder)", ["simulate", "..", "--duration", "2", "--force"], f / "inner", expect=2)
+    add(
+        "simulate .. (the parent folder)",
+        ["simulate", "..", "--duration", "2", "--force"],
+        f / "inner",
+        expect=2,
+    )
     f = folder("batch of bags as metadata")
     for name in ("d1", "d2"):
         log_in(f, name, "rosbag2-mcap")
-    add("batch d1/metadata.yaml d2/metadata.yaml --out-dir .", ["batch", "d1/metadata.yaml", "d2/metadata.yaml", "-c", "config.yaml", "--out-dir", "."], f,
-        outputs={"d1.yaml", "d2.yaml", "summary.csv", "summary.json"}, expect=0)
+    add(
+        "batch d1/metadata.yaml d2/metadata.yaml --out-dir .",
+        ["batch", "d1/metadata.yaml", "d2/metadata.yaml", "-c", "config.yaml", "--out-dir", "."],
+        f,
+        outputs={"d1.yaml", "d2.yaml", "summary.csv", "summary.json"},
+        expect=0,
+    )
     f = folder("output is an input")
     log_in(f, "bag", "rosbag2-mcap")
-    add("calibrate bag/metadata.yaml -o bag/metadata.yaml", ["calibrate", "bag/metadata.yaml", "-c", "config.yaml", "-o", "bag/metadata.yaml"], f, expect=2)
-    add("calibrate -o CONFIG", ["calibrate", "bag", "-c", "config.yaml", "-o", "config.yaml"], f, expect=2)
-    add("segments -o inside the bag", ["segments", "bag", "-c", "config.yaml", "-o", "bag/x.yaml"], f, expect=2)
+    add(
+        "calibrate bag/metadata.yaml -o bag/metadata.yaml",
+        ["calibrate", "bag/metadata.yaml", "-c", "config.yaml", "-o", "bag/metadata.yaml"],
+        f,
+        expect=2,
+    )
+    add(
+        "calibrate -o CONFIG",
+        ["calibrate", "bag", "-c", "config.yaml", "-o", "config.yaml"],
+        f,
+        expect=2,
+    )
+    add(
+        "segments -o inside the bag",
+        ["segments", "bag", "-c", "config.yaml", "-o", "bag/x.yaml"],
+        f,
+        expect=2,
+    )
     # 4-5 injection
     f = folder("frame injection")
     doc = dict(config_doc, base=dict(config_doc["base"], frame="x; touch pwned"))
@@ -322,27 +411,63 @@ def cases(work: Path) -> list[Case]:
     f = folder("terminal escapes")
     evil = "/imu\x1b]0;owned\x07\x1b[2K\rcalibration ok"
     log_in(f, topics={(evil if t == base_topic else t): d for t, d in drive.topics().items()})
-    add("topic name with terminal escapes: inspect", ["inspect", "d.mcap"], f, expect=0, check=lambda r: "ESC on stdout" if b"\x1b" in r.stdout else "")
-    add("topic name with terminal escapes: calibrate", ["calibrate", "d.mcap", "-c", "config.yaml"], f, expect=2,
-        check=lambda r: "ESC on stderr" if b"\x1b" in r.stderr else "")
+    add(
+        "topic name with terminal escapes: inspect",
+        ["inspect", "d.mcap"],
+        f,
+        expect=0,
+        check=lambda r: "ESC on stdout" if b"\x1b" in r.stdout else "",
+    )
+    add(
+        "topic name with terminal escapes: calibrate",
+        ["calibrate", "d.mcap", "-c", "config.yaml"],
+        f,
+        expect=2,
+        check=lambda r: "ESC on stderr" if b"\x1b" in r.stderr else "",
+    )
     # 6-8 bombs
     f = folder("mcap bombs")
     mcap_zstd_bomb(f / "zstd.mcap")
-    add(f"MCAP, no summary, zstd bomb ({(f / 'zstd.mcap').stat().st_size // 1000} kB -> 2.5 GiB)", ["inspect", "zstd.mcap"], f)
+    add(
+        f"MCAP, no summary, zstd bomb ({(f / 'zstd.mcap').stat().st_size // 1000} kB -> 2.5 GiB)",
+        ["inspect", "zstd.mcap"],
+        f,
+    )
     mcap_claiming(f / "claims.mcap", 6 << 30)
-    add("MCAP, no summary, chunks claiming 6 GiB", ["calibrate", "claims.mcap", "-c", "config.yaml"], f, expect=2)
+    add(
+        "MCAP, no summary, chunks claiming 6 GiB",
+        ["calibrate", "claims.mcap", "-c", "config.yaml"],
+        f,
+        expect=2,
+    )
     mcap_claiming(f / "lz4.mcap", 8 << 30, "lz4")
     add("MCAP, no summary, lz4 chunks claiming 8 GiB", ["inspect", "lz4.mcap"], f)
     small = simulate_drive(DriveOptions(scenario="aggressive", duration_s=3.0, seed=7))
     source = write_imu_log(f / "small.mcap", "mcap", small.topics())
     mcap_repeated_chunk_index(source, f / "repeated.mcap")
-    add("indexed MCAP, 4096 chunk indexes on one chunk", ["calibrate", "repeated.mcap", "-c", "config.yaml"], f, expect=2)
+    add(
+        "indexed MCAP, 4096 chunk indexes on one chunk",
+        ["calibrate", "repeated.mcap", "-c", "config.yaml"],
+        f,
+        expect=2,
+    )
     mcap_index_claiming(source, f / "index-8g.mcap", 8 << 30)
-    add("indexed MCAP, a chunk and its index claiming 8 GiB", ["calibrate", "index-8g.mcap", "-c", "config.yaml"], f, expect=2)
+    add(
+        "indexed MCAP, a chunk and its index claiming 8 GiB",
+        ["calibrate", "index-8g.mcap", "-c", "config.yaml"],
+        f,
+        expect=2,
+    )
     f = folder("ros1 bombs")
     ros1_bomb(f / "bz2.bag", "bz2", 64 << 20, bz2.compress(bytes(64 << 20)))
-    add(f"ROS 1 bag, bz2 chunks of 64 MiB zeros ({(f / 'bz2.bag').stat().st_size} bytes)", ["inspect", "bz2.bag"], f)
-    ros1_bomb(f / "lz4.bag", "lz4", 0xFFFFFFF0, __import__("lz4.frame").frame.compress(bytes(1 << 20)))
+    add(
+        f"ROS 1 bag, bz2 chunks of 64 MiB zeros ({(f / 'bz2.bag').stat().st_size} bytes)",
+        ["inspect", "bz2.bag"],
+        f,
+    )
+    ros1_bomb(
+        f / "lz4.bag", "lz4", 0xFFFFFFF0, __import__("lz4.frame").frame.compress(bytes(1 << 20))
+    )
     add("ROS 1 bag, lz4 chunks claiming 4 GiB", ["inspect", "lz4.bag"], f)
     # 9 YAML
     f = folder("yaml bombs")
@@ -353,19 +478,39 @@ def cases(work: Path) -> list[Case]:
     for name in ("bomb", "deep", "big"):
         add(f"config: {name}.yaml", ["calibrate", "d.mcap", "-c", f"{name}.yaml"], f, expect=2)
     add("truth: bomb.yaml", ["evaluate", "bomb.yaml", "bomb.yaml"], f, expect=2)
-    add("reference: deep.yaml", ["batch", "d.mcap", "-c", "config.yaml", "--reference", "deep.yaml", "--out-dir", "o"], f, expect=2)
+    add(
+        "reference: deep.yaml",
+        ["batch", "d.mcap", "-c", "config.yaml", "--reference", "deep.yaml", "--out-dir", "o"],
+        f,
+        expect=2,
+    )
     # 10 stamps' span
     for label, jump in (("10 days", 10 * 86400), ("1 year", 365 * 86400)):
         f = folder(f"clock jump {label}")
-        log_in(f, topics=with_topics(drive, lambda t, d, jump=jump: shifted(d, 0.5, jump * 10**9) if t == base_topic else d))
+        log_in(
+            f,
+            topics=with_topics(
+                drive,
+                lambda t, d, jump=jump: shifted(d, 0.5, jump * 10**9) if t == base_topic else d,
+            ),
+        )
         add(f"inspect, base clock jumps {label} mid-log", ["inspect", "d.mcap"], f, expect=0)
         for command in ("biases", "segments", "calibrate"):
-            add(f"{command}, base clock jumps {label} mid-log", [command, "d.mcap", "-c", "config.yaml"], f, expect=0)
+            add(
+                f"{command}, base clock jumps {label} mid-log",
+                [command, "d.mcap", "-c", "config.yaml"],
+                f,
+                expect=0,
+            )
     # 11 config numbers
     f = folder("config numbers")
     log_in(f)
-    for key, section, value in (("window_s", "segments", 1e-6), ("resample_hz", "calibration", 1e5), ("resample_hz", "calibration", 1e9),
-                                ("rotation_floor_deg", None, 1e300)):
+    for key, section, value in (
+        ("window_s", "segments", 1e-6),
+        ("resample_hz", "calibration", 1e5),
+        ("resample_hz", "calibration", 1e9),
+        ("rotation_floor_deg", None, 1e300),
+    ):
         doc = dict(config_doc)
         if section:
             doc[section] = {key: value}
@@ -374,8 +519,19 @@ def cases(work: Path) -> list[Case]:
         name = f"{key}-{value:g}.yaml"
         write_document(f / name, doc)
         add(f"{key}: {value:g}", ["calibrate", "d.mcap", "-c", name], f, expect=2)
-    doc = dict(config_doc, sensors={n: dict(s, T_imu_lidar=dict(s["T_imu_lidar"], translation=[v * 1000 for v in s["T_imu_lidar"]["translation"]]))
-                                    for n, s in config_doc["sensors"].items()})
+    doc = dict(
+        config_doc,
+        sensors={
+            n: dict(
+                s,
+                T_imu_lidar=dict(
+                    s["T_imu_lidar"],
+                    translation=[v * 1000 for v in s["T_imu_lidar"]["translation"]],
+                ),
+            )
+            for n, s in config_doc["sensors"].items()
+        },
+    )
     write_document(f / "mm.yaml", doc)
     add("T_imu_lidar translation in mm", ["calibrate", "d.mcap", "-c", "mm.yaml"], f, expect=2)
     # 12 a topic that stops
@@ -384,8 +540,15 @@ def cases(work: Path) -> list[Case]:
     write_document(f / "config.yaml", long.config_document())
     stopping = list(long.topics())[1]
     log_in(f, topics=with_topics(long, lambda t, d: cut(d, 120.0) if t == stopping else d))
-    add("a lidar IMU stops after 120 s of 600 s", ["calibrate", "d.mcap", "-c", "config.yaml", "--json"], f, expect=0,
-        check=lambda r: "" if b"sent nothing from" in r.stdout else "no warning names the stopped topic")
+    add(
+        "a lidar IMU stops after 120 s of 600 s",
+        ["calibrate", "d.mcap", "-c", "config.yaml", "--json"],
+        f,
+        expect=0,
+        check=lambda r: (
+            "" if b"sent nothing from" in r.stdout else "no warning names the stopped topic"
+        ),
+    )
     # 13 tracebacks
     f = folder("tracebacks")
     log_in(f, "bag", "rosbag2-sqlite3")
@@ -395,38 +558,126 @@ def cases(work: Path) -> list[Case]:
     meta.write_text(yaml.safe_dump(info))
     add("rosbag2 relative_file_paths not a list", ["inspect", "bag"], f, expect=2)
     (f / "file").write_text("")
-    add("batch --out-dir that is a file", ["batch", "bag", "-c", "config.yaml", "--out-dir", "file"], f, expect=2)
-    write_document(f / "ref.yaml", {"sensors": {first: {"rotation_std_deg": 3, "T_base_lidar": {"translation": [0, 0, 0], "rotation": [0, 0, 0, 1]}}}})
-    add("--reference with a number where a list belongs", ["batch", "bag", "-c", "config.yaml", "--reference", "ref.yaml", "--out-dir", "o2"], f, expect=2)
-    est = {"base_frame": "base_link", "base_imu_rate_hz": 100.0, "base_imu_noise": "loud",
-           "sensors": {first: {"status": "ok", "lidar_frame": "l", "T_base_lidar": {"translation": [0, 0, 0], "rotation": [0, 0, 0, 1]},
-                               "T_base_imu": {"translation": [0, 0, 0], "rotation": [0, 0, 0, 1]}, "imu_rate_hz": 100.0}}}
+    add(
+        "batch --out-dir that is a file",
+        ["batch", "bag", "-c", "config.yaml", "--out-dir", "file"],
+        f,
+        expect=2,
+    )
+    write_document(
+        f / "ref.yaml",
+        {
+            "sensors": {
+                first: {
+                    "rotation_std_deg": 3,
+                    "T_base_lidar": {"translation": [0, 0, 0], "rotation": [0, 0, 0, 1]},
+                }
+            }
+        },
+    )
+    add(
+        "--reference with a number where a list belongs",
+        ["batch", "bag", "-c", "config.yaml", "--reference", "ref.yaml", "--out-dir", "o2"],
+        f,
+        expect=2,
+    )
+    est = {
+        "base_frame": "base_link",
+        "base_imu_rate_hz": 100.0,
+        "base_imu_noise": "loud",
+        "sensors": {
+            first: {
+                "status": "ok",
+                "lidar_frame": "l",
+                "T_base_lidar": {"translation": [0, 0, 0], "rotation": [0, 0, 0, 1]},
+                "T_base_imu": {"translation": [0, 0, 0], "rotation": [0, 0, 0, 1]},
+                "imu_rate_hz": 100.0,
+            }
+        },
+    }
     write_document(f / "est.yaml", est)
-    add("kalibr export with a malformed imu_noise", ["export", "est.yaml", "-f", "kalibr"], f, expect=2)
+    add(
+        "kalibr export with a malformed imu_noise",
+        ["export", "est.yaml", "-f", "kalibr"],
+        f,
+        expect=2,
+    )
     # 14 fleet
     f = folder("fleet")
     for day in ("2024.01.05", "2024.01.06"):
         log_in(f, f"{day}.mcap")
-    add("batch of 2024.01.05.mcap and 2024.01.06.mcap", ["batch", "2024.01.05.mcap", "2024.01.06.mcap", "-c", "config.yaml", "--out-dir", "out"], f,
-        outputs={"out/2024.01.05.yaml", "out/2024.01.06.yaml", "out/summary.csv", "out/summary.json"}, expect=0)
-    add("a second batch into the same --out-dir", ["batch", "2024.01.05.mcap", "-c", "config.yaml", "--out-dir", "out"], f, expect=2)
+    add(
+        "batch of 2024.01.05.mcap and 2024.01.06.mcap",
+        ["batch", "2024.01.05.mcap", "2024.01.06.mcap", "-c", "config.yaml", "--out-dir", "out"],
+        f,
+        outputs={
+            "out/2024.01.05.yaml",
+            "out/2024.01.06.yaml",
+            "out/summary.csv",
+            "out/summary.json",
+        },
+        expect=0,
+    )
+    add(
+        "a second batch into the same --out-dir",
+        ["batch", "2024.01.05.mcap", "-c", "config.yaml", "--out-dir", "out"],
+        f,
+        expect=2,
+    )
     # interrupts (Ctrl-C: exit 130, no partial file, nothing of the user's changed)
     f = folder("interrupts")
-    add("Ctrl-C during simulate (a 900 s drive)", ["simulate", "long.mcap", "--duration", "900", "--sensors", "4"], f, expect=130, signal_after_s=3.0)
+    add(
+        "Ctrl-C during simulate (a 900 s drive)",
+        ["simulate", "long.mcap", "--duration", "900", "--sensors", "4"],
+        f,
+        expect=130,
+        signal_after_s=3.0,
+    )
     for k in range(24):
         log_in(f, f"d{k}.mcap")
-    add("Ctrl-C during batch --jobs 2 (24 logs)", ["batch", *(f"d{k}.mcap" for k in range(24)), "-c", "config.yaml", "--out-dir", "out", "--jobs", "2"], f,
-        expect=130, signal_after_s=2.0, outputs={f"out/d{k}.yaml" for k in range(24)})
+    add(
+        "Ctrl-C during batch --jobs 2 (24 logs)",
+        [
+            "batch",
+            *(f"d{k}.mcap" for k in range(24)),
+            "-c",
+            "config.yaml",
+            "--out-dir",
+            "out",
+            "--jobs",
+            "2",
+        ],
+        f,
+        expect=130,
+        signal_after_s=2.0,
+        outputs={f"out/d{k}.yaml" for k in range(24)},
+    )
     # 15 damage said
     f = folder("damage said")
     log = log_in(f)
     data = log.read_bytes()
     (f / "half.mcap").write_bytes(data[: len(data) // 2])
-    add("biases on a log cut at 50%", ["biases", "half.mcap", "-c", "config.yaml"], f, expect=0,
-        check=lambda r: "" if b"warning" in r.stderr and b"cut off" in r.stderr else "the cut is not said")
-    log_in(f, "nan.mcap", topics=with_topics(drive, lambda t, d: nan_fraction(d, 0.3) if t == sensor_topic else d))
-    add("30% NaN on one sensor", ["calibrate", "nan.mcap", "-c", "config.yaml", "--json"], f, expect=0,
-        check=lambda r: "" if b"not finite" in r.stdout else "the dropped samples are not said")
+    add(
+        "biases on a log cut at 50%",
+        ["biases", "half.mcap", "-c", "config.yaml"],
+        f,
+        expect=0,
+        check=lambda r: (
+            "" if b"warning" in r.stderr and b"cut off" in r.stderr else "the cut is not said"
+        ),
+    )
+    log_in(
+        f,
+        "nan.mcap",
+        topics=with_topics(drive, lambda t, d: nan_fraction(d, 0.3) if t == sensor_topic else d),
+    )
+    add(
+        "30% NaN on one sensor",
+        ["calibrate", "nan.mcap", "-c", "config.yaml", "--json"],
+        f,
+        expect=0,
+        check=lambda r: "" if b"not finite" in r.stdout else "the dropped samples are not said",
+    )
     return out
 
 
@@ -439,15 +690,24 @@ def probes(work: Path, only: str = "") -> bool:
         rows.append(run_case(case))
         shutil.rmtree(case.folder / "o", ignore_errors=True)
     print(f"## Probes of hostile input ({len(rows)} cases, {time.perf_counter() - start:.0f} s)\n")
-    print(f"Rule: exit 0 or 2 (2: one line, no traceback), no file of the user's changed, peak RSS <= {MAX_RSS_MB:.0f} MB, "
-          f"wall <= {BOUND_S:g} s + {BOUND_S_PER_MB:g} s per MB of input.\n")
-    print("| case | exit | wall s | bound s | peak RSS MB | first error or last line on stderr | verdict |")
+    print(
+        "Rule: exit 0 or 2 (2: one line, no traceback), no file of the user's changed, peak RSS "
+        f"<= {MAX_RSS_MB:.0f} MB, "
+        f"wall <= {BOUND_S:g} s + {BOUND_S_PER_MB:g} s per MB of input.\n"
+    )
+    print(
+        "| case | exit | wall s | bound s | peak RSS MB | first error or last line on stderr | "
+        "verdict |"
+    )
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         message = r["message"].replace("|", "/")
         message = message if len(message) <= 140 else message[:137] + "..."
         verdict = "ok" if not r["problems"] else "FAIL: " + "; ".join(r["problems"])
-        print(f"| {r['case']} | {r['exit']} | {r['wall']:.1f} | {r['bound']:.0f} | {r['rss']:.0f} | {message} | {verdict} |")
+        print(
+            f"| {r['case']} | {r['exit']} | {r['wall']:.1f} | {r['bound']:.0f} | {r['rss']:.0f} | "
+            f"{message} | {verdict} |"
+        )
     failed = sum(bool(r["problems"]) for r in rows)
     print(f"\nCases failing the rule: {failed} of {len(rows)}.\n")
     sys.stdout.flush()

@@ -65,14 +65,22 @@ def half_hour() -> tuple[Path, Path]:
     log, config = CACHE / "town_30m_mcap.mcap", CACHE / "town_30m_mcap.config.yaml"
     if not (log.exists() and config.exists()):
         CACHE.mkdir(exist_ok=True)
-        drive = simulate_drive(DriveOptions(scenario="urban", duration_s=1800.0, seed=1, sensors=4, lidar_rate_hz=200.0))
+        drive = simulate_drive(
+            DriveOptions(
+                scenario="urban", duration_s=1800.0, seed=1, sensors=4, lidar_rate_hz=200.0
+            )
+        )
         write_imu_log(log, "mcap", drive.topics())
         write_document(config, drive.config_document())
     return log, config
 
 
 def stages(log: Path, config: Path, what: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-c", STAGES, str(log), str(config), what], stdout=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-c", STAGES, str(log), str(config), what],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
 
 
 def seconds(process: subprocess.Popen[str]) -> list[float]:
@@ -103,15 +111,25 @@ def main() -> None:
             seconds(process)
         two = time.perf_counter() - start + solve / 2
         rows.append((t_floor, imports, imports + read, one, two))
-    print("| round | floor s | imports / floor | imports + read / floor | one process / floor | two halves / floor |")
+    print(
+        "| round | floor s | imports / floor | imports + read / floor | one process / floor | two "
+        "halves / floor |"
+    )
     print("|---|---|---|---|---|---|")
     for k, (t_floor, imports, math_free, one, two) in enumerate(rows, start=1):
-        print(f"| {k} | {t_floor:.2f} | {imports / t_floor:.1f} | {math_free / t_floor:.1f} | {one / t_floor:.1f} | {two / t_floor:.1f} |")
+        print(
+            f"| {k} | {t_floor:.2f} | {imports / t_floor:.1f} | {math_free / t_floor:.1f} | "
+            f"{one / t_floor:.1f} | {two / t_floor:.1f} |"
+        )
     ratios = np.array([[r[2] / r[0], r[3] / r[0], r[4] / r[0]] for r in rows])
     print()
     print("| design | median / floor | bound |")
     print("|---|---|---|")
-    for name, column in (("math free (imports + read)", 0), ("one process (today)", 1), ("two halves in time, solve split", 2)):
+    for name, column in (
+        ("math free (imports + read)", 0),
+        ("one process (today)", 1),
+        ("two halves in time, solve split", 2),
+    ):
         print(f"| {name} | {np.median(ratios[:, column]):.1f} | <= 4 |")
 
 

@@ -51,11 +51,18 @@ def build(length: str, fmt: str) -> tuple[Path, Path]:
 
     CACHE.mkdir(exist_ok=True)
     stem = CACHE / f"town_{length}_{fmt}"
-    log, config = stem.with_name(stem.name + SUFFIX[fmt]), stem.with_name(stem.name + ".config.yaml")
+    log, config = (
+        stem.with_name(stem.name + SUFFIX[fmt]),
+        stem.with_name(stem.name + ".config.yaml"),
+    )
     if log.exists() and config.exists():
         return log, config
     start = time.perf_counter()
-    drive = simulate_drive(DriveOptions(scenario="urban", duration_s=LENGTHS[length], seed=1, sensors=4, lidar_rate_hz=200.0))
+    drive = simulate_drive(
+        DriveOptions(
+            scenario="urban", duration_s=LENGTHS[length], seed=1, sensors=4, lidar_rate_hz=200.0
+        )
+    )
     write_imu_log(log, fmt, drive.topics())
     write_document(config, drive.config_document())
     write_document(stem.with_name(stem.name + ".truth.yaml"), drive.truth_document())
@@ -78,7 +85,12 @@ def floor(log: Path, fmt: str) -> float:
                 handle.seek(index.chunk_start_offset)
                 chunk = next(iter(StreamReader(handle, skip_magic=True, emit_chunks=True).records))
                 assert isinstance(chunk, Chunk)
-                decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=np.empty(chunk.uncompressed_size, dtype=np.uint8))
+                decompress(
+                    chunk.compression,
+                    chunk.data,
+                    chunk.uncompressed_size,
+                    out=np.empty(chunk.uncompressed_size, dtype=np.uint8),
+                )
     elif fmt == "rosbag1":
         from imucal_cli.io.base import decompress
         from imucal_cli.io.rosbag1 import _U32, Ros1Log
@@ -86,7 +98,11 @@ def floor(log: Path, fmt: str) -> float:
         with Ros1Log(log) as reader:
             for chunk_pos, _ in reader.chunks:
                 fields, begin, length, _ = reader._header(chunk_pos)
-                decompress(fields["compression"].decode("latin-1"), reader._read(chunk_pos + begin, length), _U32.unpack(fields["size"])[0])
+                decompress(
+                    fields["compression"].decode("latin-1"),
+                    reader._read(chunk_pos + begin, length),
+                    _U32.unpack(fields["size"])[0],
+                )
     else:
         for db in sorted(log.glob("*.db3")):
             connection = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
@@ -103,7 +119,10 @@ def read(log: Path, config: Path) -> tuple[float, int]:
 
     cfg = load_config(config)
     start = time.perf_counter()
-    count = sum(len(batch[1]) for batch in ImuBatches(log, [cfg.base.topic, *(s.imu_topic for s in cfg.sensors)]))
+    count = sum(
+        len(batch[1])
+        for batch in ImuBatches(log, [cfg.base.topic, *(s.imu_topic for s in cfg.sensors)])
+    )
     return time.perf_counter() - start, count
 
 
@@ -113,7 +132,9 @@ def command(name: str, log: Path, config: Path, out: Path) -> tuple[float, float
     if name != "inspect":
         args += ["-c", str(config)]
     args += ["-o", str(out)]
-    printed = subprocess.run([sys.executable, "-c", MEASURE, *args], capture_output=True, text=True, check=True).stdout.split()
+    printed = subprocess.run(
+        [sys.executable, "-c", MEASURE, *args], capture_output=True, text=True, check=True
+    ).stdout.split()
     if printed[2] != "0":
         raise RuntimeError(f"imucal {name} {log} exited {printed[2]}")
     return float(printed[0]), float(printed[1]) / 1024
@@ -131,12 +152,19 @@ def errors(estimate: Path, truth: Path) -> tuple[float, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--lengths", nargs="+", default=["15m", "1h", "4h"], choices=list(LENGTHS))
-    parser.add_argument("--formats", nargs="+", default=["mcap", "rosbag1", "rosbag2-sqlite3"], choices=list(SUFFIX))
+    parser.add_argument(
+        "--formats", nargs="+", default=["mcap", "rosbag1", "rosbag2-sqlite3"], choices=list(SUFFIX)
+    )
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     # the scaling is measured on MCAP; every round runs every case once, so that the machine's
     # drift (tens of per cent over minutes) falls on all lengths alike
-    cases = {(length, fmt): build(length, fmt) for length in args.lengths for fmt in args.formats if length != "4h" or fmt == "mcap"}
+    cases = {
+        (length, fmt): build(length, fmt)
+        for length in args.lengths
+        for fmt in args.formats
+        if length != "4h" or fmt == "mcap"
+    }
     runs: dict[tuple[str, str], dict[str, list[tuple[float, float]]]] = {case: {} for case in cases}
     errors_of = {}
     for _ in range(args.repeat):
@@ -145,35 +173,71 @@ def main() -> None:
             runs[case].setdefault("floor", []).append((floor(log, fmt), 0.0))
             runs[case].setdefault("read", []).append(read(log, config))
             for name in COMMANDS:
-                runs[case].setdefault(name, []).append(command(name, log, config, CACHE / f"out_{name}.yaml"))
+                runs[case].setdefault(name, []).append(
+                    command(name, log, config, CACHE / f"out_{name}.yaml")
+                )
             truth = config.with_name(config.name.replace(".config.yaml", ".truth.yaml"))
             errors_of[case] = errors(CACHE / "out_calibrate.yaml", truth)
     rows = {}
     for case, (log, _) in cases.items():
         best = {k: (min(r[0] for r in v), max(r[1] for r in v)) for k, v in runs[case].items()}
-        rows[case] = (log.stat().st_size if log.is_file() else sum(p.stat().st_size for p in log.iterdir()), best, errors_of[case])
-    print("| length | format | messages | size MB | floor s | read s | read / floor | " + " | ".join(f"{c} s" for c in COMMANDS) + " | calibrate / floor | peak RSS MB (calibrate) | max dR deg | max abs dt m |")
+        rows[case] = (
+            log.stat().st_size if log.is_file() else sum(p.stat().st_size for p in log.iterdir()),
+            best,
+            errors_of[case],
+        )
+    print(
+        "| length | format | messages | size MB | floor s | read s | read / floor | "
+        + " | ".join(f"{c} s" for c in COMMANDS)
+        + " | calibrate / floor | peak RSS MB (calibrate) | max dR deg | max abs dt m |"
+    )
     print("|---" * (9 + len(COMMANDS) + 1) + "|")
     for (length, fmt), (size, best, (dr, dt)) in rows.items():
         t_floor, t_read, count = best["floor"][0], best["read"][0], best["read"][1]
-        print(f"| {length} | {fmt} | {int(count):,} | {size / 1e6:.0f} | {t_floor:.2f} | {t_read:.2f} | {t_read / t_floor:.1f} | "
-              + " | ".join(f"{best[c][0]:.2f}" for c in COMMANDS)
-              + f" | {best['calibrate'][0] / t_floor:.1f} | {best['calibrate'][1]:.0f} | {dr:.4f} | {dt:.4f} |")
+        print(
+            f"| {length} | {fmt} | {int(count):,} | {size / 1e6:.0f} | {t_floor:.2f} | "
+            f"{t_read:.2f} | {t_read / t_floor:.1f} | "
+            + " | ".join(f"{best[c][0]:.2f}" for c in COMMANDS)
+            + f" | {best['calibrate'][0] / t_floor:.1f} | {best['calibrate'][1]:.0f}"
+            + f" | {dr:.4f} | {dt:.4f} |"
+        )
     print()
     print("| command | peak RSS MB per length (mcap) |")
     print("|---|---|")
     for name in COMMANDS:
-        print(f"| {name} | " + ", ".join(f"{length}: {rows[(length, 'mcap')][1][name][1]:.0f}" for length in args.lengths if (length, "mcap") in rows) + " |")
+        print(
+            f"| {name} | "
+            + ", ".join(
+                f"{length}: {rows[(length, 'mcap')][1][name][1]:.0f}"
+                for length in args.lengths
+                if (length, "mcap") in rows
+            )
+            + " |"
+        )
     checks = []
     if ("1h", "mcap") in rows:
         best = rows[("1h", "mcap")][1]
-        checks.append(("1h mcap calibrate / floor", best["calibrate"][0] / best["floor"][0], "<= 4"))
+        checks.append(
+            ("1h mcap calibrate / floor", best["calibrate"][0] / best["floor"][0], "<= 4")
+        )
         # the same from each round's own pair (measured a few seconds apart, so less moved by drift)
         own = runs[("1h", "mcap")]
-        checks.append(("1h mcap calibrate / floor, median of the rounds'", float(np.median([c[0] / f[0] for c, f in zip(own["calibrate"], own["floor"], strict=True)])), "<= 4"))
+        checks.append(
+            (
+                "1h mcap calibrate / floor, median of the rounds'",
+                float(
+                    np.median(
+                        [c[0] / f[0] for c, f in zip(own["calibrate"], own["floor"], strict=True)]
+                    )
+                ),
+                "<= 4",
+            )
+        )
         checks.append(("1h mcap calibrate peak RSS MB", best["calibrate"][1], "<= 1000"))
         for name in COMMANDS[1:]:
-            checks.append((f"1h mcap {name} / calibrate", best[name][0] / best["calibrate"][0], "<= 3"))
+            checks.append(
+                (f"1h mcap {name} / calibrate", best[name][0] / best["calibrate"][0], "<= 3")
+            )
     if ("1h", "mcap") in rows and ("4h", "mcap") in rows:
         one, four = rows[("1h", "mcap")][1]["calibrate"][0], rows[("4h", "mcap")][1]["calibrate"][0]
         checks.append(("4h mcap calibrate / (4 x 1h)", four / (4 * one), "<= 1.1"))

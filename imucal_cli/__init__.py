@@ -4,7 +4,16 @@ The method is Das & Boberg, "IMU-based online multi-lidar calibration without li
 odometry" (Scania/KTH). See README.md for the conventions and the commands.
 """
 
-__all__ = ["__version__", "calibrate_log", "evaluate", "export_extrinsics", "load_config", "stream_biases", "write_document", "write_report"]
+__all__ = [
+    "__version__",
+    "calibrate_log",
+    "evaluate",
+    "export_extrinsics",
+    "load_config",
+    "stream_biases",
+    "write_document",
+    "write_report",
+]
 
 
 def __getattr__(name: str):
@@ -13,7 +22,14 @@ def __getattr__(name: str):
 
         globals()["__version__"] = version()
         return globals()["__version__"]
-    if name in ("calibrate_log", "evaluate", "export_extrinsics", "stream_biases", "write_document", "write_report"):
+    if name in (
+        "calibrate_log",
+        "evaluate",
+        "export_extrinsics",
+        "stream_biases",
+        "write_document",
+        "write_report",
+    ):
         from imucal_cli import api
 
         return getattr(api, name)

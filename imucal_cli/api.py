@@ -45,42 +45,30 @@ __all__ = [
 ]
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 def export_extrinsics(
-    document: Mapping[str, Any], fmt: str, parent: str | None = None, source: str = "<document>", T_base_parent: Transform | None = None, allow_not_ok: bool = False,
+    document: Mapping[str, Any],
+    fmt: str,
+    parent: str | None = None,
+    source: str = "<document>",
+    T_base_parent: Transform | None = None,
+    allow_not_ok: bool = False,
 ) -> dict[str, str]:
     """The text of one export format (:mod:`imucal_cli.exports`) from a calibrate document:
     ``{"main": ...}``, plus ``{"launch": ...}`` for the tf2 static publishers; relative to
     ``parent`` where given; sensors not ``ok`` only with ``allow_not_ok``."""
     from imucal_cli.exports import Extrinsics, export
 
-    return export(Extrinsics.from_document(dict(document), source), fmt, parent, T_base_parent, allow_not_ok)
+    return export(
+        Extrinsics.from_document(dict(document), source), fmt, parent, T_base_parent, allow_not_ok
+    )
 
 
 def evaluate(
-    estimate: str | Path | Mapping[str, Any], truth: str | Path | Mapping[str, Any], max_rotation_deg: float | None = None,
-    max_translation_m: float | None = None, allow_missing: bool = False,
+    estimate: str | Path | Mapping[str, Any],
+    truth: str | Path | Mapping[str, Any],
+    max_rotation_deg: float | None = None,
+    max_translation_m: float | None = None,
+    allow_missing: bool = False,
 ) -> dict[str, Any]:
     """The SPEC's evaluate document of a calibrate output (or any document with ``sensors:
     NAME: T_base_lidar``) against a truth, each a file or the document itself (``run.document``);
@@ -109,7 +97,9 @@ def write_document(path: str | Path, document: Any) -> None:
     write(path, document)
 
 
-def load_transforms(path: str | Path | Mapping[str, Any], key: str = "T_base_lidar") -> dict[str, Transform]:
+def load_transforms(
+    path: str | Path | Mapping[str, Any], key: str = "T_base_lidar"
+) -> dict[str, Transform]:
     """``key`` of every sensor of a calibrate output or truth (``sensors: NAME: key``), a file
     or the document itself; :class:`InputError` naming the file and the key path when one is
     missing or malformed."""

@@ -67,7 +67,10 @@ def _version(value: bool) -> None:
 @app.callback()
 def _root(
     version: Annotated[
-        bool, typer.Option("--version", metavar="", callback=_version, is_eager=True, help="Print the version.")
+        bool,
+        typer.Option(
+            "--version", metavar="", callback=_version, is_eager=True, help="Print the version."
+        ),
     ] = False,
 ) -> None:
     """Calibrate the extrinsics of every lidar on a vehicle from raw IMU signals alone."""
@@ -127,8 +130,14 @@ def _progress(description: str, unit: str = "messages") -> Iterator[Any]:
 
     progress = Progress(
         TextColumn("{task.description}", markup=False),  # a path, as it is
-        BarColumn(), MofNCompleteColumn(), TextColumn(unit), TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn(),
-        console=Console(stderr=True), transient=True,
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn(unit),
+        TimeElapsedColumn(),
+        TextColumn("left"),
+        TimeRemainingColumn(),
+        console=Console(stderr=True),
+        transient=True,
     )
     task = progress.add_task(printable(description), total=None)
     progress.start()
@@ -142,7 +151,13 @@ def _progress(description: str, unit: str = "messages") -> Iterator[Any]:
         progress.stop()
 
 
-def _print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]], right: Iterable[str] = (), no_wrap: Iterable[str] = ()) -> Any:
+def _print_table(
+    title: str,
+    columns: Sequence[str],
+    rows: Iterable[Sequence[Any]],
+    right: Iterable[str] = (),
+    no_wrap: Iterable[str] = (),
+) -> Any:
     """A rich table on stdout, the ``right`` columns right-justified (numbers); returns the
     console (for what follows the table)."""
     from rich.table import Table
@@ -150,7 +165,9 @@ def _print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any
     table = Table(title=printable(title))
     right, no_wrap = set(right), set(no_wrap)
     for column in columns:
-        table.add_column(column, justify="right" if column in right else "left", no_wrap=column in no_wrap)
+        table.add_column(
+            column, justify="right" if column in right else "left", no_wrap=column in no_wrap
+        )
     for row in rows:
         table.add_row(*(printable(cell) if isinstance(cell, str) else cell for cell in row))
     console = _stdout_console()
@@ -209,7 +226,14 @@ def _inspect_document(summary: Any) -> dict[str, Any]:
     }
     if summary.losses:  # parts of a damaged log that could not be read
         document["losses"] = [
-            {"reason": x.reason, "offset": x.offset, "bytes": x.nbytes, "start_ns": x.start_ns, "end_ns": x.end_ns, "messages": x.messages}
+            {
+                "reason": x.reason,
+                "offset": x.offset,
+                "bytes": x.nbytes,
+                "start_ns": x.start_ns,
+                "end_ns": x.end_ns,
+                "messages": x.messages,
+            }
             for x in summary.losses
         ]
     return document
@@ -217,14 +241,39 @@ def _inspect_document(summary: Any) -> dict[str, Any]:
 
 def _render_inspect(document: dict[str, Any]) -> None:
     def gaps(info: dict[str, Any]) -> str:
-        return str(len(info["gaps"])) if len(info["gaps"]) > 3 else ", ".join(f"{a:.2f}-{b:.2f}" for a, b in info["gaps"]) or "0"
+        return (
+            str(len(info["gaps"]))
+            if len(info["gaps"]) > 3
+            else ", ".join(f"{a:.2f}-{b:.2f}" for a, b in info["gaps"]) or "0"
+        )
 
     _print_table(
         f"{document['log']} ({document['format']}), t0_ns = {document['t0_ns']}",
-        columns := ("topic", "type", "count", "rate Hz", "duration s", "gaps", "backwards", "duplicates"),
-        ((topic, i["type"], f"{i['count']:,}", f"{i['rate_hz']:.2f}", f"{i['duration_s']:.2f}", gaps(i), str(i["backwards"]), str(i["duplicates"]))
-         for topic, i in document["topics"].items()),
-        right=columns[2:], no_wrap=columns[:2],
+        columns := (
+            "topic",
+            "type",
+            "count",
+            "rate Hz",
+            "duration s",
+            "gaps",
+            "backwards",
+            "duplicates",
+        ),
+        (
+            (
+                topic,
+                i["type"],
+                f"{i['count']:,}",
+                f"{i['rate_hz']:.2f}",
+                f"{i['duration_s']:.2f}",
+                gaps(i),
+                str(i["backwards"]),
+                str(i["duplicates"]),
+            )
+            for topic, i in document["topics"].items()
+        ),
+        right=columns[2:],
+        no_wrap=columns[:2],
     )
 
 
@@ -232,8 +281,12 @@ def _render_inspect(document: dict[str, Any]) -> None:
 @handles_errors
 def inspect(
     log: Annotated[Path, typer.Argument(help=LOG_HELP)],
-    out: Annotated[Path | None, typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).")] = None,
-    as_json: Annotated[bool, typer.Option("--json", metavar="", help="Print JSON instead of a table.")] = False,
+    out: Annotated[
+        Path | None, typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).")
+    ] = None,
+    as_json: Annotated[
+        bool, typer.Option("--json", metavar="", help="Print JSON instead of a table.")
+    ] = False,
 ) -> None:
     """Topics, message types, counts, rates, duration, gaps and time jumps of a log."""
     from imucal_cli.inspection import summarize_log
@@ -252,7 +305,9 @@ def inspect(
 @handles_errors
 def check_config(
     config: Annotated[Path, typer.Argument(help="Calibration config (YAML).")],
-    as_json: Annotated[bool, typer.Option("--json", metavar="", help="Print JSON instead of YAML.")] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", metavar="", help="Print JSON instead of YAML.")
+    ] = False,
 ) -> None:
     """Validate a config and print it with every default filled in."""
     from imucal_cli.config import load_config
@@ -265,8 +320,12 @@ def check_config(
 
 PANEL_CAL = "Calibration"
 ConfigOption = Annotated[Path, typer.Option("-c", "--config", help="Calibration config (YAML).")]
-OutOption = Annotated[Path | None, typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).")]
-JsonOption = Annotated[bool, typer.Option("--json", metavar="", help="Print JSON instead of a summary.")]
+OutOption = Annotated[
+    Path | None, typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).")
+]
+JsonOption = Annotated[
+    bool, typer.Option("--json", metavar="", help="Print JSON instead of a summary.")
+]
 
 
 def _note_read(log: Path, topic: str, counts: dict[str, int]) -> None:
@@ -331,13 +390,34 @@ def biases(
 
     def render(doc: dict[str, Any]) -> None:
         console = _print_table(
-            f"IMU biases: {log}", ("IMU", "rests", "rest s", "accel bias along g m/s^2", "gyro bias rad/s (final)", "final std rad/s"),
-            ((name, str(len(imu["rest_periods"])), f"{sum(b - a for a, b in imu['rest_periods']):.1f}",
-              "n/a" if imu["accel_bias_along_gravity_mps2"] is None else f"{imu['accel_bias_along_gravity_mps2']:.4f}",
-              _fmt(imu["gyro_bias_radps"]["final"], 5), _fmt(imu["gyro_bias_radps"]["final_std"], 5)) for name, imu in doc["imus"].items()),
+            f"IMU biases: {log}",
+            (
+                "IMU",
+                "rests",
+                "rest s",
+                "accel bias along g m/s^2",
+                "gyro bias rad/s (final)",
+                "final std rad/s",
+            ),
+            (
+                (
+                    name,
+                    str(len(imu["rest_periods"])),
+                    f"{sum(b - a for a, b in imu['rest_periods']):.1f}",
+                    "n/a"
+                    if imu["accel_bias_along_gravity_mps2"] is None
+                    else f"{imu['accel_bias_along_gravity_mps2']:.4f}",
+                    _fmt(imu["gyro_bias_radps"]["final"], 5),
+                    _fmt(imu["gyro_bias_radps"]["final_std"], 5),
+                )
+                for name, imu in doc["imus"].items()
+            ),
         )
-        console.print("accel bias: at rest only its component along gravity is seen; the full vector, relative to the "
-                      "base IMU, is calibrate's accel_bias_mps2")
+        console.print(
+            "accel bias: at rest only its component along gravity is seen; the full vector, "
+            "relative to the "
+            "base IMU, is calibrate's accel_bias_mps2"
+        )
         for name, imu in doc["imus"].items():
             for warning in imu["warnings"]:
                 console.print(printable(f"{name}: {warning}"), style="yellow")
@@ -353,7 +433,8 @@ def segments(
     out: OutOption = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Per sensor: each window's Fisher-information min singular value, rotation std, selected or not."""
+    """Per sensor: each window's Fisher-information min singular value, rotation std, selected
+    or not."""
     _check_output(out, log, config)
     cfg, streamed = _stream_log(log, config)
     from imucal_cli.outputs import segments_document
@@ -364,10 +445,29 @@ def segments(
     def render(doc: dict[str, Any]) -> None:
         for name, sensor in doc["sensors"].items():
             _print_table(
-                f"{name}: {sensor['selected']} of {sensor['total']} windows selected (rotation std < {doc['max_rotation_std_deg']:g} deg)",
-                columns := ("start s", "end s", "min singular value 1/rad^2", "rotation std deg", "selected", "translation observable x y z"),
-                ((f"{w['start_s']:.1f}", f"{w['end_s']:.1f}", f"{w['min_singular_value']:.4g}", "inf" if w["rotation_std_deg"] is None else f"{w['rotation_std_deg']:.4f}",
-                  "yes" if w["selected"] else ("no: gap in the data" if w.get("gap") else "no: too little motion"), " ".join("y" if v else "n" for v in w["translation_observable"])) for w in sensor["windows"]),
+                f"{name}: {sensor['selected']} of {sensor['total']} windows selected (rotation std "
+                f"< {doc['max_rotation_std_deg']:g} deg)",
+                columns := (
+                    "start s",
+                    "end s",
+                    "min singular value 1/rad^2",
+                    "rotation std deg",
+                    "selected",
+                    "translation observable x y z",
+                ),
+                (
+                    (
+                        f"{w['start_s']:.1f}",
+                        f"{w['end_s']:.1f}",
+                        f"{w['min_singular_value']:.4g}",
+                        "inf" if w["rotation_std_deg"] is None else f"{w['rotation_std_deg']:.4f}",
+                        "yes"
+                        if w["selected"]
+                        else ("no: gap in the data" if w.get("gap") else "no: too little motion"),
+                        " ".join("y" if v else "n" for v in w["translation_observable"]),
+                    )
+                    for w in sensor["windows"]
+                ),
                 right=columns,
             )
 
@@ -382,15 +482,45 @@ def calibrate(
     out: OutOption = None,
     as_json: JsonOption = False,
     require_observable: Annotated[
-        bool, typer.Option("--require-observable", metavar="", help="Exit 1 unless every sensor is fully observable (status ok).")
+        bool,
+        typer.Option(
+            "--require-observable",
+            metavar="",
+            help="Exit 1 unless every sensor is fully observable (status ok).",
+        ),
     ] = False,
     report: Annotated[
         Path | None,
-        typer.Option("--report", help="Also write figures (PNG) and report.html into this folder (needs imucal\\[report])."),
+        typer.Option(
+            "--report",
+            help="Also write figures (PNG) and report.html into this folder "
+            "(needs imucal\\[report]).",
+        ),
     ] = None,
-    follow: Annotated[bool, typer.Option("--follow", metavar="", help="Read a log still being written; update the estimate as each window completes.")] = False,
-    until_converged: Annotated[bool, typer.Option("--until-converged", metavar="", help="With --follow: exit 0 once every sensor meets the config's stop: targets.")] = False,
-    timeout: Annotated[float | None, typer.Option("--timeout", min=0.0, help="With --follow: stop after this many seconds (exit 1 with --until-converged).")] = None,
+    follow: Annotated[
+        bool,
+        typer.Option(
+            "--follow",
+            metavar="",
+            help="Read a log still being written; update the estimate as each window completes.",
+        ),
+    ] = False,
+    until_converged: Annotated[
+        bool,
+        typer.Option(
+            "--until-converged",
+            metavar="",
+            help="With --follow: exit 0 once every sensor meets the config's stop: targets.",
+        ),
+    ] = False,
+    timeout: Annotated[
+        float | None,
+        typer.Option(
+            "--timeout",
+            min=0.0,
+            help="With --follow: stop after this many seconds (exit 1 with --until-converged).",
+        ),
+    ] = None,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
     _check_output(out, log, config)
@@ -407,7 +537,13 @@ def calibrate(
         from imucal_cli.paths import check_outputs
         from imucal_cli.report import FIGURES
 
-        check_outputs({"--report": out, **{f"--report ({name})": report / name for name in ("report.html", *FIGURES)}}, [log, config])
+        check_outputs(
+            {
+                "--report": out,
+                **{f"--report ({name})": report / name for name in ("report.html", *FIGURES)},
+            },
+            [log, config],
+        )
         from imucal_cli.report import pyplot
 
         pyplot()  # fail before the work when matplotlib is missing
@@ -423,18 +559,45 @@ def calibrate(
         from rich.text import Text
 
         def row(name: str, s: dict[str, Any]) -> tuple[Any, ...]:
-            std_t = None if s["translation_std_m"] is None else [v * 1000 for v in s["translation_std_m"]]
-            return (name, Text(s["status"], style={"ok": "green", "partial": "yellow"}.get(s["status"], "red")), _fmt(s["T_base_lidar"]["translation"], 4),
-                    _fmt(s["T_base_lidar"]["rpy_deg"], 3), _fmt(std_t, 2), _fmt(s["rotation_std_deg"], 4),
-                    f"{s['time_offset_s'] * 1000:.2f}" if s["time_offset_observable"] else "not shown", f"{s['segments']['selected']}/{s['segments']['total']}")
+            std_t = (
+                None
+                if s["translation_std_m"] is None
+                else [v * 1000 for v in s["translation_std_m"]]
+            )
+            return (
+                name,
+                Text(
+                    s["status"], style={"ok": "green", "partial": "yellow"}.get(s["status"], "red")
+                ),
+                _fmt(s["T_base_lidar"]["translation"], 4),
+                _fmt(s["T_base_lidar"]["rpy_deg"], 3),
+                _fmt(std_t, 2),
+                _fmt(s["rotation_std_deg"], 4),
+                f"{s['time_offset_s'] * 1000:.2f}" if s["time_offset_observable"] else "not shown",
+                f"{s['segments']['selected']}/{s['segments']['total']}",
+            )
 
-        console = _print_table(f"T_{doc['base_frame']}_lidar from {log}", ("sensor", "status", "xyz m", "rpy deg", "std xyz mm", "std rpy deg", "time offset ms", "windows"),
-                               (row(name, s) for name, s in doc["sensors"].items()))
+        console = _print_table(
+            f"T_{doc['base_frame']}_lidar from {log}",
+            (
+                "sensor",
+                "status",
+                "xyz m",
+                "rpy deg",
+                "std xyz mm",
+                "std rpy deg",
+                "time offset ms",
+                "windows",
+            ),
+            (row(name, s) for name, s in doc["sensors"].items()),
+        )
         for name, s in doc["sensors"].items():
             for warning in s["warnings"]:
                 console.print(Text(printable(f"{name}: {warning}"), style="yellow"))
         for pair, T in doc["pairs"].items():
-            console.print(f"{pair}: xyz {_fmt(T['translation'], 4)} m, rpy {_fmt(T['rpy_deg'], 3)} deg")
+            console.print(
+                f"{pair}: xyz {_fmt(T['translation'], 4)} m, rpy {_fmt(T['rpy_deg'], 3)} deg"
+            )
 
     if report is not None:
         from imucal_cli.report import write_report
@@ -459,13 +622,28 @@ def _follow_table(log: Path, windows: int, result: Any, sensors: dict[str, Any])
         table.add_column(column)
     for name, s in sensors.items():
         est = result.estimates[name]
-        std_t = None if s["translation_std_m"] is None else [1000 * v for v in s["translation_std_m"]]
-        table.add_row(name, s["status"], _fmt(s["rotation_std_deg"], 4), _fmt(std_t, 2), f"{sum(w.selected for w in est.windows)}/{len(est.windows)}",
-                      "; ".join(m.split(":")[0] for m in s["missing"]) or "-")
+        std_t = (
+            None if s["translation_std_m"] is None else [1000 * v for v in s["translation_std_m"]]
+        )
+        table.add_row(
+            name,
+            s["status"],
+            _fmt(s["rotation_std_deg"], 4),
+            _fmt(std_t, 2),
+            f"{sum(w.selected for w in est.windows)}/{len(est.windows)}",
+            "; ".join(m.split(":")[0] for m in s["missing"]) or "-",
+        )
     return table
 
 
-def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until_converged: bool, timeout: float | None) -> None:
+def _follow(
+    log: Path,
+    config_path: Path,
+    out: Path | None,
+    as_json: bool,
+    until_converged: bool,
+    timeout: float | None,
+) -> None:
     """calibrate --follow: an update per window (a JSON line with --json, else a line on
     stderr), then the last estimate with each sensor's missing axes; exit codes as the SPEC says."""
     import json
@@ -487,7 +665,12 @@ def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until
 
     def update(result: Any, windows: int) -> None:
         sensors = {
-            name: {"status": e.status, "rotation_std_deg": e.rotation_std_deg, "translation_std_m": e.translation_std_m, "missing": missing_axes(e, cfg.stop)}
+            name: {
+                "status": e.status,
+                "rotation_std_deg": e.rotation_std_deg,
+                "translation_std_m": e.translation_std_m,
+                "missing": missing_axes(e, cfg.stop),
+            }
             for name, e in result.estimates.items()
         }
         if as_json:
@@ -495,12 +678,24 @@ def _follow(log: Path, config_path: Path, out: Path | None, as_json: bool, until
         elif live is not None:
             live.update(_follow_table(log, windows, result, sensors), refresh=True)
         else:
-            _err(f"imucal: {windows} windows: " + ", ".join(f"{n} {s['status']} ({len(s['missing'])} axes missing)" for n, s in sensors.items()))
+            _err(
+                f"imucal: {windows} windows: "
+                + ", ".join(
+                    f"{n} {s['status']} ({len(s['missing'])} axes missing)"
+                    for n, s in sensors.items()
+                )
+            )
 
     if live is not None:
         live.start()
     try:
-        run, good, interrupted = follow_log(log, cfg, update, lambda: deadline is not None and time.monotonic() > deadline, until_converged)
+        run, good, interrupted = follow_log(
+            log,
+            cfg,
+            update,
+            lambda: deadline is not None and time.monotonic() > deadline,
+            until_converged,
+        )
     finally:
         if live is not None:
             live.stop()
@@ -541,31 +736,60 @@ def _parse_transform(text: str) -> Any:
     if len(values) != 7:
         raise InputError(f"--parent-transform {text!r}: expected a file or 'x y z qx qy qz qw'")
     try:
-        return Transform.from_dict({"translation": values[:3], "rotation": values[3:]}, "--parent-transform", "")
+        return Transform.from_dict(
+            {"translation": values[:3], "rotation": values[3:]}, "--parent-transform", ""
+        )
     except ConfigError as exc:
         raise InputError(str(exc)) from None
+
+
 LAUNCH_SUFFIX = {"tf-static-ros2": ".launch.xml", "tf-static-ros1": ".launch"}
 
 
 @app.command(rich_help_panel=PANEL_EXPORT)
 @handles_errors
 def export(
-    extrinsics: Annotated[Path, typer.Argument(help="What `imucal calibrate -o` wrote (YAML or JSON).")],
+    extrinsics: Annotated[
+        Path, typer.Argument(help="What `imucal calibrate -o` wrote (YAML or JSON).")
+    ],
     fmt: Annotated[
         str,
-        typer.Option("--format", "-f", help="autoware, urdf, tf-static-ros2, tf-static-ros1, kalibr or json."),
+        typer.Option(
+            "--format", "-f", help="autoware, urdf, tf-static-ros2, tf-static-ros1, kalibr or json."
+        ),
     ],
     out: Annotated[
         Path | None,
         typer.Option(
-            "-o", "--out",
+            "-o",
+            "--out",
             help="Write here (tf-static: the command lines; the launch file goes beside it as "
             "STEM.launch.xml for ROS 2, STEM.launch for ROS 1). Default: print.",
         ),
     ] = None,
-    parent: Annotated[str | None, typer.Option("--parent", help="Express every transform relative to this frame: the base frame, a lidar frame or sensor name, or any frame --parent-transform places.")] = None,
-    parent_transform: Annotated[str | None, typer.Option("--parent-transform", help="T_base_PARENT: a YAML/JSON file {translation, rotation} or 'x y z qx qy qz qw'.")] = None,
-    allow_not_ok: Annotated[bool, typer.Option("--allow-not-ok", metavar="", help="Export sensors whose status is not ok (their prior may go out as if calibrated).")] = False,
+    parent: Annotated[
+        str | None,
+        typer.Option(
+            "--parent",
+            help="Express every transform relative to this frame: the base frame, a lidar frame "
+            "or sensor name, or any frame --parent-transform places.",
+        ),
+    ] = None,
+    parent_transform: Annotated[
+        str | None,
+        typer.Option(
+            "--parent-transform",
+            help="T_base_PARENT: a YAML/JSON file {translation, rotation} or 'x y z qx qy qz qw'.",
+        ),
+    ] = None,
+    allow_not_ok: Annotated[
+        bool,
+        typer.Option(
+            "--allow-not-ok",
+            metavar="",
+            help="Export sensors whose status is not ok (their prior may go out as if calibrated).",
+        ),
+    ] = False,
 ) -> None:
     """The extrinsics in the layout of Autoware, URDF, tf2 static publishers, Kalibr or JSON."""
     from imucal_cli.documents import load_document, write_text_atomic
@@ -588,12 +812,24 @@ def export(
         from imucal_cli.paths import check_outputs
 
         inputs = [extrinsics, Path(parent_transform) if parent_transform is not None else None]
-        check_outputs({"-o" if key == "main" else "the launch file": path for key, path in targets.items()}, inputs)
-    files = make(Extrinsics.from_document(load_document(extrinsics), str(extrinsics)), fmt, parent, T_base_parent, allow_not_ok)
+        check_outputs(
+            {"-o" if key == "main" else "the launch file": path for key, path in targets.items()},
+            inputs,
+        )
+    files = make(
+        Extrinsics.from_document(load_document(extrinsics), str(extrinsics)),
+        fmt,
+        parent,
+        T_base_parent,
+        allow_not_ok,
+    )
     if out is None:
         typer.echo(files["main"], nl=False)  # one file: the launch file needs -o
         if "launch" in files:
-            _err(f"imucal: note: printed the command lines only; give -o OUT to write them and the {LAUNCH_SUFFIX[fmt]} launch file beside OUT")
+            _err(
+                "imucal: note: printed the command lines only; give -o OUT to write them and the "
+                f"{LAUNCH_SUFFIX[fmt]} launch file beside OUT"
+            )
         return
     for key, path in targets.items():
         write_text_atomic(path, files[key])
@@ -608,21 +844,79 @@ PANEL_FLEET = "Fleet"
 @app.command(rich_help_panel=PANEL_FLEET)
 @handles_errors
 def batch(
-    logs: Annotated[list[Path] | None, typer.Argument(help="Logs to calibrate (or --manifest).")] = None,
-    config: Annotated[Path | None, typer.Option("-c", "--config", help="Calibration config for every log (a manifest may name one per log).")] = None,
-    out_dir: Annotated[Path, typer.Option("--out-dir", help="Folder for each log's calibration and the summary.")] = Path("imucal-batch"),
-    manifest: Annotated[Path | None, typer.Option("--manifest", help="CSV with columns log[, config, truth, reference].")] = None,
+    logs: Annotated[
+        list[Path] | None, typer.Argument(help="Logs to calibrate (or --manifest).")
+    ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option(
+            "-c",
+            "--config",
+            help="Calibration config for every log (a manifest may name one per log).",
+        ),
+    ] = None,
+    out_dir: Annotated[
+        Path, typer.Option("--out-dir", help="Folder for each log's calibration and the summary.")
+    ] = Path("imucal-batch"),
+    manifest: Annotated[
+        Path | None,
+        typer.Option("--manifest", help="CSV with columns log[, config, truth, reference]."),
+    ] = None,
     jobs: Annotated[int, typer.Option("--jobs", "-j", min=1, help="Local worker processes.")] = 1,
-    scheduler: Annotated[str | None, typer.Option("--scheduler", help="Dask scheduler address (tcp://host:port); needs imucal\\[fleet].")] = None,
-    truth_dir: Annotated[Path | None, typer.Option("--truth-dir", help="Folder of STEM.truth.yaml files to compare against.")] = None,
-    reference: Annotated[Path | None, typer.Option("--reference", help="The vehicle's previous calibration: sensors past the thresholds are flagged as moved.")] = None,
-    max_rotation_deg: Annotated[float | None, typer.Option("--max-rotation-deg", min=0.0, help="Pass threshold on the rotation error against --truth-dir or --reference (deg).")] = None,
-    max_translation_m: Annotated[float | None, typer.Option("--max-translation-m", min=0.0, help="Pass threshold on the translation error against --truth-dir or --reference (m).")] = None,
-    junit: Annotated[Path | None, typer.Option("--junit", help="Write JUnit XML here (for CI).")] = None,
-    max_lost_s: Annotated[float | None, typer.Option("--max-lost-s", min=0.0, help="Pass a log whose read lost at most this many seconds (default: any loss fails).")] = None,
-    force: Annotated[bool, typer.Option("--force", metavar="", help="Replace the outputs an earlier batch left in --out-dir.")] = False,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            "--scheduler", help="Dask scheduler address (tcp://host:port); needs imucal\\[fleet]."
+        ),
+    ] = None,
+    truth_dir: Annotated[
+        Path | None,
+        typer.Option("--truth-dir", help="Folder of STEM.truth.yaml files to compare against."),
+    ] = None,
+    reference: Annotated[
+        Path | None,
+        typer.Option(
+            "--reference",
+            help="The vehicle's previous calibration: sensors past the thresholds are flagged "
+            "as moved.",
+        ),
+    ] = None,
+    max_rotation_deg: Annotated[
+        float | None,
+        typer.Option(
+            "--max-rotation-deg",
+            min=0.0,
+            help="Pass threshold on the rotation error against --truth-dir or --reference (deg).",
+        ),
+    ] = None,
+    max_translation_m: Annotated[
+        float | None,
+        typer.Option(
+            "--max-translation-m",
+            min=0.0,
+            help="Pass threshold on the translation error against --truth-dir or --reference (m).",
+        ),
+    ] = None,
+    junit: Annotated[
+        Path | None, typer.Option("--junit", help="Write JUnit XML here (for CI).")
+    ] = None,
+    max_lost_s: Annotated[
+        float | None,
+        typer.Option(
+            "--max-lost-s",
+            min=0.0,
+            help="Pass a log whose read lost at most this many seconds (default: any loss fails).",
+        ),
+    ] = None,
+    force: Annotated[
+        bool,
+        typer.Option(
+            "--force", metavar="", help="Replace the outputs an earlier batch left in --out-dir."
+        ),
+    ] = False,
 ) -> None:
-    """Calibrate many logs (local processes or a Dask cluster); summary CSV/JSON, JUnit; exit 1 if any fails."""
+    """Calibrate many logs (local processes or a Dask cluster); summary CSV/JSON, JUnit; exit 1
+    if any fails."""
     from imucal_cli.documents import write_text_atomic
     from imucal_cli.fleet import (
         MOVED_FALLBACK_DEG,
@@ -642,24 +936,71 @@ def batch(
         raise InputError(f"{out_dir}: output folder's parent {out_dir.parent} does not exist")
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"{out_dir}: --out-dir exists and is not a folder")
-    if junit is not None and not junit.parent.is_dir() and junit.parent.resolve() != out_dir.resolve():
+    if (
+        junit is not None
+        and not junit.parent.is_dir()
+        and junit.parent.resolve() != out_dir.resolve()
+    ):
         raise InputError(f"{junit}: folder {junit.parent} does not exist")
-    entries = [{"log": str(p)} for p in logs or []] + (read_manifest(manifest) if manifest is not None else [])
-    thresholds = [name for name, value in (("--max-rotation-deg", max_rotation_deg), ("--max-translation-m", max_translation_m)) if value is not None]
-    if thresholds and truth_dir is None and reference is None and not all(e.get("truth") or e.get("reference") for e in entries):
-        raise InputError(f"{thresholds[0]}: nothing to compare with: give --truth-dir or --reference "
-                         "(or truth/reference columns in the manifest for every log)")
-    tasks = plan_tasks(entries, config, out_dir, truth_dir, reference, max_rotation_deg, max_translation_m, max_lost_s)
+    entries = [{"log": str(p)} for p in logs or []] + (
+        read_manifest(manifest) if manifest is not None else []
+    )
+    thresholds = [
+        name
+        for name, value in (
+            ("--max-rotation-deg", max_rotation_deg),
+            ("--max-translation-m", max_translation_m),
+        )
+        if value is not None
+    ]
+    if (
+        thresholds
+        and truth_dir is None
+        and reference is None
+        and not all(e.get("truth") or e.get("reference") for e in entries)
+    ):
+        raise InputError(
+            f"{thresholds[0]}: nothing to compare with: give --truth-dir or --reference "
+            "(or truth/reference columns in the manifest for every log)"
+        )
+    tasks = plan_tasks(
+        entries,
+        config,
+        out_dir,
+        truth_dir,
+        reference,
+        max_rotation_deg,
+        max_translation_m,
+        max_lost_s,
+    )
     if reference is not None and (max_rotation_deg is None or max_translation_m is None):
-        _err(f"imucal: --reference: a sensor moved past {MOVED_STD:g} combined std of the two calibrations "
-                   f"(largest axis; {MOVED_FALLBACK_DEG:g} deg, {MOVED_FALLBACK_M:g} m where a std is not known)"
-                   + "".join(f"; {k} {v:g}" for k, v in (("--max-rotation-deg", max_rotation_deg), ("--max-translation-m", max_translation_m)) if v is not None))
-    check_batch_outputs(tasks, [out_dir / "summary.csv", out_dir / "summary.json", *([junit] if junit else [])], [manifest, reference, config], force)
+        _err(
+            f"imucal: --reference: a sensor moved past {MOVED_STD:g} combined std of the two "
+            "calibrations "
+            f"(largest axis; {MOVED_FALLBACK_DEG:g} deg, {MOVED_FALLBACK_M:g} m where a std is not "
+            "known)"
+            + "".join(
+                f"; {k} {v:g}"
+                for k, v in (
+                    ("--max-rotation-deg", max_rotation_deg),
+                    ("--max-translation-m", max_translation_m),
+                )
+                if v is not None
+            )
+        )
+    check_batch_outputs(
+        tasks,
+        [out_dir / "summary.csv", out_dir / "summary.json", *([junit] if junit else [])],
+        [manifest, reference, config],
+        force,
+    )
     for task in tasks:
         try:
             Path(task.out).parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise InputError(f"{Path(task.out).parent}: cannot make the output folder: {exc.strerror}") from None
+            raise InputError(
+                f"{Path(task.out).parent}: cannot make the output folder: {exc.strerror}"
+            ) from None
 
     def done(i: int, rows: list[Any]) -> None:
         verdict = "ok" if all(r.passed for r in rows) else "FAIL"
@@ -667,14 +1008,24 @@ def batch(
 
     results = run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
     rows = [row for result in results for row in result]
-    settings = {"jobs": jobs, "scheduler": scheduler, "max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m, "max_lost_s": max_lost_s,
-                "truth_dir": str(truth_dir) if truth_dir else None, "reference": str(reference) if reference else None}
+    settings = {
+        "jobs": jobs,
+        "scheduler": scheduler,
+        "max_rotation_deg": max_rotation_deg,
+        "max_translation_m": max_translation_m,
+        "max_lost_s": max_lost_s,
+        "truth_dir": str(truth_dir) if truth_dir else None,
+        "reference": str(reference) if reference else None,
+    }
     write_text_atomic(out_dir / "summary.csv", summary_csv(rows))
     write_text_atomic(out_dir / "summary.json", summary_json(rows, settings))
     if junit is not None:
         write_text_atomic(junit, junit_xml(rows))
     failed = sum(not r.passed for r in rows)
-    _err(f"imucal: {len(tasks)} logs, {len(rows)} rows, {failed} failed; summary in {out_dir / 'summary.csv'}")
+    _err(
+        f"imucal: {len(tasks)} logs, {len(rows)} rows, {failed} failed; summary in "
+        f"{out_dir / 'summary.csv'}"
+    )
     if failed:
         raise typer.Exit(EXIT_CHECK_FAILED)
 
@@ -684,12 +1035,23 @@ def batch(
 def evaluate(
     estimate: Annotated[Path, typer.Argument(help="Output of imucal calibrate (YAML/JSON).")],
     truth: Annotated[Path, typer.Argument(help="Truth file: sensors.NAME.T_base_lidar.")],
-    max_rotation_deg: Annotated[float | None, typer.Option(help="Fail (exit 1) above this rotation error.", min=0.0)] = None,
-    max_translation_m: Annotated[float | None, typer.Option(help="Fail (exit 1) above this translation error.", min=0.0)] = None,
+    max_rotation_deg: Annotated[
+        float | None, typer.Option(help="Fail (exit 1) above this rotation error.", min=0.0)
+    ] = None,
+    max_translation_m: Annotated[
+        float | None, typer.Option(help="Fail (exit 1) above this translation error.", min=0.0)
+    ] = None,
     out: OutOption = None,
     as_json: JsonOption = False,
-    allow_missing: Annotated[bool, typer.Option("--allow-missing", metavar="", help="Pass although a sensor is in one file only.")] = False,
-    junit: Annotated[Path | None, typer.Option("--junit", help="Also write JUnit XML here (for CI).")] = None,
+    allow_missing: Annotated[
+        bool,
+        typer.Option(
+            "--allow-missing", metavar="", help="Pass although a sensor is in one file only."
+        ),
+    ] = False,
+    junit: Annotated[
+        Path | None, typer.Option("--junit", help="Also write JUnit XML here (for CI).")
+    ] = None,
 ) -> None:
     """Rotation and translation errors of every sensor and pair against ground truth."""
     from imucal_cli.api import evaluate as compare
@@ -701,7 +1063,9 @@ def evaluate(
     for side, names in document["missing"].items():
         for name in names:
             where = estimate if side == "estimate_only" else truth
-            _err(f"imucal: {'note' if allow_missing else 'error'}: sensor {name} is in {where} only")
+            _err(
+                f"imucal: {'note' if allow_missing else 'error'}: sensor {name} is in {where} only"
+            )
     if junit is not None:
         write_text_atomic(junit, evaluate_junit(document, str(estimate), str(truth)))
 
@@ -709,20 +1073,40 @@ def evaluate(
         limits = doc["thresholds"]
 
         def over(r: dict[str, Any]) -> list[str]:  # the thresholds a row exceeds, named
-            return [f"{key.removeprefix('max_').replace('_', ' ')} > {limits[key]:g}" for key, value in
-                    (("max_rotation_deg", "rotation_error_deg"), ("max_translation_m", "translation_error_m")) if limits[key] is not None and r[value] > limits[key]]
+            return [
+                f"{key.removeprefix('max_').replace('_', ' ')} > {limits[key]:g}"
+                for key, value in (
+                    ("max_rotation_deg", "rotation_error_deg"),
+                    ("max_translation_m", "translation_error_m"),
+                )
+                if limits[key] is not None and r[value] > limits[key]
+            ]
 
         rows = {**doc["sensors"], **doc["pairs"]}
         console = _print_table(
-            f"{estimate} vs {truth}", ("sensor / pair", "rotation error deg", "translation error m", "eq. 20 m", "over"),
-            ((name, f"{r['rotation_error_deg']:.4f}", f"{r['translation_error_m']:.4f}", f"{r['translation_error_eq20_m']:.4f}", ", ".join(over(r)) or "-")
-             for name, r in rows.items()),
+            f"{estimate} vs {truth}",
+            ("sensor / pair", "rotation error deg", "translation error m", "eq. 20 m", "over"),
+            (
+                (
+                    name,
+                    f"{r['rotation_error_deg']:.4f}",
+                    f"{r['translation_error_m']:.4f}",
+                    f"{r['translation_error_eq20_m']:.4f}",
+                    ", ".join(over(r)) or "-",
+                )
+                for name, r in rows.items()
+            ),
             right=("rotation error deg", "translation error m", "eq. 20 m"),
         )
         failed = [name for name, r in rows.items() if over(r)]
         missing = [name for names in doc["missing"].values() for name in names]
-        why = [f"{len(failed)} over a threshold ({', '.join(failed)})"] * bool(failed) + [f"in one file only: {', '.join(missing)}"] * bool(missing and not doc["pass"])
-        console.print("pass" if doc["pass"] else "fail: " + "; ".join(why), style="green" if doc["pass"] else "red")
+        why = [f"{len(failed)} over a threshold ({', '.join(failed)})"] * bool(failed) + [
+            f"in one file only: {', '.join(missing)}"
+        ] * bool(missing and not doc["pass"])
+        console.print(
+            "pass" if doc["pass"] else "fail: " + "; ".join(why),
+            style="green" if doc["pass"] else "red",
+        )
 
     _emit(document, out, as_json, render)
     if not document["pass"]:
@@ -739,19 +1123,31 @@ SUFFIX_FORMAT = {".mcap": "mcap", ".bag": "rosbag1"}
 @app.command(rich_help_panel=PANEL_SIM)
 @handles_errors
 def simulate(
-    out: Annotated[Path, typer.Argument(help="Log to write (.mcap, .bag, or a rosbag2 directory name).")],
+    out: Annotated[
+        Path, typer.Argument(help="Log to write (.mcap, .bag, or a rosbag2 directory name).")
+    ],
     scenario: Annotated[Scenario, typer.Option(help="Kind of drive.")] = Scenario.urban,
     duration: Annotated[
-        float | None, typer.Option(help="Seconds (default: aggressive 81, urban 283, highway/parking 120).", min=1.0)
+        float | None,
+        typer.Option(
+            help="Seconds (default: aggressive 81, urban 283, highway/parking 120).", min=1.0
+        ),
     ] = None,
     seed: Annotated[int, typer.Option(help="Random seed: the same seed gives the same log.")] = 0,
     log_format: Annotated[
         LogFormat | None,
-        typer.Option("--format", help="Log format (default: from OUT: .mcap -> mcap, .bag -> rosbag1, else rosbag2-sqlite3)."),
+        typer.Option(
+            "--format",
+            help="Log format (default: from OUT: .mcap -> mcap, .bag -> rosbag1, "
+            "else rosbag2-sqlite3).",
+        ),
     ] = None,
-    sensors: Annotated[int, typer.Option("--sensors", help="Number of lidars (1-4).", min=1, max=4)] = 2,
+    sensors: Annotated[
+        int, typer.Option("--sensors", help="Number of lidars (1-4).", min=1, max=4)
+    ] = 2,
     noise_scale: Annotated[
-        float, typer.Option(help="Multiplies every IMU error (0: ideal sensors, exact timing).", min=0.0)
+        float,
+        typer.Option(help="Multiplies every IMU error (0: ideal sensors, exact timing).", min=0.0),
     ] = 1.0,
     time_offset_s: Annotated[
         list[float] | None,
@@ -769,12 +1165,18 @@ def simulate(
         typer.Option(
             "--errors",
             help="Sensor or mount errors beyond the estimator's model: none, mems (scale factors, "
-            "non-orthogonality, g-sensitivity, vibration), misaligned (gyro and accelerometer triads "
+            "non-orthogonality, g-sensitivity, vibration), misaligned (gyro and accelerometer "
+            "triads "
             "apart), tilting-mount, clock-offsets (+-40 ms), prior-off (0.5 m), accel-g, gyro-dps.",
         ),
     ] = "none",
     force: Annotated[
-        bool, typer.Option("--force", metavar="", help="Replace an existing OUT if it is a log (and the truth and config beside it).")
+        bool,
+        typer.Option(
+            "--force",
+            metavar="",
+            help="Replace an existing OUT if it is a log (and the truth and config beside it).",
+        ),
     ] = False,
 ) -> None:
     """Simulate a drive: a log OUT with STEM.truth.yaml and STEM.config.yaml beside it."""
@@ -783,12 +1185,16 @@ def simulate(
     from imucal_cli.sim.writers import write_imu_log
 
     suffix = out.suffix.lower()
-    fmt = log_format.value if log_format is not None else SUFFIX_FORMAT.get(suffix, "rosbag2-sqlite3")
+    fmt = (
+        log_format.value if log_format is not None else SUFFIX_FORMAT.get(suffix, "rosbag2-sqlite3")
+    )
     expected = {"mcap": ".mcap", "mcap-ros1": ".mcap", "rosbag1": ".bag"}.get(fmt)
     if expected is not None and suffix != expected:
         raise InputError(f"{out}: format {fmt} writes a {expected} file; name OUT with that suffix")
     if expected is None and suffix in {".mcap", ".bag"}:
-        raise InputError(f"{out}: format {fmt} writes a rosbag2 directory; name OUT without {suffix}")
+        raise InputError(
+            f"{out}: format {fmt} writes a rosbag2 directory; name OUT without {suffix}"
+        )
     if not out.parent.is_dir():
         raise InputError(f"{out}: output folder {out.parent} does not exist")
     truth_path, config_path = _simulate_outputs(out, force)
@@ -813,9 +1219,13 @@ def simulate(
     console = _stdout_console()
     from rich.text import Text
 
-    console.print(Text.assemble((str(out), "bold"), f" ({fmt}, {scenario.value}, seed {seed}): " + ", ".join(
-        f"{topic} {count:,}" for topic, count in counts.items()
-    )))
+    console.print(
+        Text.assemble(
+            (str(out), "bold"),
+            f" ({fmt}, {scenario.value}, seed {seed}): "
+            + ", ".join(f"{topic} {count:,}" for topic, count in counts.items()),
+        )
+    )
     console.print(f"truth:  {truth_path}\nconfig: {config_path}")
 
 
@@ -840,7 +1250,9 @@ def _simulate_outputs(out: Path, force: bool) -> tuple[Path, Path]:
         except InputError:
             document = None
         if not isinstance(document, dict) or "sensors" not in document:
-            raise InputError(f"{path}: exists and is not a truth or config imucal wrote: not replaced")
+            raise InputError(
+                f"{path}: exists and is not a truth or config imucal wrote: not replaced"
+            )
     return truth_path, config_path
 
 

@@ -109,15 +109,32 @@ class Config:
 
     def to_dict(self) -> dict[str, Any]:
         """The YAML form (as :func:`parse_config` reads it)."""
-        def plain(section: Any) -> dict[str, Any]:  # (not asdict: a Transform has its own YAML form)
-            values = {f.name: getattr(section, f.name) for f in dataclass_fields(section) if f.name != "name"}
+
+        def plain(
+            section: Any,
+        ) -> dict[str, Any]:  # (not asdict: a Transform has its own YAML form)
+            values = {
+                f.name: getattr(section, f.name)
+                for f in dataclass_fields(section)
+                if f.name != "name"
+            }
             return {k: v.to_dict() if isinstance(v, Transform) else v for k, v in values.items()}
 
-        return {"base": plain(self.base), "sensors": {s.name: plain(s) for s in self.sensors}, **{name: plain(getattr(self, name)) for name in SECTIONS}}
+        return {
+            "base": plain(self.base),
+            "sensors": {s.name: plain(s) for s in self.sensors},
+            **{name: plain(getattr(self, name)) for name in SECTIONS},
+        }
 
 
 #: The optional sections after ``base`` and ``sensors``, in the YAML's order.
-SECTIONS = {"rest": RestConfig, "gyro_bias": GyroBiasConfig, "segments": SegmentsConfig, "calibration": CalibrationConfig, "stop": StopConfig}
+SECTIONS = {
+    "rest": RestConfig,
+    "gyro_bias": GyroBiasConfig,
+    "segments": SegmentsConfig,
+    "calibration": CalibrationConfig,
+    "stop": StopConfig,
+}
 #: Keys whose value may be zero (every other number must be positive), and keys with choices.
 MAY_BE_ZERO = {"rotation_floor_deg", "translation_floor_m", "max_time_offset_s"}
 CHOICES = {"accel_units": ("auto", "mps2", "g"), "gyro_units": ("auto", "radps", "dps")}
@@ -150,10 +167,14 @@ class _Section:
 
     def __init__(self, data: Any, source: str, path: str) -> None:
         if not isinstance(data, Mapping):
-            raise ConfigError(source, path or "<top level>", f"expected a mapping, got {_describe(data)}")
+            raise ConfigError(
+                source, path or "<top level>", f"expected a mapping, got {_describe(data)}"
+            )
         for key in data:
             if not isinstance(key, str):
-                raise ConfigError(source, f"{path}.{key}" if path else str(key), "keys must be strings")
+                raise ConfigError(
+                    source, f"{path}.{key}" if path else str(key), "keys must be strings"
+                )
         self.data, self.source, self.path = data, source, path
         self.used: set[str] = set()
 
@@ -188,7 +209,11 @@ class _Section:
     def reject_unknown(self) -> None:
         for key in self.data:
             if key not in self.used:
-                raise ConfigError(self.source, self.key(key), f"unknown key (expected one of: {', '.join(sorted(self.used))})")
+                raise ConfigError(
+                    self.source,
+                    self.key(key),
+                    f"unknown key (expected one of: {', '.join(sorted(self.used))})",
+                )
 
 
 def _describe(value: Any) -> str:
@@ -201,7 +226,9 @@ def _parse(value: Any, name: str, kind: Any, source: str, key: str) -> Any:
         return Transform.from_dict(value, source, key)
     if name in CHOICES:
         if value not in CHOICES[name]:
-            raise ConfigError(source, key, f"expected one of {', '.join(CHOICES[name])}, got {_describe(value)}")
+            raise ConfigError(
+                source, key, f"expected one of {', '.join(CHOICES[name])}, got {_describe(value)}"
+            )
         return value
     if kind == "str":
         if not isinstance(value, str) or not value.strip():
@@ -216,7 +243,9 @@ def _parse(value: Any, name: str, kind: Any, source: str, key: str) -> Any:
     if not math.isfinite(number):
         raise ConfigError(source, key, f"expected a finite number, got {value!r}")
     if number < 0 or (number == 0 and name not in MAY_BE_ZERO):
-        raise ConfigError(source, key, f"must be {'>= 0' if name in MAY_BE_ZERO else '> 0'}, got {value!r}")
+        raise ConfigError(
+            source, key, f"must be {'>= 0' if name in MAY_BE_ZERO else '> 0'}, got {value!r}"
+        )
     low, high, unit = RANGES.get(name, (-math.inf, math.inf, ""))
     if not low <= number <= high:
         raise ConfigError(source, key, f"must be within {low:g} to {high:g} {unit}, got {value!r}")
@@ -237,23 +266,52 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
             raise ConfigError(source, f"sensors.{printable(name)}", problem)
         section = sensors_section.section(name, required=True)
         sensor = section.fields(SensorConfig, name=name)
-        sensors.append(sensor if sensor.lidar_frame else replace(sensor, lidar_frame=f"{name}_lidar"))  # the default frame
-        for what, T, limit, hint in (("T_imu_lidar", sensor.T_imu_lidar, MAX_IMU_IN_LIDAR_M, "a lidar's IMU lies inside its housing: "
-                                      "given in mm? (Ouster's metadata is: divide by 1000)"), ("prior_T_base_imu", sensor.prior_T_base_imu, MAX_PRIOR_M, "")):
+        sensors.append(
+            sensor if sensor.lidar_frame else replace(sensor, lidar_frame=f"{name}_lidar")
+        )  # the default frame
+        for what, T, limit, hint in (
+            (
+                "T_imu_lidar",
+                sensor.T_imu_lidar,
+                MAX_IMU_IN_LIDAR_M,
+                "a lidar's IMU lies inside its housing: "
+                "given in mm? (Ouster's metadata is: divide by 1000)",
+            ),
+            ("prior_T_base_imu", sensor.prior_T_base_imu, MAX_PRIOR_M, ""),
+        ):
             length = float(np.linalg.norm(T.translation))
             if length > limit:
-                raise ConfigError(source, f"sensors.{name}.{what}.translation", f"{length:.4g} m from the origin, more than {limit:g} m{'; ' + hint if hint else ''}")
+                raise ConfigError(
+                    source,
+                    f"sensors.{name}.{what}.translation",
+                    f"{length:.4g} m from the origin, more than {limit:g} "
+                    f"m{'; ' + hint if hint else ''}",
+                )
     topics: dict[str, str] = {base.topic: "base.topic"}
     frames: dict[str, str] = {base.frame: "base.frame"}
     for sensor in sensors:
-        for value, seen, key in ((sensor.imu_topic, topics, "imu_topic"), (sensor.lidar_frame, frames, "lidar_frame")):
+        for value, seen, key in (
+            (sensor.imu_topic, topics, "imu_topic"),
+            (sensor.lidar_frame, frames, "lidar_frame"),
+        ):
             path = f"sensors.{sensor.name}.{key}"
             if value in seen:
-                raise ConfigError(source, path, f"{'topic' if key == 'imu_topic' else 'frame'} {value!r} is already used by {seen[value]}")
+                raise ConfigError(
+                    source,
+                    path,
+                    f"{'topic' if key == 'imu_topic' else 'frame'} {value!r} is already used by "
+                    f"{seen[value]}",
+                )
             seen[value] = path
-    sections: dict[str, Any] = {name: top.section(name).fields(cls) for name, cls in SECTIONS.items()}
+    sections: dict[str, Any] = {
+        name: top.section(name).fields(cls) for name, cls in SECTIONS.items()
+    }
     if not sections["calibration"].consistency_alpha < 0.5:
-        raise ConfigError(source, "calibration.consistency_alpha", f"a false-alarm rate below 0.5, got {sections['calibration'].consistency_alpha!r}")
+        raise ConfigError(
+            source,
+            "calibration.consistency_alpha",
+            f"a false-alarm rate below 0.5, got {sections['calibration'].consistency_alpha!r}",
+        )
     top.reject_unknown()
     return Config(base=base, sensors=tuple(sensors), **sections, source=source)
 

@@ -42,7 +42,9 @@ class _StrictLoader(yaml.SafeLoader):
     def get_single_node(self) -> Any:
         node = super().get_single_node()
         if node is not None and _expanded(node, {}) > MAX_VALUES:
-            raise yaml.YAMLError(f"expands to more than {MAX_VALUES:,} values (through its aliases)")
+            raise yaml.YAMLError(
+                f"expands to more than {MAX_VALUES:,} values (through its aliases)"
+            )
         return node
 
 
@@ -52,7 +54,11 @@ def _expanded(node: yaml.Node, sizes: dict[int, int]) -> int:
     if id(node) not in sizes:
         sizes[id(node)] = 1  # (a recursive alias counts once: the constructor refuses nothing here)
         children = node.value if isinstance(node.value, list) else []
-        items = [n for pair in children for n in pair] if isinstance(node, yaml.MappingNode) else children
+        items = (
+            [n for pair in children for n in pair]
+            if isinstance(node, yaml.MappingNode)
+            else children
+        )
         sizes[id(node)] = min(1 + sum(_expanded(n, sizes) for n in items), MAX_VALUES + 1)
     return sizes[id(node)]
 
@@ -81,7 +87,10 @@ def load_document(path: str | Path) -> Any:
         with path.open("rb") as handle:
             data = handle.read(MAX_DOCUMENT_BYTES + 1)
         if len(data) > MAX_DOCUMENT_BYTES:
-            raise InputError(f"{path}: larger than {MAX_DOCUMENT_BYTES >> 20} MiB: not a config or calibration document")
+            raise InputError(
+                f"{path}: larger than {MAX_DOCUMENT_BYTES >> 20} MiB: not a config or calibration "
+                "document"
+            )
         text = data.decode("utf-8")
     except FileNotFoundError:
         raise InputError(f"{path}: file not found") from None
@@ -91,7 +100,9 @@ def load_document(path: str | Path) -> Any:
         return yaml.load(text, Loader=_StrictLoader)
     except (yaml.YAMLError, RecursionError) as exc:
         problem = " ".join(str(exc).split())
-        problem = problem if len(problem) <= 300 else problem[:300] + " ..."  # (a message quotes the document)
+        problem = (
+            problem if len(problem) <= 300 else problem[:300] + " ..."
+        )  # (a message quotes the document)
         raise InputError(f"{path}: not valid YAML/JSON: {problem}") from None
 
 
@@ -169,33 +180,3 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
         if isinstance(exc, OSError):  # a full disk, say: one line, no partial file
             raise InputError(f"{path}: cannot write: {exc.strerror or exc}") from None
         raise
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-

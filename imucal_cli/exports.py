@@ -57,9 +57,16 @@ class Extrinsics:
 
     @staticmethod
     def from_document(document: Any, source: str) -> Extrinsics:
-        """Parse a calibrate document; :class:`InputError` naming the file and key if it is not one."""
-        if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict) or not document["sensors"]:
-            raise InputError(f"{source}: not an imucal calibrate output (expected a mapping with 'sensors')")
+        """Parse a calibrate document; :class:`InputError` naming the file and key if it is not
+        one."""
+        if (
+            not isinstance(document, dict)
+            or not isinstance(document.get("sensors"), dict)
+            or not document["sensors"]
+        ):
+            raise InputError(
+                f"{source}: not an imucal calibrate output (expected a mapping with 'sensors')"
+            )
         sensors = []
         _check_name(document.get("base_frame", "base_link"), "frame", f"{source}: base_frame")
         if document.get("base_topic") is not None:
@@ -76,20 +83,35 @@ class Extrinsics:
             if s.get("imu_topic"):
                 _check_name(s["imu_topic"], "topic", f"{where}.imu_topic")
             try:
-                T_base_lidar = Transform.from_dict(s["T_base_lidar"], source, f"sensors.{name}.T_base_lidar")
-                T_base_imu = Transform.from_dict(s["T_base_imu"], source, f"sensors.{name}.T_base_imu")
+                T_base_lidar = Transform.from_dict(
+                    s["T_base_lidar"], source, f"sensors.{name}.T_base_lidar"
+                )
+                T_base_imu = Transform.from_dict(
+                    s["T_base_imu"], source, f"sensors.{name}.T_base_imu"
+                )
             except ConfigError as exc:  # names file and key
                 raise InputError(str(exc)) from None
             sensors.append(
                 SensorExtrinsics(
-                    str(name), str(s["lidar_frame"]), str(s.get("imu_topic", "")), T_base_lidar, T_base_imu,
-                    _number(s, "time_offset_s", f"{where}.time_offset_s") or 0.0, _number(s, "imu_rate_hz", f"{where}.imu_rate_hz"),
-                    s.get("imu_noise"), str(s.get("status", "")), bool(s.get("time_offset_observable", False)),
+                    str(name),
+                    str(s["lidar_frame"]),
+                    str(s.get("imu_topic", "")),
+                    T_base_lidar,
+                    T_base_imu,
+                    _number(s, "time_offset_s", f"{where}.time_offset_s") or 0.0,
+                    _number(s, "imu_rate_hz", f"{where}.imu_rate_hz"),
+                    s.get("imu_noise"),
+                    str(s.get("status", "")),
+                    bool(s.get("time_offset_observable", False)),
                 )
             )
         return Extrinsics(
-            source, str(document.get("base_frame", "base_link")), document.get("base_topic"),
-            _number(document, "base_imu_rate_hz", f"{source}: base_imu_rate_hz"), tuple(sensors), document.get("base_imu_noise"),
+            source,
+            str(document.get("base_frame", "base_link")),
+            document.get("base_topic"),
+            _number(document, "base_imu_rate_hz", f"{source}: base_imu_rate_hz"),
+            tuple(sensors),
+            document.get("base_imu_noise"),
         )
 
 
@@ -116,7 +138,8 @@ def _f(value: float) -> str:
 
 
 def autoware(ex: Extrinsics, parent: str) -> str:
-    """Autoware's ``sensor_kit_calibration.yaml``: ``parent: {lidar_frame: {x, y, z, roll, pitch, yaw}}``."""
+    """Autoware's ``sensor_kit_calibration.yaml``: ``parent: {lidar_frame: {x, y, z, roll,
+    pitch, yaw}}``."""
     lines = [f"{parent}:"]
     for s in ex.sensors:
         t = s.T_base_lidar.translation
@@ -129,16 +152,20 @@ def autoware(ex: Extrinsics, parent: str) -> str:
 
 def urdf(ex: Extrinsics, parent: str) -> str:
     """A URDF fragment: the parent link, one link and one fixed joint per lidar."""
-    lines = ['<?xml version="1.0"?>', '<robot name="imucal_extrinsics">', f"  <link name={quoteattr(parent)}/>"]
+    lines = [
+        '<?xml version="1.0"?>',
+        '<robot name="imucal_extrinsics">',
+        f"  <link name={quoteattr(parent)}/>",
+    ]
     for s in ex.sensors:
         t = s.T_base_lidar.translation
         r = s.T_base_lidar.rpy_rad
         lines += [
             f"  <link name={quoteattr(s.lidar_frame)}/>",
-            f"  <joint name={quoteattr(f'{parent}_to_{s.lidar_frame}')} type=\"fixed\">",
+            f'  <joint name={quoteattr(f"{parent}_to_{s.lidar_frame}")} type="fixed">',
             f"    <parent link={quoteattr(parent)}/>",
             f"    <child link={quoteattr(s.lidar_frame)}/>",
-            f"    <origin xyz=\"{' '.join(map(_f, t))}\" rpy=\"{' '.join(map(_f, r))}\"/>",
+            f'    <origin xyz="{" ".join(map(_f, t))}" rpy="{" ".join(map(_f, r))}"/>',
             "  </joint>",
         ]
     lines.append("</robot>")
@@ -154,11 +181,31 @@ def tf_static_ros2(ex: Extrinsics, parent: str) -> tuple[str, str]:
     commands, nodes = ["#!/bin/sh", "# imucal: one static transform per lidar (ROS 2)"], []
     for s in ex.sensors:
         x, y, z, qx, qy, qz, qw = _tf_values(s.T_base_lidar)
-        words = ["--x", x, "--y", y, "--z", z, "--qx", qx, "--qy", qy, "--qz", qz, "--qw", qw, "--frame-id", parent, "--child-frame-id", s.lidar_frame]
+        words = [
+            "--x",
+            x,
+            "--y",
+            y,
+            "--z",
+            z,
+            "--qx",
+            qx,
+            "--qy",
+            qy,
+            "--qz",
+            qz,
+            "--qw",
+            qw,
+            "--frame-id",
+            parent,
+            "--child-frame-id",
+            s.lidar_frame,
+        ]
         args = shlex.join(words)  # quoted: nothing a name holds runs
         commands.append(f"ros2 run tf2_ros static_transform_publisher {args} &")
         nodes.append(
-            f'  <node pkg="tf2_ros" exec="static_transform_publisher" name={quoteattr(f"imucal_{s.name}_tf")} args={quoteattr(args)}/>'
+            '  <node pkg="tf2_ros" exec="static_transform_publisher" '
+            f"name={quoteattr(f'imucal_{s.name}_tf')} args={quoteattr(args)}/>"
         )
     launch = "\n".join(['<?xml version="1.0"?>', "<launch>", *nodes, "</launch>"]) + "\n"
     return "\n".join([*commands, "wait"]) + "\n", launch
@@ -169,10 +216,13 @@ def tf_static_ros1(ex: Extrinsics, parent: str) -> tuple[str, str]:
     roslaunch file (the quaternion form; the Euler form would be ``x y z yaw pitch roll``)."""
     commands, nodes = ["#!/bin/sh", "# imucal: one static transform per lidar (ROS 1)"], []
     for s in ex.sensors:
-        args = shlex.join([*_tf_values(s.T_base_lidar), parent, s.lidar_frame])  # quoted: nothing a name holds runs
+        args = shlex.join(
+            [*_tf_values(s.T_base_lidar), parent, s.lidar_frame]
+        )  # quoted: nothing a name holds runs
         commands.append(f"rosrun tf2_ros static_transform_publisher {args} &")
         nodes.append(
-            f'  <node pkg="tf2_ros" type="static_transform_publisher" name={quoteattr(f"imucal_{s.name}_tf")} args={quoteattr(args)}/>'
+            '  <node pkg="tf2_ros" type="static_transform_publisher" '
+            f"name={quoteattr(f'imucal_{s.name}_tf')} args={quoteattr(args)}/>"
         )
     launch = "\n".join(['<?xml version="1.0"?>', "<launch>", *nodes, "</launch>"]) + "\n"
     return "\n".join([*commands, "wait"]) + "\n", launch
@@ -188,25 +238,43 @@ def kalibr(ex: Extrinsics) -> str:
     ``time_offset`` is added to the IMU's stamps to get the base's time (``-time_offset_s``)."""
     # the YAML directive OpenCV's FileStorage (OpenVINS reads the chain with it) requires; a
     # directive PyYAML (Kalibr) reads too
-    lines = ["%YAML 1.0", "---", "# imucal: IMU chain in Kalibr's layout; imu0 is the base IMU",
-             "# noise densities: measured above the motion; random walks: from the joint fit's relative bias",
-             "# knots (sensor minus base), upper bounds; the base's, the smallest of its sensors'", "imu0:", "  T_i_b:"]
+    lines = [
+        "%YAML 1.0",
+        "---",
+        "# imucal: IMU chain in Kalibr's layout; imu0 is the base IMU",
+        "# noise densities: measured above the motion; random walks: from the joint fit's relative "
+        "bias",
+        "# knots (sensor minus base), upper bounds; the base's, the smallest of its sensors'",
+        "imu0:",
+        "  T_i_b:",
+    ]
     lines += _matrix_rows(np.eye(4), "    ")
     lines += ["  model: calibrated", f"  rostopic: {ex.base_topic or ''}", "  time_offset: 0.0"]
     lines += _kalibr_imu(ex, "base_imu", ex.base_imu_rate_hz, ex.base_imu_noise)
     for k, s in enumerate(ex.sensors, start=1):
         lines += [f"imu{k}:", f"  # {s.name}", "  T_i_b:"]
         lines += _matrix_rows(s.T_base_imu.inverse().as_matrix(), "    ")
-        offset = f"{_f(-s.time_offset_s)}" if s.time_offset_observable else "0.0  # not observable from the drive: not estimated"
+        offset = (
+            f"{_f(-s.time_offset_s)}"
+            if s.time_offset_observable
+            else "0.0  # not observable from the drive: not estimated"
+        )
         lines += ["  model: calibrated", f"  rostopic: {s.imu_topic}", f"  time_offset: {offset}"]
         lines += _kalibr_imu(ex, f"sensors.{s.name}.imu", s.imu_rate_hz, s.imu_noise)
     return "\n".join(lines) + "\n"
 
 
-KALIBR_NOISE = ("accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk")
+KALIBR_NOISE = (
+    "accelerometer_noise_density",
+    "accelerometer_random_walk",
+    "gyroscope_noise_density",
+    "gyroscope_random_walk",
+)
 
 
-def _kalibr_imu(ex: Extrinsics, key: str, rate: float | None, noise: dict[str, float | None] | None) -> list[str]:
+def _kalibr_imu(
+    ex: Extrinsics, key: str, rate: float | None, noise: dict[str, float | None] | None
+) -> list[str]:
     """The update rate and the four noise figures Kalibr's and OpenVINS's readers require
     (each positive); an error naming the calibrate output's key (``base_imu`` or
     ``sensors.NAME.imu``: its ``_rate_hz`` and ``_noise``) where one is missing."""
@@ -214,11 +282,17 @@ def _kalibr_imu(ex: Extrinsics, key: str, rate: float | None, noise: dict[str, f
         raise InputError(f"{ex.source}: {key}_rate_hz: missing: Kalibr needs the IMU's update_rate")
     lines = [f"  update_rate: {_f(rate)}"]
     if noise is not None and not isinstance(noise, dict):
-        raise InputError(f"{ex.source}: {key}_noise: expected a mapping of Kalibr's noise figures, got {noise!r:.60}")
+        raise InputError(
+            f"{ex.source}: {key}_noise: expected a mapping of Kalibr's noise figures, got "
+            f"{noise!r:.60}"
+        )
     for name in KALIBR_NOISE:
         value = (noise or {}).get(name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise InputError(f"{ex.source}: {key}_noise.{name}: missing (calibrate with this imucal version): Kalibr needs it")
+            raise InputError(
+                f"{ex.source}: {key}_noise.{name}: missing (calibrate with this imucal version): "
+                "Kalibr needs it"
+            )
         lines.append(f"  {name}: {_f(value)}")
     return lines
 
@@ -250,26 +324,45 @@ def relative_to(ex: Extrinsics, parent: str, T_base_parent: Transform | None = N
         found = [s for s in ex.sensors if parent in (s.lidar_frame, s.name)]
         if not found:
             frames = ", ".join([ex.base_frame, *(s.lidar_frame for s in ex.sensors)])
-            raise InputError(f"--parent {parent}: not a frame of {ex.source} ({frames}); give --parent-transform with T_{ex.base_frame}_{parent}")
+            raise InputError(
+                f"--parent {parent}: not a frame of {ex.source} ({frames}); give "
+                f"--parent-transform with T_{ex.base_frame}_{parent}"
+            )
         T_base_parent, parent = found[0].T_base_lidar, found[0].lidar_frame
     inverse = T_base_parent.inverse()
-    sensors = tuple(replace(s, T_base_lidar=inverse * s.T_base_lidar, T_base_imu=inverse * s.T_base_imu) for s in ex.sensors if s.lidar_frame != parent)
+    sensors = tuple(
+        replace(s, T_base_lidar=inverse * s.T_base_lidar, T_base_imu=inverse * s.T_base_imu)
+        for s in ex.sensors
+        if s.lidar_frame != parent
+    )
     return replace(ex, base_frame=parent, sensors=sensors)
 
 
-def export(ex: Extrinsics, fmt: str, parent: str | None = None, T_base_parent: Transform | None = None, allow_not_ok: bool = False) -> dict[str, str]:
+def export(
+    ex: Extrinsics,
+    fmt: str,
+    parent: str | None = None,
+    T_base_parent: Transform | None = None,
+    allow_not_ok: bool = False,
+) -> dict[str, str]:
     """The files of one format: ``{"main": text}`` plus ``{"launch": text}`` for tf-static.
     ``parent``: re-express every transform relative to that frame (:func:`relative_to`). A
     sensor that is not ``ok`` is refused unless ``allow_not_ok`` (its prior would go out as if
     calibrated)."""
     weak = [f"{s.name} ({s.status or 'no status'})" for s in ex.sensors if s.status != "ok"]
     if weak and not allow_not_ok:
-        raise InputError(f"{ex.source}: not calibrated on every axis: {', '.join(weak)}; --allow-not-ok exports them anyway")
+        raise InputError(
+            f"{ex.source}: not calibrated on every axis: {', '.join(weak)}; --allow-not-ok exports "
+            "them anyway"
+        )
     if parent is not None:
         _check_name(parent, "frame", "--parent")
     if parent is not None and (parent != ex.base_frame or T_base_parent is not None):
         if fmt == "kalibr":
-            raise InputError(f"--parent {parent}: a Kalibr IMU chain is relative to its first IMU, the base's: no other parent")
+            raise InputError(
+                f"--parent {parent}: a Kalibr IMU chain is relative to its first IMU, the base's: "
+                "no other parent"
+            )
         ex = relative_to(ex, parent, T_base_parent)
     parent = ex.base_frame
     if fmt == "autoware":

@@ -42,9 +42,25 @@ DASK_WORKERS_S = 30.0
 LOG_SUFFIXES = (".mcap", ".bag", ".db3")
 
 SUMMARY_COLUMNS = (
-    "log", "sensor", "status", "x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg",
-    "rotation_std_deg", "translation_std_m", "rotation_error_deg", "translation_error_m", "moved",
-    "lost_s", "dropped", "warnings", "pass", "error",
+    "log",
+    "sensor",
+    "status",
+    "x_m",
+    "y_m",
+    "z_m",
+    "roll_deg",
+    "pitch_deg",
+    "yaw_deg",
+    "rotation_std_deg",
+    "translation_std_m",
+    "rotation_error_deg",
+    "translation_error_m",
+    "moved",
+    "lost_s",
+    "dropped",
+    "warnings",
+    "pass",
+    "error",
 )
 
 
@@ -59,7 +75,9 @@ class Task:
     out: str  # absolute: where the calibrate document goes
     against: dict[str, Transform] | None = None  # truth or reference T_base_lidar per sensor
     against_source: str = ""  # the file they came from (for messages)
-    reference: bool = False  # against is the vehicle's previous calibration: past the thresholds is "moved"
+    reference: bool = (
+        False  # against is the vehicle's previous calibration: past the thresholds is "moved"
+    )
     max_rotation_deg: float | None = None
     max_translation_m: float | None = None
     max_lost_s: float | None = None  # None: any read loss fails the log's rows
@@ -85,7 +103,9 @@ class Row:
     translation_error_m: float | None = None
     moved: bool | None = None  # against a reference: past a threshold
     lost_s: float | None = 0.0  # log time the read lost (None: not known, a log cut off mid-write)
-    dropped: int = 0  # samples the read dropped (not decodable, not finite, clipped, ...), every topic
+    dropped: int = (
+        0  # samples the read dropped (not decodable, not finite, clipped, ...), every topic
+    )
     warnings: str = ""  # what reading lost and what the calibration warned of, "; "-separated
     passed: bool = False
     error: str = ""
@@ -114,14 +134,25 @@ def run_one(task: Task) -> Outcome:
     try:
         run = calibrate_log(task.log, task.config)
     except ImucalError as exc:
-        return [Row(task.name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)], None
+        return [
+            Row(task.name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)
+        ], None
     except Exception as exc:
         where = traceback.extract_tb(exc.__traceback__)[-1]
-        error = f"internal error: {type(exc).__name__}: {exc} ({Path(where.filename).name}:{where.lineno})"
-        return [Row(task.name, "", "failed", error=error, seconds=time.perf_counter() - start)], None
-    lost_s, losses, dropped = run.document["lost_s"], run.document["losses"], run.document["dropped"]
+        at = f"{Path(where.filename).name}:{where.lineno}"
+        error = f"internal error: {type(exc).__name__}: {exc} ({at})"
+        return [
+            Row(task.name, "", "failed", error=error, seconds=time.perf_counter() - start)
+        ], None
+    lost_s, losses, dropped = (
+        run.document["lost_s"],
+        run.document["losses"],
+        run.document["dropped"],
+    )
     undecodable = sum(d.get("decode_errors", 0) for d in dropped.values())  # (counted in lost_s)
-    lost_ok = not (losses or undecodable) or (task.max_lost_s is not None and lost_s is not None and lost_s <= task.max_lost_s)
+    lost_ok = not (losses or undecodable) or (
+        task.max_lost_s is not None and lost_s is not None and lost_s <= task.max_lost_s
+    )
     rows = []
     for sensor, s in run.document["sensors"].items():
         T = run.result.T_base_lidar(sensor)
@@ -129,15 +160,31 @@ def run_one(task: Task) -> Outcome:
         x, y, z = (float(v) for v in T.translation)
         roll, pitch, yaw = (float(v) for v in np.degrees(T.rpy_rad))
         row = Row(
-            task.name, sensor, s["status"], x, y, z, roll, pitch, yaw,
-            None if std_r is None else float(max(std_r)), None if std_t is None else float(max(std_t)),
-            lost_s=lost_s, dropped=sum(sum(d.values()) for d in dropped.values()), warnings="; ".join([x["reason"] for x in losses] + s["warnings"]),
+            task.name,
+            sensor,
+            s["status"],
+            x,
+            y,
+            z,
+            roll,
+            pitch,
+            yaw,
+            None if std_r is None else float(max(std_r)),
+            None if std_t is None else float(max(std_t)),
+            lost_s=lost_s,
+            dropped=sum(sum(d.values()) for d in dropped.values()),
+            warnings="; ".join([x["reason"] for x in losses] + s["warnings"]),
         )
         row.passed = s["status"] == "ok" and lost_ok
         if not lost_ok:
-            limit = "any loss fails (--max-lost-s)" if task.max_lost_s is None else f"--max-lost-s {task.max_lost_s:g}"
+            limit = (
+                "any loss fails (--max-lost-s)"
+                if task.max_lost_s is None
+                else f"--max-lost-s {task.max_lost_s:g}"
+            )
             lost = "an unknown span" if lost_s is None else f"{lost_s:.2f} s"
-            row.error = f"the read lost {lost} of the log{f' ({undecodable:,} messages not decodable)' if undecodable else ''}; {limit}"
+            damaged = f" ({undecodable:,} messages not decodable)" if undecodable else ""
+            row.error = f"the read lost {lost} of the log{damaged}; {limit}"
         if task.against is not None and sensor in task.against:
             errors = transform_errors(T, task.against[sensor])
             row.rotation_error_deg = errors["rotation_error_deg"]
@@ -145,16 +192,42 @@ def run_one(task: Task) -> Outcome:
             limit_r, limit_t = task.max_rotation_deg, task.max_translation_m
             if task.reference:
                 ref_r, ref_t = task.reference_std.get(sensor, (None, None))
-                limit_r = limit_r if limit_r is not None else _combined(row.rotation_std_deg, ref_r, MOVED_FALLBACK_DEG)
-                limit_t = limit_t if limit_t is not None else _combined(row.translation_std_m, ref_t, MOVED_FALLBACK_M)
-            over = (limit_r is not None and row.rotation_error_deg > limit_r) or (limit_t is not None and row.translation_error_m > limit_t)
+                limit_r = (
+                    limit_r
+                    if limit_r is not None
+                    else _combined(row.rotation_std_deg, ref_r, MOVED_FALLBACK_DEG)
+                )
+                limit_t = (
+                    limit_t
+                    if limit_t is not None
+                    else _combined(row.translation_std_m, ref_t, MOVED_FALLBACK_M)
+                )
+            over = (limit_r is not None and row.rotation_error_deg > limit_r) or (
+                limit_t is not None and row.translation_error_m > limit_t
+            )
             if over and task.reference:
-                row.error = row.error or f"moved: {row.rotation_error_deg:.4f} deg (limit {limit_r:.4g}), {row.translation_error_m:.4f} m (limit {limit_t:.4g})"
+                row.error = (
+                    row.error
+                    or f"moved: {row.rotation_error_deg:.4f} deg (limit {limit_r:.4g}), "
+                    f"{row.translation_error_m:.4f} m (limit {limit_t:.4g})"
+                )
             elif over:  # the threshold that failed, as evaluate names it
                 row.error = row.error or "; ".join(
                     f"{name} {value:.6g} > {option} {limit:g}"
-                    for name, value, option, limit in (("rotation_error_deg", row.rotation_error_deg, "--max-rotation-deg", limit_r),
-                                                       ("translation_error_m", row.translation_error_m, "--max-translation-m", limit_t))
+                    for name, value, option, limit in (
+                        (
+                            "rotation_error_deg",
+                            row.rotation_error_deg,
+                            "--max-rotation-deg",
+                            limit_r,
+                        ),
+                        (
+                            "translation_error_m",
+                            row.translation_error_m,
+                            "--max-translation-m",
+                            limit_t,
+                        ),
+                    )
                     if limit is not None and value > limit
                 )
             if task.reference:
@@ -163,7 +236,11 @@ def run_one(task: Task) -> Outcome:
         elif task.against is not None:
             row.passed = False
             missing_file = task.against_source and not Path(task.against_source).is_file()
-            row.error = f"{task.against_source}: no such truth file for this log" if missing_file else f"{task.against_source}: no entry for sensor {sensor}"
+            row.error = (
+                f"{task.against_source}: no such truth file for this log"
+                if missing_file
+                else f"{task.against_source}: no entry for sensor {sensor}"
+            )
         rows.append(row)
     elapsed = time.perf_counter() - start
     for row in rows:
@@ -181,7 +258,14 @@ def deliver(task: Task, outcome: Outcome) -> list[Row]:
         try:
             write_document(task.out, document)
         except (OSError, ImucalError) as exc:
-            return [Row(task.name, "", "failed", error=f"{task.out}: cannot write: {getattr(exc, 'strerror', None) or exc}")]
+            return [
+                Row(
+                    task.name,
+                    "",
+                    "failed",
+                    error=f"{task.out}: cannot write: {getattr(exc, 'strerror', None) or exc}",
+                )
+            ]
     return rows
 
 
@@ -196,7 +280,9 @@ def _combined(now: float | None, before: float | None, fallback: float) -> float
     return MOVED_STD * float(np.hypot(now, before))
 
 
-def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
+def run_local(
+    tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row]], None] | None = None
+) -> list[list[Row]]:
     """Every task, ``jobs`` at a time, each in a process of its own: a process that dies (the
     out-of-memory killer) fails its log alone, by name; a Ctrl-C stops the running ones and
     starts no other."""
@@ -219,14 +305,22 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
     # A Ctrl-C is noted and acted on here, between two steps: raised anywhere (in a pipe's
     # finaliser, a fork) Python may print it and carry on with the whole queue
     interrupted: list[int] = []
-    main = threading.current_thread() is threading.main_thread()  # (only there can a handler be set)
-    previous = signal.signal(signal.SIGINT, lambda number, frame: interrupted.append(number)) if main else None
+    main = (
+        threading.current_thread() is threading.main_thread()
+    )  # (only there can a handler be set)
+    previous = (
+        signal.signal(signal.SIGINT, lambda number, frame: interrupted.append(number))
+        if main
+        else None
+    )
     try:
         while waiting or running:
             while waiting and len(running) < jobs and not interrupted:
                 i, task = waiting.pop(0)
                 receive, send = context.Pipe(duplex=False)
-                process = context.Process(target=_work, args=(task, send), name=f"imucal {task.name}", daemon=True)
+                process = context.Process(
+                    target=_work, args=(task, send), name=f"imucal {task.name}", daemon=True
+                )
                 process.start()
                 send.close()
                 running[receive] = (i, process)
@@ -239,7 +333,10 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
                     outcome = receive.recv()
                 except EOFError:  # it died before it answered
                     process.join()
-                    outcome = _failed(tasks[i], f"the worker calibrating {tasks[i].log} died ({_death(process.exitcode)})")
+                    outcome = _failed(
+                        tasks[i],
+                        f"the worker calibrating {tasks[i].log} died ({_death(process.exitcode)})",
+                    )
                 process.join()
                 results[i] = deliver(tasks[i], outcome)
                 if on_done:
@@ -256,7 +353,9 @@ def run_local(tasks: Sequence[Task], jobs: int, on_done: Callable[[int, list[Row
 def _work(task: Task, send: Any) -> None:
     import signal
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C is the batch's to handle: it kills this process
+    signal.signal(
+        signal.SIGINT, signal.SIG_IGN
+    )  # a Ctrl-C is the batch's to handle: it kills this process
     send.send(run_one(task))
     send.close()
 
@@ -266,21 +365,29 @@ def _death(exitcode: int | None) -> str:
 
     if exitcode is not None and exitcode < 0:
         name = signal.Signals(-exitcode).name
-        return f"killed by {name}" + (", as the out-of-memory killer does" if name == "SIGKILL" else "")
+        return f"killed by {name}" + (
+            ", as the out-of-memory killer does" if name == "SIGKILL" else ""
+        )
     return f"exit code {exitcode}"
 
 
-def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[Row]], None] | None = None) -> list[list[Row]]:
+def run_dask(
+    tasks: Sequence[Task], address: str, on_done: Callable[[int, list[Row]], None] | None = None
+) -> list[list[Row]]:
     """Every task on the Dask cluster whose scheduler listens at ``address``; a scheduler
     without workers is an error, one lost mid-batch fails the logs not yet done."""
     try:
         from dask.distributed import Client, as_completed
     except ImportError:
-        raise InputError("--scheduler needs dask.distributed: pip install 'imucal[fleet]'") from None
+        raise InputError(
+            "--scheduler needs dask.distributed: pip install 'imucal[fleet]'"
+        ) from None
     import logging
 
     for name in [n for n in logging.root.manager.loggerDict if n.startswith("distributed")]:
-        logging.getLogger(name).setLevel(logging.CRITICAL + 1)  # a lost scheduler is said in the rows, once
+        logging.getLogger(name).setLevel(
+            logging.CRITICAL + 1
+        )  # a lost scheduler is said in the rows, once
     try:
         client = Client(address, timeout="10s")
     except Exception as exc:
@@ -290,7 +397,9 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
         try:
             client.wait_for_workers(1, timeout=DASK_WORKERS_S)
         except Exception:
-            raise InputError(f"--scheduler {address}: no worker joined within {DASK_WORKERS_S:g} s") from None
+            raise InputError(
+                f"--scheduler {address}: no worker joined within {DASK_WORKERS_S:g} s"
+            ) from None
         futures = client.map(run_one, list(tasks), pure=False)
         index = {future.key: i for i, future in enumerate(futures)}
         try:
@@ -300,7 +409,12 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
                     outcome = future.result()
                 except Exception as exc:
                     lost = "connection-lost" in str(exc)
-                    why = f"the scheduler at {address} was lost" if lost else f"worker failed: {type(exc).__name__}: {(str(exc).splitlines() or [''])[0]}"
+                    why = (
+                        f"the scheduler at {address} was lost"
+                        if lost
+                        else f"worker failed: {type(exc).__name__}: "
+                        f"{(str(exc).splitlines() or [''])[0]}"
+                    )
                     outcome = _failed(tasks[i], why)
                 results[i] = deliver(tasks[i], outcome)
                 if on_done:
@@ -308,7 +422,12 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
         except Exception as exc:  # the scheduler went away
             for i, task in enumerate(tasks):
                 if results[i] is None:
-                    results[i] = deliver(task, _failed(task, f"the scheduler at {address} was lost ({type(exc).__name__})"))
+                    results[i] = deliver(
+                        task,
+                        _failed(
+                            task, f"the scheduler at {address} was lost ({type(exc).__name__})"
+                        ),
+                    )
                     if on_done:
                         on_done(i, results[i])  # type: ignore[arg-type]
     finally:
@@ -318,11 +437,18 @@ def run_dask(tasks: Sequence[Task], address: str, on_done: Callable[[int, list[R
 
 
 def plan_tasks(
-    entries: Sequence[dict[str, str]], config: str | Path | None, out_dir: Path, truth_dir: Path | None = None, reference: str | Path | None = None,
-    max_rotation_deg: float | None = None, max_translation_m: float | None = None, max_lost_s: float | None = None,
+    entries: Sequence[dict[str, str]],
+    config: str | Path | None,
+    out_dir: Path,
+    truth_dir: Path | None = None,
+    reference: str | Path | None = None,
+    max_rotation_deg: float | None = None,
+    max_translation_m: float | None = None,
+    max_lost_s: float | None = None,
 ) -> list[Task]:
     """One :class:`Task` per manifest entry (``log``, optional ``config``, ``truth``,
-    ``reference``), named by its full path, its output ``out_dir/STEM.yaml`` (:func:`_output_names`). Every path is resolved and
+    ``reference``), named by its full path, its output ``out_dir/STEM.yaml``
+    (:func:`_output_names`). Every path is resolved and
     every file read here: a worker started anywhere runs the task."""
     from imucal_cli.api import load_transforms
     from imucal_cli.config import load_config
@@ -336,9 +462,16 @@ def plan_tasks(
     paths = [log_folder(Path(e["log"]).resolve()) for e in entries]  # a rosbag2 log is its folder
     root = Path(os.path.commonpath([p.parent for p in paths]))
     configs: dict[str, Config] = {}
-    loaded: dict[str, tuple[dict[str, Transform], dict[str, tuple[float | None, float | None]]]] = {}  # truth or reference files
+    loaded: dict[
+        str, tuple[dict[str, Transform], dict[str, tuple[float | None, float | None]]]
+    ] = {}  # truth or reference files
     tasks: list[Task] = []
-    stems = [log.relative_to(root).as_posix().removesuffix(log.suffix if log.suffix in LOG_SUFFIXES else "") for log in paths]
+    stems = [
+        log.relative_to(root)
+        .as_posix()
+        .removesuffix(log.suffix if log.suffix in LOG_SUFFIXES else "")
+        for log in paths
+    ]
     outputs = _output_names(stems, paths)  # vehicle/2024.01.05.mcap -> 2024.01.05
     for entry, log, stem, output in zip(entries, paths, stems, outputs, strict=True):
         cfg = entry.get("config") or (str(config) if config else None)
@@ -348,17 +481,36 @@ def plan_tasks(
             configs[cfg] = load_config(cfg)
         optional = False  # a truth file the folder may not have (then: nothing to compare with)
         if entry.get("reference") or entry.get("truth"):
-            source, is_reference = entry.get("reference") or entry["truth"], bool(entry.get("reference"))
+            source, is_reference = (
+                entry.get("reference") or entry["truth"],
+                bool(entry.get("reference")),
+            )
         elif truth_dir is not None:
-            nested, flat = truth_dir / f"{stem}.truth.yaml", truth_dir / f"{Path(stem).name}.truth.yaml"
+            nested, flat = (
+                truth_dir / f"{stem}.truth.yaml",
+                truth_dir / f"{Path(stem).name}.truth.yaml",
+            )
             source, is_reference, optional = str(nested if nested.is_file() else flat), False, True
         else:
             source, is_reference = str(reference or ""), reference is not None
         if source and source not in loaded and not (optional and not Path(source).is_file()):
             loaded[source] = load_transforms(source), _reference_std(source) if is_reference else {}
         against, std = loaded.get(source, ({} if source else None, {}))
-        tasks.append(Task(str(log), str(log), configs[cfg], str((out_dir / f"{output}.yaml").resolve()), against, source, is_reference,
-                          max_rotation_deg, max_translation_m, max_lost_s, std if is_reference else {}))
+        tasks.append(
+            Task(
+                str(log),
+                str(log),
+                configs[cfg],
+                str((out_dir / f"{output}.yaml").resolve()),
+                against,
+                source,
+                is_reference,
+                max_rotation_deg,
+                max_translation_m,
+                max_lost_s,
+                std if is_reference else {},
+            )
+        )
     return tasks
 
 
@@ -384,20 +536,31 @@ def _output_names(stems: Sequence[str], paths: Sequence[Path]) -> list[str]:
             raise InputError(f"{paths[k]}: given twice: its outputs would collide")
 
 
-def check_batch_outputs(tasks: Sequence[Task], files: Sequence[Path], inputs: Sequence[Path | None], force: bool) -> None:
+def check_batch_outputs(
+    tasks: Sequence[Task], files: Sequence[Path], inputs: Sequence[Path | None], force: bool
+) -> None:
     """Before any work: no output of the batch (each log's document, the summaries, ``files``)
     is one of its inputs or inside one (a rosbag2 folder), and none exists unless ``force``
     (an earlier batch's outputs are never silently replaced)."""
     from imucal_cli.paths import check_outputs
 
-    outputs = {f"the output of {task.log}": Path(task.out) for task in tasks} | {str(path.name): path for path in files}
-    every_input = [*inputs, *(Path(task.log) for task in tasks), *{Path(task.config.source) for task in tasks},
-                   *{Path(task.against_source) for task in tasks if task.against_source}]
+    outputs = {f"the output of {task.log}": Path(task.out) for task in tasks} | {
+        str(path.name): path for path in files
+    }
+    every_input = [
+        *inputs,
+        *(Path(task.log) for task in tasks),
+        *{Path(task.config.source) for task in tasks},
+        *{Path(task.against_source) for task in tasks if task.against_source},
+    ]
     check_outputs(outputs, every_input)
     existing = [path for path in outputs.values() if path.exists()]
     if existing and not force:
-        raise InputError(f"{existing[0]}: exists (an earlier batch's output?): give a new --out-dir, or --force to replace "
-                         f"{'it' if len(existing) == 1 else f'these {len(existing)} files'}")
+        raise InputError(
+            f"{existing[0]}: exists (an earlier batch's output?): give a new --out-dir, or --force "
+            "to replace "
+            f"{'it' if len(existing) == 1 else f'these {len(existing)} files'}"
+        )
 
 
 def _reference_std(path: str) -> dict[str, tuple[float | None, float | None]]:
@@ -407,7 +570,11 @@ def _reference_std(path: str) -> dict[str, tuple[float | None, float | None]]:
     def largest(value: Any, key: str) -> float | None:
         if value is None:
             return None
-        if not isinstance(value, list) or not value or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        if (
+            not isinstance(value, list)
+            or not value
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        ):
             raise InputError(f"{path}: {key}: expected a list of numbers, got {value!r:.60}")
         return float(max(value))
 
@@ -415,8 +582,13 @@ def _reference_std(path: str) -> dict[str, tuple[float | None, float | None]]:
     sensors = document.get("sensors") if isinstance(document, dict) else None
     if not isinstance(sensors, dict) or not all(isinstance(s, dict) for s in sensors.values()):
         raise InputError(f"{path}: not a calibration (expected sensors: NAME: {{...}})")
-    return {name: (largest(s.get("rotation_std_deg"), f"sensors.{name}.rotation_std_deg"),
-                   largest(s.get("translation_std_m"), f"sensors.{name}.translation_std_m")) for name, s in sensors.items()}
+    return {
+        name: (
+            largest(s.get("rotation_std_deg"), f"sensors.{name}.rotation_std_deg"),
+            largest(s.get("translation_std_m"), f"sensors.{name}.translation_std_m"),
+        )
+        for name, s in sensors.items()
+    }
 
 
 def read_manifest(path: Path) -> list[dict[str, str]]:
@@ -431,12 +603,20 @@ def read_manifest(path: Path) -> list[dict[str, str]]:
         raise InputError(f"{path}: expected a CSV with a 'log' column")
     unknown = set(reader.fieldnames) - {"log", "config", "truth", "reference"}
     if unknown:
-        raise InputError(f"{path}: unknown column {min(unknown)!r} (expected log, config, truth, reference)")
+        raise InputError(
+            f"{path}: unknown column {min(unknown)!r} (expected log, config, truth, reference)"
+        )
     rows = []
     for k, row in enumerate(reader, start=2):
         if not row.get("log"):
             raise InputError(f"{path}: line {k}: empty log")
-        rows.append({key: str(path.parent / value) if value and not os.path.isabs(value) else value for key, value in row.items() if value})
+        rows.append(
+            {
+                key: str(path.parent / value) if value and not os.path.isabs(value) else value
+                for key, value in row.items()
+                if value
+            }
+        )
     return rows
 
 
@@ -451,10 +631,18 @@ def summary_csv(rows: Iterable[Row]) -> str:
 
 def summary_json(rows: Iterable[Row], settings: dict[str, Any]) -> str:
     rows = list(rows)
-    return json.dumps(
-        {"settings": settings, "logs": len({r.log for r in rows}), "failed": sum(not r.passed for r in rows), "rows": [r.to_dict() for r in rows]},
-        indent=2,
-    ) + "\n"
+    return (
+        json.dumps(
+            {
+                "settings": settings,
+                "logs": len({r.log for r in rows}),
+                "failed": sum(not r.passed for r in rows),
+                "rows": [r.to_dict() for r in rows],
+            },
+            indent=2,
+        )
+        + "\n"
+    )
 
 
 def quoteattr(text: str) -> str:
@@ -474,18 +662,32 @@ def junit_xml(rows: Sequence[Row]) -> str:
     cases = []
     for r in rows:
         name = quoteattr(r.sensor or "calibration")
-        head = f"  <testcase classname={quoteattr(r.log)} name={name} time=\"{r.seconds:.3f}\">"
+        head = f'  <testcase classname={quoteattr(r.log)} name={name} time="{r.seconds:.3f}">'
         figures = ", ".join(
             f"{k} {v:.6g}" if isinstance(v, float) else f"{k} {v}"
-            for k, v in (("status", r.status), ("rotation_error_deg", r.rotation_error_deg), ("translation_error_m", r.translation_error_m),
-                         ("moved", r.moved), ("lost_s", r.lost_s), ("dropped", r.dropped)) if v is not None
+            for k, v in (
+                ("status", r.status),
+                ("rotation_error_deg", r.rotation_error_deg),
+                ("translation_error_m", r.translation_error_m),
+                ("moved", r.moved),
+                ("lost_s", r.lost_s),
+                ("dropped", r.dropped),
+            )
+            if v is not None
         )
-        out = f"<system-out>{escape(figures + (('; ' + r.warnings) if r.warnings else ''))}</system-out>"
+        said = figures + (("; " + r.warnings) if r.warnings else "")
+        out = f"<system-out>{escape(said)}</system-out>"
         if r.status == "failed":
             cases.append(f"{head}<error message={quoteattr(r.error)}/>{out}</testcase>")
         elif not r.passed:
             why = r.error or (
-                f"status {r.status}" + ("" if r.rotation_error_deg is None else f", rotation error {r.rotation_error_deg:.4f} deg, translation error {r.translation_error_m:.4f} m")
+                f"status {r.status}"
+                + (
+                    ""
+                    if r.rotation_error_deg is None
+                    else f", rotation error {r.rotation_error_deg:.4f} deg, "
+                    f"translation error {r.translation_error_m:.4f} m"
+                )
                 + (", moved" if r.moved else "")
             )
             cases.append(f"{head}<failure message={quoteattr(why)}/>{out}</testcase>")
@@ -496,8 +698,10 @@ def junit_xml(rows: Sequence[Row]) -> str:
     total = sum(r.seconds for r in {(r.log): r for r in rows}.values())
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
-        f'<testsuites><testsuite name="imucal batch" tests="{len(rows)}" failures="{failures}" errors="{errors}" time="{total:.3f}">\n'
-        + "\n".join(cases) + "\n</testsuite></testsuites>\n"
+        f'<testsuites><testsuite name="imucal batch" tests="{len(rows)}" failures="{failures}" '
+        f'errors="{errors}" time="{total:.3f}">\n'
+        + "\n".join(cases)
+        + "\n</testsuite></testsuites>\n"
     )
 
 
@@ -506,27 +710,41 @@ def evaluate_junit(document: dict[str, Any], estimate: str, truth: str) -> str:
     threshold and the measured value; every case carries its errors in ``system-out``; a
     sensor in one file only is a failed case (an error when ``--allow-missing`` was not given)."""
     limits = document["thresholds"]
-    allowed = document["pass"] or not (document["missing"]["estimate_only"] or document["missing"]["truth_only"])
+    allowed = document["pass"] or not (
+        document["missing"]["estimate_only"] or document["missing"]["truth_only"]
+    )
     cases, failures = [], 0
     for group in ("sensors", "pairs"):
         for name, row in document[group].items():
-            values = f"rotation_error_deg {row['rotation_error_deg']:.6g}, translation_error_m {row['translation_error_m']:.6g}"
+            values = (
+                f"rotation_error_deg {row['rotation_error_deg']:.6g}, "
+                f"translation_error_m {row['translation_error_m']:.6g}"
+            )
             over = [
                 f"{value} {row[value]:.6g} > {key} {limits[key]:g}"
-                for key, value in (("max_rotation_deg", "rotation_error_deg"), ("max_translation_m", "translation_error_m"))
+                for key, value in (
+                    ("max_rotation_deg", "rotation_error_deg"),
+                    ("max_translation_m", "translation_error_m"),
+                )
                 if limits[key] is not None and row[value] > limits[key]
             ]
             failures += bool(over)
             body = f"<failure message={quoteattr('; '.join(over))}/>" if over else ""
-            cases.append(f"  <testcase classname={quoteattr(group)} name={quoteattr(name)}>{body}<system-out>{escape(values)}</system-out></testcase>")
+            cases.append(
+                f"  <testcase classname={quoteattr(group)} "
+                f"name={quoteattr(name)}>{body}<system-out>{escape(values)}</system-out></testcase>"
+            )
     for side, names in document["missing"].items():
         for name in names:
             where = f"in {estimate} only" if side == "estimate_only" else f"in {truth} only"
             failures += not allowed
             body = "" if allowed else f"<failure message={quoteattr(f'sensor {name} is {where}')}/>"
-            cases.append(f"  <testcase classname=\"missing\" name={quoteattr(name)}>{body}<system-out>{escape(where)}</system-out></testcase>")
+            cases.append(
+                '  <testcase classname="missing" '
+                f"name={quoteattr(name)}>{body}<system-out>{escape(where)}</system-out></testcase>"
+            )
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'
-        f'<testsuites><testsuite name="imucal evaluate" tests="{len(cases)}" failures="{failures}" errors="0">\n'
-        + "\n".join(cases) + "\n</testsuite></testsuites>\n"
+        f'<testsuites><testsuite name="imucal evaluate" tests="{len(cases)}" failures="{failures}" '
+        'errors="0">\n' + "\n".join(cases) + "\n</testsuite></testsuites>\n"
     )

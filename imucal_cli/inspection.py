@@ -40,8 +40,6 @@ class LogSummary:
     losses: list[Loss] = field(default_factory=list)
 
 
-
-
 #: Stamps may arrive this far out of order (ns) and still be put in order; a stamp later than
 #: that is counted backwards but not placed (a damaged stamp, or another clock).
 REORDER_NS = 10 * 10**9
@@ -71,7 +69,11 @@ class _Clock:
         self.count += len(t)
         self.low = int(t.min()) if self.low is None else min(self.low, int(t.min()))
         self.high = int(t.max()) if self.high is None else max(self.high, int(t.max()))
-        self.backwards += int(np.count_nonzero(np.diff(t if self.last_in is None else np.concatenate([[self.last_in], t])) < 0))
+        self.backwards += int(
+            np.count_nonzero(
+                np.diff(t if self.last_in is None else np.concatenate([[self.last_in], t])) < 0
+            )
+        )
         self.last_in = int(t[-1])
         self.pending.append(t)
         if sum(map(len, self.pending)) > 65536:
@@ -94,7 +96,9 @@ class _Clock:
         steps = np.diff(t)
         self.duplicates += int(np.count_nonzero(steps == 0))
         positive = steps[steps > 0]
-        values, counts = np.unique(positive // COARSE_NS if self.coarse else positive, return_counts=True)
+        values, counts = np.unique(
+            positive // COARSE_NS if self.coarse else positive, return_counts=True
+        )
         self.steps.update(dict(zip(values.tolist(), counts.tolist(), strict=True)))
         if not self.coarse and len(self.steps) > EXACT_STEPS:
             coarse: Counter[int] = Counter()
@@ -116,18 +120,36 @@ class _Clock:
         return 0.0
 
 
-def _timing(topic: str, msgtype: str, clock: _Clock | None, t0_ns: int, time_source: str) -> TopicTiming:
+def _timing(
+    topic: str, msgtype: str, clock: _Clock | None, t0_ns: int, time_source: str
+) -> TopicTiming:
     if clock is None or clock.count == 0:
         return TopicTiming(topic, msgtype, 0, 0.0, 0.0, [], 0, 0, time_source)
     clock.place()
     median = clock.median()
     rate = 1e9 / median if median > 0 else 0.0
-    gaps = [((a - t0_ns) * 1e-9, (b - t0_ns) * 1e-9) for a, b in clock.long if median > 0 and b - a > GAP_PERIODS * median]
+    gaps = [
+        ((a - t0_ns) * 1e-9, (b - t0_ns) * 1e-9)
+        for a, b in clock.long
+        if median > 0 and b - a > GAP_PERIODS * median
+    ]
     duration = float(clock.high - clock.low) * 1e-9  # type: ignore[operator]
-    return TopicTiming(topic, msgtype, clock.count, rate, duration, gaps, clock.backwards, clock.duplicates, time_source)
+    return TopicTiming(
+        topic,
+        msgtype,
+        clock.count,
+        rate,
+        duration,
+        gaps,
+        clock.backwards,
+        clock.duplicates,
+        time_source,
+    )
 
 
-def summarize_log(path: str | Path, progress: Callable[[int, int], None] | None = None) -> LogSummary:
+def summarize_log(
+    path: str | Path, progress: Callable[[int, int], None] | None = None
+) -> LogSummary:
     """Per topic: type, count, median rate, duration, gaps, backwards jumps, duplicates, read
     in one streamed pass, memory flat in the log's length. IMU topics are timed by
     ``header.stamp`` (log time where it is zero or the message does not decode), others by log
@@ -136,7 +158,9 @@ def summarize_log(path: str | Path, progress: Callable[[int, int], None] | None 
     clocks: dict[str, _Clock] = {}
     with open_log(path) as log:
         available = log.topics()
-        imu = {t for t, info in available.items() if info.is_imu and info.encoding in ("cdr", "ros1")}
+        imu = {
+            t for t, info in available.items() if info.is_imu and info.encoding in ("cdr", "ros1")
+        }
         count, total = 0, sum(info.count for info in available.values())
         for batch in log.batches(list(available)):
             times = batch.log_time_ns
@@ -151,5 +175,16 @@ def summarize_log(path: str | Path, progress: Callable[[int, int], None] | None 
                 progress(count, total)
         format_name, losses = log.format_name, list(log.losses)
     t0_ns = min((c.low for c in clocks.values() if c.low is not None), default=0)
-    timings = [_timing(topic, available[topic].msgtype, clocks.get(topic), t0_ns, "header.stamp" if topic in imu else "log_time") for topic in sorted(available)]
-    return LogSummary(path=str(path), format_name=format_name, t0_ns=t0_ns, topics=timings, losses=losses)
+    timings = [
+        _timing(
+            topic,
+            available[topic].msgtype,
+            clocks.get(topic),
+            t0_ns,
+            "header.stamp" if topic in imu else "log_time",
+        )
+        for topic in sorted(available)
+    ]
+    return LogSummary(
+        path=str(path), format_name=format_name, t0_ns=t0_ns, topics=timings, losses=losses
+    )

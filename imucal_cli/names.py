@@ -22,8 +22,16 @@ TOPIC = re.compile(r"[/~]?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z0-9_]+)*")
 SENSOR = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 RULES = {
-    "frame": (FRAME, "letters, digits and '_' in tokens joined by '/', starting with a letter or '_' (ROS's rule)"),
-    "topic": (TOPIC, "letters, digits and '_' in tokens joined by '/', starting with '/' or a letter (ROS's rule)"),
+    "frame": (
+        FRAME,
+        "letters, digits and '_' in tokens joined by '/', starting with a letter or '_' (ROS's "
+        "rule)",
+    ),
+    "topic": (
+        TOPIC,
+        "letters, digits and '_' in tokens joined by '/', starting with '/' or a letter (ROS's "
+        "rule)",
+    ),
     "sensor": (SENSOR, "letters, digits and '_', starting with a letter or '_' (a ROS name token)"),
 }
 
@@ -53,4 +61,6 @@ def printable(text: str) -> str:
 
 def _escape(match: re.Match[str]) -> str:
     char = match.group()
-    return {"\n": "\\n", "\r": "\\r", "\t": "\\t"}.get(char) or (f"\\x{ord(char):02x}" if ord(char) < 0x100 else f"\\u{ord(char):04x}")
+    return {"\n": "\\n", "\r": "\\r", "\t": "\\t"}.get(char) or (
+        f"\\x{ord(char):02x}" if ord(char) < 0x100 else f"\\u{ord(char):04x}"
+    )

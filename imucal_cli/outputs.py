@@ -21,7 +21,9 @@ if TYPE_CHECKING:
     from imucal_cli.types import Transform
 
 
-def biases_document(t0_ns: int, config: Config, reports: Mapping[str, BiasReport]) -> dict[str, Any]:
+def biases_document(
+    t0_ns: int, config: Config, reports: Mapping[str, BiasReport]
+) -> dict[str, Any]:
     topics = {"base": config.base.topic} | {s.name: s.imu_topic for s in config.sensors}
     imus: dict[str, Any] = {}
     for name, report in reports.items():
@@ -32,8 +34,12 @@ def biases_document(t0_ns: int, config: Config, reports: Mapping[str, BiasReport
             # at one rest pose only the bias along gravity separates from the tilt: this vector
             # is that component (the full one, relative to the base, is calibrate's)
             "accel_bias_mps2": report.accel_bias,
-            "accel_bias_along_gravity_mps2": report.rest_periods[-1].accel_bias_along_gravity if report.rest_periods else None,
-            "accel_bias_resolved": "along gravity only (the full vector: imucal calibrate, accel_bias_mps2)",
+            "accel_bias_along_gravity_mps2": report.rest_periods[-1].accel_bias_along_gravity
+            if report.rest_periods
+            else None,
+            "accel_bias_resolved": (
+                "along gravity only (the full vector: imucal calibrate, accel_bias_mps2)"
+            ),
             "accel_noise_std_mps2": report.accel_noise_std,
             "gyro_bias_radps": {
                 "initial": report.gyro_bias_initial,
@@ -46,7 +52,9 @@ def biases_document(t0_ns: int, config: Config, reports: Mapping[str, BiasReport
     return to_plain({"imucal_version": version(), "t0_ns": t0_ns, "imus": imus})
 
 
-def segments_document(t0_ns: int, config: Config, calibrator: StreamingCalibrator) -> dict[str, Any]:
+def segments_document(
+    t0_ns: int, config: Config, calibrator: StreamingCalibrator
+) -> dict[str, Any]:
     assert calibrator.t_ref_ns is not None
     offset = (calibrator.t_ref_ns - t0_ns) * 1e-9
     sensors: dict[str, Any] = {}
@@ -61,22 +69,28 @@ def segments_document(t0_ns: int, config: Config, calibrator: StreamingCalibrato
                     "start_s": offset + w.start_s,
                     "end_s": offset + w.end_s,
                     "min_singular_value": w.min_singular_value,
-                    "rotation_std_deg": w.rotation_std_deg if np.isfinite(w.rotation_std_deg) else None,
+                    "rotation_std_deg": w.rotation_std_deg
+                    if np.isfinite(w.rotation_std_deg)
+                    else None,
                     "selected": w.selected,
                     "translation_observable": w.translation_observable,
-                    "translation_std_m": [v if np.isfinite(v) else None for v in w.translation_std_m],
+                    "translation_std_m": [
+                        v if np.isfinite(v) else None for v in w.translation_std_m
+                    ],
                     **({} if w.valid else {"gap": True}),
                 }
                 for w in windows
             ],
         }
-    return to_plain({
-        "imucal_version": version(),
-        "t0_ns": t0_ns,
-        "window_s": config.segments.window_s,
-        "max_rotation_std_deg": config.segments.max_rotation_std_deg,
-        "sensors": sensors,
-    })
+    return to_plain(
+        {
+            "imucal_version": version(),
+            "t0_ns": t0_ns,
+            "window_s": config.segments.window_s,
+            "max_rotation_std_deg": config.segments.max_rotation_std_deg,
+            "sensors": sensors,
+        }
+    )
 
 
 def _std_list(values: np.ndarray | None) -> list[float] | None:
@@ -99,8 +113,16 @@ def lost_seconds(losses: Sequence[Loss]) -> float | None:
 
 def losses_document(losses: Sequence[Loss]) -> list[dict[str, Any]]:
     return [
-        {"reason": x.describe(), "offset": x.offset, "bytes": x.nbytes, "start_ns": x.start_ns, "end_ns": x.end_ns, "messages": x.messages}
-        for x in losses if x.lost
+        {
+            "reason": x.describe(),
+            "offset": x.offset,
+            "bytes": x.nbytes,
+            "start_ns": x.start_ns,
+            "end_ns": x.end_ns,
+            "messages": x.messages,
+        }
+        for x in losses
+        if x.lost
     ]
 
 
@@ -120,23 +142,39 @@ def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
             continue
         for key, knots in (("gyro", est.gyro_bias_knots), ("accel", est.accel_bias_knots)):
             if len(knots) > 2:
-                walks[key].append(float(np.sqrt(np.mean(np.diff(knots, axis=0) ** 2) / result.config.segments.window_s)))
+                walks[key].append(
+                    float(
+                        np.sqrt(
+                            np.mean(np.diff(knots, axis=0) ** 2) / result.config.segments.window_s
+                        )
+                    )
+                )
     walk_g, walk_a = (min(w) if w else None for w in (walks["gyro"], walks["accel"]))
     return {
-        "gyroscope_noise_density": gyro, "accelerometer_noise_density": accel,
+        "gyroscope_noise_density": gyro,
+        "accelerometer_noise_density": accel,
         "gyroscope_random_walk": None if walk_g is None else max(walk_g, MIN_RANDOM_WALK),
         "accelerometer_random_walk": None if walk_a is None else max(walk_a, MIN_RANDOM_WALK),
     }
 
 
-#: What reading drops from a topic (:class:`~imucal_cli.reading.ReadStats`), and how a warning says it.
-DROPPED = {"decode_errors": "not decodable", "non_finite": "not finite", "implausible": "beyond any IMU's range",
-           "saturated": "clipped at the sensor's range", "stamp_outliers": "with a damaged stamp", "duplicates": "with a duplicate stamp"}
+#: What reading drops from a topic (:class:`~imucal_cli.reading.ReadStats`), and how a warning says
+#: it.
+DROPPED = {
+    "decode_errors": "not decodable",
+    "non_finite": "not finite",
+    "implausible": "beyond any IMU's range",
+    "saturated": "clipped at the sensor's range",
+    "stamp_outliers": "with a damaged stamp",
+    "duplicates": "with a duplicate stamp",
+}
 
 
 def dropped_document(counts: Mapping[str, Mapping[str, int]]) -> dict[str, dict[str, int]]:
     """Per topic that dropped any, the samples reading dropped, by reason."""
-    out = {topic: {k: int(c.get(k, 0)) for k in DROPPED if c.get(k, 0)} for topic, c in counts.items()}
+    out = {
+        topic: {k: int(c.get(k, 0)) for k in DROPPED if c.get(k, 0)} for topic, c in counts.items()
+    }
     return {topic: d for topic, d in out.items() if d}
 
 
@@ -146,14 +184,25 @@ def read_warnings(topic: str, counts: Mapping[str, int]) -> list[str]:
     out = []
     if dropped:
         total, messages = sum(dropped.values()), max(int(counts.get("messages", 0)), 1)
-        out.append(f"{topic}: {total:,} of {messages:,} messages dropped ({100 * total / messages:.1f}%: "
-                   + ", ".join(f"{n:,} {DROPPED[k]}" for k, n in dropped.items()) + "); windows with a gap there are not used")
+        out.append(
+            f"{topic}: {total:,} of {messages:,} messages dropped ({100 * total / messages:.1f}%: "
+            + ", ".join(f"{n:,} {DROPPED[k]}" for k, n in dropped.items())
+            + "); windows with a gap there are not used"
+        )
     if counts.get("clock_jumps"):
-        out.append(f"{topic}: its stamps jump by a minute or more {counts['clock_jumps']} times; the windows across a jump are not used")
+        out.append(
+            f"{topic}: its stamps jump by a minute or more {counts['clock_jumps']} times; the "
+            "windows across a jump are not used"
+        )
     return out
 
 
-def calibration_document(result: CalibrationResult, log: str, losses: Sequence[Loss] = (), counts: Mapping[str, Mapping[str, int]] | None = None) -> dict[str, Any]:
+def calibration_document(
+    result: CalibrationResult,
+    log: str,
+    losses: Sequence[Loss] = (),
+    counts: Mapping[str, Mapping[str, int]] | None = None,
+) -> dict[str, Any]:
     """The SPEC's calibrate document; ``losses`` (what reading the log could not read) go in
     as ``losses`` and ``lost_s`` (None: a span not known), undecodable messages counted in
     ``lost_s`` at their topic's rate; ``counts`` (per topic, what reading counted) as
@@ -161,18 +210,27 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
     config = result.config
     counts = counts or {}
     lost_s = lost_seconds(losses)
-    for topic, name in [(config.base.topic, "base"), *((s.imu_topic, s.name) for s in config.sensors)]:
+    for topic, name in [
+        (config.base.topic, "base"),
+        *((s.imu_topic, s.name) for s in config.sensors),
+    ]:
         undecodable, rate = counts.get(topic, {}).get("decode_errors", 0), _rate(result, name)
         if undecodable and lost_s is not None:
             lost_s = None if rate is None else lost_s + undecodable / rate
-    base_warnings = [f"base: {w}" for w in read_warnings(config.base.topic, counts.get(config.base.topic, {}))]
+    base_warnings = [
+        f"base: {w}" for w in read_warnings(config.base.topic, counts.get(config.base.topic, {}))
+    ]
     sensors: dict[str, Any] = {}
     for sensor in config.sensors:
         est = result.estimates[sensor.name]
         cov = est.covariance
         sensors[sensor.name] = {
             "status": est.status,
-            "warnings": [*est.warnings, *base_warnings, *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {}))],
+            "warnings": [
+                *est.warnings,
+                *base_warnings,
+                *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {})),
+            ],
             "imu_topic": sensor.imu_topic,
             "lidar_frame": sensor.lidar_frame,
             "imu_rate_hz": _rate(result, sensor.name),
@@ -181,7 +239,9 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
             "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
             "rotation_std_deg": _std_list(est.rotation_std_deg),
             "translation_std_m": _std_list(est.translation_std_m),
-            "covariance": None if cov is None else {
+            "covariance": None
+            if cov is None
+            else {
                 "of": "T_base_imu",
                 "order": ["rx", "ry", "rz", "tx", "ty", "tz"],
                 "rotation_axes": "base",
@@ -197,27 +257,35 @@ def calibration_document(result: CalibrationResult, log: str, losses: Sequence[L
             "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,
             "gyro_bias_radps": est.gyro_bias,
             "accel_bias_mps2": est.accel_bias,
-            "segments": {"total": len(est.windows), "selected": sum(w.selected for w in est.windows)},
-            "residual_rms": {"gyro_radps": est.residual_rms_gyro, "accel_mps2": est.residual_rms_accel},
+            "segments": {
+                "total": len(est.windows),
+                "selected": sum(w.selected for w in est.windows),
+            },
+            "residual_rms": {
+                "gyro_radps": est.residual_rms_gyro,
+                "accel_mps2": est.residual_rms_accel,
+            },
         }
     names = sorted(s.name for s in config.sensors)
     pairs = {
         f"{a}/{b}": (result.T_base_lidar(a).inverse() * result.T_base_lidar(b)).to_dict()
         for a, b in combinations(names, 2)
     }
-    return to_plain({  # plain types: yaml.safe_dump and json.dumps take it as it is
-        "imucal_version": version(),
-        "log": log,
-        "base_frame": config.base.frame,
-        "base_topic": config.base.topic,
-        "base_imu_rate_hz": _rate(result, "base"),
-        "base_imu_noise": imu_noise(result, "base"),
-        "sensors": sensors,
-        "pairs": pairs,
-        "lost_s": lost_s,
-        "losses": losses_document(losses),
-        "dropped": dropped_document(counts),
-    })
+    return to_plain(
+        {  # plain types: yaml.safe_dump and json.dumps take it as it is
+            "imucal_version": version(),
+            "log": log,
+            "base_frame": config.base.frame,
+            "base_topic": config.base.topic,
+            "base_imu_rate_hz": _rate(result, "base"),
+            "base_imu_noise": imu_noise(result, "base"),
+            "sensors": sensors,
+            "pairs": pairs,
+            "lost_s": lost_s,
+            "losses": losses_document(losses),
+            "dropped": dropped_document(counts),
+        }
+    )
 
 
 def transform_errors(estimate: Transform, truth: Transform) -> dict[str, Any]:
@@ -242,7 +310,10 @@ def evaluate_document(
     """Every sensor present in both, and every pair ``T_a_b = T_base_a^-1 T_base_b``. A sensor
     in one file and not the other fails the evaluation unless ``allow_missing``."""
     names = sorted(set(estimates) & set(truths))
-    missing = {"estimate_only": sorted(set(estimates) - set(truths)), "truth_only": sorted(set(truths) - set(estimates))}
+    missing = {
+        "estimate_only": sorted(set(estimates) - set(truths)),
+        "truth_only": sorted(set(truths) - set(estimates)),
+    }
     sensors = {n: transform_errors(estimates[n], truths[n]) for n in names}
     pairs = {}
     for a, b in combinations(names, 2):
@@ -252,18 +323,25 @@ def evaluate_document(
         del errors["translation_error_xyz_m"]
         pairs[f"{a}/{b}"] = errors
     rows = list(sensors.values()) + list(pairs.values())
-    passed = bool(names) and (allow_missing or not (missing["estimate_only"] or missing["truth_only"]))
+    passed = bool(names) and (
+        allow_missing or not (missing["estimate_only"] or missing["truth_only"])
+    )
     if max_rotation_deg is not None:
         passed &= all(r["rotation_error_deg"] <= max_rotation_deg for r in rows)
     if max_translation_m is not None:
         passed &= all(r["translation_error_m"] <= max_translation_m for r in rows)
-    return to_plain({
-        "sensors": sensors,
-        "pairs": pairs,
-        "thresholds": {"max_rotation_deg": max_rotation_deg, "max_translation_m": max_translation_m},
-        "missing": missing,
-        "pass": passed,
-    })
+    return to_plain(
+        {
+            "sensors": sensors,
+            "pairs": pairs,
+            "thresholds": {
+                "max_rotation_deg": max_rotation_deg,
+                "max_translation_m": max_translation_m,
+            },
+            "missing": missing,
+            "pass": passed,
+        }
+    )
 
 
 def _rotation_angle_deg(a: Any, b: Any) -> float:

@@ -22,7 +22,9 @@ ROSBAG2_FILES = (".db3", ".mcap", ".db3-shm", ".db3-wal", ".db3-journal", ".zstd
 def log_folder(path: Path) -> Path:
     """The log a path stands for: a rosbag2 folder for its ``metadata.yaml`` or for one of its
     storage files; the path itself otherwise."""
-    if path.name == "metadata.yaml" or (path.suffix in ROSBAG2_FILES and (path.parent / "metadata.yaml").is_file()):
+    if path.name == "metadata.yaml" or (
+        path.suffix in ROSBAG2_FILES and (path.parent / "metadata.yaml").is_file()
+    ):
         return path.parent
     return path
 
@@ -53,9 +55,14 @@ def check_outputs(outputs: Mapping[str, Path | None], inputs: Iterable[Path | No
         seen[real] = option
         for root, given in roots.items():
             if real == root:
-                raise InputError(f"{out}: {option} is {given}, an input of this run: give another output")
+                raise InputError(
+                    f"{out}: {option} is {given}, an input of this run: give another output"
+                )
             if root.is_dir() and root in real.parents:
-                raise InputError(f"{out}: {option} lies inside {given}, an input of this run: give another output")
+                raise InputError(
+                    f"{out}: {option} lies inside {given}, an input of this run: give another "
+                    "output"
+                )
 
 
 def recognised_log(path: Path) -> bool:
@@ -72,7 +79,9 @@ def recognised_log(path: Path) -> bool:
     if path.is_dir():
         entries = list(path.iterdir())
         return (path / "metadata.yaml").is_file() and all(
-            entry.is_file() and not entry.is_symlink() and (entry.name == "metadata.yaml" or entry.name.endswith(ROSBAG2_FILES))
+            entry.is_file()
+            and not entry.is_symlink()
+            and (entry.name == "metadata.yaml" or entry.name.endswith(ROSBAG2_FILES))
             for entry in entries
         )
     return False
@@ -87,6 +96,8 @@ def refuse_existing(path: Path, force: bool, what: str = "a log") -> None:
     if real == here or real in here.parents:
         raise InputError(f"{path}: is the current folder or one above it: name a new log")
     if not force:
-        raise InputError(f"{path}: exists: name a new one, or give --force to replace it ({what} only)")
+        raise InputError(
+            f"{path}: exists: name a new one, or give --force to replace it ({what} only)"
+        )
     if not recognised_log(path):
         raise InputError(f"{path}: exists and is not a log imucal recognises: not replaced")

@@ -52,7 +52,9 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
     )
 
 
-def make_calibrator(config: Config, block_windows: int | None = None, reorder_s: float | None = None) -> StreamingCalibrator:
+def make_calibrator(
+    config: Config, block_windows: int | None = None, reorder_s: float | None = None
+) -> StreamingCalibrator:
     """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names
     (``block_windows=1``: every window reduced as soon as the data cover it, for live use)."""
     extra: dict[str, Any] = {} if block_windows is None else {"block_windows": block_windows}
@@ -60,7 +62,15 @@ def make_calibrator(config: Config, block_windows: int | None = None, reorder_s:
         extra["reorder_s"] = reorder_s
     return StreamingCalibrator(
         [
-            SensorSetup(s.name, s.prior_T_base_imu, options_for(config, s), s.gyro_units, s.accel_units, s.imu_topic, f"sensors.{s.name}")
+            SensorSetup(
+                s.name,
+                s.prior_T_base_imu,
+                options_for(config, s),
+                s.gyro_units,
+                s.accel_units,
+                s.imu_topic,
+                f"sensors.{s.name}",
+            )
             for s in config.sensors
         ],
         base_name="base",
@@ -90,17 +100,27 @@ def missing_axes(estimate: SensorEstimate, stop: Any) -> list[str]:
     rotation, translation = estimate.rotation_std_deg, estimate.translation_std_m
     assert rotation is not None and translation is not None
     names = list(MANOEUVRES)
-    out = [f"{names[k]}: {MANOEUVRES[names[k]]} (std {rotation[k]:.3g} deg, target {stop.max_rotation_std_deg:g})" for k in range(3) if rotation[k] > stop.max_rotation_std_deg]
+    out = [
+        f"{names[k]}: {MANOEUVRES[names[k]]} (std {rotation[k]:.3g} deg, target "
+        f"{stop.max_rotation_std_deg:g})"
+        for k in range(3)
+        if rotation[k] > stop.max_rotation_std_deg
+    ]
     out += [
-        f"{names[3 + k]}: {MANOEUVRES[names[3 + k]]} (std {translation[k]:.3g} m, target {stop.max_translation_std_m:g})"
-        for k in range(3) if translation[k] > stop.max_translation_std_m or not estimate.translation_observable[k]
+        f"{names[3 + k]}: {MANOEUVRES[names[3 + k]]} (std {translation[k]:.3g} m, target "
+        f"{stop.max_translation_std_m:g})"
+        for k in range(3)
+        if translation[k] > stop.max_translation_std_m or not estimate.translation_observable[k]
     ]
     return out
 
 
 def converged(result: CalibrationResult) -> bool:
     """Every sensor ``ok`` and within the config's ``stop:`` targets."""
-    return all(e.status == "ok" and not missing_axes(e, result.config.stop) for e in result.estimates.values())
+    return all(
+        e.status == "ok" and not missing_axes(e, result.config.stop)
+        for e in result.estimates.values()
+    )
 
 
 def feed(calibrator: StreamingCalibrator, streams: DriveStreams, block_s: float = 10.0) -> None:
@@ -122,7 +142,13 @@ def feed(calibrator: StreamingCalibrator, streams: DriveStreams, block_s: float 
 def bias_trackers(config: Config) -> dict[str, BiasTracker]:
     """A :class:`BiasTracker` per IMU (``base`` first, then each sensor), as the config says."""
     rest, gyro = config.rest, config.gyro_bias
-    args = (rest.accel_tolerance_mps2, rest.gyro_tolerance_radps, rest.min_duration_s, np.radians(gyro.process_noise_dps), np.radians(gyro.initial_std_dps))
+    args = (
+        rest.accel_tolerance_mps2,
+        rest.gyro_tolerance_radps,
+        rest.min_duration_s,
+        np.radians(gyro.process_noise_dps),
+        np.radians(gyro.initial_std_dps),
+    )
     return {name: BiasTracker(*args) for name in ["base", *(s.name for s in config.sensors)]}
 
 
@@ -208,7 +234,8 @@ class StreamedLog:
     def counts(self) -> dict[str, dict[str, int]]:
         """Per topic, what reading counted (:class:`ReadStats`), the calibrator's duplicates in."""
         return {
-            topic: stats.to_dict() | {"duplicates": stats.duplicates + self.duplicates.get(topic, 0)}
+            topic: stats.to_dict()
+            | {"duplicates": stats.duplicates + self.duplicates.get(topic, 0)}
             for topic, stats in self.stats.items()
         }
 
@@ -217,8 +244,12 @@ Sink = Callable[[str, np.ndarray, np.ndarray, np.ndarray], object]
 
 
 def read_log(
-    reader: ImuBatches, config: Config, sink: Sink, clocks: bool = True,
-    progress: Callable[[int, int], None] | None = None, after: Callable[[], None] | None = None,
+    reader: ImuBatches,
+    config: Config,
+    sink: Sink,
+    clocks: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+    after: Callable[[], None] | None = None,
 ) -> int | None:
     """The one read loop: every IMU batch of ``reader`` to ``sink(name, stamps, gyro,
     accel)`` (``name``: "base" or the sensor's), the clocks compared (``clocks``),
@@ -242,13 +273,17 @@ def read_log(
     return t0_ns
 
 
-def _finish(reader: ImuBatches, calibrator: StreamingCalibrator, t0_ns: int | None, config: Config) -> StreamedLog:
+def _finish(
+    reader: ImuBatches, calibrator: StreamingCalibrator, t0_ns: int | None, config: Config
+) -> StreamedLog:
     """What is left reduced, once the reading has ended; the topics that gave too little
     data named."""
     log, lost = reader.path, lost_summary(reader.losses)
     for topic, stats in reader.stats.items():
         if stats.usable() < 10:
-            raise InputError(f"{log} [{topic}]: too little data: {stats.usable()} usable messages{lost}")
+            raise InputError(
+                f"{log} [{topic}]: too little data: {stats.usable()} usable messages{lost}"
+            )
     if calibrator.t_ref_ns is None or t0_ns is None:
         raise InputError(f"{log}: too little data: an IMU topic has no messages{lost}")
     try:
@@ -256,10 +291,14 @@ def _finish(reader: ImuBatches, calibrator: StreamingCalibrator, t0_ns: int | No
     except ImucalError as exc:
         raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
     duplicates = {topic: calibrator.duplicates(name) for topic, name in imu_names(config).items()}
-    return StreamedLog(log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name)
+    return StreamedLog(
+        log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name
+    )
 
 
-def stream_log(log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None) -> StreamedLog:
+def stream_log(
+    log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None
+) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
     log's length: windows reduced, nothing solved yet."""
     reader = ImuBatches(Path(log), imu_names(config))
@@ -268,7 +307,9 @@ def stream_log(log: str | Path, config: Config, progress: Callable[[int, int], N
     return _finish(reader, calibrator, t0_ns, config)
 
 
-def stream_biases(log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+def stream_biases(
+    log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None
+) -> dict[str, Any]:
     """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
     :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length."""
     from imucal_cli.outputs import (
@@ -282,16 +323,28 @@ def stream_biases(log: str | Path, config: Config, progress: Callable[[int, int]
     names = imu_names(config)
     trackers = bias_trackers(config)
     reader = ImuBatches(Path(log), names)
-    read_log(reader, config, lambda name, t, w, f: trackers[name].add(t, w, f), clocks=False, progress=progress)
+    read_log(
+        reader,
+        config,
+        lambda name, t, w, f: trackers[name].add(t, w, f),
+        clocks=False,
+        progress=progress,
+    )
     empty = [topic for topic, name in names.items() if trackers[name].first_ns is None]
     if empty:
-        raise InputError(f"{log} [{empty[0]}]: too little data: no usable message{lost_summary(reader.losses)}")
+        raise InputError(
+            f"{log} [{empty[0]}]: too little data: no usable message{lost_summary(reader.losses)}"
+        )
     reports = {name: tracker.report() for name, tracker in trackers.items()}
     document = biases_document(min(r.first_ns for r in reports.values()), config, reports)
     counts = {topic: stats.to_dict() for topic, stats in reader.stats.items()}
     for topic, name in names.items():  # what reading lost and dropped, said where it happened
         document["imus"][name]["warnings"] += read_warnings(topic, counts[topic])
-    return document | {"lost_s": lost_seconds(reader.losses), "losses": losses_document(reader.losses), "dropped": dropped_document(counts)}
+    return document | {
+        "lost_s": lost_seconds(reader.losses),
+        "losses": losses_document(reader.losses),
+        "dropped": dropped_document(counts),
+    }
 
 
 @dataclass
@@ -303,7 +356,9 @@ class LogCalibration:
     streamed: StreamedLog  # what reading found: counts per topic, losses
 
 
-def calibrate_log(log: str | Path, config: Config | str | Path, progress: Callable[[int, int], None] | None = None) -> LogCalibration:
+def calibrate_log(
+    log: str | Path, config: Config | str | Path, progress: Callable[[int, int], None] | None = None
+) -> LogCalibration:
     """Calibrate every sensor of ``config`` from the IMU topics of ``log`` (MCAP, rosbag2 or
     ROS 1 bag). ``config`` is a :class:`Config` or the path of its YAML file; ``progress`` is
     called with (messages read, messages in the log) as reading goes."""
@@ -321,8 +376,11 @@ def _calibration(streamed: StreamedLog, result: CalibrationResult) -> LogCalibra
 
 
 def follow_log(
-    log: str | Path, config: Config, on_update: Callable[[CalibrationResult, int], None] | None = None,
-    stop: Callable[[], bool] = lambda: False, until_converged: bool = False,
+    log: str | Path,
+    config: Config,
+    on_update: Callable[[CalibrationResult, int], None] | None = None,
+    stop: Callable[[], bool] = lambda: False,
+    until_converged: bool = False,
 ) -> tuple[LogCalibration, bool, bool]:
     """Follow a log that is still being written (an MCAP file, or a rosbag2 folder recording
     to mcap or sqlite3 storage): the estimate after every window, ``on_update(result,
@@ -356,8 +414,16 @@ def follow_log(
         t0_ns = _first_stamp(calibrator)
     if done[0] and not stop():  # converged: the estimate that did
         duplicates = {t: calibrator.duplicates(n) for t, n in imu_names(config).items()}
-        streamed = StreamedLog(Path(log), config, calibrator, int(t0_ns or 0), reader.stats,
-                               duplicates, reader.losses, reader.format_name)
+        streamed = StreamedLog(
+            Path(log),
+            config,
+            calibrator,
+            int(t0_ns or 0),
+            reader.stats,
+            duplicates,
+            reader.losses,
+            reader.format_name,
+        )
         result = state["result"]
     else:  # the recording ended, time is up, or a Ctrl-C: what is buffered, reduced
         try:
@@ -365,11 +431,21 @@ def follow_log(
         except ImucalError:
             if not interrupted or state["result"] is None:  # after a Ctrl-C: the estimate so far
                 raise
-            streamed = StreamedLog(Path(log), config, calibrator, int(t0_ns or 0), reader.stats, {},
-                                   reader.losses, reader.format_name)
+            streamed = StreamedLog(
+                Path(log),
+                config,
+                calibrator,
+                int(t0_ns or 0),
+                reader.stats,
+                {},
+                reader.losses,
+                reader.format_name,
+            )
         result = _estimate_now(calibrator, config) or state["result"]
     if result is None:
-        raise InputError(f"{log}: too little data to estimate anything yet{lost_summary(reader.losses)}")
+        raise InputError(
+            f"{log}: too little data to estimate anything yet{lost_summary(reader.losses)}"
+        )
     run = _calibration(streamed, result)
     good = converged(result)
     for name, sensor in result.estimates.items():  # what each sensor still lacks of the targets
@@ -406,4 +482,9 @@ def estimate(streamed: StreamedLog) -> CalibrationResult:
             f"{streamed.log}: the IMU data are numerically degenerate ({exc}); the log may hold "
             "damaged samples"
         ) from None
-    return CalibrationResult(estimates, streamed.config, dict(streamed.calibrator.rates_hz), dict(streamed.calibrator.noise))
+    return CalibrationResult(
+        estimates,
+        streamed.config,
+        dict(streamed.calibrator.rates_hz),
+        dict(streamed.calibrator.noise),
+    )

@@ -39,7 +39,9 @@ class ReadStats:
     saturated: int = 0  # a gyro or accelerometer axis clipped at its range: dropped
     clock_jumps: int = 0  # stamps leaping by more than CLOCK_JUMP_S (forwards or back)
     gaps: int = 0  # steps over GAP_PERIODS median periods: windows spanning them are not used
-    implausible: int = 0  # values no IMU measures (|gyro| > 100 rad/s, |accel| > 2000 m/s^2): dropped
+    implausible: int = (
+        0  # values no IMU measures (|gyro| > 100 rad/s, |accel| > 2000 m/s^2): dropped
+    )
     stamp_outliers: int = 0  # a lone stamp far from both neighbours (a damaged message): dropped
     frame_ids: list[str] = field(default_factory=list)
 
@@ -60,7 +62,9 @@ class ImuRead:
     log_time_ns: np.ndarray  # log (receive) time of each kept sample, same order as the stream
 
 
-def _finish_topic(t_ns: np.ndarray, log_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, stats: ReadStats) -> ImuRead:
+def _finish_topic(
+    t_ns: np.ndarray, log_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray, stats: ReadStats
+) -> ImuRead:
     """One topic's samples (in log order) sorted by stamp, duplicate stamps removed, counted."""
     from imucal_cli.types import ImuStream
 
@@ -71,7 +75,11 @@ def _finish_topic(t_ns: np.ndarray, log_ns: np.ndarray, gyro: np.ndarray, accel:
     stats.duplicates = int(np.count_nonzero(~keep))
     index = order[keep]
     frame_id = stats.frame_ids[0] if stats.frame_ids else ""
-    return ImuRead(ImuStream(t_ns[index], gyro[index].reshape(-1, 3), accel[index].reshape(-1, 3), frame_id), stats, log_ns[index])
+    return ImuRead(
+        ImuStream(t_ns[index], gyro[index].reshape(-1, 3), accel[index].reshape(-1, 3), frame_id),
+        stats,
+        log_ns[index],
+    )
 
 
 #: A step between consecutive stamps of one topic longer than this (s) is a clock jump.
@@ -126,7 +134,10 @@ def _clipped(values: np.ndarray, floor: float) -> np.ndarray:
         at = np.abs(values[:, axis]) == extreme[axis]
         if np.count_nonzero(at) < SATURATION_RUN:
             continue  # too few samples at the extreme for a run
-        run = np.convolve(at.astype(np.int64), np.ones(SATURATION_RUN, dtype=np.int64), mode="valid") == SATURATION_RUN
+        run = (
+            np.convolve(at.astype(np.int64), np.ones(SATURATION_RUN, dtype=np.int64), mode="valid")
+            == SATURATION_RUN
+        )
         for k in range(SATURATION_RUN):
             out[k : k + len(run)] |= run
     return out
@@ -138,7 +149,9 @@ class ImuBatches:
     zero replaced by the log time). What was read is counted in :attr:`stats`; what could not
     be read is in :attr:`losses` once iterated."""
 
-    def __init__(self, path: str | Path, topics: Iterable[str], follow: Callable[[], bool] | None = None) -> None:
+    def __init__(
+        self, path: str | Path, topics: Iterable[str], follow: Callable[[], bool] | None = None
+    ) -> None:
         self.path = Path(path)
         #: Follow mode: read a log still being written until ``follow()`` says stop (or it ends).
         self.follow = follow
@@ -152,7 +165,14 @@ class ImuBatches:
         self._reached: dict[str, int] = {}  # per topic: the latest stamp kept so far
         self._period: dict[str, float] = {}  # per topic: median step between stamps (ns)
 
-    def _screen(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, gyro: np.ndarray, accel: np.ndarray):
+    def _screen(
+        self,
+        topic: str,
+        stamps: np.ndarray,
+        log_times: np.ndarray,
+        gyro: np.ndarray,
+        accel: np.ndarray,
+    ):
         """Drop (and count) samples with non-finite, implausible or clipped values and damaged
         stamps. The common case (nothing to drop) costs a few whole-batch reductions."""
         st = self.stats[topic]
@@ -165,15 +185,24 @@ class ImuBatches:
         jump = int(CLOCK_JUMP_S * 1e9)
         reached_before = self._reached.get(topic, -(2**62))
         # whole-array extremes (a NaN anywhere makes them NaN, and the comparisons False)
-        g_lo, g_hi, a_lo, a_hi = float(gyro.min()), float(gyro.max()), float(accel.min()), float(accel.max())
+        g_lo, g_hi, a_lo, a_hi = (
+            float(gyro.min()),
+            float(gyro.max()),
+            float(accel.min()),
+            float(accel.max()),
+        )
         values_ok = (
-            g_lo > -SATURATION_GYRO_RADPS and g_hi < SATURATION_GYRO_RADPS
-            and a_lo > -SATURATION_ACCEL_MPS2 and a_hi < SATURATION_ACCEL_MPS2
+            g_lo > -SATURATION_GYRO_RADPS
+            and g_hi < SATURATION_GYRO_RADPS
+            and a_lo > -SATURATION_ACCEL_MPS2
+            and a_hi < SATURATION_ACCEL_MPS2
         )
         low, high = int(stamps.min()), int(stamps.max())
         # no step can leap by more than `jump` when the whole batch spans less than that
         narrow = high - low <= jump
-        stamps_ok = (narrow or bool(np.abs(np.diff(stamps)).max() <= jump)) and low >= reached_before - jump
+        stamps_ok = (
+            narrow or bool(np.abs(np.diff(stamps)).max() <= jump)
+        ) and low >= reached_before - jump
         quiet = narrow and low >= reached_before - jump  # nothing leaps, nothing falls behind
         if values_ok and stamps_ok:
             self._reached[topic] = max(reached_before, high)
@@ -181,33 +210,51 @@ class ImuBatches:
         # values past the saturation floors but finite and plausible, stamps quiet (a lively
         # sensor): only a clipped run could be dropped, and there is none in the usual case
         plausible = (
-            g_lo >= -IMPLAUSIBLE_GYRO_RADPS and g_hi <= IMPLAUSIBLE_GYRO_RADPS
-            and a_lo >= -IMPLAUSIBLE_ACCEL_MPS2 and a_hi <= IMPLAUSIBLE_ACCEL_MPS2
+            g_lo >= -IMPLAUSIBLE_GYRO_RADPS
+            and g_hi <= IMPLAUSIBLE_GYRO_RADPS
+            and a_lo >= -IMPLAUSIBLE_ACCEL_MPS2
+            and a_hi <= IMPLAUSIBLE_ACCEL_MPS2
         )  # and finite: a NaN anywhere makes the extremes NaN, and the comparisons False
-        if quiet and plausible and not (_clipped(gyro, SATURATION_GYRO_RADPS).any() or _clipped(accel, SATURATION_ACCEL_MPS2).any()):
+        if (
+            quiet
+            and plausible
+            and not (
+                _clipped(gyro, SATURATION_GYRO_RADPS).any()
+                or _clipped(accel, SATURATION_ACCEL_MPS2).any()
+            )
+        ):
             self._reached[topic] = max(reached_before, high)
             return stamps, log_times, gyro, accel
         finite = np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1)
         bad = ~finite
         st.non_finite += int(np.count_nonzero(bad))
         with np.errstate(invalid="ignore"):
-            absurd = finite & ((np.abs(gyro) > IMPLAUSIBLE_GYRO_RADPS).any(axis=1) | (np.abs(accel) > IMPLAUSIBLE_ACCEL_MPS2).any(axis=1))
+            absurd = finite & (
+                (np.abs(gyro) > IMPLAUSIBLE_GYRO_RADPS).any(axis=1)
+                | (np.abs(accel) > IMPLAUSIBLE_ACCEL_MPS2).any(axis=1)
+            )
         st.implausible += int(np.count_nonzero(absurd))
         bad |= absurd
         finite &= ~absurd
         outlier = _stamp_outliers(stamps)
         # stamps that leap back by minutes or more behind what this topic already reached
         # cannot be placed in time: dropped (a forward leap is kept: time moves on)
-        running = np.maximum(np.maximum.accumulate(np.where(outlier, -(2**62), stamps)), reached_before)
+        running = np.maximum(
+            np.maximum.accumulate(np.where(outlier, -(2**62), stamps)), reached_before
+        )
         behind = ~outlier & (stamps < running - jump)
         if (~outlier).any():
             self._reached[topic] = max(reached_before, int(stamps[~outlier].max()))
         st.stamp_outliers += int(np.count_nonzero((outlier | behind) & ~bad))
-        st.clock_jumps += int(np.count_nonzero(np.diff(np.concatenate([[0], behind.astype(np.int8)])) == 1))
+        st.clock_jumps += int(
+            np.count_nonzero(np.diff(np.concatenate([[0], behind.astype(np.int8)])) == 1)
+        )
         bad |= outlier | behind
         clipped = np.zeros(len(stamps), dtype=bool)
         if finite.any():
-            clipped[finite] = _clipped(gyro[finite], SATURATION_GYRO_RADPS) | _clipped(accel[finite], SATURATION_ACCEL_MPS2)
+            clipped[finite] = _clipped(gyro[finite], SATURATION_GYRO_RADPS) | _clipped(
+                accel[finite], SATURATION_ACCEL_MPS2
+            )
         st.saturated += int(np.count_nonzero(clipped))
         bad |= clipped
         if bad.any():
@@ -215,7 +262,9 @@ class ImuBatches:
             return stamps[keep], log_times[keep], gyro[keep], accel[keep]
         return stamps, log_times, gyro, accel
 
-    def _count(self, topic: str, stamps: np.ndarray, log_times: np.ndarray, frame_ids: list[str]) -> np.ndarray:
+    def _count(
+        self, topic: str, stamps: np.ndarray, log_times: np.ndarray, frame_ids: list[str]
+    ) -> np.ndarray:
         st = self.stats[topic]
         if len(stamps):
             previous = self._last_stamp.get(topic)
@@ -251,8 +300,20 @@ class ImuBatches:
                     st = self.stats[batch.topic]
                     st.messages += len(batch.starts)
                     st.decode_errors += decoded.errors
-                    stamps, log_times, gyro, accel = self._screen(batch.topic, decoded.stamp_ns, decoded.log_time_ns, decoded.gyro, decoded.accel)
-                    yield batch.topic, self._count(batch.topic, stamps, log_times, decoded.frame_ids), log_times, gyro, accel
+                    stamps, log_times, gyro, accel = self._screen(
+                        batch.topic,
+                        decoded.stamp_ns,
+                        decoded.log_time_ns,
+                        decoded.gyro,
+                        decoded.accel,
+                    )
+                    yield (
+                        batch.topic,
+                        self._count(batch.topic, stamps, log_times, decoded.frame_ids),
+                        log_times,
+                        gyro,
+                        accel,
+                    )
             finally:
                 self.losses = list(log.losses)
 
@@ -264,7 +325,12 @@ def _decode(log: LogReader, batch: RawBatch) -> DecodedBatch:
         raise log.error(str(exc), batch.topic) from None
 
 
-def read_imu(path: str | Path, topics: Iterable[str], progress: Callable[[int, int], None] | None = None, losses: list[Loss] | None = None) -> dict[str, ImuRead]:
+def read_imu(
+    path: str | Path,
+    topics: Iterable[str],
+    progress: Callable[[int, int], None] | None = None,
+    losses: list[Loss] | None = None,
+) -> dict[str, ImuRead]:
     """Read ``sensor_msgs/Imu`` topics of a log into one :class:`ImuRead` per topic.
 
     Raises :class:`LogError` where the log cannot be read, a topic is missing (the message
@@ -281,9 +347,21 @@ def read_imu(path: str | Path, topics: Iterable[str], progress: Callable[[int, i
         losses.extend(reader.losses)
     out = {}
     for topic, batches in parts.items():
-        stamps, log_times, gyro, accel = (np.concatenate([b[k] for b in batches]) if batches else np.zeros((0, 3) if k > 1 else 0) for k in range(4))
-        if len(log_times) > 1 and np.any(np.diff(log_times) < 0):  # log order, for the backwards count
+        stamps, log_times, gyro, accel = (
+            np.concatenate([b[k] for b in batches]) if batches else np.zeros((0, 3) if k > 1 else 0)
+            for k in range(4)
+        )
+        if len(log_times) > 1 and np.any(
+            np.diff(log_times) < 0
+        ):  # log order, for the backwards count
             order = np.argsort(log_times, kind="stable")
-            stamps, log_times, gyro, accel = stamps[order], log_times[order], gyro[order], accel[order]
-        out[topic] = _finish_topic(stamps.astype(np.int64), log_times.astype(np.int64), gyro, accel, reader.stats[topic])
+            stamps, log_times, gyro, accel = (
+                stamps[order],
+                log_times[order],
+                gyro[order],
+                accel[order],
+            )
+        out[topic] = _finish_topic(
+            stamps.astype(np.int64), log_times.astype(np.int64), gyro, accel, reader.stats[topic]
+        )
     return out

@@ -53,12 +53,22 @@ def _save(fig: Any, path: Path) -> Path:
 
 def bias_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: Path) -> Path:
     """Per sensor: the relative gyro (left) and accelerometer (right) bias at every knot."""
-    fig, axes = plt.subplots(len(estimates), 2, figsize=(13, 2.6 * len(estimates)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(
+        len(estimates), 2, figsize=(13, 2.6 * len(estimates)), sharex=True, squeeze=False
+    )
     for row, (name, est) in zip(axes, estimates.items(), strict=True):
         t = est.bias_knots_s + offset_s
         for k in range(3):
-            row[0].plot(t, np.degrees(est.gyro_bias_knots[:, k]), color=COLOURS[k], lw=1.0, label=f"b_{AXES[k]}")
-            row[1].plot(t, est.accel_bias_knots[:, k], color=COLOURS[k], lw=1.0, label=f"b_{AXES[k]}")
+            row[0].plot(
+                t,
+                np.degrees(est.gyro_bias_knots[:, k]),
+                color=COLOURS[k],
+                lw=1.0,
+                label=f"b_{AXES[k]}",
+            )
+            row[1].plot(
+                t, est.accel_bias_knots[:, k], color=COLOURS[k], lw=1.0, label=f"b_{AXES[k]}"
+            )
         row[0].set_ylabel("gyro bias (deg/s)")
         row[1].set_ylabel("accel bias (m/s^2)")
         row[0].set_title(f"{name}: relative gyro bias, sensor minus base (IMU axes)", fontsize=10)
@@ -72,22 +82,44 @@ def bias_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: P
     return _save(fig, path)
 
 
-def windows_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, threshold_deg: float, path: Path) -> Path:
+def windows_figure(
+    plt: Any, estimates: Mapping[str, Any], offset_s: float, threshold_deg: float, path: Path
+) -> Path:
     """Per sensor: each window's rotation std against the threshold, selected windows shaded."""
-    fig, axes = plt.subplots(len(estimates), 1, figsize=(13, 2.8 * len(estimates)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(
+        len(estimates), 1, figsize=(13, 2.8 * len(estimates)), sharex=True, squeeze=False
+    )
     for ax, (name, est) in zip(axes[:, 0], estimates.items(), strict=True):
         infos = est.windows
         for i, w in enumerate(w for w in infos if w.selected):
-            ax.axvspan(w.start_s + offset_s, w.end_s + offset_s, color="tab:green", alpha=0.15, label=None if i else "selected window")
-        for valid, colour, label in ((True, "tab:blue", "window std"), (False, "tab:orange", "window with a gap (not used)")):
+            ax.axvspan(
+                w.start_s + offset_s,
+                w.end_s + offset_s,
+                color="tab:green",
+                alpha=0.15,
+                label=None if i else "selected window",
+            )
+        for valid, colour, label in (
+            (True, "tab:blue", "window std"),
+            (False, "tab:orange", "window with a gap (not used)"),
+        ):
             mid = [0.5 * (w.start_s + w.end_s) + offset_s for w in infos if w.valid == valid]
-            std = [w.rotation_std_deg if np.isfinite(w.rotation_std_deg) else np.nan for w in infos if w.valid == valid]
+            std = [
+                w.rotation_std_deg if np.isfinite(w.rotation_std_deg) else np.nan
+                for w in infos
+                if w.valid == valid
+            ]
             if mid:
                 ax.plot(mid, std, "_", color=colour, ms=8, mew=2, label=label)
-        ax.axhline(threshold_deg, color="tab:red", ls="--", lw=1, label=f"threshold {threshold_deg:g} deg")
+        ax.axhline(
+            threshold_deg, color="tab:red", ls="--", lw=1, label=f"threshold {threshold_deg:g} deg"
+        )
         ax.set_yscale("log")
         ax.set_ylabel("rotation std (deg, eq. 19)")
-        ax.set_title(f"{name}: windows ({sum(w.selected for w in infos)} of {len(infos)} selected)", fontsize=10)
+        ax.set_title(
+            f"{name}: windows ({sum(w.selected for w in infos)} of {len(infos)} selected)",
+            fontsize=10,
+        )
         ax.legend(loc="upper right", fontsize=8)
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("time since the log's first IMU stamp (s)")
@@ -97,13 +129,26 @@ def windows_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, thre
 
 def residual_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: Path) -> Path:
     """Per sensor: the fit's residual RMS in every window used, against the noise floor."""
-    fig, axes = plt.subplots(len(estimates), 2, figsize=(13, 2.6 * len(estimates)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(
+        len(estimates), 2, figsize=(13, 2.6 * len(estimates)), sharex=True, squeeze=False
+    )
     for row, (name, est) in zip(axes, estimates.items(), strict=True):
         r = est.window_residuals
-        for ax, col, unit, noise in ((row[0], 1, "rad/s", "gyro_radps"), (row[1], 2, "m/s^2", "accel_mps2")):
-            ax.plot(r[:, 0] + offset_s, r[:, col], ".", color="black", ms=3, label="window residual RMS")
+        for ax, col, unit, noise in (
+            (row[0], 1, "rad/s", "gyro_radps"),
+            (row[1], 2, "m/s^2", "accel_mps2"),
+        ):
+            ax.plot(
+                r[:, 0] + offset_s, r[:, col], ".", color="black", ms=3, label="window residual RMS"
+            )
             if noise in est.noise_std:
-                ax.axhline(est.noise_std[noise], color="tab:blue", ls="--", lw=1, label="noise the data imply")
+                ax.axhline(
+                    est.noise_std[noise],
+                    color="tab:blue",
+                    ls="--",
+                    lw=1,
+                    label="noise the data imply",
+                )
             ax.set_ylabel(f"residual ({unit})")
             ax.set_yscale("log")
             ax.grid(alpha=0.3)
@@ -143,7 +188,14 @@ def _draw_axes(ax: Any, T: Any, i: int, j: int, length: float, style: str, alpha
     R = T.rotation.as_matrix()
     for k in range(3):
         end = origin + length * R[:, k]
-        ax.plot([origin[i], end[i]], [origin[j], end[j]], color=COLOURS[k], ls=style, lw=1.4, alpha=alpha)
+        ax.plot(
+            [origin[i], end[i]],
+            [origin[j], end[j]],
+            color=COLOURS[k],
+            ls=style,
+            lw=1.4,
+            alpha=alpha,
+        )
 
 
 def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path) -> Path:
@@ -154,7 +206,10 @@ def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path)
     n = len(poses)
     fig = plt.figure(figsize=(14, 10))
     grid = fig.add_gridspec(2, max(2, n), height_ratios=[1.3, 1])
-    views = (("whole vehicle, top view (x forward, y left)", 0, 1), ("whole vehicle, side view (x forward, z up)", 0, 2))
+    views = (
+        ("whole vehicle, top view (x forward, y left)", 0, 1),
+        ("whole vehicle, side view (x forward, z up)", 0, 2),
+    )
     base_len, sensor_len = 0.5, 0.3
     for col, (title, i, j) in enumerate(views):
         ax = fig.add_subplot(grid[0, col * max(2, n) // 2 : (col + 1) * max(2, n) // 2])
@@ -166,7 +221,9 @@ def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path)
             at = p["lidar"].translation
             ax.plot(at[i], at[j], "s", color="black", ms=4)
             side = 1 if at[1] >= 0 else -1
-            ax.annotate(name, (at[i], at[j]), textcoords="offset points", xytext=(6, 8 * side), fontsize=8)
+            ax.annotate(
+                name, (at[i], at[j]), textcoords="offset points", xytext=(6, 8 * side), fontsize=8
+            )
         ax.set_aspect("equal", adjustable="datalim")
         ax.margins(0.15)
         ax.set_xlabel(f"{'xyz'[i]} in the base frame (m)")
@@ -176,7 +233,11 @@ def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path)
     for col, (name, p) in enumerate(poses.items()):
         ax = fig.add_subplot(grid[1, col])
         close = 0.06
-        for key, style, alpha, marker, colour in (("prior_imu", "--", 0.6, "x", "grey"), ("imu", "-", 1.0, "o", "black"), ("lidar", "-", 1.0, "s", "black")):
+        for key, style, alpha, marker, colour in (
+            ("prior_imu", "--", 0.6, "x", "grey"),
+            ("imu", "-", 1.0, "o", "black"),
+            ("lidar", "-", 1.0, "s", "black"),
+        ):
             _draw_axes(ax, p[key], 0, 1, close, style, alpha)
             ax.plot(p[key].translation[0], p[key].translation[1], marker, color=colour, ms=6)
         centre = p["lidar"].translation
@@ -191,11 +252,14 @@ def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path)
         Line2D([], [], color="black", marker="o", ls="", label="IMU, estimated"),
         Line2D([], [], color="black", marker="s", ls="", label="lidar, estimated"),
         Line2D([], [], color="grey", marker="x", ls="--", label="IMU, CAD prior (dashed axes)"),
-        Line2D([], [], color="tab:red", label="x axis"), Line2D([], [], color="tab:green", label="y axis"),
+        Line2D([], [], color="tab:red", label="x axis"),
+        Line2D([], [], color="tab:green", label="y axis"),
         Line2D([], [], color="tab:blue", label="z axis"),
     ]
     fig.legend(handles=legend, loc="lower center", ncol=6, fontsize=9)
-    fig.suptitle(f"Sensor poses (axes: base {base_len} m, sensors {sensor_len} m; close-ups {close} m)")
+    fig.suptitle(
+        f"Sensor poses (axes: base {base_len} m, sensors {sensor_len} m; close-ups {close} m)"
+    )
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     return _save(fig, path)
 
@@ -208,29 +272,51 @@ def html_page(title: str, document: Mapping[str, Any], figures: list[tuple[Path,
         std_r = s["rotation_std_deg"]
         std_t = s["translation_std_m"]
         rows.append(
-            "<tr>" + "".join(
+            "<tr>"
+            + "".join(
                 f"<td>{html.escape(str(v))}</td>"
                 for v in (
-                    name, s["status"], ", ".join(f"{v:.4f}" for v in T["translation"]), ", ".join(f"{v:.3f}" for v in T["rpy_deg"]),
+                    name,
+                    s["status"],
+                    ", ".join(f"{v:.4f}" for v in T["translation"]),
+                    ", ".join(f"{v:.3f}" for v in T["rpy_deg"]),
                     "-" if std_t is None else ", ".join(f"{1000 * v:.2f}" for v in std_t),
                     "-" if std_r is None else ", ".join(f"{v:.4f}" for v in std_r),
-                    f"{1000 * s['time_offset_s']:.2f}", f"{s['segments']['selected']}/{s['segments']['total']}",
+                    f"{1000 * s['time_offset_s']:.2f}",
+                    f"{s['segments']['selected']}/{s['segments']['total']}",
                 )
-            ) + "</tr>"
+            )
+            + "</tr>"
         )
-    head = "".join(f"<th>{h}</th>" for h in ("sensor", "status", "xyz (m)", "rpy (deg)", "std xyz (mm)", "std rpy (deg)", "time offset (ms)", "windows"))
+    head = "".join(
+        f"<th>{h}</th>"
+        for h in (
+            "sensor",
+            "status",
+            "xyz (m)",
+            "rpy (deg)",
+            "std xyz (mm)",
+            "std rpy (deg)",
+            "time offset (ms)",
+            "windows",
+        )
+    )
     images = "".join(
-        f'<figure><img alt="{html.escape(path.name)}" src="data:image/png;base64,{base64.b64encode(path.read_bytes()).decode()}"/>'
+        f'<figure><img alt="{html.escape(path.name)}" '
+        f'src="data:image/png;base64,{base64.b64encode(path.read_bytes()).decode()}"/>'
         f"<figcaption>{html.escape(caption)}</figcaption></figure>"
         for path, caption in figures
     )
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
-<style>body{{font-family:sans-serif;max-width:1500px;margin:auto;padding:1em}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}img{{max-width:100%}}figure{{margin:2em 0}}</style></head>
+<style>body{{font-family:sans-serif;max-width:1500px;margin:auto;padding:1em}}
+table{{border-collapse:collapse}}
+td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}img{{max-width:100%}}
+figure{{margin:2em 0}}</style></head>
 <body><h1>{html.escape(title)}</h1>
-<p>T_{html.escape(str(document['base_frame']))}_lidar per sensor (imucal {html.escape(str(document['imucal_version']))}).</p>
-<table><tr>{head}</tr>{''.join(rows)}</table>{images}</body></html>
+<p>T_{html.escape(str(document["base_frame"]))}_lidar per sensor
+(imucal {html.escape(str(document["imucal_version"]))}).</p>
+<table><tr>{head}</tr>{"".join(rows)}</table>{images}</body></html>
 """
 
 
@@ -238,7 +324,14 @@ td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}img{{max-width:10
 FIGURES = ("biases.png", "windows.png", "residuals.png", "std.png", "vehicle.png")
 
 
-def write_report(out_dir: Path, log: Path, result: Any, streamed: Any, document: Mapping[str, Any], progress: Any = None) -> list[Path]:
+def write_report(
+    out_dir: Path,
+    log: Path,
+    result: Any,
+    streamed: Any,
+    document: Mapping[str, Any],
+    progress: Any = None,
+) -> list[Path]:
     """Draw every figure into ``out_dir`` and write ``report.html``; returns the files written.
     ``progress`` is told (figures drawn, figures in all) as it goes."""
     from imucal_cli.documents import write_text_atomic
@@ -247,16 +340,49 @@ def write_report(out_dir: Path, log: Path, result: Any, streamed: Any, document:
     out_dir.mkdir(parents=True, exist_ok=True)
     config = result.config
     estimates = {s.name: result.estimates[s.name] for s in config.sensors}
-    offset = (streamed.calibrator.t_ref_ns - streamed.t0_ns) * 1e-9  # the grid clock from the first stamp
-    stds = {n: (s["rotation_std_deg"], s["translation_std_m"]) for n, s in document["sensors"].items()}
-    poses = {s.name: {"imu": estimates[s.name].T_base_imu, "lidar": result.T_base_lidar(s.name), "prior_imu": s.prior_T_base_imu} for s in config.sensors}
+    offset = (
+        streamed.calibrator.t_ref_ns - streamed.t0_ns
+    ) * 1e-9  # the grid clock from the first stamp
+    stds = {
+        n: (s["rotation_std_deg"], s["translation_std_m"]) for n, s in document["sensors"].items()
+    }
+    poses = {
+        s.name: {
+            "imu": estimates[s.name].T_base_imu,
+            "lidar": result.T_base_lidar(s.name),
+            "prior_imu": s.prior_T_base_imu,
+        }
+        for s in config.sensors
+    }
     drawings = [
-        (lambda: bias_figure(plt, estimates, offset, out_dir / "biases.png"), "Relative biases of every sensor at each knot of the joint fit."),
-        (lambda: windows_figure(plt, estimates, offset, config.segments.max_rotation_std_deg, out_dir / "windows.png"),
-         "Per-window rotation std against the threshold; selected windows shaded (paper Figs. 9b-10b)."),
-        (lambda: residual_figure(plt, estimates, offset, out_dir / "residuals.png"), "Residual RMS of the fit in every window used, against the noise."),
-        (lambda: std_figure(plt, stds, out_dir / "std.png"), "One standard deviation of every estimated axis."),
-        (lambda: vehicle_figure(plt, poses, out_dir / "vehicle.png"), "Top and side view: base frame, IMUs and lidars as estimated (solid), CAD prior (dashed)."),
+        (
+            lambda: bias_figure(plt, estimates, offset, out_dir / "biases.png"),
+            "Relative biases of every sensor at each knot of the joint fit.",
+        ),
+        (
+            lambda: windows_figure(
+                plt,
+                estimates,
+                offset,
+                config.segments.max_rotation_std_deg,
+                out_dir / "windows.png",
+            ),
+            "Per-window rotation std against the threshold; selected windows shaded (paper Figs. "
+            "9b-10b).",
+        ),
+        (
+            lambda: residual_figure(plt, estimates, offset, out_dir / "residuals.png"),
+            "Residual RMS of the fit in every window used, against the noise.",
+        ),
+        (
+            lambda: std_figure(plt, stds, out_dir / "std.png"),
+            "One standard deviation of every estimated axis.",
+        ),
+        (
+            lambda: vehicle_figure(plt, poses, out_dir / "vehicle.png"),
+            "Top and side view: base frame, IMUs and lidars as estimated (solid), CAD prior "
+            "(dashed).",
+        ),
     ]
     figures = []
     for k, (draw, caption) in enumerate(drawings, start=1):

@@ -26,6 +26,7 @@ def rotation_type() -> type[Rotation]:
 
     return Rotation
 
+
 #: Standard gravity (m/s^2).
 GRAVITY_MPS2 = 9.80665
 
@@ -103,7 +104,9 @@ def rotation_to_rpy(rotation: Rotation) -> np.ndarray:
     R = rotation.as_matrix()
     pitch = float(np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0])))
     yaw = float(np.arctan2(R[1, 0], R[0, 0]))
-    rest = (rotation_type().from_euler("z", yaw) * rotation_type().from_euler("y", pitch)).inv().as_matrix() @ R
+    rest = (
+        rotation_type().from_euler("z", yaw) * rotation_type().from_euler("y", pitch)
+    ).inv().as_matrix() @ R
     roll = float(np.arctan2(rest[2, 1], rest[1, 1]))
     return np.array([roll, pitch, yaw])
 
@@ -214,7 +217,9 @@ class Transform:
             return f"{key}.{name}" if key else name
 
         if not isinstance(data, Mapping):
-            raise ConfigError(source, key, f"expected a mapping with translation and rotation, got {data!r}")
+            raise ConfigError(
+                source, key, f"expected a mapping with translation and rotation, got {data!r}"
+            )
         unknown = sorted(set(map(str, data)) - {"translation", "rotation", "rpy_deg"})
         if unknown:
             raise ConfigError(
@@ -229,7 +234,9 @@ class Transform:
             value = data["rotation"]
             if not isinstance(value, (list, tuple)) or len(value) != 4:
                 raise ConfigError(
-                    source, sub("rotation"), f"expected a quaternion [qx, qy, qz, qw], got {value!r}"
+                    source,
+                    sub("rotation"),
+                    f"expected a quaternion [qx, qy, qz, qw], got {value!r}",
                 )
             quat = _finite_numbers(value, source, sub("rotation"))
             norm = float(np.linalg.norm(quat))
@@ -237,7 +244,8 @@ class Transform:
                 raise ConfigError(
                     source,
                     sub("rotation"),
-                    f"quaternion norm is {norm:.6g}, not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})",
+                    f"quaternion norm is {norm:.6g}, not 1 (tolerance "
+                    f"{QUATERNION_NORM_TOLERANCE:g})",
                 )
             rotation = rotation_type().from_quat(quat / norm)
         if "rpy_deg" in data:

@@ -26,5 +26,12 @@ def ideal_drive():
     from imucal_cli.sim import DriveOptions, simulate_drive
 
     return simulate_drive(
-        DriveOptions(scenario="urban", duration_s=20.0, seed=5, noise_scale=0.0, time_offsets_s=(0.0,), sensors=4)
+        DriveOptions(
+            scenario="urban",
+            duration_s=20.0,
+            seed=5,
+            noise_scale=0.0,
+            time_offsets_s=(0.0,),
+            sensors=4,
+        )
     )

@@ -15,9 +15,22 @@ IMU_SCHEMA = "sensor_msgs/msg/Imu"
 
 
 class Recorder(threading.Thread):
-    def __init__(self, path: Path, topics, factor: float, die_after_s: float | None = None, chunk_size: int = 64 << 10) -> None:
+    def __init__(
+        self,
+        path: Path,
+        topics,
+        factor: float,
+        die_after_s: float | None = None,
+        chunk_size: int = 64 << 10,
+    ) -> None:
         super().__init__(daemon=True)
-        self.path, self.topics, self.factor, self.die_after_s, self.chunk_size = path, topics, factor, die_after_s, chunk_size
+        self.path, self.topics, self.factor, self.die_after_s, self.chunk_size = (
+            path,
+            topics,
+            factor,
+            die_after_s,
+            chunk_size,
+        )
         self.finished = threading.Event()  # the summary written
         self.started_writing = threading.Event()
 
@@ -29,8 +42,13 @@ class Recorder(threading.Thread):
         with self.path.open("wb") as handle:
             writer = Writer(handle, chunk_size=self.chunk_size)
             writer.start(profile="ros2", library="recorder")
-            schema = writer.register_schema(name=IMU_SCHEMA, encoding="ros2msg", data=msgdef.encode())
-            channels = {t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema) for t in self.topics}
+            schema = writer.register_schema(
+                name=IMU_SCHEMA, encoding="ros2msg", data=msgdef.encode()
+            )
+            channels = {
+                t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema)
+                for t in self.topics
+            }
             handle.flush()
             self.started_writing.set()
             start_wall, start_log = time.monotonic(), None
@@ -40,13 +58,20 @@ class Recorder(threading.Thread):
                 if self.die_after_s is not None and elapsed_log > self.die_after_s:
                     handle.flush()
                     size = handle.tell()
-                    handle.truncate(size - 100)  # the last chunk cut mid-write, no summary: a killed recorder
+                    handle.truncate(
+                        size - 100
+                    )  # the last chunk cut mid-write, no summary: a killed recorder
                     return
                 wait = start_wall + elapsed_log / self.factor - time.monotonic()
                 if wait > 0.005:
                     handle.flush()
                     time.sleep(wait)
-                writer.add_message(channel_id=channels[topic], log_time=log_ns, data=blobs[topic][i].tobytes(), publish_time=log_ns)
+                writer.add_message(
+                    channel_id=channels[topic],
+                    log_time=log_ns,
+                    data=blobs[topic][i].tobytes(),
+                    publish_time=log_ns,
+                )
             writer.finish()
         self.finished.set()
 
@@ -73,11 +98,22 @@ class SqliteRecorder(threading.Thread):
 
         blobs = _serialized(self.topics, False)
         self.folder.mkdir(exist_ok=True)
-        connection = sqlite3.connect(self.folder / f"{self.folder.name}_0.db3", check_same_thread=False)
-        connection.execute("CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL, serialization_format TEXT NOT NULL, offered_qos_profiles TEXT NOT NULL)")
-        connection.execute("CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, timestamp INTEGER NOT NULL, data BLOB NOT NULL)")
+        connection = sqlite3.connect(
+            self.folder / f"{self.folder.name}_0.db3", check_same_thread=False
+        )
+        connection.execute(
+            "CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL, "
+            "serialization_format TEXT NOT NULL, offered_qos_profiles TEXT NOT NULL)"
+        )
+        connection.execute(
+            "CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, timestamp "
+            "INTEGER NOT NULL, data BLOB NOT NULL)"
+        )
         ids = {topic: k + 1 for k, topic in enumerate(self.topics)}
-        connection.executemany("INSERT INTO topics VALUES (?, ?, ?, 'cdr', '')", [(i, t, IMU_SCHEMA) for t, i in ids.items()])
+        connection.executemany(
+            "INSERT INTO topics VALUES (?, ?, ?, 'cdr', '')",
+            [(i, t, IMU_SCHEMA) for t, i in ids.items()],
+        )
         connection.commit()
         self.started_writing.set()
         start_wall, start_log, pending = time.monotonic(), None, []
@@ -85,15 +121,21 @@ class SqliteRecorder(threading.Thread):
             start_log = log_ns if start_log is None else start_log
             wait = start_wall + (log_ns - start_log) * 1e-9 / self.factor - time.monotonic()
             if wait > 0.05:
-                connection.executemany("INSERT INTO messages(topic_id, timestamp, data) VALUES (?, ?, ?)", pending)
+                connection.executemany(
+                    "INSERT INTO messages(topic_id, timestamp, data) VALUES (?, ?, ?)", pending
+                )
                 connection.commit()
                 pending = []
                 time.sleep(wait)
             pending.append((ids[topic], log_ns, blobs[topic][i].tobytes()))
-        connection.executemany("INSERT INTO messages(topic_id, timestamp, data) VALUES (?, ?, ?)", pending)
+        connection.executemany(
+            "INSERT INTO messages(topic_id, timestamp, data) VALUES (?, ?, ?)", pending
+        )
         connection.commit()
         connection.close()
-        (self.folder / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 5, storage_identifier: sqlite3}\n")
+        (self.folder / "metadata.yaml").write_text(
+            "rosbag2_bagfile_information: {version: 5, storage_identifier: sqlite3}\n"
+        )
         self.finished.set()
 
 
@@ -101,5 +143,8 @@ def with_terminal_sigint(argv: list[str]) -> list[str]:
     """``argv`` run with SIGINT as a terminal gives it: a background job (a CI runner's
     included) starts its children with SIGINT ignored, and Python then takes no Ctrl-C. A
     launcher restores the default and execs ``argv`` (a default survives exec)."""
-    restore = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execv(sys.argv[1], sys.argv[1:])"
+    restore = (
+        "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+        "os.execv(sys.argv[1], sys.argv[1:])"
+    )
     return [sys.executable, "-c", restore, *argv]

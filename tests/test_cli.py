@@ -37,7 +37,21 @@ def assert_bad_input(result, *needles):
 def test_simulate_then_inspect_every_format(tmp_path, fmt):
     out = tmp_path / OUT_NAMES[fmt]
     result = runner.invoke(
-        app, ["simulate", str(out), "--scenario", "parking", "--duration", "12", "--seed", "4", "--format", fmt, "--sensors", "3"]
+        app,
+        [
+            "simulate",
+            str(out),
+            "--scenario",
+            "parking",
+            "--duration",
+            "12",
+            "--seed",
+            "4",
+            "--format",
+            fmt,
+            "--sensors",
+            "3",
+        ],
     )
     assert result.exit_code == 0, result.output
     truth = yaml.safe_load((tmp_path / "drive.truth.yaml").read_text())
@@ -74,7 +88,11 @@ def test_inspect_writes_yaml_and_json(tmp_path, short_drive):
 
 
 def test_inspect_bad_inputs(tmp_path, short_drive):
-    assert_bad_input(runner.invoke(app, ["inspect", str(tmp_path / "missing.mcap")]), "missing.mcap", "no such file")
+    assert_bad_input(
+        runner.invoke(app, ["inspect", str(tmp_path / "missing.mcap")]),
+        "missing.mcap",
+        "no such file",
+    )
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"\x89MCAP0\r\n" + b"\x00" * 64)
     assert_bad_input(runner.invoke(app, ["inspect", str(junk)]), "junk.mcap")
@@ -113,8 +131,20 @@ def test_simulate_noise_free_and_offsets(tmp_path):
     out = tmp_path / "ideal.mcap"
     result = runner.invoke(
         app,
-        ["simulate", str(out), "--scenario", "aggressive", "--duration", "6", "--noise-scale", "0",
-         "--time-offset-s", "0.03", "--time-offset-s", "-0.02"],
+        [
+            "simulate",
+            str(out),
+            "--scenario",
+            "aggressive",
+            "--duration",
+            "6",
+            "--noise-scale",
+            "0",
+            "--time-offset-s",
+            "0.03",
+            "--time-offset-s",
+            "-0.02",
+        ],
     )
     assert result.exit_code == 0, result.output
     truth = yaml.safe_load((tmp_path / "ideal.truth.yaml").read_text())
@@ -131,7 +161,9 @@ def test_version_and_help():
         assert runner.invoke(app, [command, "--help"]).exit_code == 0
 
 
-@pytest.mark.parametrize(("command", "extra"), [("calibrate", "imucal[report]"), ("batch", "imucal[fleet]")])
+@pytest.mark.parametrize(
+    ("command", "extra"), [("calibrate", "imucal[report]"), ("batch", "imucal[fleet]")]
+)
 def test_help_names_the_extras_to_install(command, extra):
     """Square brackets in help text are rich markup unless escaped: the extra's name shows."""
     result = runner.invoke(app, [command, "--help"], env={"COLUMNS": "240"})
@@ -139,7 +171,9 @@ def test_help_names_the_extras_to_install(command, extra):
     assert f"needs {extra}" in result.output
 
 
-def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_whole(tmp_path, short_drive):
+def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_whole(
+    tmp_path, short_drive
+):
     """The console script's entry point (``imucal_cli.cli:main``): the output file is whole,
     what was printed reaches a pipe, and the exit code is the command's (0, 2 on bad input)."""
     import subprocess
@@ -150,18 +184,34 @@ def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_wh
 
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
     write_document(tmp_path / "c.yaml", short_drive.config_document())
-    command = [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml")]
-    written = subprocess.run([*command, "-o", str(tmp_path / "e.json")], capture_output=True, timeout=300)
+    command = [
+        sys.executable,
+        "-m",
+        "imucal_cli.cli",
+        "calibrate",
+        str(log),
+        "-c",
+        str(tmp_path / "c.yaml"),
+    ]
+    written = subprocess.run(
+        [*command, "-o", str(tmp_path / "e.json")], capture_output=True, timeout=300
+    )
     assert written.returncode == 0, written.stderr
     printed = subprocess.run([*command, "--json"], capture_output=True, timeout=300)
     assert printed.returncode == 0, printed.stderr
     assert json.loads(printed.stdout) == json.loads((tmp_path / "e.json").read_text())
-    bad = subprocess.run([*command[:-1], str(tmp_path / "missing.yaml")], capture_output=True, timeout=300)
+    bad = subprocess.run(
+        [*command[:-1], str(tmp_path / "missing.yaml")], capture_output=True, timeout=300
+    )
     assert bad.returncode == 2 and b"missing.yaml" in bad.stderr and b"Traceback" not in bad.stderr
 
 
 def test_plain_flags_show_no_metavar_in_help():
     for command in ("calibrate", "inspect", "evaluate"):
         result = runner.invoke(app, [command, "--help"], env={"COLUMNS": "200"})
-        flags = [line for line in result.stdout.splitlines() if "--json" in line or "--require-observable" in line or "--allow-missing" in line]
+        flags = [
+            line
+            for line in result.stdout.splitlines()
+            if "--json" in line or "--require-observable" in line or "--allow-missing" in line
+        ]
         assert flags and all("<bool>" not in line for line in flags), (command, flags)

@@ -34,60 +34,109 @@ def test_calibrate_output_follows_the_spec(estimate_path):
     truth = yaml.safe_load(TRUTH.read_text())
     for name, sensor in doc["sensors"].items():
         assert set(sensor) >= {
-            "status", "T_base_imu", "T_base_lidar", "rotation_std_deg", "translation_std_m",
-            "translation_observable", "time_offset_s", "gyro_bias_radps", "accel_bias_mps2",
-            "segments", "residual_rms",
+            "status",
+            "T_base_imu",
+            "T_base_lidar",
+            "rotation_std_deg",
+            "translation_std_m",
+            "translation_observable",
+            "time_offset_s",
+            "gyro_bias_radps",
+            "accel_bias_mps2",
+            "segments",
+            "residual_rms",
         }
         assert sensor["status"] == "ok" and sensor["translation_observable"] == [True, True, True]
         assert set(sensor["T_base_lidar"]) == {"translation", "rotation", "rpy_deg"}
         T_base_imu = Transform.from_dict(sensor["T_base_imu"])
         T_base_lidar = Transform.from_dict(sensor["T_base_lidar"])
         T_imu_lidar = Transform.from_dict(truth["sensors"][name]["T_imu_lidar"])
-        np.testing.assert_allclose((T_base_imu * T_imu_lidar).as_matrix(), T_base_lidar.as_matrix(), atol=1e-9)
+        np.testing.assert_allclose(
+            (T_base_imu * T_imu_lidar).as_matrix(), T_base_lidar.as_matrix(), atol=1e-9
+        )
         assert abs(sensor["time_offset_s"] - truth["sensors"][name]["time_offset_s"]) < 1e-3
-    (pair_name, pair), = doc["pairs"].items()
+    ((pair_name, pair),) = doc["pairs"].items()
     a, b = pair_name.split("/")
     T_a = Transform.from_dict(doc["sensors"][a]["T_base_lidar"])
     T_b = Transform.from_dict(doc["sensors"][b]["T_base_lidar"])
-    np.testing.assert_allclose((T_a.inverse() * T_b).as_matrix(), Transform.from_dict(pair).as_matrix(), atol=1e-9)
+    np.testing.assert_allclose(
+        (T_a.inverse() * T_b).as_matrix(), Transform.from_dict(pair).as_matrix(), atol=1e-9
+    )
 
 
 def test_evaluate_passes_and_fails_on_thresholds(estimate_path, tmp_path):
     result = runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.stdout)
-    assert doc["pass"] is True and doc["thresholds"] == {"max_rotation_deg": None, "max_translation_m": None}
+    assert doc["pass"] is True and doc["thresholds"] == {
+        "max_rotation_deg": None,
+        "max_translation_m": None,
+    }
     for row in list(doc["sensors"].values()) + list(doc["pairs"].values()):
         assert row["rotation_error_deg"] < 0.05 and row["translation_error_m"] < 0.02
         assert row["translation_error_eq20_m"] == pytest.approx(row["translation_error_m"] / 3)
     worst = max(r["rotation_error_deg"] for r in doc["sensors"].values())
-    result = runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--max-rotation-deg", str(worst / 2), "-o", str(tmp_path / "ev.json")])
+    result = runner.invoke(
+        app,
+        [
+            "evaluate",
+            str(estimate_path),
+            str(TRUTH),
+            "--max-rotation-deg",
+            str(worst / 2),
+            "-o",
+            str(tmp_path / "ev.json"),
+        ],
+    )
     assert result.exit_code == 1
     assert json.loads((tmp_path / "ev.json").read_text())["pass"] is False
-    result = runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--max-rotation-deg", "0.1", "--max-translation-m", "0.02"])
+    result = runner.invoke(
+        app,
+        [
+            "evaluate",
+            str(estimate_path),
+            str(TRUTH),
+            "--max-rotation-deg",
+            "0.1",
+            "--max-translation-m",
+            "0.02",
+        ],
+    )
     assert result.exit_code == 0
 
 
 def test_evaluate_against_itself_is_zero(estimate_path):
     result = runner.invoke(app, ["evaluate", str(estimate_path), str(estimate_path), "--json"])
     doc = json.loads(result.stdout)
-    assert all(r["rotation_error_deg"] == 0.0 and r["translation_error_m"] == 0.0 for r in doc["sensors"].values())
+    assert all(
+        r["rotation_error_deg"] == 0.0 and r["translation_error_m"] == 0.0
+        for r in doc["sensors"].values()
+    )
 
 
 def test_evaluate_bad_inputs(tmp_path, estimate_path):
     other = tmp_path / "other.yaml"
-    other.write_text("sensors: {nobody: {T_base_lidar: {translation: [0, 0, 0], rotation: [0, 0, 0, 1]}}}\n")
+    other.write_text(
+        "sensors: {nobody: {T_base_lidar: {translation: [0, 0, 0], rotation: [0, 0, 0, 1]}}}\n"
+    )
     result = runner.invoke(app, ["evaluate", str(estimate_path), str(other)])
     assert result.exit_code == 2 and "no sensor in common" in result.stderr
     broken = tmp_path / "broken.yaml"
-    broken.write_text("sensors: {a: {T_base_lidar: {translation: [0, 0], rotation: [0, 0, 0, 1]}}}\n")
+    broken.write_text(
+        "sensors: {a: {T_base_lidar: {translation: [0, 0], rotation: [0, 0, 0, 1]}}}\n"
+    )
     result = runner.invoke(app, ["evaluate", str(broken), str(TRUTH)])
     assert result.exit_code == 2 and "sensors.a.T_base_lidar.translation" in result.stderr
 
 
 def test_calibrate_require_observable(tmp_path):
     out = tmp_path / "still.mcap"
-    assert runner.invoke(app, ["simulate", str(out), "--scenario", "stationary", "--duration", "30"]).exit_code == 0
+    assert (
+        runner.invoke(
+            app, ["simulate", str(out), "--scenario", "stationary", "--duration", "30"]
+        ).exit_code
+        == 0
+    )
     config = tmp_path / "still.config.yaml"
     result = runner.invoke(app, ["calibrate", str(out), "-c", str(config), "--json"])
     assert result.exit_code == 0
@@ -95,8 +144,21 @@ def test_calibrate_require_observable(tmp_path):
     assert {s["status"] for s in doc["sensors"].values()} == {"unobservable"}
     prior = yaml.safe_load(config.read_text())["sensors"]
     for name, sensor in doc["sensors"].items():
-        np.testing.assert_allclose(sensor["T_base_imu"]["translation"], prior[name]["prior_T_base_imu"]["translation"])
-    result = runner.invoke(app, ["calibrate", str(out), "-c", str(config), "--require-observable", "-o", str(tmp_path / "r.json")])
+        np.testing.assert_allclose(
+            sensor["T_base_imu"]["translation"], prior[name]["prior_T_base_imu"]["translation"]
+        )
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(out),
+            "-c",
+            str(config),
+            "--require-observable",
+            "-o",
+            str(tmp_path / "r.json"),
+        ],
+    )
     assert result.exit_code == 1 and "not fully observable" in result.stderr
     assert (tmp_path / "r.json").exists()  # the result is written; the check fails
 
@@ -105,9 +167,15 @@ def test_calibrate_missing_topic_and_bad_config(tmp_path):
     text = CONFIG.read_text().replace("/gnss/imu", "/ins/imu")
     config = tmp_path / "c.yaml"
     config.write_text(text)
-    result = runner.invoke(app, ["calibrate", str(LOG), "-c", str(config), "-o", str(tmp_path / "x.yaml")])
+    result = runner.invoke(
+        app, ["calibrate", str(LOG), "-c", str(config), "-o", str(tmp_path / "x.yaml")]
+    )
     assert result.exit_code == 2
-    assert "/ins/imu" in result.stderr and "aggressive.mcap" in result.stderr and "/gnss/imu" in result.stderr
+    assert (
+        "/ins/imu" in result.stderr
+        and "aggressive.mcap" in result.stderr
+        and "/gnss/imu" in result.stderr
+    )
     assert not (tmp_path / "x.yaml").exists()
     config.write_text(CONFIG.read_text().replace("calibration:", "calibraton:"))
     result = runner.invoke(app, ["calibrate", str(LOG), "-c", str(config)])
@@ -120,7 +188,9 @@ def test_segments_report(tmp_path):
     doc = json.loads(result.stdout)
     assert doc["window_s"] == 10.0
     for sensor in doc["sensors"].values():
-        assert sensor["total"] == 8 and sensor["selected"] == sum(w["selected"] for w in sensor["windows"])
+        assert sensor["total"] == 8 and sensor["selected"] == sum(
+            w["selected"] for w in sensor["windows"]
+        )
         for k, w in enumerate(sensor["windows"]):
             length = w["end_s"] - w["start_s"]
             if k < len(sensor["windows"]) - 1:  # whole windows, then a last one of at least half
@@ -129,18 +199,31 @@ def test_segments_report(tmp_path):
                 assert 5.0 <= length <= 10.0 + 1e-6
             assert w["selected"] == (w["rotation_std_deg"] < doc["max_rotation_std_deg"])
             # CRLB std is 1/sqrt(sigma_min) (eq. 19)
-            assert w["rotation_std_deg"] == pytest.approx(np.degrees(1 / np.sqrt(w["min_singular_value"])))
+            assert w["rotation_std_deg"] == pytest.approx(
+                np.degrees(1 / np.sqrt(w["min_singular_value"]))
+            )
     assert runner.invoke(app, ["segments", str(LOG), "-c", str(CONFIG)]).exit_code == 0
 
 
 def test_biases_report():
-    result = runner.invoke(app, ["biases", str(SAMPLE_DATA / "urban.mcap"), "-c", str(SAMPLE_DATA / "urban.config.yaml"), "--json"])
+    result = runner.invoke(
+        app,
+        [
+            "biases",
+            str(SAMPLE_DATA / "urban.mcap"),
+            "-c",
+            str(SAMPLE_DATA / "urban.config.yaml"),
+            "--json",
+        ],
+    )
     assert result.exit_code == 0, result.output
     doc = json.loads(result.stdout)
     truth = yaml.safe_load((SAMPLE_DATA / "urban.truth.yaml").read_text())
     assert list(doc["imus"]) == ["base", "front_left_top", "front_right_top"]
     for name, imu in doc["imus"].items():
-        assert len(imu["rest_periods"]) >= 3 and imu["rest_periods"][0][0] == pytest.approx(0.0, abs=0.05)
+        assert len(imu["rest_periods"]) >= 3 and imu["rest_periods"][0][0] == pytest.approx(
+            0.0, abs=0.05
+        )
         assert set(imu["gyro_bias_radps"]) == {"initial", "final", "track_std", "final_std"}
         if name != "base":
             true_initial = np.array(truth["sensors"][name]["gyro_bias_radps"]["initial"])
@@ -150,10 +233,29 @@ def test_biases_report():
 
 def test_calibrate_too_short_log_is_a_clear_error(tmp_path):
     out = tmp_path / "short.mcap"
-    assert runner.invoke(app, ["simulate", str(out), "--scenario", "aggressive", "--duration", "3"]).exit_code == 0
-    result = runner.invoke(app, ["calibrate", str(out), "-c", str(tmp_path / "short.config.yaml"), "-o", str(tmp_path / "e.yaml")])
+    assert (
+        runner.invoke(
+            app, ["simulate", str(out), "--scenario", "aggressive", "--duration", "3"]
+        ).exit_code
+        == 0
+    )
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(out),
+            "-c",
+            str(tmp_path / "short.config.yaml"),
+            "-o",
+            str(tmp_path / "e.yaml"),
+        ],
+    )
     assert result.exit_code == 2
-    assert "short.mcap" in result.stderr and "too little data" in result.stderr and "Traceback" not in result.stderr
+    assert (
+        "short.mcap" in result.stderr
+        and "too little data" in result.stderr
+        and "Traceback" not in result.stderr
+    )
     assert not (tmp_path / "e.yaml").exists()
 
 
@@ -162,13 +264,22 @@ def test_names_and_paths_are_printed_as_they_are(tmp_path):
     out whole in the tables; the verdict keeps its word."""
     folder = tmp_path / "[night]"
     folder.mkdir()
-    doc = "sensors: {'lidar[front]': {T_base_lidar: {translation: [1, 0, 0], rotation: [0, 0, 0, 1]}}}\n"
+    doc = (
+        "sensors: {'lidar[front]': "
+        "{T_base_lidar: {translation: [1, 0, 0], rotation: [0, 0, 0, 1]}}}\n"
+    )
     (folder / "a.yaml").write_text(doc)
     (folder / "b.yaml").write_text(doc.replace("[1, 0, 0]", "[1, 0, 0.5]"))
-    result = runner.invoke(app, ["evaluate", str(folder / "a.yaml"), str(folder / "b.yaml"), "--max-translation-m", "0.1"], env={"COLUMNS": "240"})
+    result = runner.invoke(
+        app,
+        ["evaluate", str(folder / "a.yaml"), str(folder / "b.yaml"), "--max-translation-m", "0.1"],
+        env={"COLUMNS": "240"},
+    )
     assert result.exit_code == 1, result.output  # a failed check
     assert "lidar[front]" in result.stdout and "[night]" in result.stdout
-    assert result.stdout.rstrip().splitlines()[-1] == "fail: 1 over a threshold (lidar[front])"  # the verdict names the row
+    assert (
+        result.stdout.rstrip().splitlines()[-1] == "fail: 1 over a threshold (lidar[front])"
+    )  # the verdict names the row
 
 
 def test_evaluate_fails_on_a_sensor_missing_from_the_truth_unless_allowed(estimate_path, tmp_path):
@@ -179,7 +290,17 @@ def test_evaluate_fails_on_a_sensor_missing_from_the_truth_unless_allowed(estima
     del truth["sensors"][dropped]
     partial = tmp_path / "partial.truth.yaml"
     partial.write_text(yaml.safe_dump(truth))
-    result = runner.invoke(app, ["evaluate", str(estimate_path), str(partial), "--json", "--junit", str(tmp_path / "e.xml")])
+    result = runner.invoke(
+        app,
+        [
+            "evaluate",
+            str(estimate_path),
+            str(partial),
+            "--json",
+            "--junit",
+            str(tmp_path / "e.xml"),
+        ],
+    )
     assert result.exit_code == 1 and f"sensor {dropped} is in {estimate_path} only" in result.stderr
     doc = json.loads(result.stdout)
     assert doc["pass"] is False and doc["missing"] == {"estimate_only": [dropped], "truth_only": []}
@@ -190,18 +311,36 @@ def test_evaluate_fails_on_a_sensor_missing_from_the_truth_unless_allowed(estima
     assert result.exit_code == 0
 
 
-def test_evaluate_junit_names_the_threshold_and_the_value_and_passing_cases_carry_theirs(estimate_path, tmp_path):
+def test_evaluate_junit_names_the_threshold_and_the_value_and_passing_cases_carry_theirs(
+    estimate_path, tmp_path
+):
     import xml.etree.ElementTree as ET
 
-    doc = json.loads(runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--json"]).stdout)
+    doc = json.loads(
+        runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--json"]).stdout
+    )
     worst_name, worst = max(doc["sensors"].items(), key=lambda item: item[1]["rotation_error_deg"])
     limit = worst["rotation_error_deg"] * 0.999
-    result = runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--max-rotation-deg", repr(limit), "--junit", str(tmp_path / "e.xml")])
+    result = runner.invoke(
+        app,
+        [
+            "evaluate",
+            str(estimate_path),
+            str(TRUTH),
+            "--max-rotation-deg",
+            repr(limit),
+            "--junit",
+            str(tmp_path / "e.xml"),
+        ],
+    )
     assert result.exit_code == 1
     suite = ET.parse(tmp_path / "e.xml").getroot().find("testsuite")
     cases = {(c.get("classname"), c.get("name")): c for c in suite.iter("testcase")}
     failed = cases[("sensors", worst_name)].find("failure").get("message")
-    assert f"rotation_error_deg {worst['rotation_error_deg']:.6g}" in failed and "max_rotation_deg" in failed
+    assert (
+        f"rotation_error_deg {worst['rotation_error_deg']:.6g}" in failed
+        and "max_rotation_deg" in failed
+    )
     passing = [c for c in cases.values() if c.find("failure") is None]
     assert passing and all("rotation_error_deg" in c.find("system-out").text for c in passing)
     assert int(suite.get("failures")) == sum(c.find("failure") is not None for c in cases.values())

@@ -50,12 +50,19 @@ def test_to_dict_round_trips(base_dict):
     again = parse_config(config.to_dict(), "y.yaml")
     for a, b in zip(again.sensors, config.sensors, strict=True):
         assert (a.name, a.imu_topic, a.lidar_frame, a.translation_bound_m) == (
-            b.name, b.imu_topic, b.lidar_frame, b.translation_bound_m
+            b.name,
+            b.imu_topic,
+            b.lidar_frame,
+            b.translation_bound_m,
         )
         for ta, tb in ((a.T_imu_lidar, b.T_imu_lidar), (a.prior_T_base_imu, b.prior_T_base_imu)):
             np.testing.assert_allclose(ta.as_matrix(), tb.as_matrix(), atol=1e-12)
     assert (again.base, again.rest, again.gyro_bias, again.segments, again.calibration) == (
-        config.base, config.rest, config.gyro_bias, config.segments, config.calibration
+        config.base,
+        config.rest,
+        config.gyro_bias,
+        config.segments,
+        config.calibration,
     )
 
 
@@ -77,17 +84,67 @@ _DELETE = object()
 CASES = [
     ("base.topik", "/x", "base.topik", "unknown key"),
     ("colibration", {}, "colibration", "unknown key"),
-    ("sensors.front_left_top.imu_topic", 5, "sensors.front_left_top.imu_topic", "expected a non-empty string"),
+    (
+        "sensors.front_left_top.imu_topic",
+        5,
+        "sensors.front_left_top.imu_topic",
+        "expected a non-empty string",
+    ),
     ("sensors.front_left_top.imu_topic", _DELETE, "sensors.front_left_top.imu_topic", "missing"),
-    ("sensors.front_left_top.T_imu_lidar.rotation", [0, 0, 0.5, 0.5], "sensors.front_left_top.T_imu_lidar.rotation", "norm"),
-    ("sensors.front_left_top.T_imu_lidar.rotation", [0, 0, 1, 0.001], "sensors.front_left_top.T_imu_lidar.rpy_deg", "disagrees"),
-    ("sensors.front_left_top.prior_T_base_imu", _DELETE, "sensors.front_left_top.prior_T_base_imu", "missing"),
-    ("sensors.front_left_top.translation_bound_m", 0, "sensors.front_left_top.translation_bound_m", "> 0"),
-    ("sensors.front_left_top.translation_bound_m", -0.1, "sensors.front_left_top.translation_bound_m", "> 0"),
-    ("sensors.front_left_top.translation_bound_m", "0.3", "sensors.front_left_top.translation_bound_m", "expected a number"),
-    ("sensors.front_left_top.translation_bound_m", True, "sensors.front_left_top.translation_bound_m", "expected a number"),
-    ("sensors.front_right_top.imu_topic", "/gnss/imu", "sensors.front_right_top.imu_topic", "already used"),
-    ("sensors.front_right_top.lidar_frame", "front_left_top_lidar", "sensors.front_right_top.lidar_frame", "already used"),
+    (
+        "sensors.front_left_top.T_imu_lidar.rotation",
+        [0, 0, 0.5, 0.5],
+        "sensors.front_left_top.T_imu_lidar.rotation",
+        "norm",
+    ),
+    (
+        "sensors.front_left_top.T_imu_lidar.rotation",
+        [0, 0, 1, 0.001],
+        "sensors.front_left_top.T_imu_lidar.rpy_deg",
+        "disagrees",
+    ),
+    (
+        "sensors.front_left_top.prior_T_base_imu",
+        _DELETE,
+        "sensors.front_left_top.prior_T_base_imu",
+        "missing",
+    ),
+    (
+        "sensors.front_left_top.translation_bound_m",
+        0,
+        "sensors.front_left_top.translation_bound_m",
+        "> 0",
+    ),
+    (
+        "sensors.front_left_top.translation_bound_m",
+        -0.1,
+        "sensors.front_left_top.translation_bound_m",
+        "> 0",
+    ),
+    (
+        "sensors.front_left_top.translation_bound_m",
+        "0.3",
+        "sensors.front_left_top.translation_bound_m",
+        "expected a number",
+    ),
+    (
+        "sensors.front_left_top.translation_bound_m",
+        True,
+        "sensors.front_left_top.translation_bound_m",
+        "expected a number",
+    ),
+    (
+        "sensors.front_right_top.imu_topic",
+        "/gnss/imu",
+        "sensors.front_right_top.imu_topic",
+        "already used",
+    ),
+    (
+        "sensors.front_right_top.lidar_frame",
+        "front_left_top_lidar",
+        "sensors.front_right_top.lidar_frame",
+        "already used",
+    ),
     ("rest.min_duration_s", float("inf"), "rest.min_duration_s", "finite"),
     ("segments.window_s", 0.0, "segments.window_s", "> 0"),
     ("segments", [1, 2], "segments", "expected a mapping"),
@@ -97,7 +154,9 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize(("path", "value", "key", "problem"), CASES, ids=[c[2] + ":" + c[3] for c in CASES])
+@pytest.mark.parametrize(
+    ("path", "value", "key", "problem"), CASES, ids=[c[2] + ":" + c[3] for c in CASES]
+)
 def test_errors_name_file_and_key(base_dict, path, value, key, problem):
     with pytest.raises(ConfigError) as info:
         parse_config(_mutate(base_dict, path, value), "vehicle.yaml")
@@ -177,4 +236,8 @@ def test_check_config_prints_no_negative_zero():
     from imucal_cli.cli import app
 
     result = CliRunner().invoke(app, ["check-config", str(SAMPLE_DATA / "aggressive.config.yaml")])
-    assert result.exit_code == 0 and "rpy_deg: [0.0, 0.0, 180.0]" in result.stdout and "-0.0," not in result.stdout
+    assert (
+        result.exit_code == 0
+        and "rpy_deg: [0.0, 0.0, 180.0]" in result.stdout
+        and "-0.0," not in result.stdout
+    )

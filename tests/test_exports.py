@@ -28,14 +28,25 @@ def angle(a: Rotation, b: Rotation) -> float:
     return float((a.inv() * b).magnitude())
 
 
-NOISE = {"accelerometer_noise_density": 2e-3, "accelerometer_random_walk": 3e-3, "gyroscope_noise_density": 2e-4, "gyroscope_random_walk": 2e-5}
+NOISE = {
+    "accelerometer_noise_density": 2e-3,
+    "accelerometer_random_walk": 3e-3,
+    "gyroscope_noise_density": 2e-4,
+    "gyroscope_random_walk": 2e-5,
+}
 
 
 def extrinsics(transforms: list[Transform]) -> Extrinsics:
     sensors = tuple(
         SensorExtrinsics(
-            f"s{k}", f"lidar_{k}", f"/lidar/{k}/imu", T, T * Transform.from_rpy(np.array([0.1, -0.2, 3.0]), np.array([0.01, 0.02, -0.03])),
-            0.001 * k - 0.002, 200.0, NOISE,
+            f"s{k}",
+            f"lidar_{k}",
+            f"/lidar/{k}/imu",
+            T,
+            T * Transform.from_rpy(np.array([0.1, -0.2, 3.0]), np.array([0.01, 0.02, -0.03])),
+            0.001 * k - 0.002,
+            200.0,
+            NOISE,
         )
         for k, T in enumerate(transforms)
     )
@@ -48,7 +59,9 @@ def parse(fmt: str, files: dict[str, str], parent: str = "base_link") -> dict[st
     if fmt == "autoware":
         doc = yaml.safe_load(files["main"])
         for frame, v in doc[parent].items():
-            out[frame] = Transform.from_rpy(np.array([v["roll"], v["pitch"], v["yaw"]]), np.array([v["x"], v["y"], v["z"]]))
+            out[frame] = Transform.from_rpy(
+                np.array([v["roll"], v["pitch"], v["yaw"]]), np.array([v["x"], v["y"], v["z"]])
+            )
     elif fmt == "urdf":
         root = ET.fromstring(files["main"])
         for joint in root.iter("joint"):
@@ -66,14 +79,20 @@ def parse(fmt: str, files: dict[str, str], parent: str = "base_link") -> dict[st
             args = words[words.index("static_transform_publisher") + 1 :]
             assert args == shlex.split(node.get("args"))  # the launch file says the same
             if fmt == "tf-static-ros2":
-                assert words[:3] == ["ros2", "run", "tf2_ros"] and node.get("exec") == "static_transform_publisher"
+                assert (
+                    words[:3] == ["ros2", "run", "tf2_ros"]
+                    and node.get("exec") == "static_transform_publisher"
+                )
                 named = dict(zip(args[::2], args[1::2], strict=True))
                 assert named["--frame-id"] == parent
                 t = [float(named[k]) for k in ("--x", "--y", "--z")]
                 q = [float(named[k]) for k in ("--qx", "--qy", "--qz", "--qw")]
                 child = named["--child-frame-id"]
             else:
-                assert words[:2] == ["rosrun", "tf2_ros"] and node.get("type") == "static_transform_publisher"
+                assert (
+                    words[:2] == ["rosrun", "tf2_ros"]
+                    and node.get("type") == "static_transform_publisher"
+                )
                 assert len(args) == 9 and args[7] == parent  # x y z qx qy qz qw frame child
                 t, q, child = [float(v) for v in args[:3]], [float(v) for v in args[3:7]], args[8]
             out[child] = Transform(Rotation.from_quat(q), np.array(t))
@@ -84,7 +103,11 @@ def parse(fmt: str, files: dict[str, str], parent: str = "base_link") -> dict[st
             if key == "imu0":
                 continue
             T_i_b = np.array(doc[key]["T_i_b"])
-            assert doc[key]["model"] == "calibrated" and "update_rate" in doc[key] and "rostopic" in doc[key]
+            assert (
+                doc[key]["model"] == "calibrated"
+                and "update_rate" in doc[key]
+                and "rostopic" in doc[key]
+            )
             out[key] = Transform.from_matrix(np.linalg.inv(T_i_b))  # T_base_imu
     elif fmt == "json":
         doc = json.loads(files["main"])
@@ -101,7 +124,10 @@ def check(fmt: str, ex: Extrinsics) -> None:
         if fmt == "kalibr":
             pairs = [(got[f"imu{k}"], s.T_base_imu)]
         elif fmt == "json":
-            pairs = [(got[s.lidar_frame], s.T_base_lidar), (got["imu:" + s.lidar_frame], s.T_base_imu)]
+            pairs = [
+                (got[s.lidar_frame], s.T_base_lidar),
+                (got["imu:" + s.lidar_frame], s.T_base_imu),
+            ]
         else:
             pairs = [(got[s.lidar_frame], s.T_base_lidar)]
         for parsed, expected in pairs:
@@ -114,7 +140,17 @@ def test_sample_calibration_round_trips(fmt, tmp_path):
     from conftest import SAMPLE_DATA
 
     out = tmp_path / "ext.yaml"
-    result = runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)])
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(SAMPLE_DATA / "aggressive.mcap"),
+            "-c",
+            str(SAMPLE_DATA / "aggressive.config.yaml"),
+            "-o",
+            str(out),
+        ],
+    )
     assert result.exit_code == 0, result.output
     document = yaml.safe_load(out.read_text())
     ex = Extrinsics.from_document(document, str(out))
@@ -124,7 +160,14 @@ def test_sample_calibration_round_trips(fmt, tmp_path):
     assert result.exit_code == 0, result.output
     files = {"main": target.read_text()}
     if fmt.startswith("tf-static"):
-        files["launch"] = (tmp_path / ("export_tf-static-ros2.launch.xml" if fmt.endswith("ros2") else "export_tf-static-ros1.launch")).read_text()
+        files["launch"] = (
+            tmp_path
+            / (
+                "export_tf-static-ros2.launch.xml"
+                if fmt.endswith("ros2")
+                else "export_tf-static-ros1.launch"
+            )
+        ).read_text()
         assert target.stat().st_mode & 0o111  # the command lines are a script to run
     assert files == export(ex, fmt)
     printed = runner.invoke(app, ["export", str(out), "--format", fmt])
@@ -134,7 +177,14 @@ def test_sample_calibration_round_trips(fmt, tmp_path):
 def test_kalibr_T_i_b_is_the_base_in_the_imu():
     T_base_imu = Transform.from_rpy(np.array([0.0, 0.0, np.pi / 2]), np.array([1.0, 0.0, 0.0]))
     ex = extrinsics([Transform.identity()])
-    ex = Extrinsics(ex.source, ex.base_frame, ex.base_topic, ex.base_imu_rate_hz, (SensorExtrinsics("s", "l", "/imu", Transform.identity(), T_base_imu, 0.0, 200.0, NOISE),), NOISE)
+    ex = Extrinsics(
+        ex.source,
+        ex.base_frame,
+        ex.base_topic,
+        ex.base_imu_rate_hz,
+        (SensorExtrinsics("s", "l", "/imu", Transform.identity(), T_base_imu, 0.0, 200.0, NOISE),),
+        NOISE,
+    )
     T_i_b = np.array(yaml.safe_load(export(ex, "kalibr")["main"])["imu1"]["T_i_b"])
     # The IMU sits 1 m along the base's x axis, yawed 90 deg: its y axis points along the base's
     # -x. The base origin, 1 m behind the IMU along base x, is 1 m along the IMU's +y.
@@ -146,8 +196,12 @@ near_pole = st.floats(-1e-6, 1e-6) | st.floats(-1e-3, 1e-3)
 
 @settings(max_examples=60, deadline=None)
 @given(
-    yaw=st.sampled_from([np.pi, -np.pi, 0.0, np.pi / 2]).flatmap(lambda y: near_pole.map(lambda d: y + d)),
-    pitch=st.sampled_from([np.pi / 2, -np.pi / 2, 0.3]).flatmap(lambda p: near_pole.map(lambda d: p + d)),
+    yaw=st.sampled_from([np.pi, -np.pi, 0.0, np.pi / 2]).flatmap(
+        lambda y: near_pole.map(lambda d: y + d)
+    ),
+    pitch=st.sampled_from([np.pi / 2, -np.pi / 2, 0.3]).flatmap(
+        lambda p: near_pole.map(lambda d: p + d)
+    ),
     roll=st.floats(-np.pi, np.pi),
     xyz=st.lists(st.floats(-10, 10), min_size=3, max_size=3),
 )
@@ -171,13 +225,30 @@ def test_export_rejects_a_non_number_rate(tmp_path):
     from conftest import SAMPLE_DATA
 
     out = tmp_path / "e.yaml"
-    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    assert (
+        runner.invoke(
+            app,
+            [
+                "calibrate",
+                str(SAMPLE_DATA / "aggressive.mcap"),
+                "-c",
+                str(SAMPLE_DATA / "aggressive.config.yaml"),
+                "-o",
+                str(out),
+            ],
+        ).exit_code
+        == 0
+    )
     document = yaml.safe_load(out.read_text())
     name = next(iter(document["sensors"]))
     document["sensors"][name]["imu_rate_hz"] = "fast"
     out.write_text(yaml.safe_dump(document))
     result = runner.invoke(app, ["export", str(out), "--format", "kalibr"])
-    assert result.exit_code == 2 and f"sensors.{name}.imu_rate_hz" in result.stderr and "e.yaml" in result.stderr
+    assert (
+        result.exit_code == 2
+        and f"sensors.{name}.imu_rate_hz" in result.stderr
+        and "e.yaml" in result.stderr
+    )
 
 
 def _kalibr_imu_parameters(data: dict, name: str) -> tuple:
@@ -185,21 +256,44 @@ def _kalibr_imu_parameters(data: dict, name: str) -> tuple:
     (its getRosTopic, getUpdateRate, getAccelerometerStatistics, getGyroStatistics: a missing
     field or a value that is not positive is an error), and the T_i_b its IMU chain holds."""
     imu = data[name]
-    for field in ("rostopic", "update_rate", "accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk"):
+    for field in (
+        "rostopic",
+        "update_rate",
+        "accelerometer_noise_density",
+        "accelerometer_random_walk",
+        "gyroscope_noise_density",
+        "gyroscope_random_walk",
+    ):
         assert field in imu, f"[ImuConfig Reader]: Field '{field}' missing"
     assert isinstance(imu["rostopic"], str), "rostopic has to be a string"
     assert imu["update_rate"] > 0.0, "invalid update_rate"
-    for field in ("accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk"):
+    for field in (
+        "accelerometer_noise_density",
+        "accelerometer_random_walk",
+        "gyroscope_noise_density",
+        "gyroscope_random_walk",
+    ):
         assert isinstance(imu[field], float) and imu[field] > 0.0, f"invalid {field}"
     T = np.array(imu["T_i_b"], dtype=float)
-    assert T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9) and np.allclose(T[3], [0, 0, 0, 1])
-    return imu["accelerometer_noise_density"] / np.sqrt(1.0 / imu["update_rate"]), imu["gyroscope_noise_density"] / np.sqrt(1.0 / imu["update_rate"])
+    assert (
+        T.shape == (4, 4)
+        and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+        and np.allclose(T[3], [0, 0, 0, 1])
+    )
+    return imu["accelerometer_noise_density"] / np.sqrt(1.0 / imu["update_rate"]), imu[
+        "gyroscope_noise_density"
+    ] / np.sqrt(1.0 / imu["update_rate"])
 
 
 def _openvins_noise(data: dict) -> dict:
     """What OpenVINS's VioManagerOptions::print_and_load_noise takes from the IMU file: imu0's
     four noise figures, each required (parse_external fails without it)."""
-    keys = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density", "accelerometer_random_walk")
+    keys = (
+        "gyroscope_noise_density",
+        "gyroscope_random_walk",
+        "accelerometer_noise_density",
+        "accelerometer_random_walk",
+    )
     missing = [k for k in keys if k not in data["imu0"]]
     assert not missing, f"unable to find {missing}"
     return {k: float(data["imu0"][k]) for k in keys}
@@ -209,7 +303,20 @@ def test_kalibr_export_reads_in_kalibr_and_openvins_with_the_noise_the_drive_has
     from conftest import SAMPLE_DATA
 
     out = tmp_path / "ext.yaml"
-    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    assert (
+        runner.invoke(
+            app,
+            [
+                "calibrate",
+                str(SAMPLE_DATA / "aggressive.mcap"),
+                "-c",
+                str(SAMPLE_DATA / "aggressive.config.yaml"),
+                "-o",
+                str(out),
+            ],
+        ).exit_code
+        == 0
+    )
     result = runner.invoke(app, ["export", str(out), "--format", "kalibr"])
     assert result.exit_code == 0, result.output
     data = yaml.safe_load(result.stdout)
@@ -230,12 +337,28 @@ def test_kalibr_export_of_a_document_without_noise_names_the_missing_key(tmp_pat
     from conftest import SAMPLE_DATA
 
     out = tmp_path / "ext.yaml"
-    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    assert (
+        runner.invoke(
+            app,
+            [
+                "calibrate",
+                str(SAMPLE_DATA / "aggressive.mcap"),
+                "-c",
+                str(SAMPLE_DATA / "aggressive.config.yaml"),
+                "-o",
+                str(out),
+            ],
+        ).exit_code
+        == 0
+    )
     document = yaml.safe_load(out.read_text())
     del document["base_imu_noise"]
     out.write_text(yaml.safe_dump(document))
     result = runner.invoke(app, ["export", str(out), "--format", "kalibr"])
-    assert result.exit_code == 2 and "base_imu_noise.accelerometer_noise_density: missing" in result.stderr
+    assert (
+        result.exit_code == 2
+        and "base_imu_noise.accelerometer_noise_density: missing" in result.stderr
+    )
 
 
 @pytest.fixture(scope="module")
@@ -243,7 +366,20 @@ def calibrated(tmp_path_factory):
     from conftest import SAMPLE_DATA
 
     out = tmp_path_factory.mktemp("export") / "ext.yaml"
-    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    assert (
+        runner.invoke(
+            app,
+            [
+                "calibrate",
+                str(SAMPLE_DATA / "aggressive.mcap"),
+                "-c",
+                str(SAMPLE_DATA / "aggressive.config.yaml"),
+                "-o",
+                str(out),
+            ],
+        ).exit_code
+        == 0
+    )
     return out
 
 
@@ -262,22 +398,47 @@ def test_parent_re_expresses_every_transform_not_just_its_name(calibrated):
     exported = _json_export(calibrated, "--parent", frame_a)
     assert exported["base_frame"] == frame_a and list(exported["sensors"]) == [b]
     T_a_b = Transform.from_dict(document["pairs"][f"{a}/{b}"]).as_matrix()
-    assert np.allclose(exported["sensors"][b]["T_base_lidar"], T_a_b, atol=1e-12)  # the calibrate pair, T_a_b
-    lifted = _json_export(calibrated, "--parent", "base_footprint", "--parent-transform", "0 0 -0.3 0 0 0 1")
+    assert np.allclose(
+        exported["sensors"][b]["T_base_lidar"], T_a_b, atol=1e-12
+    )  # the calibrate pair, T_a_b
+    lifted = _json_export(
+        calibrated, "--parent", "base_footprint", "--parent-transform", "0 0 -0.3 0 0 0 1"
+    )
     plain = _json_export(calibrated)
     for name in document["sensors"]:
-        moved = np.array(lifted["sensors"][name]["T_base_lidar"])[:3, 3] - np.array(plain["sensors"][name]["T_base_lidar"])[:3, 3]
+        moved = (
+            np.array(lifted["sensors"][name]["T_base_lidar"])[:3, 3]
+            - np.array(plain["sensors"][name]["T_base_lidar"])[:3, 3]
+        )
         assert np.allclose(moved, [0.0, 0.0, 0.3], atol=1e-12)
 
 
 def test_parent_that_is_no_frame_of_the_calibration_is_refused(calibrated):
     result = runner.invoke(app, ["export", str(calibrated), "--format", "urdf", "--parent", "map"])
-    assert result.exit_code == 2 and "--parent map: not a frame" in result.stderr and "--parent-transform" in result.stderr
-    result = runner.invoke(app, ["export", str(calibrated), "--format", "kalibr", "--parent", "map", "--parent-transform", "0 0 0 0 0 0 1"])
+    assert (
+        result.exit_code == 2
+        and "--parent map: not a frame" in result.stderr
+        and "--parent-transform" in result.stderr
+    )
+    result = runner.invoke(
+        app,
+        [
+            "export",
+            str(calibrated),
+            "--format",
+            "kalibr",
+            "--parent",
+            "map",
+            "--parent-transform",
+            "0 0 0 0 0 0 1",
+        ],
+    )
     assert result.exit_code == 2 and "Kalibr" in result.stderr
 
 
-def test_a_sensor_not_ok_goes_out_only_when_allowed_and_an_unobserved_offset_is_not_written(calibrated, tmp_path):
+def test_a_sensor_not_ok_goes_out_only_when_allowed_and_an_unobserved_offset_is_not_written(
+    calibrated, tmp_path
+):
     document = yaml.safe_load(calibrated.read_text())
     name = sorted(document["sensors"])[0]
     document["sensors"][name]["status"] = "partial"
@@ -286,10 +447,18 @@ def test_a_sensor_not_ok_goes_out_only_when_allowed_and_an_unobserved_offset_is_
     weak = tmp_path / "weak.yaml"
     weak.write_text(yaml.safe_dump(document))
     result = runner.invoke(app, ["export", str(weak), "--format", "urdf"])
-    assert result.exit_code == 2 and f"{name} (partial)" in result.stderr and "--allow-not-ok" in result.stderr
+    assert (
+        result.exit_code == 2
+        and f"{name} (partial)" in result.stderr
+        and "--allow-not-ok" in result.stderr
+    )
     result = runner.invoke(app, ["export", str(weak), "--format", "kalibr", "--allow-not-ok"])
     assert result.exit_code == 0
-    entry = next(k for k, v in yaml.safe_load(result.stdout).items() if v["rostopic"] == document["sensors"][name]["imu_topic"])
+    entry = next(
+        k
+        for k, v in yaml.safe_load(result.stdout).items()
+        if v["rostopic"] == document["sensors"][name]["imu_topic"]
+    )
     block = result.stdout.split(f"\n{entry}:\n")[1].split("\nimu")[0]
     assert "time_offset: 0.0  # not observable" in block
 
@@ -302,9 +471,25 @@ def test_kalibr_export_reads_in_opencv_filestorage_as_openvins_reads_it(tmp_path
     from conftest import SAMPLE_DATA
 
     out = tmp_path / "ext.yaml"
-    assert runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)]).exit_code == 0
+    assert (
+        runner.invoke(
+            app,
+            [
+                "calibrate",
+                str(SAMPLE_DATA / "aggressive.mcap"),
+                "-c",
+                str(SAMPLE_DATA / "aggressive.config.yaml"),
+                "-o",
+                str(out),
+            ],
+        ).exit_code
+        == 0
+    )
     chain = tmp_path / "kalibr_imu_chain.yaml"
-    assert runner.invoke(app, ["export", str(out), "--format", "kalibr", "-o", str(chain)]).exit_code == 0
+    assert (
+        runner.invoke(app, ["export", str(out), "--format", "kalibr", "-o", str(chain)]).exit_code
+        == 0
+    )
     data = yaml.safe_load(chain.read_text())  # as Kalibr reads it
     storage = cv2.FileStorage(str(chain), cv2.FILE_STORAGE_READ)
     assert storage.isOpened()
@@ -314,7 +499,10 @@ def test_kalibr_export_reads_in_opencv_filestorage_as_openvins_reads_it(tmp_path
         T = node.getNode("T_i_b")
         read = np.array([[T.at(i).at(j).real() for j in range(4)] for i in range(4)])
         np.testing.assert_array_equal(read, np.array(imu["T_i_b"]))
-        assert node.getNode("rostopic").string() == imu["rostopic"] and node.getNode("model").string() == imu["model"]
+        assert (
+            node.getNode("rostopic").string() == imu["rostopic"]
+            and node.getNode("model").string() == imu["model"]
+        )
         for key in ("update_rate", "time_offset", *KALIBR_KEYS):
             assert node.getNode(key).real() == imu[key], (name, key)
     storage.release()
@@ -325,18 +513,34 @@ def test_kalibr_export_reads_in_opencv_filestorage_as_openvins_reads_it(tmp_path
     assert data["imu0"]["accelerometer_random_walk"] == min(walks)
 
 
-KALIBR_KEYS = ("accelerometer_noise_density", "accelerometer_random_walk", "gyroscope_noise_density", "gyroscope_random_walk")
+KALIBR_KEYS = (
+    "accelerometer_noise_density",
+    "accelerometer_random_walk",
+    "gyroscope_noise_density",
+    "gyroscope_random_walk",
+)
 
 
 def test_tf_static_without_out_says_how_to_get_the_launch_file(tmp_path):
     """Without -o only the command lines are printed; the note said the launch file 'is written
     beside -o OUT', though nothing was written (issue 32, item 9)."""
-    document = {"base_frame": "base_link", "sensors": {"front": {"status": "ok", "lidar_frame": "front_lidar",
+    document = {
+        "base_frame": "base_link",
+        "sensors": {
+            "front": {
+                "status": "ok",
+                "lidar_frame": "front_lidar",
                 "T_base_lidar": {"translation": [1.0, 0.0, 2.0], "rotation": [0.0, 0.0, 0.0, 1.0]},
-                "T_base_imu": {"translation": [1.0, 0.0, 2.0], "rotation": [0.0, 0.0, 0.0, 1.0]}}}}
+                "T_base_imu": {"translation": [1.0, 0.0, 2.0], "rotation": [0.0, 0.0, 0.0, 1.0]},
+            }
+        },
+    }
     path = tmp_path / "e.yaml"
     path.write_text(yaml.safe_dump(document))
     result = runner.invoke(app, ["export", str(path), "--format", "tf-static-ros2"])
     assert result.exit_code == 0 and "static_transform_publisher" in result.stdout
-    assert "give -o OUT to write them and the .launch.xml launch file" in result.stderr and "is written" not in result.stderr
+    assert (
+        "give -o OUT to write them and the .launch.xml launch file" in result.stderr
+        and "is written" not in result.stderr
+    )
     assert list(tmp_path.iterdir()) == [path]

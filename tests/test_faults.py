@@ -17,7 +17,13 @@ from imucal_cli.reading import read_imu
 from imucal_cli.sim.writers import FORMATS, write_imu_log
 
 runner = CliRunner()
-NAMES = {"mcap": "d.mcap", "mcap-ros1": "d.mcap", "rosbag2-sqlite3": "d", "rosbag2-mcap": "d", "rosbag1": "d.bag"}
+NAMES = {
+    "mcap": "d.mcap",
+    "mcap-ros1": "d.mcap",
+    "rosbag2-sqlite3": "d",
+    "rosbag2-mcap": "d",
+    "rosbag1": "d.bag",
+}
 
 
 @pytest.fixture(scope="module")
@@ -164,7 +170,9 @@ def test_rosbag2_without_usable_metadata_reads_the_storage(logs, fmt, damage):
     assert all(len(got[t].stream) == len(full[t].stream) for t in topics)
 
 
-def test_calibrate_goes_on_after_a_cut_and_stops_when_too_little_remains(logs, tmp_path, short_drive):
+def test_calibrate_goes_on_after_a_cut_and_stops_when_too_little_remains(
+    logs, tmp_path, short_drive
+):
     from imucal_cli.documents import write_document
 
     log = logs["mcap"][0]
@@ -218,7 +226,9 @@ def test_non_finite_and_clipped_samples_are_dropped_and_counted(tmp_path, short_
     stats = reader.stats[name]
     assert stats.non_finite == 4
     assert stats.saturated == 9
-    dropped = set(data.stream.t_ns[[10, 500, 700, 900, *range(1000, 1006), *range(1500, 1503)]].tolist())
+    dropped = set(
+        data.stream.t_ns[[10, 500, 700, 900, *range(1000, 1006), *range(1500, 1503)]].tolist()
+    )
     got = set(np.concatenate(kept).tolist())
     assert not got & dropped
     assert len(got) == len(data.stream) - 13
@@ -262,7 +272,12 @@ def test_sensor_on_another_clock_exits_2_with_the_measured_offset(tmp_path, shor
     result = runner.invoke(app, ["calibrate", str(log), "-c", str(config), "-o", str(out)])
     assert result.exit_code == 2, result.output
     line = result.stderr.strip()
-    assert len(line.splitlines()) == 1 and str(log) in line and name in line and "max_time_offset_s" in line
+    assert (
+        len(line.splitlines()) == 1
+        and str(log) in line
+        and name in line
+        and "max_time_offset_s" in line
+    )
     expected = (int(boot[0]) - int(data.stream.t_ns[0])) * 1e-9
     measured = float(line.split("stamps are ")[1].split(" s")[0])
     assert measured == pytest.approx(expected, abs=0.05)
@@ -273,7 +288,9 @@ def test_sensor_on_another_clock_exits_2_with_the_measured_offset(tmp_path, shor
 def test_sensor_rates_up_to_400_hz(tmp_path, rate):
     from imucal_cli.sim import DriveOptions, simulate_drive
 
-    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=40.0, seed=3, lidar_rate_hz=rate))
+    drive = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=40.0, seed=3, lidar_rate_hz=rate)
+    )
     log = write_imu_log(tmp_path / "r.mcap", "mcap", drive.topics())
     from imucal_cli.documents import write_document
 
@@ -284,7 +301,18 @@ def test_sensor_rates_up_to_400_hz(tmp_path, rate):
     out = tmp_path / "e.json"
     result = runner.invoke(app, ["calibrate", str(log), "-c", str(config), "-o", str(out)])
     assert result.exit_code == 0, result.output
-    result = runner.invoke(app, ["evaluate", str(out), str(truth), "--max-rotation-deg", "0.1", "--max-translation-m", "0.03"])
+    result = runner.invoke(
+        app,
+        [
+            "evaluate",
+            str(out),
+            str(truth),
+            "--max-rotation-deg",
+            "0.1",
+            "--max-translation-m",
+            "0.03",
+        ],
+    )
     assert result.exit_code == 0, result.output
 
 
@@ -299,7 +327,10 @@ def test_gap_is_counted_and_windows_across_it_are_not_used(tmp_path, short_drive
     keep = (t < t[0] + 8 * 10**9) | (t > t[0] + 11 * 10**9)  # 3 s without data
     from imucal_cli.types import ImuStream
 
-    topics[name] = TopicData(ImuStream(t[keep], data.stream.gyro[keep], data.stream.accel[keep], data.stream.frame_id), data.log_time_ns[keep])
+    topics[name] = TopicData(
+        ImuStream(t[keep], data.stream.gyro[keep], data.stream.accel[keep], data.stream.frame_id),
+        data.log_time_ns[keep],
+    )
     log = write_imu_log(tmp_path / "g.mcap", "mcap", topics)
     reader = ImuBatches(log, list(topics))
     for _ in reader:
@@ -338,7 +369,12 @@ def test_damaged_stamp_runs_and_absurd_values_are_dropped_and_counted(tmp_path, 
     gyro = data.stream.gyro.copy()
     gyro[300] = [1e300, 0.0, 0.0]  # finite, but no IMU measures it
     raw = ImuStream.__new__(ImuStream)
-    for key, value in (("t_ns", t), ("gyro", gyro), ("accel", data.stream.accel), ("frame_id", data.stream.frame_id)):
+    for key, value in (
+        ("t_ns", t),
+        ("gyro", gyro),
+        ("accel", data.stream.accel),
+        ("frame_id", data.stream.frame_id),
+    ):
         object.__setattr__(raw, key, value)
     topics[name] = TopicData(raw, data.log_time_ns)
     log = write_imu_log(tmp_path / "s.mcap", "mcap", topics)
@@ -361,11 +397,18 @@ def test_wrong_message_type_exits_2_naming_both_types(tmp_path, short_drive):
     document["sensors"] = {first: dict(document["sensors"][first], imu_topic="/chatter")}
     write_document(tmp_path / "c.yaml", document)
     log = DATA / "ros2_mcap_ros2_writer.mcap"
-    result = runner.invoke(app, ["calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(tmp_path / "e.yaml")])
+    result = runner.invoke(
+        app, ["calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(tmp_path / "e.yaml")]
+    )
     assert result.exit_code == 2
     line = result.stderr.strip()
     assert len(line.splitlines()) == 1
-    assert str(log) in line and "/chatter" in line and "std_msgs/msg/String" in line and "sensor_msgs/msg/Imu" in line
+    assert (
+        str(log) in line
+        and "/chatter" in line
+        and "std_msgs/msg/String" in line
+        and "sensor_msgs/msg/Imu" in line
+    )
     assert not (tmp_path / "e.yaml").exists()
 
 
@@ -385,14 +428,32 @@ def test_ctrl_c_leaves_no_partial_file_and_keeps_the_old_one(tmp_path):
     out = tmp_path / "e.yaml"
     out.write_text("previous: calibration\n")
     process = subprocess.Popen(
-        with_terminal_sigint([sys.executable, "-m", "imucal_cli.cli", "calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)]),
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+        with_terminal_sigint(
+            [
+                sys.executable,
+                "-m",
+                "imucal_cli.cli",
+                "calibrate",
+                str(log),
+                "-c",
+                str(tmp_path / "c.yaml"),
+                "-o",
+                str(out),
+            ]
+        ),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
     )
+
     # interrupted once it has the log open: seconds of work remain, however fast the machine
     # (a fixed delay raced the end of the work)
     def reading() -> bool:
         try:
-            return any(os.readlink(f"/proc/{process.pid}/fd/{fd}") == str(log) for fd in os.listdir(f"/proc/{process.pid}/fd"))
+            return any(
+                os.readlink(f"/proc/{process.pid}/fd/{fd}") == str(log)
+                for fd in os.listdir(f"/proc/{process.pid}/fd")
+            )
         except OSError:
             return False
 
@@ -405,7 +466,11 @@ def test_ctrl_c_leaves_no_partial_file_and_keeps_the_old_one(tmp_path):
     assert process.returncode == 130, stderr
     assert b"Traceback" not in stderr and b"interrupted" in stderr
     assert out.read_text() == "previous: calibration\n"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "e.yaml", "long.mcap"]  # no temp files left
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "c.yaml",
+        "e.yaml",
+        "long.mcap",
+    ]  # no temp files left
     deadline = time.monotonic() + 10  # and no process of its group left
     while time.monotonic() < deadline:
         try:
@@ -445,10 +510,20 @@ def test_groups_of_any_size_read_the_same_and_lose_the_same_chunks(logs, fmt, mo
         monkeypatch.setattr(rosbag1, "GROUP_CHUNKS", 1 if small else 1000)
         losses = []
         got = read_imu(bad, topics, losses=losses)
-        results.append((
-            {t: (r.stream.t_ns.tobytes(), r.stream.gyro.tobytes(), r.stream.accel.tobytes(), r.stats.to_dict()) for t, r in got.items()},
-            [(x.offset, x.reason, x.messages) for x in losses],
-        ))
+        results.append(
+            (
+                {
+                    t: (
+                        r.stream.t_ns.tobytes(),
+                        r.stream.gyro.tobytes(),
+                        r.stream.accel.tobytes(),
+                        r.stats.to_dict(),
+                    )
+                    for t, r in got.items()
+                },
+                [(x.offset, x.reason, x.messages) for x in losses],
+            )
+        )
     assert len(results[0][1]) >= 2
     assert results[1] == results[0]
 
@@ -535,8 +610,14 @@ def test_rosbag1_chunk_claiming_a_wrong_size_is_lost_alone(logs, claimed):
     assert peak < 256 << 20  # no room made for the claimed 4 GiB
     _assert_subset_exact(full, got)
     assert [x.offset for x in losses] == [chunk_pos]
-    assert ("claims to decompress to 4294967280" if claimed == "huge" else "decompressed to more than") in losses[0].reason
-    assert sum(len(full[t].stream) - len(got[t].stream) for t in topics) == sum(losses[0].messages.values()) > 0
+    assert (
+        "claims to decompress to 4294967280" if claimed == "huge" else "decompressed to more than"
+    ) in losses[0].reason
+    assert (
+        sum(len(full[t].stream) - len(got[t].stream) for t in topics)
+        == sum(losses[0].messages.values())
+        > 0
+    )
 
 
 def test_mcap_message_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
@@ -558,7 +639,9 @@ def test_mcap_message_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
     losses = []
     got = read_imu(bad, topics, losses=losses)
     _assert_subset_exact(full, got)
-    assert [x.offset for x in losses] == [chunk.chunk_start_offset] and "past the chunk's end" in losses[0].reason
+    assert [x.offset for x in losses] == [
+        chunk.chunk_start_offset
+    ] and "past the chunk's end" in losses[0].reason
     lost = sum(len(full[t].stream) - len(got[t].stream) for t in topics)
     assert lost == sum(losses[0].messages.values()) > 0
 
@@ -577,7 +660,10 @@ def test_a_long_gap_in_one_imu_does_not_confuse_its_units_or_its_clock(tmp_path)
     data = topics[name]
     t = data.stream.t_ns
     keep = (t < t[0] + 20 * 10**9) | (t > t[0] + 30 * 10**9)
-    topics[name] = TopicData(ImuStream(t[keep], data.stream.gyro[keep], data.stream.accel[keep], data.stream.frame_id), data.log_time_ns[keep])
+    topics[name] = TopicData(
+        ImuStream(t[keep], data.stream.gyro[keep], data.stream.accel[keep], data.stream.frame_id),
+        data.log_time_ns[keep],
+    )
     log = write_imu_log(tmp_path / "gap.mcap", "mcap", topics)
     from imucal_cli.documents import write_document
 
@@ -603,7 +689,15 @@ def test_a_topic_that_stops_is_named_and_the_others_use_the_whole_log(tmp_path):
     data = topics[stopped]
     end = data.stream.t_ns[0] + 50 * 10**9
     keep = data.stream.t_ns < end
-    topics[stopped] = TopicData(data.stream.__class__(data.stream.t_ns[keep], data.stream.gyro[keep], data.stream.accel[keep], data.stream.frame_id), data.log_time_ns[keep] if data.log_time_ns is not None else None)
+    topics[stopped] = TopicData(
+        data.stream.__class__(
+            data.stream.t_ns[keep],
+            data.stream.gyro[keep],
+            data.stream.accel[keep],
+            data.stream.frame_id,
+        ),
+        data.log_time_ns[keep] if data.log_time_ns is not None else None,
+    )
     log = write_imu_log(tmp_path / "d.mcap", "mcap", topics)
     config = tmp_path / "c.yaml"
     write_document(config, drive.config_document())
@@ -636,8 +730,14 @@ def test_a_log_too_short_for_one_window_is_too_little_data_exit_2(tmp_path):
     result = runner.invoke(app, ["calibrate", str(cut), "-c", str(tmp_path / "c.yaml")])
     assert result.exit_code == 2, result.output
     line = result.stderr.strip()
-    assert len(line.splitlines()) == 1 and "too little data: the IMUs overlap for" in line and "needs" in line
-    assert "not read from byte" in line and line.index("not read from byte") < line.index("mcap recover")
+    assert (
+        len(line.splitlines()) == 1
+        and "too little data: the IMUs overlap for" in line
+        and "needs" in line
+    )
+    assert "not read from byte" in line and line.index("not read from byte") < line.index(
+        "mcap recover"
+    )
 
 
 def test_follow_runs_the_clock_check_calibrate_runs(tmp_path, short_drive):
@@ -650,7 +750,10 @@ def test_follow_runs_the_clock_check_calibrate_runs(tmp_path, short_drive):
     topics = short_drive.topics()
     name = next(t for t in topics if t != "/gnss/imu")
     data = topics[name]
-    topics[name] = TopicData(_with(data.stream, t_ns=data.stream.t_ns - data.stream.t_ns[0] + 12_345_000_000), data.log_time_ns)
+    topics[name] = TopicData(
+        _with(data.stream, t_ns=data.stream.t_ns - data.stream.t_ns[0] + 12_345_000_000),
+        data.log_time_ns,
+    )
     log = write_imu_log(tmp_path / "p.mcap", "mcap", topics)
     config = tmp_path / "c.yaml"
     write_document(config, short_drive.config_document())

@@ -36,8 +36,23 @@ def fleet(tmp_path_factory):
 
 
 def _run(root, logs, out, *extra):
-    args = ["batch", *map(str, logs), "-c", str(root / "config.yaml"), "--out-dir", str(out), "--truth-dir", str(root),
-            "--max-rotation-deg", "0.1", "--max-translation-m", "0.03", "--junit", str(out.parent / f"{out.name}.xml"), *extra]
+    args = [
+        "batch",
+        *map(str, logs),
+        "-c",
+        str(root / "config.yaml"),
+        "--out-dir",
+        str(out),
+        "--truth-dir",
+        str(root),
+        "--max-rotation-deg",
+        "0.1",
+        "--max-translation-m",
+        "0.03",
+        "--junit",
+        str(out.parent / f"{out.name}.xml"),
+        *extra,
+    ]
     return runner.invoke(app, args)
 
 
@@ -54,15 +69,23 @@ def test_jobs_and_dask_cluster_give_identical_results(fleet, tmp_path):
     serial = _run(root, logs, tmp_path / "one", "--jobs", "1")
     assert serial.exit_code == 1, serial.output  # the broken log fails; the others pass
     rows = _rows(tmp_path / "one")
-    assert [Path(r["log"]).name for r in rows] == ["d1.mcap"] * 2 + ["d2.mcap"] * 2 + ["d3.mcap"] * 2 + ["broken.mcap"]
+    assert [Path(r["log"]).name for r in rows] == ["d1.mcap"] * 2 + ["d2.mcap"] * 2 + [
+        "d3.mcap"
+    ] * 2 + ["broken.mcap"]
     assert all(Path(r["log"]).is_absolute() for r in rows)  # the full path, not a trimmed one
-    assert all(r["pass"] == "True" for r in rows[:-1]) and rows[-1]["status"] == "failed" and "broken.mcap" in rows[-1]["error"]
+    assert (
+        all(r["pass"] == "True" for r in rows[:-1])
+        and rows[-1]["status"] == "failed"
+        and "broken.mcap" in rows[-1]["error"]
+    )
     for log in logs[:-1]:  # each calibration written in full
         assert yaml.safe_load((tmp_path / "one" / f"{log.stem}.yaml").read_text())["sensors"]
     parallel = _run(root, logs, tmp_path / "two", "--jobs", "2")
     assert parallel.exit_code == 1
     assert _rows(tmp_path / "two") == rows
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None) as cluster:
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
         distributed = _run(root, logs, tmp_path / "dask", "--scheduler", cluster.scheduler_address)
     assert distributed.exit_code == 1, distributed.output
     assert _rows(tmp_path / "dask") == rows
@@ -82,21 +105,51 @@ def test_junit_is_valid_and_counts_failures(fleet, tmp_path):
 
 def test_reference_flags_sensors_that_moved(fleet, tmp_path):
     root, logs = fleet
-    first = runner.invoke(app, ["calibrate", str(logs[0]), "-c", str(root / "config.yaml"), "-o", str(tmp_path / "last.yaml")])
+    first = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(logs[0]),
+            "-c",
+            str(root / "config.yaml"),
+            "-o",
+            str(tmp_path / "last.yaml"),
+        ],
+    )
     assert first.exit_code == 0
     reference = yaml.safe_load((tmp_path / "last.yaml").read_text())
     moved = next(iter(reference["sensors"]))
     T = Transform.from_dict(reference["sensors"][moved]["T_base_lidar"])
     bumped = Transform.from_rpy(np.radians([0.0, 0.0, 1.0]), np.zeros(3)) * T  # knocked by 1 deg
-    reference["sensors"][moved]["T_base_lidar"] = {"translation": list(bumped.translation), "rotation": list(bumped.quaternion_xyzw)}
+    reference["sensors"][moved]["T_base_lidar"] = {
+        "translation": list(bumped.translation),
+        "rotation": list(bumped.quaternion_xyzw),
+    }
     write_document(tmp_path / "reference.yaml", reference)
-    result = runner.invoke(app, ["batch", str(logs[1]), "-c", str(root / "config.yaml"), "--out-dir", str(tmp_path / "r"),
-                                 "--reference", str(tmp_path / "reference.yaml"), "--max-rotation-deg", "0.2", "--max-translation-m", "0.05"])
+    result = runner.invoke(
+        app,
+        [
+            "batch",
+            str(logs[1]),
+            "-c",
+            str(root / "config.yaml"),
+            "--out-dir",
+            str(tmp_path / "r"),
+            "--reference",
+            str(tmp_path / "reference.yaml"),
+            "--max-rotation-deg",
+            "0.2",
+            "--max-translation-m",
+            "0.05",
+        ],
+    )
     assert result.exit_code == 1
     rows = {r["sensor"]: r for r in _rows(tmp_path / "r")}
     assert rows[moved]["moved"] == "True" and rows[moved]["pass"] == "False"
     assert float(rows[moved]["rotation_error_deg"]) == pytest.approx(1.0, abs=0.05)
-    assert all(r["moved"] == "False" and r["pass"] == "True" for name, r in rows.items() if name != moved)
+    assert all(
+        r["moved"] == "False" and r["pass"] == "True" for name, r in rows.items() if name != moved
+    )
 
 
 @pytest.fixture(scope="module")
@@ -120,18 +173,39 @@ def six(tmp_path_factory):
 
 
 def _batch(manifest, out, *extra):
-    return runner.invoke(app, ["batch", "--manifest", str(manifest), "--out-dir", str(out), "--junit", str(out / "junit.xml"), *extra])
+    return runner.invoke(
+        app,
+        [
+            "batch",
+            "--manifest",
+            str(manifest),
+            "--out-dir",
+            str(out),
+            "--junit",
+            str(out / "junit.xml"),
+            *extra,
+        ],
+    )
 
 
 def test_logs_of_one_name_in_other_folders_and_a_fresh_out_folder(six, tmp_path):
-    result = _batch(six / "drives.csv", tmp_path / "fresh")  # the README's example: out and its junit made here
+    result = _batch(
+        six / "drives.csv", tmp_path / "fresh"
+    )  # the README's example: out and its junit made here
     assert result.exit_code in (0, 1), result.output
     names = [r["log"] for r in _rows(tmp_path / "fresh")]
-    assert str(six / "truck0/2026-11-01/drive.mcap") in names and str(six / "truck1/2026-11-02/drive.mcap") in names
+    assert (
+        str(six / "truck0/2026-11-01/drive.mcap") in names
+        and str(six / "truck1/2026-11-02/drive.mcap") in names
+    )
     # DIR/STEM.yaml, with as many folders before the stem as tell two logs of one name apart
-    assert (tmp_path / "fresh" / "2026-11-01_drive.yaml").is_file() and (tmp_path / "fresh" / "2026-11-02_drive.yaml").is_file()
+    assert (tmp_path / "fresh" / "2026-11-01_drive.yaml").is_file() and (
+        tmp_path / "fresh" / "2026-11-02_drive.yaml"
+    ).is_file()
     assert (tmp_path / "fresh" / "drive3.yaml").is_file()
-    assert ET.parse(tmp_path / "fresh" / "junit.xml").getroot().find("testsuite").get("tests") == str(len(names))
+    assert ET.parse(tmp_path / "fresh" / "junit.xml").getroot().find("testsuite").get(
+        "tests"
+    ) == str(len(names))
 
 
 def test_a_damaged_log_fails_its_rows_and_says_what_was_lost_everywhere(six, tmp_path):
@@ -140,23 +214,42 @@ def test_a_damaged_log_fails_its_rows_and_says_what_was_lost_everywhere(six, tmp
     work = tmp_path / "logs"
     shutil.copytree(six, work)
     log = work / "truck0" / "2026-11-01" / "drive.mcap"
-    log.write_bytes(log.read_bytes()[: int(log.stat().st_size * 0.4)])  # cut at 40%, as a killed recorder leaves it
+    log.write_bytes(
+        log.read_bytes()[: int(log.stat().st_size * 0.4)]
+    )  # cut at 40%, as a killed recorder leaves it
     result = _batch(work / "drives.csv", tmp_path / "out")
     assert result.exit_code == 1
     rows = [r for r in _rows(tmp_path / "out") if r["log"] == str(log)]
-    assert rows and all(r["pass"] == "False" and "cut off" in r["warnings"] and "read lost" in r["error"] for r in rows)
-    assert all(r["lost_s"] == "" for r in rows)  # a cut's span is not known: never passes for a number
+    assert rows and all(
+        r["pass"] == "False" and "cut off" in r["warnings"] and "read lost" in r["error"]
+        for r in rows
+    )
+    assert all(
+        r["lost_s"] == "" for r in rows
+    )  # a cut's span is not known: never passes for a number
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert all("cut off" in r["warnings"] for r in summary["rows"] if r["log"] == rows[0]["log"])
     document = yaml.safe_load((tmp_path / "out" / "2026-11-01_drive.yaml").read_text())
-    assert document["losses"] and "cut off" in document["losses"][0]["reason"] and document["lost_s"] is None
-    cases = [c for c in ET.parse(tmp_path / "out" / "junit.xml").getroot().iter("testcase") if c.get("classname") == rows[0]["log"]]
-    assert cases and all(c.find("failure") is not None and "cut off" in c.find("system-out").text for c in cases)
+    assert (
+        document["losses"]
+        and "cut off" in document["losses"][0]["reason"]
+        and document["lost_s"] is None
+    )
+    cases = [
+        c
+        for c in ET.parse(tmp_path / "out" / "junit.xml").getroot().iter("testcase")
+        if c.get("classname") == rows[0]["log"]
+    ]
+    assert cases and all(
+        c.find("failure") is not None and "cut off" in c.find("system-out").text for c in cases
+    )
     intact = [r for r in _rows(tmp_path / "out") if r["log"] != rows[0]["log"]]
     assert all(r["lost_s"] == "0.0" and "cut off" not in r["warnings"] for r in intact)
 
 
-def test_a_real_dask_cluster_started_in_another_folder_gives_the_local_summary(six, tmp_path, monkeypatch):
+def test_a_real_dask_cluster_started_in_another_folder_gives_the_local_summary(
+    six, tmp_path, monkeypatch
+):
     """A scheduler and two workers as their own processes, started in a folder that is not the
     logs'; the batch given relative paths (resolved and read before submitting)."""
     import shutil
@@ -173,16 +266,47 @@ def test_a_real_dask_cluster_started_in_another_folder_gives_the_local_summary(s
     monkeypatch.chdir(six)
     local = _batch(Path("drives.csv"), tmp_path / "local")
     scheduler_file = elsewhere / "scheduler.json"
-    processes = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(scheduler_file)],
-                                  cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    processes = [
+        subprocess.Popen(
+            [
+                dask,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(scheduler_file),
+            ],
+            cwd=elsewhere,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
     try:
         deadline = time.monotonic() + 60
         while not scheduler_file.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
         address = json.loads(scheduler_file.read_text())["address"]
         for _ in range(2):
-            processes.append(subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
-                                              cwd=elsewhere, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            processes.append(
+                subprocess.Popen(
+                    [
+                        dask,
+                        "worker",
+                        address,
+                        "--nworkers",
+                        "1",
+                        "--nthreads",
+                        "1",
+                        "--no-dashboard",
+                    ],
+                    cwd=elsewhere,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
         from dask.distributed import Client
 
         with Client(address, timeout="30s") as client:
@@ -200,18 +324,54 @@ def test_a_real_dask_cluster_started_in_another_folder_gives_the_local_summary(s
 
 def test_reference_without_thresholds_flags_a_move_past_three_combined_std(fleet, tmp_path):
     root, logs = fleet
-    assert runner.invoke(app, ["calibrate", str(logs[0]), "-c", str(root / "config.yaml"), "-o", str(tmp_path / "last.yaml")]).exit_code == 0
+    assert (
+        runner.invoke(
+            app,
+            [
+                "calibrate",
+                str(logs[0]),
+                "-c",
+                str(root / "config.yaml"),
+                "-o",
+                str(tmp_path / "last.yaml"),
+            ],
+        ).exit_code
+        == 0
+    )
     reference = yaml.safe_load((tmp_path / "last.yaml").read_text())
     moved = next(iter(reference["sensors"]))
     T = Transform.from_dict(reference["sensors"][moved]["T_base_lidar"])
-    bumped = Transform.from_rpy(np.radians([0.0, 0.0, 0.47]), np.zeros(3)) * T  # the issue's 0.47 deg
-    reference["sensors"][moved]["T_base_lidar"] = {"translation": list(bumped.translation), "rotation": list(bumped.quaternion_xyzw)}
+    bumped = (
+        Transform.from_rpy(np.radians([0.0, 0.0, 0.47]), np.zeros(3)) * T
+    )  # the issue's 0.47 deg
+    reference["sensors"][moved]["T_base_lidar"] = {
+        "translation": list(bumped.translation),
+        "rotation": list(bumped.quaternion_xyzw),
+    }
     write_document(tmp_path / "reference.yaml", reference)
-    result = runner.invoke(app, ["batch", str(logs[0]), "-c", str(root / "config.yaml"), "--out-dir", str(tmp_path / "r"), "--reference", str(tmp_path / "reference.yaml")])
+    result = runner.invoke(
+        app,
+        [
+            "batch",
+            str(logs[0]),
+            "-c",
+            str(root / "config.yaml"),
+            "--out-dir",
+            str(tmp_path / "r"),
+            "--reference",
+            str(tmp_path / "reference.yaml"),
+        ],
+    )
     assert result.exit_code == 1 and "3 combined std" in result.stderr
     rows = {r["sensor"]: r for r in _rows(tmp_path / "r")}
-    assert rows[moved]["moved"] == "True" and rows[moved]["pass"] == "False" and "limit" in rows[moved]["error"]
-    assert all(r["moved"] == "False" and r["pass"] == "True" for name, r in rows.items() if name != moved)
+    assert (
+        rows[moved]["moved"] == "True"
+        and rows[moved]["pass"] == "False"
+        and "limit" in rows[moved]["error"]
+    )
+    assert all(
+        r["moved"] == "False" and r["pass"] == "True" for name, r in rows.items() if name != moved
+    )
 
 
 def test_plan_takes_each_reference_std_from_its_own_file(tmp_path):
@@ -225,19 +385,37 @@ def test_plan_takes_each_reference_std_from_its_own_file(tmp_path):
     config = sample / "urban.config.yaml"
     refs = {}
     for std in (0.01, 0.5):
-        doc = {"sensors": {"front_left_top": {"T_base_lidar": Transform.identity().to_dict(), "rotation_std_deg": [std, std / 2, std / 4], "translation_std_m": [std / 10] * 3}}}
+        doc = {
+            "sensors": {
+                "front_left_top": {
+                    "T_base_lidar": Transform.identity().to_dict(),
+                    "rotation_std_deg": [std, std / 2, std / 4],
+                    "translation_std_m": [std / 10] * 3,
+                }
+            }
+        }
         refs[std] = tmp_path / f"ref{std}.yaml"
         write_document(refs[std], doc)
     logs = [sample / "urban.mcap", sample / "aggressive.mcap"]
-    entries = [{"log": str(logs[0]), "reference": str(refs[0.01])}, {"log": str(logs[1]), "reference": str(refs[0.5])}]
+    entries = [
+        {"log": str(logs[0]), "reference": str(refs[0.01])},
+        {"log": str(logs[1]), "reference": str(refs[0.5])},
+    ]
     tasks = plan_tasks(entries, config, tmp_path / "out")
     assert [t.reference_std["front_left_top"] for t in tasks] == [(0.01, 0.001), (0.5, 0.05)]
     assert all(t.reference and set(t.against) == {"front_left_top"} for t in tasks)
     (tmp_path / "truths").mkdir()
-    task = plan_tasks([{"log": str(logs[0])}], config, tmp_path / "out", truth_dir=tmp_path / "truths")[0]
+    task = plan_tasks(
+        [{"log": str(logs[0])}], config, tmp_path / "out", truth_dir=tmp_path / "truths"
+    )[0]
     assert task.against == {} and not task.reference
     with pytest.raises(InputError, match=r"nope\.truth\.yaml"):
-        plan_tasks([{"log": str(logs[0]), "truth": str(tmp_path / "nope.truth.yaml")}], config, tmp_path / "out", truth_dir=tmp_path / "truths")
+        plan_tasks(
+            [{"log": str(logs[0]), "truth": str(tmp_path / "nope.truth.yaml")}],
+            config,
+            tmp_path / "out",
+            truth_dir=tmp_path / "truths",
+        )
 
 
 def test_a_worker_killed_fails_its_own_log_by_name_and_no_other(fleet, tmp_path, monkeypatch):
@@ -264,7 +442,11 @@ def test_a_worker_killed_fails_its_own_log_by_name_and_no_other(fleet, tmp_path,
     assert result.exit_code == 1, result.output
     rows = {Path(r["log"]).name: r for r in _rows(out)}
     killed = rows[victim.name]
-    assert killed["status"] == "failed" and str(victim) in killed["error"] and "SIGKILL" in killed["error"]
+    assert (
+        killed["status"] == "failed"
+        and str(victim) in killed["error"]
+        and "SIGKILL" in killed["error"]
+    )
     for log in (logs[0], logs[2]):
         assert rows[log.name]["status"] == "ok", rows[log.name]
     assert not (out / f"{victim.stem}.yaml").exists()
@@ -286,8 +468,25 @@ def test_ctrl_c_during_a_batch_stops_it_and_starts_no_other_log(fleet, tmp_path)
         copies.append(tmp_path / f"c{k}.mcap")
         copies[-1].write_bytes(log.read_bytes())
     out = tmp_path / "out"
-    argv = [sys.executable, "-m", "imucal_cli.cli", "batch", *map(str, copies), "-c", str(root / "config.yaml"), "--out-dir", str(out), "--jobs", "2"]
-    process = subprocess.Popen(with_terminal_sigint(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    argv = [
+        sys.executable,
+        "-m",
+        "imucal_cli.cli",
+        "batch",
+        *map(str, copies),
+        "-c",
+        str(root / "config.yaml"),
+        "--out-dir",
+        str(out),
+        "--jobs",
+        "2",
+    ]
+    process = subprocess.Popen(
+        with_terminal_sigint(argv),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not (out.is_dir() and any(out.glob("*.yaml"))):
         time.sleep(0.02)
@@ -314,7 +513,18 @@ def test_a_scheduler_without_workers_is_an_error_not_a_hang(fleet, tmp_path, mon
     async def scheduler_alone():
         async with Scheduler(host="127.0.0.1", port=0, dashboard_address=None) as scheduler:
             result = await asyncio.to_thread(
-                runner.invoke, app, ["batch", str(logs[0]), "-c", str(root / "config.yaml"), "--out-dir", str(tmp_path / "out"), "--scheduler", scheduler.address]
+                runner.invoke,
+                app,
+                [
+                    "batch",
+                    str(logs[0]),
+                    "-c",
+                    str(root / "config.yaml"),
+                    "--out-dir",
+                    str(tmp_path / "out"),
+                    "--scheduler",
+                    scheduler.address,
+                ],
             )
             return result
 
@@ -324,7 +534,9 @@ def test_a_scheduler_without_workers_is_an_error_not_a_hang(fleet, tmp_path, mon
     assert not (tmp_path / "out" / "summary.csv").exists()
 
 
-def test_a_scheduler_killed_mid_batch_fails_the_rest_and_nothing_is_written_for_them(fleet, tmp_path):
+def test_a_scheduler_killed_mid_batch_fails_the_rest_and_nothing_is_written_for_them(
+    fleet, tmp_path
+):
     """The scheduler dies (SIGKILL) while the batch runs: the logs not done are failed rows
     that say so, the batch exits 1 without a traceback, and no output exists for a failed log
     (workers write nothing: the batch's own process writes each document)."""
@@ -344,20 +556,58 @@ def test_a_scheduler_killed_mid_batch_fails_the_rest_and_nothing_is_written_for_
         copies.append(tmp_path / f"c{k}.mcap")
         copies[-1].write_bytes(logs[k % 3].read_bytes())
     scheduler_file = tmp_path / "scheduler.json"
-    processes = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(scheduler_file)],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    processes = [
+        subprocess.Popen(
+            [
+                dask,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(scheduler_file),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
     try:
         deadline = time.monotonic() + 60
         while not scheduler_file.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
         address = json.loads(scheduler_file.read_text())["address"]
-        processes.append(subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        processes.append(
+            subprocess.Popen(
+                [dask, "worker", address, "--nworkers", "1", "--nthreads", "1", "--no-dashboard"],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        )
         out = tmp_path / "out"
-        batch = subprocess.Popen([sys.executable, "-m", "imucal_cli.cli", "batch", *map(str, copies), "-c", str(root / "config.yaml"), "--out-dir", str(out),
-                                  "--scheduler", address], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        batch = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "imucal_cli.cli",
+                "batch",
+                *map(str, copies),
+                "-c",
+                str(root / "config.yaml"),
+                "--out-dir",
+                str(out),
+                "--scheduler",
+                address,
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not (out.is_dir() and len(list(out.glob("c*.yaml"))) >= 2):
+        while time.monotonic() < deadline and not (
+            out.is_dir() and len(list(out.glob("c*.yaml"))) >= 2
+        ):
             time.sleep(0.05)
         processes[0].send_signal(signal.SIGKILL)
         _, stderr = batch.communicate(timeout=120)
@@ -369,7 +619,9 @@ def test_a_scheduler_killed_mid_batch_fails_the_rest_and_nothing_is_written_for_
     assert "Traceback" not in stderr and "ERROR" not in stderr, stderr[-3000:]
     rows = {Path(r["log"]).name: r for r in _rows(out)}
     failed = [log for log, r in rows.items() if r["status"] == "failed"]
-    assert failed and all("scheduler" in rows[log]["error"] and "lost" in rows[log]["error"] for log in failed)
+    assert failed and all(
+        "scheduler" in rows[log]["error"] and "lost" in rows[log]["error"] for log in failed
+    )
     assert all(not (out / log.replace(".mcap", ".yaml")).exists() for log in failed)
 
 
@@ -377,9 +629,20 @@ def test_thresholds_without_truth_or_reference_are_refused(fleet, tmp_path):
     """A threshold with nothing to compare against did nothing (exit 0); a negative one was
     accepted. Both exit 2 naming the option, before any work."""
     root, logs = fleet
-    base = ["batch", str(logs[0]), "-c", str(root / "config.yaml"), "--out-dir", str(tmp_path / "out")]
+    base = [
+        "batch",
+        str(logs[0]),
+        "-c",
+        str(root / "config.yaml"),
+        "--out-dir",
+        str(tmp_path / "out"),
+    ]
     result = runner.invoke(app, [*base, "--max-rotation-deg", "0.0001"])
-    assert result.exit_code == 2 and "--max-rotation-deg" in result.stderr and "--truth-dir or --reference" in result.stderr
+    assert (
+        result.exit_code == 2
+        and "--max-rotation-deg" in result.stderr
+        and "--truth-dir or --reference" in result.stderr
+    )
     assert not (tmp_path / "out").exists()
     result = runner.invoke(app, [*base, "--truth-dir", str(root), "--max-translation-m", "-1"])
     assert result.exit_code == 2 and "--max-translation-m" in result.stderr
@@ -392,17 +655,44 @@ def test_failures_name_what_failed(fleet, tmp_path):
     root, logs = fleet
     truths = tmp_path / "truths"
     truths.mkdir()
-    (truths / f"{logs[0].stem}.truth.yaml").write_text((root / f"{logs[0].stem}.truth.yaml").read_text())
+    (truths / f"{logs[0].stem}.truth.yaml").write_text(
+        (root / f"{logs[0].stem}.truth.yaml").read_text()
+    )
     out = tmp_path / "out"
-    result = runner.invoke(app, ["batch", str(logs[0]), str(logs[1]), "-c", str(root / "config.yaml"), "--out-dir", str(out), "--truth-dir", str(truths),
-                                 "--max-rotation-deg", "0.000001", "--junit", str(tmp_path / "j.xml")])
+    result = runner.invoke(
+        app,
+        [
+            "batch",
+            str(logs[0]),
+            str(logs[1]),
+            "-c",
+            str(root / "config.yaml"),
+            "--out-dir",
+            str(out),
+            "--truth-dir",
+            str(truths),
+            "--max-rotation-deg",
+            "0.000001",
+            "--junit",
+            str(tmp_path / "j.xml"),
+        ],
+    )
     assert result.exit_code == 1, result.output
     failures = [f.get("message") for f in ET.parse(tmp_path / "j.xml").getroot().iter("failure")]
     over = [m for m in failures if "rotation_error_deg" in m]
     assert over and all("> --max-rotation-deg 1e-06" in m for m in over)
     assert any("no such truth file for this log" in m for m in failures)
     estimate = out / f"{logs[0].stem}.yaml"
-    shown = runner.invoke(app, ["evaluate", str(estimate), str(truths / f"{logs[0].stem}.truth.yaml"), "--max-rotation-deg", "0.000001"])
+    shown = runner.invoke(
+        app,
+        [
+            "evaluate",
+            str(estimate),
+            str(truths / f"{logs[0].stem}.truth.yaml"),
+            "--max-rotation-deg",
+            "0.000001",
+        ],
+    )
     assert shown.exit_code == 1
     assert shown.stdout.count("rotation deg > 1e-06") == 3  # two sensors and their pair
     assert "fail: 3 over a threshold" in shown.stdout
@@ -413,10 +703,21 @@ def test_absolute_manifest_paths_give_flat_outputs_and_full_paths(six, tmp_path)
     paths' folders), and the summary keeps each log's full path (issue 32, item 6)."""
     manifest = tmp_path / "absolute.csv"
     lines = (six / "drives.csv").read_text().splitlines()
-    manifest.write_text("\n".join([lines[0], *(",".join(str(six / v) for v in line.split(",")) for line in lines[1:]), ""]))
+    manifest.write_text(
+        "\n".join(
+            [lines[0], *(",".join(str(six / v) for v in line.split(",")) for line in lines[1:]), ""]
+        )
+    )
     out = tmp_path / "out"
     result = runner.invoke(app, ["batch", "--manifest", str(manifest), "--out-dir", str(out)])
     assert result.exit_code in (0, 1), result.output
-    assert sorted(p.name for p in out.glob("*.yaml")) == ["2026-11-01_drive.yaml", "2026-11-02_drive.yaml", "drive2.yaml", "drive3.yaml", "drive4.yaml", "drive5.yaml"]
+    assert sorted(p.name for p in out.glob("*.yaml")) == [
+        "2026-11-01_drive.yaml",
+        "2026-11-02_drive.yaml",
+        "drive2.yaml",
+        "drive3.yaml",
+        "drive4.yaml",
+        "drive5.yaml",
+    ]
     assert not [p for p in out.iterdir() if p.is_dir()]
     assert {r["log"] for r in _rows(out)} == {str(six / line.split(",")[0]) for line in lines[1:]}

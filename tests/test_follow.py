@@ -35,7 +35,9 @@ def aggressive():
 
 
 @pytest.mark.parametrize("layout", ["mcap", "rosbag2"])
-def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does(aggressive, tmp_path, layout):
+def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does(
+    aggressive, tmp_path, layout
+):
     config = tmp_path / "c.yaml"
     write_document(config, aggressive.config_document())
     if layout == "mcap":
@@ -45,7 +47,19 @@ def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does
         path.mkdir()
         target = path / "bag_0.mcap"
     recorder = record(target, aggressive, factor=10.0)
-    result = runner.invoke(app, ["calibrate", str(path), "-c", str(config), "--follow", "--json", "-o", str(tmp_path / "f.yaml")])
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(path),
+            "-c",
+            str(config),
+            "--follow",
+            "--json",
+            "-o",
+            str(tmp_path / "f.yaml"),
+        ],
+    )
     assert result.exit_code == 0, result.output
     recorder.join(60)
     updates = [json.loads(line) for line in result.stdout.splitlines()]
@@ -56,12 +70,22 @@ def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does
         f = followed["sensors"][name]
         assert f["status"] == s["status"]
         d_t = np.abs(np.array(f["T_base_imu"]["translation"]) - s["T_base_imu"]["translation"])
-        assert np.all(d_t <= 0.05 * np.array(s["translation_std_m"])), (name, d_t, s["translation_std_m"])
+        assert np.all(d_t <= 0.05 * np.array(s["translation_std_m"])), (
+            name,
+            d_t,
+            s["translation_std_m"],
+        )
         d_r = np.abs(np.array(f["T_base_imu"]["rpy_deg"]) - s["T_base_imu"]["rpy_deg"])
-        assert np.all(d_r <= 0.05 * np.array(s["rotation_std_deg"])), (name, d_r, s["rotation_std_deg"])
+        assert np.all(d_r <= 0.05 * np.array(s["rotation_std_deg"])), (
+            name,
+            d_r,
+            s["rotation_std_deg"],
+        )
 
 
-def test_following_a_rosbag2_recording_to_sqlite3_ends_where_the_batch_calibration_does(aggressive, tmp_path):
+def test_following_a_rosbag2_recording_to_sqlite3_ends_where_the_batch_calibration_does(
+    aggressive, tmp_path
+):
     from imucal_cli.sim.writers import write_imu_log
 
     config = tmp_path / "c.yaml"
@@ -69,20 +93,54 @@ def test_following_a_rosbag2_recording_to_sqlite3_ends_where_the_batch_calibrati
     recorder = SqliteRecorder(tmp_path / "bag", aggressive.topics(), factor=10.0)
     recorder.start()
     recorder.started_writing.wait(30)
-    result = runner.invoke(app, ["calibrate", str(tmp_path / "bag"), "-c", str(config), "--follow", "-o", str(tmp_path / "f.yaml")])
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(tmp_path / "bag"),
+            "-c",
+            str(config),
+            "--follow",
+            "-o",
+            str(tmp_path / "f.yaml"),
+        ],
+    )
     recorder.join(60)
     assert result.exit_code == 0, result.output
     followed = yaml.safe_load((tmp_path / "f.yaml").read_text())
-    batch = calibrate_log(write_imu_log(tmp_path / "done", "rosbag2-sqlite3", aggressive.topics()), config).document
+    batch = calibrate_log(
+        write_imu_log(tmp_path / "done", "rosbag2-sqlite3", aggressive.topics()), config
+    ).document
     for name, s in batch["sensors"].items():
-        d_t = np.abs(np.array(followed["sensors"][name]["T_base_imu"]["translation"]) - s["T_base_imu"]["translation"])
-        assert followed["sensors"][name]["status"] == s["status"] and np.all(d_t <= 0.05 * np.array(s["translation_std_m"])), (name, d_t)
+        d_t = np.abs(
+            np.array(followed["sensors"][name]["T_base_imu"]["translation"])
+            - s["T_base_imu"]["translation"]
+        )
+        assert followed["sensors"][name]["status"] == s["status"] and np.all(
+            d_t <= 0.05 * np.array(s["translation_std_m"])
+        ), (name, d_t)
 
 
-def test_until_converged_exits_0_before_the_writer_is_done_on_an_aggressive_drive(aggressive, tmp_path):
+def test_until_converged_exits_0_before_the_writer_is_done_on_an_aggressive_drive(
+    aggressive, tmp_path
+):
     config = _config(aggressive, tmp_path / "c.yaml")
     recorder = record(tmp_path / "live.mcap", aggressive, factor=4.0)
-    result = runner.invoke(app, ["calibrate", str(tmp_path / "live.mcap"), "-c", str(config), "--follow", "--until-converged", "--timeout", "60", "-o", str(tmp_path / "f.yaml")])
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(tmp_path / "live.mcap"),
+            "-c",
+            str(config),
+            "--follow",
+            "--until-converged",
+            "--timeout",
+            "60",
+            "-o",
+            str(tmp_path / "f.yaml"),
+        ],
+    )
     still_writing = not recorder.finished.is_set()
     recorder.join(60)
     assert result.exit_code == 0, result.output
@@ -91,27 +149,63 @@ def test_until_converged_exits_0_before_the_writer_is_done_on_an_aggressive_driv
     assert document["converged"] is True
     for s in document["sensors"].values():
         assert s["status"] == "ok" and not s["missing"]
-        assert max(s["rotation_std_deg"]) <= STOP["max_rotation_std_deg"] and max(s["translation_std_m"]) <= STOP["max_translation_std_m"]
+        assert (
+            max(s["rotation_std_deg"]) <= STOP["max_rotation_std_deg"]
+            and max(s["translation_std_m"]) <= STOP["max_translation_std_m"]
+        )
 
 
 def test_a_highway_drive_times_out_with_exit_1_and_names_what_is_missing(tmp_path):
     drive = simulate_drive(DriveOptions(scenario="highway", duration_s=120.0, seed=32))
     config = _config(drive, tmp_path / "c.yaml")
     recorder = record(tmp_path / "live.mcap", drive, factor=10.0)
-    result = runner.invoke(app, ["calibrate", str(tmp_path / "live.mcap"), "-c", str(config), "--follow", "--until-converged", "--timeout", "9", "-o", str(tmp_path / "f.yaml")])
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(tmp_path / "live.mcap"),
+            "-c",
+            str(config),
+            "--follow",
+            "--until-converged",
+            "--timeout",
+            "9",
+            "-o",
+            str(tmp_path / "f.yaml"),
+        ],
+    )
     recorder.join(60)
     assert result.exit_code == 1, result.output
     assert "not converged before --timeout" in result.stderr and "missing" in result.stderr
     document = yaml.safe_load((tmp_path / "f.yaml").read_text())
-    assert document["converged"] is False and any(s["missing"] for s in document["sensors"].values())
-    assert any("turns in both directions" in line for s in document["sensors"].values() for line in s["missing"])
+    assert document["converged"] is False and any(
+        s["missing"] for s in document["sensors"].values()
+    )
+    assert any(
+        "turns in both directions" in line
+        for s in document["sensors"].values()
+        for line in s["missing"]
+    )
 
 
 def test_a_writer_that_dies_mid_record_ends_at_the_timeout_with_what_was_read(aggressive, tmp_path):
     config = tmp_path / "c.yaml"
     write_document(config, aggressive.config_document())
     recorder = record(tmp_path / "dead.mcap", aggressive, factor=20.0, die_after_s=70.0)
-    result = runner.invoke(app, ["calibrate", str(tmp_path / "dead.mcap"), "-c", str(config), "--follow", "--timeout", "6", "-o", str(tmp_path / "f.yaml")])
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(tmp_path / "dead.mcap"),
+            "-c",
+            str(config),
+            "--follow",
+            "--timeout",
+            "6",
+            "-o",
+            str(tmp_path / "f.yaml"),
+        ],
+    )
     recorder.join(60)
     assert result.exit_code == 0, result.output
     assert "Traceback" not in result.output
@@ -129,14 +223,27 @@ def test_the_live_table_shows_status_std_windows_and_what_is_missing():
     from imucal_cli.pipeline import missing_axes
 
     run = calibrate_log(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
-    stop = run.result.config.stop.__class__(max_rotation_std_deg=0.001, max_translation_std_m=0.0001)  # out of reach
-    sensors = {n: {"status": e.status, "rotation_std_deg": e.rotation_std_deg, "translation_std_m": e.translation_std_m, "missing": missing_axes(e, stop)} for n, e in run.result.estimates.items()}
+    stop = run.result.config.stop.__class__(
+        max_rotation_std_deg=0.001, max_translation_std_m=0.0001
+    )  # out of reach
+    sensors = {
+        n: {
+            "status": e.status,
+            "rotation_std_deg": e.rotation_std_deg,
+            "translation_std_m": e.translation_std_m,
+            "missing": missing_axes(e, stop),
+        }
+        for n, e in run.result.estimates.items()
+    }
     console = Console(width=200, record=True)
     console.print(_follow_table(Path("live.mcap"), 7, run.result, sensors))
     text = console.export_text()
     assert "following live.mcap: 7 windows" in text
     for name, estimate in run.result.estimates.items():
-        assert name in text and f"{sum(w.selected for w in estimate.windows)}/{len(estimate.windows)}" in text
+        assert (
+            name in text
+            and f"{sum(w.selected for w in estimate.windows)}/{len(estimate.windows)}" in text
+        )
     assert "rotation z (yaw)" in text and "translation x" in text
 
 
@@ -150,8 +257,25 @@ def test_ctrl_c_while_following_writes_the_last_estimate_and_exits_130(aggressiv
     write_document(config, aggressive.config_document())
     recorder = record(tmp_path / "live.mcap", aggressive, factor=8.0)
     out = tmp_path / "f.yaml"
-    argv = [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(tmp_path / "live.mcap"), "-c", str(config), "--follow", "--json", "-o", str(out)]
-    process = subprocess.Popen(with_terminal_sigint(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    argv = [
+        sys.executable,
+        "-m",
+        "imucal_cli.cli",
+        "calibrate",
+        str(tmp_path / "live.mcap"),
+        "-c",
+        str(config),
+        "--follow",
+        "--json",
+        "-o",
+        str(out),
+    ]
+    process = subprocess.Popen(
+        with_terminal_sigint(argv),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     first = process.stdout.readline()  # the first update: the calibrator has booted
     assert first, process.stderr.read()
     os.killpg(process.pid, signal.SIGINT)
@@ -191,9 +315,14 @@ def test_follow_on_a_finished_log_runs_the_same_checks_and_gives_the_same_docume
         f = followed["sensors"][name]
         assert set(f) - set(s) == {"missing"}
         assert f["status"] == s["status"]
-        assert {k: v["pass"] for k, v in f["checks"].items()} == {k: v["pass"] for k, v in s["checks"].items()}
+        assert {k: v["pass"] for k, v in f["checks"].items()} == {
+            k: v["pass"] for k, v in s["checks"].items()
+        }
         assert _kinds(f["warnings"]) == _kinds(s["warnings"])
-        assert f["segments"]["total"] == s["segments"]["total"] and f["segments"]["selected"] == s["segments"]["selected"]
+        assert (
+            f["segments"]["total"] == s["segments"]["total"]
+            and f["segments"]["selected"] == s["segments"]["selected"]
+        )
         for key, std in (("translation", "translation_std_m"), ("rpy_deg", "rotation_std_deg")):
             d = np.abs(np.array(f["T_base_imu"][key]) - s["T_base_imu"][key])
             assert np.all(d <= 1e-3 * np.array(s[std])), (name, key, d, s[std])

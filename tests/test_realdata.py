@@ -31,7 +31,10 @@ EDGE_S = 0.5
 def load(trial: str):
     path = BROAD / f"{trial}.hdf5"
     if not path.exists():
-        pytest.skip(f"the BROAD recording {trial} (a real IMU with motion capture, kept outside this repository) is not on this machine")
+        pytest.skip(
+            f"the BROAD recording {trial} (a real IMU with motion capture, kept outside this "
+            "repository) is not on this machine"
+        )
     with h5py.File(path) as f:
         rate = float(f.attrs["sampling_rate"])
         gyro, accel = np.array(f["imu_gyr"]), np.array(f["imu_acc"])
@@ -68,7 +71,9 @@ def test_gyro_bias_at_rest_matches_the_stable_bias(trial):
     stream, movement, _ = load(trial)
     report = estimate_biases(stream, 0.1, 0.02, 2.0, np.radians(0.1), np.radians(0.3))
     reference = stream.gyro[~movement].mean(axis=0)  # the dataset's own rest samples
-    np.testing.assert_allclose(reference, [0.0035, 0.0021, -0.0040], atol=4e-4)  # SOURCE.md's figure
+    np.testing.assert_allclose(
+        reference, [0.0035, 0.0021, -0.0040], atol=4e-4
+    )  # SOURCE.md's figure
     per_sample_std = stream.gyro[~movement].std(axis=0)
     for rest in report.rest_periods:
         n = rest.samples
@@ -94,7 +99,10 @@ def test_real_highway_drive_is_reported_unobservable():
     from imucal_cli.sim.rig import DEFAULT_MOUNTS, cad_prior
 
     if not (COMMA / "processed_log_IMU_gyro_t.npy").exists():
-        pytest.skip("the comma2k19 example drive (a real car's IMU, kept outside this repository) is not on this machine")
+        pytest.skip(
+            "the comma2k19 example drive (a real car's IMU, kept outside this repository) is not "
+            "on this machine"
+        )
     t = np.load(COMMA / "processed_log_IMU_gyro_t.npy")
     device_to_base = np.diag([1.0, -1.0, -1.0])  # [forward, right, down] -> [forward, left, up]
     w_B = np.load(COMMA / "processed_log_IMU_gyro_value.npy") @ device_to_base
@@ -105,18 +113,34 @@ def test_real_highway_drive_is_reported_unobservable():
     rng = np.random.default_rng(0)
     rate = 1.0 / np.median(np.diff(t))
     f_at = f_B + np.cross(dw_B, lever) + np.einsum("nij,j->ni", skew_squared(w_B), lever)
-    w_I = w_B @ R + rng.normal(0, np.radians(0.015) * np.sqrt(rate), w_B.shape) + np.radians(0.2) * rng.normal(size=3)
-    f_I = f_at @ R + rng.normal(0, 230e-6 * 9.80665 * np.sqrt(rate), f_B.shape) + 0.05 * rng.normal(size=3)
+    w_I = (
+        w_B @ R
+        + rng.normal(0, np.radians(0.015) * np.sqrt(rate), w_B.shape)
+        + np.radians(0.2) * rng.normal(size=3)
+    )
+    f_I = (
+        f_at @ R
+        + rng.normal(0, 230e-6 * 9.80665 * np.sqrt(rate), f_B.shape)
+        + 0.05 * rng.normal(size=3)
+    )
     t_ns = np.round(t * 1e9).astype(np.int64)
     prior = cad_prior(mount.T_base_imu, rng)
     config = parse_config(
         {
             "base": {"topic": "/imu"},
-            "sensors": {mount.name: {"imu_topic": "/lidar/imu", "T_imu_lidar": mount.T_imu_lidar.to_dict(), "prior_T_base_imu": prior.to_dict()}},
+            "sensors": {
+                mount.name: {
+                    "imu_topic": "/lidar/imu",
+                    "T_imu_lidar": mount.T_imu_lidar.to_dict(),
+                    "prior_T_base_imu": prior.to_dict(),
+                }
+            },
         },
         "comma.yaml",
     )
-    streams = DriveStreams(ImuStream(t_ns, w_B, f_B), {mount.name: ImuStream(t_ns, w_I, f_I)}, int(t_ns[0]))
+    streams = DriveStreams(
+        ImuStream(t_ns, w_B, f_B), {mount.name: ImuStream(t_ns, w_I, f_I)}, int(t_ns[0])
+    )
     estimate = run_calibrate(streams, config).estimates[mount.name]
     assert estimate.status == "unobservable"
     assert np.array_equal(estimate.T_base_imu.as_matrix(), prior.as_matrix())

@@ -1,6 +1,7 @@
 """The fast estimator against a slow, plain one written from the paper's equations.
 
-The reference works on the raw samples: every IMU interpolated (a cubic spline) onto one 100 Hz grid,
+The reference works on the raw samples: every IMU interpolated (a cubic spline) onto one 100 Hz
+grid,
 the same zero-phase low-pass (``scipy.signal.filtfilt``) on every term of the equations (the
 products ``[w]x^2`` too, as the method requires), the angular acceleration the
 spline's derivative; the rotation from the gyros by Kabsch (eq. 10, centred
@@ -53,10 +54,22 @@ def reference(base, sensor, t0_ns):
 
 @pytest.mark.parametrize("noise_scale", [0.0, 1.0])
 def test_fast_estimator_agrees_with_the_plain_reference(noise_scale):
-    options = DriveOptions(scenario="aggressive", duration_s=81.0, seed=4, sensors=2, noise_scale=noise_scale, time_offsets_s=(0.0,))
+    options = DriveOptions(
+        scenario="aggressive",
+        duration_s=81.0,
+        seed=4,
+        sensors=2,
+        noise_scale=noise_scale,
+        time_offsets_s=(0.0,),
+    )
     drive = simulate_drive(options)
     streams, config = drive.streams(), drive.config()
-    config = config.__class__(**{**config.__dict__, "calibration": config.calibration.__class__(resample_hz=100.0, max_time_offset_s=0.0)})
+    config = config.__class__(
+        **{
+            **config.__dict__,
+            "calibration": config.calibration.__class__(resample_hz=100.0, max_time_offset_s=0.0),
+        }
+    )
     result = run_calibrate(streams, config)
     for mount in drive.mounts:
         fast = result.estimates[mount.name]
@@ -72,4 +85,8 @@ def test_fast_estimator_agrees_with_the_plain_reference(noise_scale):
             # blind to bias drift, is no better than it)
             std_rot = float(np.linalg.norm(fast.rotation_std_deg))
             assert d_rot < 4 * std_rot + 2e-3, (mount.name, d_rot, std_rot)
-            assert np.all(d_t < 4 * fast.translation_std_m + 1e-3), (mount.name, d_t, fast.translation_std_m)
+            assert np.all(d_t < 4 * fast.translation_std_m + 1e-3), (
+                mount.name,
+                d_t,
+                fast.translation_std_m,
+            )

@@ -20,27 +20,56 @@ def test_report_for_the_sample_drive(tmp_path, monkeypatch):
     monkeypatch.setattr(reading, "open_log", lambda path: opened.append(path) or real_open(path))
     out, report = tmp_path / "e.yaml", tmp_path / "report"
     result = CliRunner().invoke(
-        app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out), "--report", str(report)]
+        app,
+        [
+            "calibrate",
+            str(SAMPLE_DATA / "aggressive.mcap"),
+            "-c",
+            str(SAMPLE_DATA / "aggressive.config.yaml"),
+            "-o",
+            str(out),
+            "--report",
+            str(report),
+        ],
     )
     assert result.exit_code == 0, result.output
     document = yaml.safe_load(out.read_text())
     names = list(document["sensors"])
     assert len(opened) == 1  # the report draws from the calibration: no second read of the log
-    expected = {"biases.png", "windows.png", "residuals.png", "std.png", "vehicle.png", "report.html"}
+    expected = {
+        "biases.png",
+        "windows.png",
+        "residuals.png",
+        "std.png",
+        "vehicle.png",
+        "report.html",
+    }
     assert {p.name for p in report.iterdir()} == expected
     page = (report / "report.html").read_text()
     images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
     assert len(images) == len(expected) - 1
     pngs = {p.read_bytes() for p in report.glob("*.png")}
-    assert {base64.b64decode(i) for i in images} == pngs and all(p.startswith(b"\x89PNG\r\n\x1a\n") for p in pngs)
+    assert {base64.b64decode(i) for i in images} == pngs and all(
+        p.startswith(b"\x89PNG\r\n\x1a\n") for p in pngs
+    )
     for name in names:  # the result table: every sensor with its status and estimate
         row = re.search(rf"<tr><td>{name}</td><td>(\w+)</td><td>([^<]+)</td>", page)
         assert row and row.group(1) == document["sensors"][name]["status"]
-        assert row.group(2) == ", ".join(f"{v:.4f}" for v in document["sensors"][name]["T_base_lidar"]["translation"])
+        assert row.group(2) == ", ".join(
+            f"{v:.4f}" for v in document["sensors"][name]["T_base_lidar"]["translation"]
+        )
 
 
 def test_report_folder_parent_missing_exits_2(tmp_path):
     result = CliRunner().invoke(
-        app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "--report", str(tmp_path / "no" / "r")]
+        app,
+        [
+            "calibrate",
+            str(SAMPLE_DATA / "aggressive.mcap"),
+            "-c",
+            str(SAMPLE_DATA / "aggressive.config.yaml"),
+            "--report",
+            str(tmp_path / "no" / "r"),
+        ],
     )
     assert result.exit_code == 2 and "no/r" in result.stderr

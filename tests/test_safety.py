@@ -25,7 +25,8 @@ def _snapshot(folder: Path) -> dict[str, str]:
     """Every file below ``folder`` with the hash of its content."""
     return {
         str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(folder.rglob("*")) if p.is_file()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
     }
 
 
@@ -74,9 +75,16 @@ def test_simulate_force_replaces_a_log_it_wrote_but_not_other_files(tmp_path):
     log = tmp_path / "drive.mcap"
     assert runner.invoke(app, ["simulate", str(log), "--duration", "2"]).exit_code == 0
     first = log.read_bytes()
-    assert runner.invoke(app, ["simulate", str(log), "--duration", "2", "--seed", "1"]).exit_code == 2
+    assert (
+        runner.invoke(app, ["simulate", str(log), "--duration", "2", "--seed", "1"]).exit_code == 2
+    )
     assert log.read_bytes() == first
-    assert runner.invoke(app, ["simulate", str(log), "--duration", "2", "--seed", "1", "--force"]).exit_code == 0
+    assert (
+        runner.invoke(
+            app, ["simulate", str(log), "--duration", "2", "--seed", "1", "--force"]
+        ).exit_code
+        == 0
+    )
     assert log.read_bytes() != first
     other = tmp_path / "thesis.mcap"
     other.write_text("not a log")
@@ -86,7 +94,12 @@ def test_simulate_force_replaces_a_log_it_wrote_but_not_other_files(tmp_path):
     # a rosbag2 folder it recognises is replaced whole
     bag = tmp_path / "bag"
     assert runner.invoke(app, ["simulate", str(bag), "--duration", "2"]).exit_code == 0
-    assert runner.invoke(app, ["simulate", str(bag), "--duration", "2", "--seed", "2", "--force"]).exit_code == 0
+    assert (
+        runner.invoke(
+            app, ["simulate", str(bag), "--duration", "2", "--seed", "2", "--force"]
+        ).exit_code
+        == 0
+    )
     assert (bag / "metadata.yaml").is_file()
 
 
@@ -105,7 +118,16 @@ def test_batch_of_bags_given_as_metadata_leaves_the_bags_readable(bags):
     root, config = bags
     before = _snapshot(root)
     result = runner.invoke(
-        app, ["batch", str(root / "d1" / "metadata.yaml"), str(root / "d2" / "metadata.yaml"), "-c", str(config), "--out-dir", str(root)]
+        app,
+        [
+            "batch",
+            str(root / "d1" / "metadata.yaml"),
+            str(root / "d2" / "metadata.yaml"),
+            "-c",
+            str(config),
+            "--out-dir",
+            str(root),
+        ],
     )
     assert result.exit_code in (0, 1), result.output
     after = _snapshot(root)
@@ -120,7 +142,18 @@ def test_batch_names_outputs_by_the_whole_stem(tmp_path, short_drive):
     for day in ("2024.01.05", "2024.01.06"):
         write_imu_log(tmp_path / f"{day}.mcap", "mcap", short_drive.topics())
     out = tmp_path / "out"
-    result = runner.invoke(app, ["batch", str(tmp_path / "2024.01.05.mcap"), str(tmp_path / "2024.01.06.mcap"), "-c", str(config), "--out-dir", str(out)])
+    result = runner.invoke(
+        app,
+        [
+            "batch",
+            str(tmp_path / "2024.01.05.mcap"),
+            str(tmp_path / "2024.01.06.mcap"),
+            "-c",
+            str(config),
+            "--out-dir",
+            str(out),
+        ],
+    )
     assert result.exit_code in (0, 1), result.output
     assert (out / "2024.01.05.yaml").is_file() and (out / "2024.01.06.yaml").is_file()
 
@@ -130,12 +163,16 @@ def test_a_second_batch_into_the_same_folder_does_not_overwrite_the_first(tmp_pa
     write_document(config, short_drive.config_document())
     log = write_imu_log(tmp_path / "a.mcap", "mcap", short_drive.topics())
     out = tmp_path / "out"
-    assert runner.invoke(app, ["batch", str(log), "-c", str(config), "--out-dir", str(out)]).exit_code in (0, 1)
+    assert runner.invoke(
+        app, ["batch", str(log), "-c", str(config), "--out-dir", str(out)]
+    ).exit_code in (0, 1)
     before = _snapshot(out)
     result = runner.invoke(app, ["batch", str(log), "-c", str(config), "--out-dir", str(out)])
     assert result.exit_code == 2 and "--force" in result.stderr and str(out) in result.stderr
     assert _snapshot(out) == before
-    assert runner.invoke(app, ["batch", str(log), "-c", str(config), "--out-dir", str(out), "--force"]).exit_code in (0, 1)
+    assert runner.invoke(
+        app, ["batch", str(log), "-c", str(config), "--out-dir", str(out), "--force"]
+    ).exit_code in (0, 1)
 
 
 # ------------------------------------------------------------------ 3. an output that is an input
@@ -145,10 +182,16 @@ def test_a_second_batch_into_the_same_folder_does_not_overwrite_the_first(tmp_pa
 def test_calibrate_refuses_an_output_that_is_one_of_its_inputs(bags, which):
     root, config = bags
     bag = root / "d1"
-    target = {"metadata": bag / "metadata.yaml", "config": config, "storage": next(bag.glob("*.mcap")).with_suffix(".yaml")}[which]
+    target = {
+        "metadata": bag / "metadata.yaml",
+        "config": config,
+        "storage": next(bag.glob("*.mcap")).with_suffix(".yaml"),
+    }[which]
     before = _snapshot(root)
     for command in ("calibrate", "segments", "biases"):
-        result = runner.invoke(app, [command, str(bag / "metadata.yaml"), "-c", str(config), "-o", str(target)])
+        result = runner.invoke(
+            app, [command, str(bag / "metadata.yaml"), "-c", str(config), "-o", str(target)]
+        )
         assert result.exit_code == 2, (command, result.output)
         assert str(target) in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert _snapshot(root) == before
@@ -160,8 +203,14 @@ def test_evaluate_and_inspect_refuse_to_write_over_their_inputs(tmp_path, short_
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
     before = _snapshot(tmp_path)
     assert runner.invoke(app, ["evaluate", str(truth), str(truth), "-o", str(truth)]).exit_code == 2
-    assert runner.invoke(app, ["evaluate", str(truth), str(truth), "--junit", str(truth)]).exit_code == 2
-    assert runner.invoke(app, ["inspect", str(log), "-o", str(truth.with_name("d.mcap"))]).exit_code == 2
+    assert (
+        runner.invoke(app, ["evaluate", str(truth), str(truth), "--junit", str(truth)]).exit_code
+        == 2
+    )
+    assert (
+        runner.invoke(app, ["inspect", str(log), "-o", str(truth.with_name("d.mcap"))]).exit_code
+        == 2
+    )
     assert _snapshot(tmp_path) == before
 
 
@@ -171,17 +220,45 @@ def test_evaluate_and_inspect_refuse_to_write_over_their_inputs(tmp_path, short_
 def _document() -> dict:
     """A calibrate document of one sensor, as ``imucal calibrate`` writes it."""
     T = {"translation": [1.0, 0.5, 2.0], "rotation": [0.0, 0.0, 0.0, 1.0]}
-    noise = {"accelerometer_noise_density": 2e-3, "accelerometer_random_walk": 3e-3, "gyroscope_noise_density": 2e-4, "gyroscope_random_walk": 2e-5}
-    sensor = {"status": "ok", "lidar_frame": "front_lidar", "imu_topic": "/front/imu", "T_base_lidar": T, "T_base_imu": T,
-              "time_offset_s": 0.0, "time_offset_observable": True, "imu_rate_hz": 100.0, "imu_noise": noise}
-    return {"base_frame": "base_link", "base_topic": "/gnss/imu", "base_imu_rate_hz": 100.0, "base_imu_noise": noise, "sensors": {"front": sensor}}
+    noise = {
+        "accelerometer_noise_density": 2e-3,
+        "accelerometer_random_walk": 3e-3,
+        "gyroscope_noise_density": 2e-4,
+        "gyroscope_random_walk": 2e-5,
+    }
+    sensor = {
+        "status": "ok",
+        "lidar_frame": "front_lidar",
+        "imu_topic": "/front/imu",
+        "T_base_lidar": T,
+        "T_base_imu": T,
+        "time_offset_s": 0.0,
+        "time_offset_observable": True,
+        "imu_rate_hz": 100.0,
+        "imu_noise": noise,
+    }
+    return {
+        "base_frame": "base_link",
+        "base_topic": "/gnss/imu",
+        "base_imu_rate_hz": 100.0,
+        "base_imu_noise": noise,
+        "sensors": {"front": sensor},
+    }
 
 
 @pytest.mark.parametrize(
     ("key", "value"),
-    [("base.frame", "x; touch /tmp/p"), ("lidar_frame", "lidar$(id)"), ("lidar_frame", "a b"), ("sensor", "front\nleft"), ("base.topic", "/imu`id`")],
+    [
+        ("base.frame", "x; touch /tmp/p"),
+        ("lidar_frame", "lidar$(id)"),
+        ("lidar_frame", "a b"),
+        ("sensor", "front\nleft"),
+        ("base.topic", "/imu`id`"),
+    ],
 )
-def test_a_config_with_a_name_ros_would_refuse_is_an_error_naming_the_key(tmp_path, short_drive, key, value):
+def test_a_config_with_a_name_ros_would_refuse_is_an_error_naming_the_key(
+    tmp_path, short_drive, key, value
+):
     document = short_drive.config_document()
     first = next(iter(document["sensors"]))
     if key == "base.frame":
@@ -201,7 +278,15 @@ def test_a_config_with_a_name_ros_would_refuse_is_an_error_naming_the_key(tmp_pa
     assert (key.split(".")[-1] if key != "sensor" else "sensors") in line
 
 
-@pytest.mark.parametrize(("where", "value"), [("lidar_frame", "x; touch {pwned}"), ("base_frame", "b$(touch {pwned})"), ("name", "s\nimu9: {{}}"), ("imu_topic", "/a\nimu9: 1")])
+@pytest.mark.parametrize(
+    ("where", "value"),
+    [
+        ("lidar_frame", "x; touch {pwned}"),
+        ("base_frame", "b$(touch {pwned})"),
+        ("name", "s\nimu9: {{}}"),
+        ("imu_topic", "/a\nimu9: 1"),
+    ],
+)
 def test_export_refuses_a_document_whose_names_ros_would_refuse(tmp_path, where, value):
     """A calibrate document edited by hand or written by another tool: nothing is written."""
     document = _document()
@@ -232,17 +317,22 @@ def test_tf_static_scripts_shell_quote_every_value(tmp_path):
 
     ex = Extrinsics.from_document(_document(), "x")
     pwned = tmp_path / "pwned"
-    hostile = dataclasses.replace(ex, sensors=(dataclasses.replace(ex.sensors[0], lidar_frame=f"a; touch {pwned}"),))
+    hostile = dataclasses.replace(
+        ex, sensors=(dataclasses.replace(ex.sensors[0], lidar_frame=f"a; touch {pwned}"),)
+    )
     for make in (tf_static_ros2, tf_static_ros1):
         script = tmp_path / "s.sh"
         text = make(hostile, f"base$(touch {pwned})")[0]
         script.write_text(text.replace("ros2 run", "echo").replace("rosrun", "echo"))
-        done = subprocess.run(["sh", str(script)], capture_output=True, text=True, check=True, timeout=10)
+        done = subprocess.run(
+            ["sh", str(script)], capture_output=True, text=True, check=True, timeout=10
+        )
         assert not pwned.exists()
         assert f"a; touch {pwned}" in done.stdout and f"base$(touch {pwned})" in done.stdout
 
 
-# ------------------------------------------------------------------ 5. names on the terminal and in XML
+# ------------------------------------------------------------------ 5. names on the terminal and in
+# XML
 
 
 def _hostile_topic_log(tmp_path: Path, short_drive) -> tuple[Path, Path, str]:
@@ -271,7 +361,16 @@ def test_control_characters_in_topic_names_never_reach_the_terminal(tmp_path, sh
 def test_junit_with_hostile_names_is_well_formed_xml(tmp_path, short_drive):
     from imucal_cli.fleet import Row, junit_xml
 
-    text = junit_xml([Row("log\x1b[2K\x00<&>.mcap", "s\x07", "failed", error="topic /imu\x1b]0;x\x07 missing\x0c")])
+    text = junit_xml(
+        [
+            Row(
+                "log\x1b[2K\x00<&>.mcap",
+                "s\x07",
+                "failed",
+                error="topic /imu\x1b]0;x\x07 missing\x0c",
+            )
+        ]
+    )
     root = ET.fromstring(text)
     assert root.find(".//error") is not None
     assert "\x1b" not in text and "\x00" not in text
@@ -288,7 +387,9 @@ def test_printable_keeps_plain_text_and_shows_what_it_removed():
 # ------------------------------------------------------------------ 13. crashes become one line
 
 
-def test_mcap_without_statistics_whose_message_index_offset_is_off_is_read_from_its_records(tmp_path, short_drive):
+def test_mcap_without_statistics_whose_message_index_offset_is_off_is_read_from_its_records(
+    tmp_path, short_drive
+):
     """An indexed MCAP with no Statistics record whose chunk index points 3 bytes past its
     message index: counted from the records themselves (it was a traceback, exit 1)."""
     import struct
@@ -310,8 +411,16 @@ def test_mcap_without_statistics_whose_message_index_offset_is_off_is_read_from_
         for schema, channel, message in reader.iter_messages():
             if channel.id not in ids:
                 schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
-                ids[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schema_id)
-            writer.add_message(ids[channel.id], message.log_time, message.data, message.publish_time, message.sequence)
+                ids[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id
+                )
+            writer.add_message(
+                ids[channel.id],
+                message.log_time,
+                message.data,
+                message.publish_time,
+                message.sequence,
+            )
         writer.finish()
     with plain.open("rb") as handle:
         summary = make_reader(handle).get_summary()
@@ -344,7 +453,21 @@ def test_a_full_disk_at_the_end_is_one_line_and_leaves_no_file(tmp_path, monkeyp
 
     monkeypatch.setattr(os, "fsync", full)
     out = tmp_path / "e.yaml"
-    result = runner.invoke(app, ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "-o", str(out)])
-    assert result.exit_code == 2 and "No space left on device" in result.stderr and str(out) in result.stderr
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            str(SAMPLE_DATA / "aggressive.mcap"),
+            "-c",
+            str(SAMPLE_DATA / "aggressive.config.yaml"),
+            "-o",
+            str(out),
+        ],
+    )
+    assert (
+        result.exit_code == 2
+        and "No space left on device" in result.stderr
+        and str(out) in result.stderr
+    )
     assert len(result.stderr.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []

@@ -20,7 +20,9 @@ def test_sample_log_is_small_and_complete(name):
     log = SAMPLE_DATA / f"{name}.mcap"
     assert log.stat().st_size < 5 * 1024 * 1024
     config = load_config(SAMPLE_DATA / f"{name}.config.yaml")
-    assert (ROOT / "configs" / f"sample_{name}.yaml").read_text() == (SAMPLE_DATA / f"{name}.config.yaml").read_text()
+    assert (ROOT / "configs" / f"sample_{name}.yaml").read_text() == (
+        SAMPLE_DATA / f"{name}.config.yaml"
+    ).read_text()
     truth = yaml.safe_load((SAMPLE_DATA / f"{name}.truth.yaml").read_text())
     assert truth["scenario"] == name and truth["duration_s"] == SAMPLES[name]
     topics = [config.base.topic] + [s.imu_topic for s in config.sensors]
@@ -30,7 +32,10 @@ def test_sample_log_is_small_and_complete(name):
         assert len(read.stream) > 0.99 * 100 * SAMPLES[name]
     for sensor in config.sensors:
         T_base_imu = Transform.from_dict(truth["sensors"][sensor.name]["T_base_imu"])
-        assert np.all(np.abs(sensor.prior_T_base_imu.translation - T_base_imu.translation) < sensor.translation_bound_m)
+        assert np.all(
+            np.abs(sensor.prior_T_base_imu.translation - T_base_imu.translation)
+            < sensor.translation_bound_m
+        )
 
 
 def test_sample_data_is_reproducible():
@@ -46,15 +51,22 @@ def test_sample_data_is_reproducible():
     drive = simulate_drive(DriveOptions(scenario="aggressive", seed=1))
     options = drive.options
     config = load_config(SAMPLE_DATA / "aggressive.config.yaml")
-    reads = read_imu(SAMPLE_DATA / "aggressive.mcap", [config.base.topic, config.sensors[0].imu_topic])
+    reads = read_imu(
+        SAMPLE_DATA / "aggressive.mcap", [config.base.topic, config.sensors[0].imu_topic]
+    )
 
     base_read, base_sim = reads[config.base.topic].stream, drive.base.stream
     assert options.base_model.float32_output
-    float32_step = np.spacing(np.abs(base_sim.accel).max(axis=0).astype(np.float32)).astype(np.float64)
+    float32_step = np.spacing(np.abs(base_sim.accel).max(axis=0).astype(np.float32)).astype(
+        np.float64
+    )
     assert np.all(np.abs(base_read.accel - base_sim.accel) <= float32_step)
     assert np.array_equal(base_read.t_ns, base_sim.t_ns)
 
-    lidar_read, lidar_sim = reads[config.sensors[0].imu_topic].stream, drive.sensors[config.sensors[0].name].stream
+    lidar_read, lidar_sim = (
+        reads[config.sensors[0].imu_topic].stream,
+        drive.sensors[config.sensors[0].name].stream,
+    )
     lsb = options.lidar_model.gyro_lsb
     assert lsb > 0
     assert np.all(np.abs(lidar_read.gyro - lidar_sim.gyro) <= lsb * (1 + 1e-9))

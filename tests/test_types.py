@@ -74,8 +74,12 @@ def test_rpy_is_ros_convention(roll, pitch, yaw):
 def test_dict_round_trip(a):
     d = a.to_dict()
     assert_same(Transform.from_dict(d), a)
-    assert_same(Transform.from_dict({"translation": d["translation"], "rotation": d["rotation"]}), a)
-    assert_same(Transform.from_dict({"translation": d["translation"], "rpy_deg": d["rpy_deg"]}), a, 1e-8)
+    assert_same(
+        Transform.from_dict({"translation": d["translation"], "rotation": d["rotation"]}), a
+    )
+    assert_same(
+        Transform.from_dict({"translation": d["translation"], "rpy_deg": d["rpy_deg"]}), a, 1e-8
+    )
     assert d["rotation"][3] >= 0.0
 
 
@@ -88,7 +92,9 @@ def test_from_dict_rejects_disagreeing_rotation_and_rpy():
 
 def test_from_dict_accepts_agreeing_rotation_and_rpy():
     q = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_quat()
-    t = Transform.from_dict({"translation": [1, 2, 3], "rotation": list(q), "rpy_deg": [10, 20, 30]})
+    t = Transform.from_dict(
+        {"translation": [1, 2, 3], "rotation": list(q), "rpy_deg": [10, 20, 30]}
+    )
     np.testing.assert_allclose(np.degrees(t.rpy_rad), [10, 20, 30], atol=1e-9)
 
 

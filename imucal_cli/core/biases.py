@@ -50,7 +50,9 @@ class RestPeriod:
     gyro_mean: np.ndarray  # (3,) rad/s
     gyro_noise_var: np.ndarray  # (3,) per-sample variance, (rad/s)^2
     samples: int
-    accel_up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # (3,) mean f / |mean f|
+    accel_up: np.ndarray = field(
+        default_factory=lambda: np.array([0.0, 0.0, 1.0])
+    )  # (3,) mean f / |mean f|
 
     @property
     def accel_bias_along_gravity(self) -> float:
@@ -75,7 +77,10 @@ class BiasReport:
     def warnings(self) -> list[str]:
         if self.rest_periods:
             return []
-        return ["no rest found: the accelerometer bias is zero and its noise the median spread of short blocks, the gyro bias its prior"]
+        return [
+            "no rest found: the accelerometer bias is zero and its noise the median spread of "
+            "short blocks, the gyro bias its prior"
+        ]
 
 
 class BiasTracker:
@@ -85,8 +90,19 @@ class BiasTracker:
     longest rest, not the log's length or the span of its stamps (a clock that jumps a year
     costs nothing)."""
 
-    def __init__(self, accel_tolerance: float, gyro_tolerance: float, min_duration_s: float, process_noise: float, initial_std: float) -> None:
-        self.accel_tolerance, self.gyro_tolerance, self.min_duration_s = accel_tolerance, gyro_tolerance, min_duration_s
+    def __init__(
+        self,
+        accel_tolerance: float,
+        gyro_tolerance: float,
+        min_duration_s: float,
+        process_noise: float,
+        initial_std: float,
+    ) -> None:
+        self.accel_tolerance, self.gyro_tolerance, self.min_duration_s = (
+            accel_tolerance,
+            gyro_tolerance,
+            min_duration_s,
+        )
         self.process_noise, self.initial_std = process_noise, initial_std
         self.first_ns: int | None = None
         self.reference = np.zeros(6)  # the first sample: sums of squares about it keep their digits
@@ -94,7 +110,9 @@ class BiasTracker:
         self._sums: list[np.ndarray] = []  # ... and their sums (rows of 13)
         self._rests: list[RestPeriod] = []  # found in the blocks judged
         self._judged_to = 0  # the blocks before this one are judged (and those kept, context)
-        self._spreads: list[np.ndarray] = []  # the judged blocks' accelerometer spread, while no rest is found (the fallback)
+        self._spreads: list[
+            np.ndarray
+        ] = []  # the judged blocks' accelerometer spread, while no rest is found (the fallback)
         self._last_block = -1
         self._rows = 0  # blocks held (about: before merging)
         self._next_judge = JUDGE_BLOCKS
@@ -120,7 +138,9 @@ class BiasTracker:
             if self._rows > self._next_judge:
                 self._judge(final=False)
                 self._rows = len(self.blocks()[0])
-                self._next_judge = self._rows + JUDGE_BLOCKS  # (a long rest held: not judged again at once)
+                self._next_judge = (
+                    self._rows + JUDGE_BLOCKS
+                )  # (a long rest held: not judged again at once)
 
     def _add(self, block: np.ndarray, columns: np.ndarray) -> None:
         low, high = int(block.min()), int(block.max()) + 1
@@ -128,7 +148,9 @@ class BiasTracker:
             index, blocks = block - low, np.arange(low, high)
         else:  # stamps far apart (a clock jump): the blocks they fill, not the span between
             blocks, index = np.unique(block, return_inverse=True)
-        sums = np.column_stack([np.bincount(index, columns[:, k], len(blocks)) for k in range(columns.shape[1])])
+        sums = np.column_stack(
+            [np.bincount(index, columns[:, k], len(blocks)) for k in range(columns.shape[1])]
+        )
         filled = sums[:, _N] > 0
         self._blocks.append(blocks[filled])
         self._sums.append(sums[filled])
@@ -145,11 +167,15 @@ class BiasTracker:
         self._blocks, self._sums = [blocks], [sums]
         return blocks, sums
 
-    def _still(self, blocks: np.ndarray, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _still(
+        self, blocks: np.ndarray, sums: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The blocks laid out in time (where blocks are missing, at most LOCAL_BLOCKS + 1 empty
         rows: the mean over the blocks around sees the same blocks as in time, and a rest
         cannot span them), each block's row there, and which rows are at rest (eq. 5)."""
-        rows = np.concatenate([[0], np.cumsum(np.minimum(np.diff(blocks), LOCAL_BLOCKS + 1))]).astype(np.int64)
+        rows = np.concatenate(
+            [[0], np.cumsum(np.minimum(np.diff(blocks), LOCAL_BLOCKS + 1))]
+        ).astype(np.int64)
         dense = np.zeros((rows[-1] + 1 if len(rows) else 0, 13))
         dense[rows] = sums
         n = np.maximum(dense[:, _N], 1.0)[:, None]
@@ -159,10 +185,15 @@ class BiasTracker:
         kernel = np.ones(2 * LOCAL_BLOCKS + 1)
 
         def around(column: np.ndarray) -> np.ndarray:  # each block's sum over the blocks around it
-            return np.convolve(column, kernel)[LOCAL_BLOCKS : LOCAL_BLOCKS + len(column)]  # ("same", also when shorter than the kernel)
+            return np.convolve(column, kernel)[
+                LOCAL_BLOCKS : LOCAL_BLOCKS + len(column)
+            ]  # ("same", also when shorter than the kernel)
 
         weight = around(dense[:, _N])
-        local = np.column_stack([around(dense[:, k]) for k in range(_FA.start, _FA.stop)]) / np.maximum(weight, 1.0)[:, None]
+        local = (
+            np.column_stack([around(dense[:, k]) for k in range(_FA.start, _FA.stop)])
+            / np.maximum(weight, 1.0)[:, None]
+        )
         still = (
             (dense[:, _N] >= 2)
             & (np.linalg.norm(accel_mean - local, axis=1) <= self.accel_tolerance)
@@ -181,7 +212,9 @@ class BiasTracker:
         if final:
             cut = len(dense)
         else:
-            settled = rows[int(np.searchsorted(blocks, self._last_block - SETTLE_BLOCKS))] - LOCAL_BLOCKS
+            settled = (
+                rows[int(np.searchsorted(blocks, self._last_block - SETTLE_BLOCKS))] - LOCAL_BLOCKS
+            )
             moving = np.flatnonzero(~still[: max(settled, 0)])
             if not len(moving):
                 return  # a rest may go on: hold every block
@@ -193,14 +226,18 @@ class BiasTracker:
             if block_of[a] < self._judged_to or (b - a) * BLOCK_S < self.min_duration_s:
                 continue  # (a run in the context kept from before was judged then)
             inner = slice(a + edge, b - edge) if b - a > 2 * edge + 1 else slice(a, b)
-            self._rests.append(self._rest(dense[inner], block_of[a] * BLOCK_S, (block_of[b - 1] + 1) * BLOCK_S))
+            self._rests.append(
+                self._rest(dense[inner], block_of[a] * BLOCK_S, (block_of[b - 1] + 1) * BLOCK_S)
+            )
         cut_block = int(blocks[-1]) + 1 if final else int(block_of[cut])
         if self._rests:  # the fallback's spreads are not needed any more
             self._spreads = []
         else:
             judged = (blocks >= self._judged_to) & (blocks < cut_block)
             n = np.maximum(sums[judged, _N], 1.0)[:, None]
-            self._spreads.append(np.sqrt(np.maximum(sums[judged, _FA2] / n - (sums[judged, _FA] / n) ** 2, 0.0)))
+            self._spreads.append(
+                np.sqrt(np.maximum(sums[judged, _FA2] / n - (sums[judged, _FA] / n) ** 2, 0.0))
+            )
         keep = rows >= cut - LOCAL_BLOCKS  # the context of the blocks still to judge
         self._blocks, self._sums = [blocks[keep]], [sums[keep]]
         self._judged_to = cut_block
@@ -220,11 +257,14 @@ class BiasTracker:
         bias = (float(np.linalg.norm(f)) - GRAVITY_MPS2) * up
         mean_w = sums[:, _W].sum(axis=0) / count
         var_w = np.maximum(sums[:, _W2].sum(axis=0) / count - mean_w**2, 1e-12)
-        return RestPeriod(start_s, end_s, bias, std_a, mean_w + self.reference[3:], var_w, int(count), up)
+        return RestPeriod(
+            start_s, end_s, bias, std_a, mean_w + self.reference[3:], var_w, int(count), up
+        )
 
     def _track(self, rests: list[RestPeriod], block_spread: np.ndarray, end_s: float) -> BiasReport:
         """The gyro bias Kalman filter over the rests (eqs. 7-9), to ``end_s``; ``block_spread``
-        the accelerometer's spread in each block that holds samples (the fallback without a rest)."""
+        the accelerometer's spread in each block that holds samples (the fallback without a
+        rest)."""
         q = self.process_noise**2
         x = rests[0].gyro_mean.copy() if rests else np.zeros(3)
         P = np.full(3, self.initial_std**2)
@@ -247,7 +287,9 @@ class BiasTracker:
             first_ns=self.first_ns or 0,
             rest_periods=rests,
             accel_bias=last.accel_bias if last else np.zeros(3),
-            accel_noise_std=last.accel_noise_std if last else (np.median(block_spread, axis=0) if len(block_spread) else np.zeros(3)),
+            accel_noise_std=last.accel_noise_std
+            if last
+            else (np.median(block_spread, axis=0) if len(block_spread) else np.zeros(3)),
             gyro_bias_initial=values[0],
             gyro_bias_final=x,
             gyro_bias_track_std=np.sqrt(weights @ (v - mean) ** 2),

@@ -115,11 +115,22 @@ class SensorEstimate:
 
 def unobservable(prior: Transform, windows: list[WindowInfo], tau: float) -> SensorEstimate:
     return SensorEstimate(
-        status="unobservable", T_base_imu=prior, covariance=None,
-        translation_observable=np.zeros(3, dtype=bool), time_offset_s=tau, time_offset_std_s=None,
-        gyro_bias=np.zeros(3), gyro_bias_std=None, accel_bias=np.zeros(3), accel_bias_std=None,
-        bias_knots_s=np.zeros(0), gyro_bias_knots=np.zeros((0, 3)), accel_bias_knots=np.zeros((0, 3)),
-        windows=windows, residual_rms_gyro=None, residual_rms_accel=None,
+        status="unobservable",
+        T_base_imu=prior,
+        covariance=None,
+        translation_observable=np.zeros(3, dtype=bool),
+        time_offset_s=tau,
+        time_offset_std_s=None,
+        gyro_bias=np.zeros(3),
+        gyro_bias_std=None,
+        accel_bias=np.zeros(3),
+        accel_bias_std=None,
+        bias_knots_s=np.zeros(0),
+        gyro_bias_knots=np.zeros((0, 3)),
+        accel_bias_knots=np.zeros((0, 3)),
+        windows=windows,
+        residual_rms_gyro=None,
+        residual_rms_accel=None,
         warnings=[status.unobservable_reason(windows)],
     )
 
@@ -134,14 +145,21 @@ class ClockEvidence:
 
 
 def _problem(
-    windows: list[WindowMoments], prior: Transform, options: CalibrationOptions,
-    sigma: tuple[float, float], lowpass: Lowpass, dw_noise_var: float,
+    windows: list[WindowMoments],
+    prior: Transform,
+    options: CalibrationOptions,
+    sigma: tuple[float, float],
+    lowpass: Lowpass,
+    dw_noise_var: float,
 ) -> Problem:
     biases = BiasModel(
-        options.window_s, (options.gyro_bias_walk, ACCEL_BIAS_WALK),
+        options.window_s,
+        (options.gyro_bias_walk, ACCEL_BIAS_WALK),
         (options.gyro_bias_prior_std, ACCEL_BIAS_PRIOR_STD),
     )
-    settings = Settings(prior.translation, options.translation_bound_m, biases, options.max_iterations)
+    settings = Settings(
+        prior.translation, options.translation_bound_m, biases, options.max_iterations
+    )
     return Problem(windows, settings, sigma, lowpass, dw_noise_var)
 
 
@@ -167,7 +185,9 @@ def _first_fit(problem: Problem, options: CalibrationOptions, clock: ClockEviden
     return fit
 
 
-def _clock(problem: Problem, fit: Fit, options: CalibrationOptions, clock: ClockEvidence) -> tuple[Fit, bool, list[str]]:
+def _clock(
+    problem: Problem, fit: Fit, options: CalibrationOptions, clock: ClockEvidence
+) -> tuple[Fit, bool, list[str]]:
     """The clock offset kept where the fit places it to :data:`TIME_OFFSET_MAX_STD_S`; else
     fixed (at the correlation's estimate). Returns the fit, whether it is placed, sentences."""
     if options.max_time_offset_s <= 0:
@@ -184,8 +204,13 @@ def _clock(problem: Problem, fit: Fit, options: CalibrationOptions, clock: Clock
 
 
 def solve(
-    windows: list[WindowMoments], prior: Transform, options: CalibrationOptions,
-    clock: ClockEvidence, sigma: tuple[float, float], lowpass: Lowpass, dw_noise_var: float = 0.0,
+    windows: list[WindowMoments],
+    prior: Transform,
+    options: CalibrationOptions,
+    clock: ClockEvidence,
+    sigma: tuple[float, float],
+    lowpass: Lowpass,
+    dw_noise_var: float = 0.0,
 ) -> SensorEstimate:
     """The estimate from the selected windows' moments, with its checks and honest covariance:
     the joint fit (:func:`_first_fit`), the sensor's own errors where the drive shows them,
@@ -206,19 +231,43 @@ def solve(
     spread = uncertainty(problem, fit, failed, floors)
     observable = fit.free[TRANSLATION].copy()
     warnings = [
-        *status.own_error_sentences(own), *status.check_sentences([rigid]), *clock_notes,
+        *status.own_error_sentences(own),
+        *status.check_sentences([rigid]),
+        *clock_notes,
         *status.check_sentences(later),
-        *status.uncertainty_sentences(spread, len(problem.used), prior.translation,
-                                      options.translation_bound_m, observable),
+        *status.uncertainty_sentences(
+            spread, len(problem.used), prior.translation, options.translation_bound_m, observable
+        ),
     ]
-    return _estimate(problem, fit, windows, status.status(found, observable, clock_placed, spread),
-                     spread, observable, clock, clock_placed, warnings, found, own, sigma)
+    return _estimate(
+        problem,
+        fit,
+        windows,
+        status.status(found, observable, clock_placed, spread),
+        spread,
+        observable,
+        clock,
+        clock_placed,
+        warnings,
+        found,
+        own,
+        sigma,
+    )
 
 
 def _estimate(
-    problem: Problem, fit: Fit, windows: list[WindowMoments], verdict: str, spread: Any,
-    observable: np.ndarray, clock: ClockEvidence, clock_placed: bool, warnings: list[str],
-    found: list[checks.Check], own: dict[str, dict[str, Any]], sigma: tuple[float, float],
+    problem: Problem,
+    fit: Fit,
+    windows: list[WindowMoments],
+    verdict: str,
+    spread: Any,
+    observable: np.ndarray,
+    clock: ClockEvidence,
+    clock_placed: bool,
+    warnings: list[str],
+    found: list[checks.Check],
+    own: dict[str, dict[str, Any]],
+    sigma: tuple[float, float],
 ) -> SensorEstimate:
     """The :class:`SensorEstimate` of a solved problem."""
     last, n_total = problem.n_knots - 1, 3 * problem.samples
@@ -226,7 +275,9 @@ def _estimate(
     bias_std = fit.bias_std
     per_window = 3 * problem.samples_per_window
     return SensorEstimate(
-        status=verdict, T_base_imu=Transform(fit.point.R, fit.point.t), covariance=spread.covariance,
+        status=verdict,
+        T_base_imu=Transform(fit.point.R, fit.point.t),
+        covariance=spread.covariance,
         translation_observable=observable,
         time_offset_s=float(clock.tau0_s + fit.point.dtau) if clock.shown else 0.0,
         time_offset_std_s=spread.time_offset_std_s,
@@ -235,19 +286,27 @@ def _estimate(
         accel_bias=fit.knots[last, accel].copy(),
         accel_bias_std=bias_std[accel] if bias_std is not None else None,
         bias_knots_s=np.arange(problem.n_knots) * problem.settings.biases.spacing_s,
-        gyro_bias_knots=fit.knots[:, gyro].copy(), accel_bias_knots=fit.knots[:, accel].copy(),
+        gyro_bias_knots=fit.knots[:, gyro].copy(),
+        accel_bias_knots=fit.knots[:, accel].copy(),
         windows=[w.info for w in windows if w.info is not None],
         residual_rms_gyro=float(np.sqrt(max(fit.cost_g.sum(), 0.0) / n_total)),
         residual_rms_accel=float(np.sqrt(max(fit.cost_a.sum(), 0.0) / n_total)),
-        iterations=fit.iterations, noise_std={"gyro_radps": sigma[0], "accel_mps2": sigma[1]},
-        warnings=warnings, checks={c.name: {**c.figures, "pass": c.passed} for c in found},
-        time_offset_observable=clock_placed, tilt_rad_per_mps2=fit.point.tilt.copy(),
+        iterations=fit.iterations,
+        noise_std={"gyro_radps": sigma[0], "accel_mps2": sigma[1]},
+        warnings=warnings,
+        checks={c.name: {**c.figures, "pass": c.passed} for c in found},
+        time_offset_observable=clock_placed,
+        tilt_rad_per_mps2=fit.point.tilt.copy(),
         accel_intrinsics=checks.axes_figures(own["accelerometer"]),
-        gyro_intrinsics={**checks.axes_figures(own["gyro"]),
-                         "g_sensitivity": checks.g_sensitivity_figures(own["g-sensitivity"])},
-        window_residuals=np.column_stack([
-            [w.start_s for w in problem.used],
-            np.sqrt(np.maximum(fit.cost_g, 0.0) / per_window),
-            np.sqrt(np.maximum(fit.cost_a, 0.0) / per_window),
-        ]),
+        gyro_intrinsics={
+            **checks.axes_figures(own["gyro"]),
+            "g_sensitivity": checks.g_sensitivity_figures(own["g-sensitivity"]),
+        },
+        window_residuals=np.column_stack(
+            [
+                [w.start_s for w in problem.used],
+                np.sqrt(np.maximum(fit.cost_g, 0.0) / per_window),
+                np.sqrt(np.maximum(fit.cost_a, 0.0) / per_window),
+            ]
+        ),
     )

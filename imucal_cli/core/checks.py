@@ -113,7 +113,10 @@ def own_errors(problem: Problem, fit: Fit, alpha: float) -> tuple[Fit, dict[str,
         chi2 = _chi2(value[group], joint.covariance[which, which][np.ix_(group, group)])
         present = chi2 > chi2_limit(int(group.sum()), alpha)
         found[name] = {
-            "estimated": bool(present), "chi2": chi2, "dof": int(group.sum()), "value": value.copy(),
+            "estimated": bool(present),
+            "chi2": chi2,
+            "dof": int(group.sum()),
+            "value": value.copy(),
             "std": np.where(group, joint.std()[which], np.nan),
         }
         kept[which] = group & present
@@ -136,7 +139,9 @@ def rigid_mount(problem: Problem, fit: Fit, alpha: float) -> tuple[Check, Fit]:
     chi2 = _chi2(k, cov_k)
     figures = {
         "tilt_deg_per_mps2": np.degrees(k).tolist(),
-        "std": np.degrees(np.sqrt(np.diag(cov_k))).tolist(), "chi2": chi2, "dof": 2,
+        "std": np.degrees(np.sqrt(np.diag(cov_k))).tolist(),
+        "chi2": chi2,
+        "dof": 2,
     }
     return Check("rigid_mount", chi2 <= chi2_limit(2, alpha), figures), tilted
 
@@ -147,15 +152,23 @@ def rotation_agreement(problem: Problem, fit: Fit, alpha: float) -> Check:
     put, with its large covariance, instead of wandering off)."""
     rotation_only = np.zeros(N_PARAMETERS, dtype=bool)
     rotation_only[ROTATION] = True
-    by_gyro = problem.fit(fit, rotation_only, use=(True, False), max_iterations=1, rotation_prior_std=1.0)
-    accel_only = np.zeros(N_PARAMETERS, dtype=bool)  # the free globals the accelerometer holds, but tau
+    by_gyro = problem.fit(
+        fit, rotation_only, use=(True, False), max_iterations=1, rotation_prior_std=1.0
+    )
+    accel_only = np.zeros(
+        N_PARAMETERS, dtype=bool
+    )  # the free globals the accelerometer holds, but tau
     accel_only[ACCEL_GLOBALS] = fit.free[ACCEL_GLOBALS]
     accel_only[TIME_OFFSET] = False
-    by_accel = problem.fit(fit, accel_only, use=(False, True), max_iterations=1, rotation_prior_std=1.0)
+    by_accel = problem.fit(
+        fit, accel_only, use=(False, True), max_iterations=1, rotation_prior_std=1.0
+    )
     delta = rotation_difference(by_accel.point.R, by_gyro.point.R)
     chi2 = _chi2(delta, by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base())
     figures = {"chi2": chi2, "dof": 3, "difference_deg": float(np.degrees(np.linalg.norm(delta)))}
-    return Check("gyro_vs_accel_rotation", chi2 <= chi2_limit(3, alpha), figures, max(1.0, chi2 / 3))
+    return Check(
+        "gyro_vs_accel_rotation", chi2 <= chi2_limit(3, alpha), figures, max(1.0, chi2 / 3)
+    )
 
 
 def residual_level(problem: Problem, fit: Fit) -> Check:
@@ -175,9 +188,13 @@ def axes_figures(found: dict[str, Any]) -> dict[str, Any]:
         return found
     value, std = found["value"], found["std"]
     return {
-        "estimated": found["estimated"], "chi2": found["chi2"], "dof": found["dof"],
-        "scale": value[:3].tolist(), "nonorthogonality_deg": np.degrees(value[3:]).tolist(),
-        "scale_std": std[:3].tolist(), "nonorthogonality_std_deg": np.degrees(std[3:]).tolist(),
+        "estimated": found["estimated"],
+        "chi2": found["chi2"],
+        "dof": found["dof"],
+        "scale": value[:3].tolist(),
+        "nonorthogonality_deg": np.degrees(value[3:]).tolist(),
+        "scale_std": std[:3].tolist(),
+        "nonorthogonality_std_deg": np.degrees(std[3:]).tolist(),
     }
 
 
@@ -187,7 +204,9 @@ def g_sensitivity_figures(found: dict[str, Any]) -> dict[str, Any]:
         return found
     per_g = np.degrees(1.0) * GRAVITY_MPS2
     return {
-        "estimated": found["estimated"], "chi2": found["chi2"], "dof": found["dof"],
+        "estimated": found["estimated"],
+        "chi2": found["chi2"],
+        "dof": found["dof"],
         "dps_per_g": (per_g * found["value"]).reshape(3, 3).tolist(),
         "std_dps_per_g": (per_g * found["std"]).reshape(3, 3).tolist(),
     }

@@ -87,8 +87,13 @@ class Layout:
 #: m/s^2); ``accel_axes`` and ``gyro_axes``: each triad's ``E`` by :data:`SYMMETRIC`;
 #: ``g_sensitivity``: ``G`` row-major (the IMU's axes).
 PARAMETERS = Layout(
-    ("rotation", 3), ("translation", 3), ("time_offset", 1), ("tilt", 2),
-    ("accel_axes", 6), ("gyro_axes", 6), ("g_sensitivity", 9),
+    ("rotation", 3),
+    ("translation", 3),
+    ("time_offset", 1),
+    ("tilt", 2),
+    ("accel_axes", 6),
+    ("gyro_axes", 6),
+    ("g_sensitivity", 9),
 )
 N_PARAMETERS = PARAMETERS.size
 ROTATION, TRANSLATION, TILT = PARAMETERS["rotation"], PARAMETERS["translation"], PARAMETERS["tilt"]
@@ -105,8 +110,14 @@ ACCEL_GLOBALS = PARAMETERS.indices("rotation", "translation", "time_offset", "ti
 
 GYRO_DATA = Layout(("w_I", 3), ("f_I", 3), ("w_B", 3), ("dw_B", 3), ("one", 1), ("u", 1))
 ACCEL_DATA = Layout(
-    ("f_I", 3), ("f_B", 3), ("df_B", 3), ("vec_A", 9), ("vec_dA", 9), ("tilt_terms", 4),
-    ("one", 1), ("u", 1),
+    ("f_I", 3),
+    ("f_B", 3),
+    ("df_B", 3),
+    ("vec_A", 9),
+    ("vec_dA", 9),
+    ("tilt_terms", 4),
+    ("one", 1),
+    ("u", 1),
 )
 #: The base's part of each data vector, shared by every sensor.
 GYRO_BASE, ACCEL_BASE = GYRO_DATA.without("w_I", "f_I"), ACCEL_DATA.without("f_I")
@@ -125,7 +136,12 @@ for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
 #: the ``vec A`` columns of x_a.
 VEC_SKEW = np.zeros((9, 3))
 for _column, _row, _component, _sign in (
-    (0, 1, 2, 1), (0, 2, 1, -1), (1, 0, 2, -1), (1, 2, 0, 1), (2, 0, 1, 1), (2, 1, 0, -1)
+    (0, 1, 2, 1),
+    (0, 2, 1, -1),
+    (1, 0, 2, -1),
+    (1, 2, 0, 1),
+    (2, 0, 1, 1),
+    (2, 1, 0, -1),
 ):
     VEC_SKEW[3 * _column + _row, _component] = _sign
 
@@ -138,7 +154,9 @@ class Point:
     t: np.ndarray  # t_base_imu (3,)
     dtau: float  # the clock offset beyond the boot's
     tilt: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    errors: np.ndarray = field(default_factory=lambda: np.zeros(SENSOR_ERRORS.stop - SENSOR_ERRORS.start))
+    errors: np.ndarray = field(
+        default_factory=lambda: np.zeros(SENSOR_ERRORS.stop - SENSOR_ERRORS.start)
+    )
 
     def own(self, block: slice) -> np.ndarray:
         """One block of the sensor's errors (:data:`ACCEL_AXES`, ...)."""
@@ -147,8 +165,11 @@ class Point:
     def moved(self, step: np.ndarray) -> Point:
         """The point after a step of the globals (:data:`PARAMETERS`)."""
         return Point(
-            self.R * rotation_type().from_rotvec(step[ROTATION]), self.t + step[TRANSLATION],
-            self.dtau + step[TIME_OFFSET], self.tilt + step[TILT], self.errors + step[SENSOR_ERRORS],
+            self.R * rotation_type().from_rotvec(step[ROTATION]),
+            self.t + step[TRANSLATION],
+            self.dtau + step[TIME_OFFSET],
+            self.tilt + step[TILT],
+            self.errors + step[SENSOR_ERRORS],
         )
 
     def key(self) -> bytes:
@@ -222,7 +243,9 @@ def _rotating(C: np.ndarray, layout: Layout, fixed: Sequence[str]) -> np.ndarray
     return out
 
 
-def _axis_derivatives(D: np.ndarray, columns: Sequence[int], rotating: np.ndarray, axes: np.ndarray) -> None:
+def _axis_derivatives(
+    D: np.ndarray, columns: Sequence[int], rotating: np.ndarray, axes: np.ndarray
+) -> None:
     """Every column ``-(I + E) R^T K`` (``K`` data-free) under a rotation step (``R^T -> (I -
     [d]x) R^T``) takes ``-(I + E) [d]x (I + E)^-1`` of itself, and under an axis error ``E_b``
     ``S_b (I + E)^-1`` of itself; ``columns``: the rotation's three, then the axis errors' six."""

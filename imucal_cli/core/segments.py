@@ -48,13 +48,32 @@ class WindowInfo:
 def _std_from_information(info: np.ndarray) -> np.ndarray:
     """Standard deviations from a 3x3 information matrix, or a stack of them (..., 3, 3);
     infinite where it is singular."""
-    s = np.linalg.eigvalsh(info)  # ascending; negative where noise was taken off (not positive definite)
+    s = np.linalg.eigvalsh(
+        info
+    )  # ascending; negative where noise was taken off (not positive definite)
     singular = (s[..., 0] <= np.abs(s[..., -1]) * 1e-12) | (s[..., 0] <= 0)
     out = np.full(info.shape[:-1], np.inf)
     if not np.all(singular):
         regular = ~singular
         out[regular] = np.sqrt(np.diagonal(np.linalg.inv(info[regular]), axis1=-2, axis2=-1))
     return out
+
+
+def _centred(S: np.ndarray, n: np.ndarray, P: np.ndarray | slice, one: int) -> np.ndarray:
+    """Each window's scatter of ``P x`` about its mean, from its moments ``S`` and sample count
+    ``n`` (K, 1, 1); ``P`` a matrix, or a slice where it only picks entries of ``x`` (then no
+    arithmetic: the same numbers, far fewer steps)."""
+    if isinstance(P, slice):
+        mean = S[:, P, one][:, :, None] / n
+        return S[:, P, P] - n * mean @ mean.transpose(0, 2, 1)
+    mean = np.einsum("ij,kj->ki", P, S[:, :, one])[:, :, None] / n
+    return np.einsum("ij,kjl,ml->kim", P, S, P) - n * mean @ mean.transpose(0, 2, 1)
+
+
+def _rotation_information(C: np.ndarray, std: float) -> np.ndarray:
+    """The rotation's Fisher information from the scatter ``C`` of ``u`` (``J = -[u]x``)."""
+    trace = np.trace(C, axis1=1, axis2=2)[:, None, None]
+    return (trace * np.eye(3) - C) / std**2
 
 
 def window_infos_from_moments(
@@ -73,32 +92,23 @@ def window_infos_from_moments(
     ``samples`` (K,), ``S_gyro`` (K, 14, 14), ``S_accel`` (K, 33, 33)."""
     n = samples.astype(np.float64)[:, None, None]
 
-    def centred(S: np.ndarray, P: np.ndarray | slice, one: int) -> np.ndarray:
-        """Each window's scatter of ``P x`` about its mean; ``P`` a matrix, or a slice where it
-        only picks entries of ``x`` (then no arithmetic: the same numbers, far fewer steps)."""
-        if isinstance(P, slice):
-            mean = S[:, P, one][:, :, None] / n
-            return S[:, P, P] - n * mean @ mean.transpose(0, 2, 1)
-        mean = np.einsum("ij,kj->ki", P, S[:, :, one])[:, :, None] / n
-        return np.einsum("ij,kjl,ml->kim", P, S, P) - n * mean @ mean.transpose(0, 2, 1)
-
-    def rotation_info(C: np.ndarray, std: float) -> np.ndarray:
-        trace = np.trace(C, axis1=1, axis2=2)[:, None, None]
-        return (trace * np.eye(3) - C) / std**2
-
     one_g, one_a = GYRO_DATA.index("one"), ACCEL_DATA.index("one")
     P_v = np.zeros((3, ACCEL_DATA.size))  # v = f_B + A t at the prior's lever arm
     P_v[:, ACCEL_DATA["f_B"]] = np.eye(3)
     P_v[:, ACCEL_DATA["vec_A"]] = kron_t(lever_arm)
-    info = rotation_info(centred(S_gyro, GYRO_DATA["w_B"], one_g), gyro_noise_std)
-    info += rotation_info(centred(S_accel, P_v, one_a), accel_noise_std)
+    info = _rotation_information(_centred(S_gyro, n, GYRO_DATA["w_B"], one_g), gyro_noise_std)
+    info += _rotation_information(_centred(S_accel, n, P_v, one_a), accel_noise_std)
     sigma_min = np.clip(np.linalg.eigvalsh(info)[:, 0], 0.0, None)
     with np.errstate(divide="ignore"):
         std_deg = np.where(sigma_min > 0, np.degrees(1.0 / np.sqrt(sigma_min)), np.inf)
-    C_A = centred(S_accel, ACCEL_DATA["vec_A"], one_a).reshape(-1, 3, 3, 3, 3)  # blocks (j, k) of vec A
+    C_A = _centred(S_accel, n, ACCEL_DATA["vec_A"], one_a).reshape(
+        -1, 3, 3, 3, 3
+    )  # blocks (j, k) of vec A
     # sum A^T A, less what the angular acceleration's noise adds (E [n]x^T [n]x = 2 s^2 I):
     # information the noise fakes is none
-    t_info = (np.einsum("kjala->kjl", C_A) - n * 2.0 * dw_noise_var * np.eye(3)) / accel_noise_std**2
+    t_info = (
+        np.einsum("kjala->kjl", C_A) - n * 2.0 * dw_noise_var * np.eye(3)
+    ) / accel_noise_std**2
     t_stds = _std_from_information(t_info)
     out = []
     for k, (start, end, valid) in enumerate(spans):

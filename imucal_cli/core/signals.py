@@ -55,7 +55,8 @@ class Lowpass:
     ``|H(f)|^2 = 1 / (1 + (f / cutoff)^(2 order))`` (what a forward-backward pass gives), applied
     with the FFT to the signal extended at both ends by point reflection (as ``filtfilt`` pads),
     less the line through its ends (which the filter passes unchanged), so linear trends pass
-    unchanged and the periodic transform sees no jump. Real, even, unit gain at 0 Hz: one linear operator for every
+    unchanged and the periodic transform sees no jump. Real, even, unit gain at 0 Hz: one linear
+    operator for every
     column, which is all the calibration equations need of it.
     """
 
@@ -69,7 +70,9 @@ class Lowpass:
     @property
     def pad(self) -> int:
         """Samples of reflection at each end: three times the filter's effective length."""
-        return int(np.ceil(3.0 * self.rate_hz / min(self.cutoff_hz, self.second_cutoff_hz or np.inf)))
+        return int(
+            np.ceil(3.0 * self.rate_hz / min(self.cutoff_hz, self.second_cutoff_hz or np.inf))
+        )
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Filter along axis 0 (any trailing shape); the result has each column contiguous
@@ -98,7 +101,9 @@ class Lowpass:
         np.subtract(columns, line, out=extended[:, pad : pad + n])
         ends = extended[:, pad : pad + 1], extended[:, pad + n - 1 : pad + n]
         np.subtract(2.0 * ends[0], extended[:, 2 * pad : pad : -1], out=extended[:, :pad])
-        np.subtract(2.0 * ends[1], extended[:, pad + n - 2 : n - 2 : -1], out=extended[:, pad + n : m])
+        np.subtract(
+            2.0 * ends[1], extended[:, pad + n - 2 : n - 2 : -1], out=extended[:, pad + n : m]
+        )
         extended[:, m:] = 0.0
         spectrum = scipy.fft.rfft(extended, axis=1, overwrite_x=True)
         spectrum *= _response(self, size)
@@ -184,7 +189,9 @@ def white_noise_density(x: np.ndarray, rate_hz: float, band_hz: tuple[float, flo
     if np.count_nonzero(inside) < 3:
         return white_noise_std(x) / np.sqrt(rate_hz)
     response = (2.0 * np.sin(np.pi * f[inside] / rate_hz)) ** 4
-    return np.sqrt(np.median(psd[inside] / response[:, None], axis=0) / 2.0)  # one-sided to two-sided
+    return np.sqrt(
+        np.median(psd[inside] / response[:, None], axis=0) / 2.0
+    )  # one-sided to two-sided
 
 
 def white_noise_std(x: np.ndarray) -> np.ndarray:

@@ -108,8 +108,10 @@ def normal_equations(
     ``S`` itself: only the other parameters' ``D S`` is multiplied out."""
     K, P, rows, dim = D.shape
     a, b = dim - 2, dim - 1
-    assert (a, b) in ((GYRO_DATA.index("one"), GYRO_DATA.index("u")),
-                      (ACCEL_DATA.index("one"), ACCEL_DATA.index("u")))
+    assert (a, b) in (
+        (GYRO_DATA.index("one"), GYRO_DATA.index("u")),
+        (ACCEL_DATA.index("one"), ACCEL_DATA.index("u")),
+    )
     DS = (D.reshape(K, P * rows, dim) @ S).reshape(K, P, rows, dim)
     CS = C @ S
     H = np.zeros((K, P + 6, P + 6))
@@ -232,11 +234,20 @@ class Problem:
     jackknife)."""
 
     def __init__(
-        self, windows: list[WindowMoments], settings: Settings, sigma: tuple[float, float],
-        lowpass: Lowpass, dw_noise_var: float,
+        self,
+        windows: list[WindowMoments],
+        settings: Settings,
+        sigma: tuple[float, float],
+        lowpass: Lowpass,
+        dw_noise_var: float,
     ) -> None:
         used = [w for w in windows if w.info is not None and w.info.selected]
-        self.used, self.settings, self.sigma, self.dw_noise_var = used, settings, sigma, dw_noise_var
+        self.used, self.settings, self.sigma, self.dw_noise_var = (
+            used,
+            settings,
+            sigma,
+            dw_noise_var,
+        )
         self.numbers = np.array([w.number for w in used])
         self.n_knots = int(max(w.number for w in windows)) + 2
         self.S_g = assemble_moments(used, "gyro")  # (K, 14, 14): small
@@ -259,7 +270,9 @@ class Problem:
         used, f_I = self.used, ACCEL_DATA["f_I"]
         trace_f = float(sum(np.trace(w.rows_accel[:, f_I]) for w in used))
         w_I = GYRO_DATA["w_I"]
-        self.floor_g = (RESOLUTION**2) * np.trace(self.S_g[:, w_I, w_I].sum(axis=0)) / (3 * self.samples)
+        self.floor_g = (
+            (RESOLUTION**2) * np.trace(self.S_g[:, w_I, w_I].sum(axis=0)) / (3 * self.samples)
+        )
         self.floor_a = (RESOLUTION**2) * trace_f / (3 * self.samples)
 
         def spread(rows: np.ndarray, n: int, one: int) -> float:  # sum |x - mean|^2
@@ -269,7 +282,8 @@ class Problem:
         gyro = sum(spread(w.rows_gyro[w_I], w.samples, one_g) for w in used)
         accel = sum(spread(w.rows_accel, w.samples, one_a) for w in used)
         self.signal_rms = (
-            float(np.sqrt(gyro / (3 * self.samples))), float(np.sqrt(accel / (3 * self.samples)))
+            float(np.sqrt(gyro / (3 * self.samples))),
+            float(np.sqrt(accel / (3 * self.samples))),
         )
 
     def _layout_biases(self) -> None:
@@ -286,7 +300,9 @@ class Problem:
         self.biases_g, self.biases_a = at_knots(KNOT["gyro_bias"]), at_knots(KNOT["accel_bias"])
         upper6 = self.upper6 = np.triu_indices(6)  # a window's bias indices increase
 
-        def band_at(biases: np.ndarray) -> np.ndarray:  # flat index into the (BAND + 1, n_bias) band
+        def band_at(
+            biases: np.ndarray,
+        ) -> np.ndarray:  # flat index into the (BAND + 1, n_bias) band
             i, j = biases[:, upper6[0]], biases[:, upper6[1]]
             return ((BAND + i - j) * n_bias + j).ravel()
 
@@ -325,10 +341,13 @@ class Problem:
         parts_g, parts_a = [], []
         for a, S_a in zip(self.starts, self.accel_moments(), strict=True):
             chunk = slice(a, a + SOLVE_CHUNK)  # the derivatives are large: in slices
-            parts_g.append(normal_equations(gyro_derivatives(point, Cg[chunk]), self.S_g[chunk], Cg[chunk]))
+            parts_g.append(
+                normal_equations(gyro_derivatives(point, Cg[chunk]), self.S_g[chunk], Cg[chunk])
+            )
             parts_a.append(normal_equations(accel_derivatives(point, Ca[chunk]), S_a, Ca[chunk]))
         g_parts, a_parts = (
-            [np.concatenate([p[i] for p in parts]) for i in range(3)] for parts in (parts_g, parts_a)
+            [np.concatenate([p[i] for p in parts]) for i in range(3)]
+            for parts in (parts_g, parts_a)
         )
         self._last = (key, Linearisation(*g_parts, *a_parts))
         return self._last[1]
@@ -363,9 +382,14 @@ class Problem:
         return Fit(point, np.zeros((self.n_knots, KNOT.size)), free, scale_g, scale_a)
 
     def fit(
-        self, start: Fit, free: np.ndarray, use: tuple[bool, bool] = (True, True),
-        window_weights: np.ndarray | None = None, estimate_scale: bool = False,
-        max_iterations: int | None = None, rotation_prior_std: float | None = None,
+        self,
+        start: Fit,
+        free: np.ndarray,
+        use: tuple[bool, bool] = (True, True),
+        window_weights: np.ndarray | None = None,
+        estimate_scale: bool = False,
+        max_iterations: int | None = None,
+        rotation_prior_std: float | None = None,
     ) -> Fit:
         """Gauss-Newton from ``start`` over the ``free`` globals (and every bias knot), with the
         gyro and accelerometer equations as ``use`` says, each window weighted by
@@ -384,30 +408,53 @@ class Problem:
                 scales = self._scales(lin, weights, point.t)
             reduced = self._reduce(lin, scales, use, weights, knots, free_idx, rotation_prior_std)
             step, unconstrained = self._step(reduced, point.t, free_idx)
-            step_bias = cho_solve_banded(reduced.factor, reduced.grad_b - reduced.H_gb.T @ step[free_idx])
+            step_bias = cho_solve_banded(
+                reduced.factor, reduced.grad_b - reduced.H_gb.T @ step[free_idx]
+            )
             point, knots = point.moved(step), knots + step_bias.reshape(self.n_knots, KNOT.size)
             S_inv = np.linalg.inv(reduced.S)
-            small = np.max(np.abs(step[ROTATION])) < 1e-10 and np.max(np.abs(step[ROTATION.stop :])) < 1e-8
+            small = (
+                np.max(np.abs(step[ROTATION])) < 1e-10
+                and np.max(np.abs(step[ROTATION.stop :])) < 1e-8
+            )
             if small and (iterations > 2 or not estimate_scale):
                 break
         assert reduced is not None and S_inv is not None and lin is not None
         covariance = np.zeros((N_PARAMETERS, N_PARAMETERS))
         covariance[np.ix_(free_idx, free_idx)] = S_inv
         return Fit(
-            point, knots, free.copy(), *scales, covariance, unconstrained, lin.cost_g, lin.cost_a,
-            self._last_knot_std(reduced, S_inv), iterations,
+            point,
+            knots,
+            free.copy(),
+            *scales,
+            covariance,
+            unconstrained,
+            lin.cost_g,
+            lin.cost_a,
+            self._last_knot_std(reduced, S_inv),
+            iterations,
         )
 
-    def _scales(self, lin: Linearisation, weights: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+    def _scales(
+        self, lin: Linearisation, weights: np.ndarray, t: np.ndarray
+    ) -> tuple[float, float]:
         """The residual std per grid sample from the fit, above what the moments resolve."""
         samples = float(np.sum(weights * self.samples_per_window))
         variance_g = np.dot(weights, lin.cost_g) / (3 * samples)
         variance_a = np.dot(weights, lin.cost_a) / (3 * samples) + self.eiv_variance(t)
-        return float(np.sqrt(max(variance_g, self.floor_g))), float(np.sqrt(max(variance_a, self.floor_a)))
+        return float(np.sqrt(max(variance_g, self.floor_g))), float(
+            np.sqrt(max(variance_a, self.floor_a))
+        )
 
     def _reduce(
-        self, lin: Linearisation, scales: tuple[float, float], use: tuple[bool, bool],
-        weights: np.ndarray, knots: np.ndarray, free_idx: np.ndarray, rotation_prior_std: float | None,
+        self,
+        lin: Linearisation,
+        scales: tuple[float, float],
+        use: tuple[bool, bool],
+        weights: np.ndarray,
+        knots: np.ndarray,
+        free_idx: np.ndarray,
+        rotation_prior_std: float | None,
     ) -> _Reduced:
         """The weighted normal equations, the biases eliminated (Schur complement)."""
         wg = self.gain / scales[0] ** 2 * use[0] * weights
@@ -454,7 +501,9 @@ class Problem:
         grad_b -= band_times(self.prior_band, knots.ravel())
         return H_gg, H_gb, H_bb, grad_g, grad_b
 
-    def _step(self, reduced: _Reduced, t: np.ndarray, free_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _step(
+        self, reduced: _Reduced, t: np.ndarray, free_idx: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The step of the globals with the translation inside its box (eq. 16), and where the
         translation would go without the box."""
         prior, bound = self.settings.translation_prior, self.settings.translation_bound_m

@@ -19,7 +19,9 @@ from imucal_cli.core.uncertainty import Uncertainty
 from imucal_cli.types import GRAVITY_MPS2
 
 
-def status(checks: Sequence[Check], observable: np.ndarray, clock_placed: bool, spread: Uncertainty) -> str:
+def status(
+    checks: Sequence[Check], observable: np.ndarray, clock_placed: bool, spread: Uncertainty
+) -> str:
     """ok, partial or inconsistent (see the module's text)."""
     if any(not c.passed for c in checks):
         return "inconsistent"
@@ -32,11 +34,15 @@ def unobservable_reason(windows: Sequence[WindowInfo]) -> str:
     """Why no window was selected: gaps in the data (dropped or missing samples), or motion."""
     broken = sum(not w.valid for w in windows)
     if windows and broken == len(windows):
-        return (f"every window ({broken}) has a gap in the data (samples missing or dropped): "
-                "the prior is returned")
+        return (
+            f"every window ({broken}) has a gap in the data (samples missing or dropped): "
+            "the prior is returned"
+        )
     if broken:
-        return (f"no window carried enough motion ({broken} of {len(windows)} have a gap in the "
-                "data): the prior is returned")
+        return (
+            f"no window carried enough motion ({broken} of {len(windows)} have a gap in the "
+            "data): the prior is returned"
+        )
     return "no window carried enough motion: the prior is returned"
 
 
@@ -52,11 +58,17 @@ def own_error_sentences(found: dict[str, dict[str, Any]]) -> list[str]:
             detail = f"largest {np.degrees(np.max(np.abs(value))) * GRAVITY_MPS2:.3f} deg/s per g"
         else:
             what = f"{name} axis errors"
-            detail = ("scale " + ", ".join(f"{100 * v:+.2f}%" for v in value[:3])
-                      + "; non-orthogonality "
-                      + ", ".join(f"{v:+.3f}" for v in np.degrees(value[3:])) + " deg")
-        out.append(f"{what} estimated with the extrinsics: {detail} "
-                   f"(chi2 {group['chi2']:.0f}, {group['dof']} dof)")
+            detail = (
+                "scale "
+                + ", ".join(f"{100 * v:+.2f}%" for v in value[:3])
+                + "; non-orthogonality "
+                + ", ".join(f"{v:+.3f}" for v in np.degrees(value[3:]))
+                + " deg"
+            )
+        out.append(
+            f"{what} estimated with the extrinsics: {detail} "
+            f"(chi2 {group['chi2']:.0f}, {group['dof']} dof)"
+        )
     return out
 
 
@@ -109,8 +121,10 @@ def uncertainty_sentences(
     """Too few windows for the jackknife, axes on their box, axes kept at the prior."""
     out = []
     if not spread.jackknifed:
-        out.append(f"only {windows} window(s) with enough motion: too few to check the std "
-                   "against the data's spread")
+        out.append(
+            f"only {windows} window(s) with enough motion: too few to check the std "
+            "against the data's spread"
+        )
     for axis in np.flatnonzero(spread.on_box).tolist():
         out.append(
             f"translation {'xyz'[axis]} rests on its box (prior {prior_t[axis]:+.3f} +- "

@@ -64,7 +64,6 @@ STOPPED_S = 30.0
 INFO_CHUNK = 128
 
 
-
 @dataclass(frozen=True)
 class SensorSetup:
     name: str
@@ -92,7 +91,8 @@ class UnitsError(ImucalError):
 
 @dataclass
 class _Buffer:
-    """Raw samples of one IMU still needed: stamps (ns) and ``[gyro, accel]`` side by side (n, 6)."""
+    """Raw samples of one IMU still needed: stamps (ns) and ``[gyro, accel]`` side by side
+    (n, 6)."""
 
     t_ns: list[np.ndarray] = field(default_factory=list)
     both: list[np.ndarray] = field(default_factory=list)
@@ -156,7 +156,9 @@ class _Spline:
     again there.
     """
 
-    def __init__(self, t: np.ndarray, both: np.ndarray, grid_rate: float, smooth: Lowpass | None = None) -> None:
+    def __init__(
+        self, t: np.ndarray, both: np.ndarray, grid_rate: float, smooth: Lowpass | None = None
+    ) -> None:
         period = float(np.median(np.diff(t)))
         rate = 1.0 / period
         anti_alias = 0.4 * grid_rate if rate > 1.5 * grid_rate else None
@@ -217,7 +219,9 @@ class _NaturalCubic:
         self.y_M = np.zeros((n, 2 * m))
         self.y_M[:, :m] = y
         self.y_M[1:-1, m:] = inner
-        self.pairs = as_strided(self.y_M, (n - 1, 4 * m), (self.y_M.strides[0], self.y_M.strides[1]), writeable=False)
+        self.pairs = as_strided(
+            self.y_M, (n - 1, 4 * m), (self.y_M.strides[0], self.y_M.strides[1]), writeable=False
+        )
         self.t, self.h, self.m = t, h, m
 
     def __call__(self, query: np.ndarray, nu: int = 0) -> np.ndarray:
@@ -236,11 +240,19 @@ class _NaturalCubic:
         # weights of [y_j, M_j, y_j+1, M_j+1] for each derivative
         weights = np.empty((len(query), 4))
         h2_6 = h * h / 6.0
-        weights[:, 0], weights[:, 1], weights[:, 2], weights[:, 3] = A, (A * A - 1.0) * A * h2_6, B, (B * B - 1.0) * B * h2_6
+        weights[:, 0], weights[:, 1], weights[:, 2], weights[:, 3] = (
+            A,
+            (A * A - 1.0) * A * h2_6,
+            B,
+            (B * B - 1.0) * B * h2_6,
+        )
         out = [np.einsum("qk,qkc->qc", weights, samples)]
         if upto >= 1:
             weights[:, 0], weights[:, 2] = -1.0 / h, 1.0 / h
-            weights[:, 1], weights[:, 3] = (1.0 - 3.0 * A * A) * h / 6.0, (3.0 * B * B - 1.0) * h / 6.0
+            weights[:, 1], weights[:, 3] = (
+                (1.0 - 3.0 * A * A) * h / 6.0,
+                (3.0 * B * B - 1.0) * h / 6.0,
+            )
             out.append(np.einsum("qk,qkc->qc", weights, samples))
         if upto >= 2:
             out.append(np.einsum("qk,qkc->qc", np.stack([A, B], axis=1), samples[:, 1::2]))
@@ -256,7 +268,14 @@ def _noise_density(both: np.ndarray, rate: float) -> tuple[float, float]:
 #: Column of the packed upper triangle of each entry of a symmetric 3x3 matrix (row-major).
 _FROM_UPPER = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]]).ravel()
 #: Entries of ``[v]x`` off its diagonal: (row, column, sign, component of v).
-_SKEW_ENTRIES = ((0, 1, -1, 2), (0, 2, 1, 1), (1, 0, 1, 2), (1, 2, -1, 0), (2, 0, -1, 1), (2, 1, 1, 0))
+_SKEW_ENTRIES = (
+    (0, 1, -1, 2),
+    (0, 2, 1, 1),
+    (1, 0, 1, 2),
+    (1, 2, -1, 0),
+    (2, 0, -1, 1),
+    (2, 1, 1, 0),
+)
 
 
 def _upper_symmetric_products(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
@@ -281,7 +300,9 @@ def _vec_of_sum(upper: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
     for r in range(3):
         out[:, 4 * r] = upper[:, _FROM_UPPER[4 * r]]  # the diagonal: [v]x has none
     for r, c, sign, component in _SKEW_ENTRIES:
-        (np.add if sign > 0 else np.subtract)(upper[:, _FROM_UPPER[3 * r + c]], v[:, component], out=out[:, r + 3 * c])
+        (np.add if sign > 0 else np.subtract)(
+            upper[:, _FROM_UPPER[3 * r + c]], v[:, component], out=out[:, r + 3 * c]
+        )
 
 
 #: The base's terms the low-pass filters: [w, f], [dw, df], ddw, the symmetric 3x3 terms by
@@ -290,21 +311,11 @@ def _vec_of_sum(upper: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
 _TERMS = Layout(("w_f", 6), ("dw_df", 6), ("ddw", 3), ("ww", 6), ("dw_w", 6), ("q", 4))
 
 
-def _reduce_block(
-    spans: list[tuple[int, float, float]], rate: float, window_s: float, lp: Lowpass, n_pad: int, n_block: int, n_after: int,
-    base_name: str, samples: dict[str, tuple[float, np.ndarray, np.ndarray]],
-) -> dict[str, list[WindowMoments]]:
-    """Condition a block of consecutive windows once (per IMU its clock offset, stamps in s and
-    ``[gyro, accel]`` in ``samples``) and reduce each window, for every sensor, to its moments."""
-    block_start = spans[0][1]
-    grid = block_start + np.arange(-n_pad, n_block + n_after) / rate
-    _, t_b, both_b = samples[base_name]
-    base = _Spline(t_b, both_b, rate)
-    values, first, second = base(grid, 2)
-    # the terms of the base's side of the equations side by side, each column contiguous (as
-    # the low-pass takes them, :data:`_TERMS`)
+def _base_terms(values: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """The terms of the base's side of the equations side by side (:data:`_TERMS`), each column
+    contiguous (as the low-pass takes them), from the base spline's values and derivatives."""
     T = _TERMS
-    terms = np.empty((T.size, len(grid))).T
+    terms = np.empty((T.size, len(values))).T
     terms[:, T["w_f"]], terms[:, T["dw_df"]], terms[:, T["ddw"]] = values, first, second[:, 0:3]
     w_raw, dw_raw, f_raw = values[:, 0:3], first[:, 0:3], values[:, 3:6]
     _upper_symmetric_products(w_raw, w_raw, terms[:, T["ww"]])
@@ -315,59 +326,102 @@ def _reduce_block(
     q = T["q"].start
     for k, (i, j) in enumerate(((1, 2), (1, 1), (0, 2), (0, 0))):
         np.multiply(f_raw[:, i], f_raw[:, j], out=terms[:, q + k])
-    names = [name for name in samples if name != base_name]
-    # one zero-phase low-pass for every term of every equation (linear filters commute);
-    # the symmetric 3x3 terms are filtered by their upper triangles
-    rows = lp(terms)[n_pad : n_pad + n_block]
-    t_rows = grid[n_pad : n_pad + n_block]
-    # every data vector of the block side by side, so that each window's moments are one
-    # Gram matrix: the base's part of x_g, of x_a, then each sensor's [w_I, f_I]; each
-    # column written once into X
-    B_g, n_g, n_a = GYRO_BASE, GYRO_BASE.size, ACCEL_BASE.size
+    return terms
+
+
+def _base_columns(rows: np.ndarray, X: np.ndarray) -> None:
+    """The base's parts of x_g and x_a (in that order, from column 0 of ``X``) from the
+    low-passed terms; the time columns ``u`` are the caller's."""
+    T, B_g, n_g = _TERMS, GYRO_BASE, GYRO_BASE.size
 
     def accel(name: str) -> slice:  # x_a's base part, after x_g's in X
         return ACCEL_BASE.shifted(name, n_g)
 
-    X = np.empty((n_block, n_g + n_a + GYRO_OWN * len(names)))
     w, f = rows[:, T["w_f"]][:, 0:3], rows[:, T["w_f"]][:, 3:6]
     dw, df, ddw = rows[:, T["dw_df"]][:, 0:3], rows[:, T["dw_df"]][:, 3:6], rows[:, T["ddw"]]
-    X[:, B_g["w_B"]], X[:, B_g["dw_B"]], X[:, B_g["one"]], X[:, B_g["u"]] = w, dw, 1.0, 0.0
+    X[:, B_g["w_B"]], X[:, B_g["dw_B"]], X[:, B_g["one"]] = w, dw, 1.0
     X[:, accel("f_B")], X[:, accel("df_B")], X[:, accel("one")] = f, df, 1.0
     X[:, accel("tilt_terms")] = rows[:, T["q"]]
     # vec A = vec([w]x^2 + [dw]x) (column-major), from the symmetric part's upper triangle and
     # the skew part (eq. 12); vec dA likewise from ([dw]x[w]x + [w]x[dw]x) and [ddw]x
     _vec_of_sum(rows[:, T["ww"]], dw, X[:, accel("vec_A")])
     _vec_of_sum(rows[:, T["dw_w"]], ddw, X[:, accel("vec_dA")])
-    # each window's rows in the block
-    at = [(round((start - block_start) * rate), round((end - start) * rate)) for _, start, end in spans]
-    u_g, u_a = B_g.index("u"), accel("u").start
-    for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
-        X[i0 : i0 + n_win, u_g] = (t_rows[i0 : i0 + n_win] - start) / window_s
-    X[:, u_a] = X[:, u_g]
-    sensors = {}
-    for k, name in enumerate(names):
-        tau, t_s, both_s = samples[name]
-        # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
-        sensors[name] = _Spline(t_s, both_s, rate, smooth=lp)
-        own = n_g + n_a + GYRO_OWN * k  # the sensor's [w_I, f_I], as x_g starts
-        X[:, own : own + GYRO_OWN] = sensors[name](t_rows + tau)[0]
-    # where each stream has data (no gap), once for the block
-    base_covered = base.covered(t_rows)
-    sensor_covered = {name: sensors[name].covered(t_rows + samples[name][0]) for name in names}
+
+
+def _window_moments(
+    X: np.ndarray,
+    spans: list[tuple[int, float, float]],
+    at: list[tuple[int, int]],
+    names: list[str],
+    covered: dict[str, np.ndarray],
+) -> dict[str, list[WindowMoments]]:
+    """Each window's moments, one Gram matrix of the block's columns per window: the base's
+    block shared, each sensor's own rows."""
+    n_g, n_a = GYRO_BASE.size, ACCEL_BASE.size
     out: dict[str, list[WindowMoments]] = {name: [] for name in names}
     for (number, start, end), (i0, n_win) in zip(spans, at, strict=True):
         Xw = X[i0 : i0 + n_win]
         G = Xw.T @ Xw
         shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
-        valid_base = bool(base_covered[i0 : i0 + n_win].all())
+        valid_base = bool(covered[""][i0 : i0 + n_win].all())
         for k, name in enumerate(names):
             gyro = slice(n_g + n_a + GYRO_OWN * k, n_g + n_a + GYRO_OWN * (k + 1))  # [w_I, f_I]
             f_I = GYRO_DATA.shifted("f_I", gyro.start)
             rows_g = np.hstack([G[gyro, gyro], G[gyro, :n_g]])  # [w_I, f_I]^T x_g
             rows_a = np.hstack([G[f_I, f_I], G[f_I, n_g : n_g + n_a]])  # f_I^T x_a
-            valid = valid_base and bool(sensor_covered[name][i0 : i0 + n_win].all())
-            out[name].append(WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win))
+            valid = valid_base and bool(covered[name][i0 : i0 + n_win].all())
+            out[name].append(
+                WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win)
+            )
     return out
+
+
+def _reduce_block(
+    spans: list[tuple[int, float, float]],
+    rate: float,
+    window_s: float,
+    lp: Lowpass,
+    n_pad: int,
+    n_block: int,
+    n_after: int,
+    base_name: str,
+    samples: dict[str, tuple[float, np.ndarray, np.ndarray]],
+) -> dict[str, list[WindowMoments]]:
+    """Condition a block of consecutive windows once (per IMU its clock offset, stamps in s and
+    ``[gyro, accel]`` in ``samples``) and reduce each window, for every sensor, to its moments."""
+    block_start = spans[0][1]
+    grid = block_start + np.arange(-n_pad, n_block + n_after) / rate
+    _, t_b, both_b = samples[base_name]
+    base = _Spline(t_b, both_b, rate)
+    # one zero-phase low-pass for every term of every equation (linear filters commute);
+    # the symmetric 3x3 terms are filtered by their upper triangles
+    rows = lp(_base_terms(*base(grid, 2)))[n_pad : n_pad + n_block]
+    t_rows = grid[n_pad : n_pad + n_block]
+    # every data vector of the block side by side, so that each window's moments are one
+    # Gram matrix: the base's part of x_g, of x_a, then each sensor's [w_I, f_I]; each
+    # column written once into X
+    names = [name for name in samples if name != base_name]
+    n_base = GYRO_BASE.size + ACCEL_BASE.size
+    X = np.empty((n_block, n_base + GYRO_OWN * len(names)))
+    _base_columns(rows, X)
+    at = [
+        (round((start - block_start) * rate), round((end - start) * rate))
+        for _, start, end in spans
+    ]
+    u_g, u_a = GYRO_BASE.index("u"), GYRO_BASE.size + ACCEL_BASE.index("u")
+    X[:, u_g] = 0.0
+    for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
+        X[i0 : i0 + n_win, u_g] = (t_rows[i0 : i0 + n_win] - start) / window_s
+    X[:, u_a] = X[:, u_g]
+    covered = {"": base.covered(t_rows)}  # where each stream has data (no gap)
+    for k, name in enumerate(names):
+        tau, t_s, both_s = samples[name]
+        # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
+        sensor = _Spline(t_s, both_s, rate, smooth=lp)
+        own = n_base + GYRO_OWN * k  # the sensor's [w_I, f_I], as x_g starts
+        X[:, own : own + GYRO_OWN] = sensor(t_rows + tau)[0]
+        covered[name] = sensor.covered(t_rows + tau)
+    return _window_moments(X, spans, at, names, covered)
 
 
 #: Fewest samples of an IMU in a block for its windows there to be reduced.
@@ -378,8 +432,20 @@ def _unused(number: int, start: float, end: float) -> WindowMoments:
     """A window of an IMU that has no samples there (it stopped): kept in the count, not used."""
     dim_g, dim_a = GYRO_BASE.size, ACCEL_BASE.size
     shared = base_moments(np.zeros((dim_g, dim_g)), np.zeros((dim_a, dim_a)))
-    info = WindowInfo(start, end, 0.0, float("inf"), False, np.full(3, np.inf), np.zeros(3, dtype=bool), False)
-    return WindowMoments(number, start, end, False, shared, np.zeros((6, 6 + dim_g)), np.zeros((3, 3 + dim_a)), 0, info)
+    info = WindowInfo(
+        start, end, 0.0, float("inf"), False, np.full(3, np.inf), np.zeros(3, dtype=bool), False
+    )
+    return WindowMoments(
+        number,
+        start,
+        end,
+        False,
+        shared,
+        np.zeros((6, 6 + dim_g)),
+        np.zeros((3, 3 + dim_a)),
+        0,
+        info,
+    )
 
 
 def _longest_covered(grid: np.ndarray, covered: list[np.ndarray], margin: int) -> np.ndarray:
@@ -460,9 +526,18 @@ class StreamingCalibrator:
             return 0
         buffer = self.buffers[imu]
         t_ns = np.array(t_ns, dtype=np.int64)  # a copy: a live caller may reuse its buffers
-        buffer.first_ns = int(t_ns.min()) if buffer.first_ns is None else min(buffer.first_ns, int(t_ns.min()))
-        buffer.last_ns = int(t_ns.max()) if buffer.last_ns is None else max(buffer.last_ns, int(t_ns.max()))
-        both = np.hstack([np.asarray(gyro, dtype=np.float64).reshape(-1, 3), np.asarray(accel, dtype=np.float64).reshape(-1, 3)])
+        buffer.first_ns = (
+            int(t_ns.min()) if buffer.first_ns is None else min(buffer.first_ns, int(t_ns.min()))
+        )
+        buffer.last_ns = (
+            int(t_ns.max()) if buffer.last_ns is None else max(buffer.last_ns, int(t_ns.max()))
+        )
+        both = np.hstack(
+            [
+                np.asarray(gyro, dtype=np.float64).reshape(-1, 3),
+                np.asarray(accel, dtype=np.float64).reshape(-1, 3),
+            ]
+        )
         if imu in self.scales:  # after boot: in SI, as the boot found the units
             both[:, :3] *= self.scales[imu][0]
             both[:, 3:] *= self.scales[imu][1]
@@ -486,7 +561,9 @@ class StreamingCalibrator:
         """Seconds from the origin every IMU that has not stopped has data up to."""
         assert self.t_ref_ns is not None
         lasts = {name: (int(b.last_ns) - self.t_ref_ns) * 1e-9 for name, b in self.buffers.items()}  # type: ignore[arg-type]
-        lead = sorted(lasts.values())[len(lasts) // 2]  # where most IMUs are: one whose clock leapt ahead leads nothing
+        lead = sorted(lasts.values())[
+            len(lasts) // 2
+        ]  # where most IMUs are: one whose clock leapt ahead leads nothing
         for name, last in lasts.items():  # an IMU that has stopped, or that resumed
             silent = self._stopped(name)
             if lead - last > max(STOPPED_S, 3 * self.window_s) and not silent:
@@ -512,7 +589,9 @@ class StreamingCalibrator:
         horizon = self._grid_start + self._boot_horizon_s
         if not final and covered < horizon + PAD_S + self.max_offset:
             return False
-        end = min(covered - PAD_S - self.max_offset, self._grid_start + MAX_BOOT_S if final else horizon)
+        end = min(
+            covered - PAD_S - self.max_offset, self._grid_start + MAX_BOOT_S if final else horizon
+        )
         grid = np.arange(self._grid_start, end, 1.0 / self.rate)
         if len(grid) < 10:
             if final:
@@ -525,30 +604,24 @@ class StreamingCalibrator:
         upto = {name: int(np.searchsorted(t, limit, side="right")) for name, (t, _) in full.items()}
         samples = {name: (t[: upto[name]], both[: upto[name]]) for name, (t, both) in full.items()}
         unit_warnings: dict[str, list[str]] = {}
-        splines = {name: _Spline(self._seconds(t), both, self.rate) for name, (t, both) in samples.items()}
-        grid = _longest_covered(grid, [spline.covered(grid) for spline in splines.values()], self.lowpass.pad)
+        splines = {
+            name: _Spline(self._seconds(t), both, self.rate) for name, (t, both) in samples.items()
+        }
+        grid = _longest_covered(
+            grid, [spline.covered(grid) for spline in splines.values()], self.lowpass.pad
+        )
         if len(grid) < self.lowpass.pad:
             return False  # no stretch that every IMU covers yet
-        raw_speeds = {name: np.linalg.norm(self.lowpass(spline.gyro(grid)), axis=1) for name, spline in splines.items()}
+        raw_speeds = {
+            name: np.linalg.norm(self.lowpass(spline.gyro(grid)), axis=1)
+            for name, spline in splines.items()
+        }
         scales = self._units(samples, raw_speeds, unit_warnings, final=not patient)
         if scales is None:
             return False  # not enough motion yet to tell the gyros' units
-        speeds = {}
-        for name, (t, both) in samples.items():
-            rate = 1.0 / (float(np.median(np.diff(t))) * 1e-9)  # the IMU's own, as _Spline takes it
-            speeds[name] = raw_speeds[name] * scales[name][0]  # |w| scales with the gyro
-            self.noise[name] = _noise_density(both * np.repeat(scales[name], 3), rate)
-            self.rates_hz[name] = rate
-        gb, ab = self.noise[self.base_name]
-        sigma = {}
-        for name in self.sensors:
-            gs, as_ = self.noise[name]
-            sigma[name] = (float(np.sqrt((gs**2 + gb**2) * self.rate)), float(np.sqrt((as_**2 + ab**2) * self.rate)))
-        offsets = {}
-        gain = self.lowpass.white_noise_gain()
-        for name, setup in self.sensors.items():
-            if setup.options.max_time_offset_s > 0:
-                offsets[name] = time_offset_shown(grid, speeds[self.base_name], speeds[name], setup.options.max_time_offset_s, sigma[name][0], gain)
+        speeds = {name: raw_speeds[name] * scales[name][0] for name in samples}  # |w| scales
+        sigma = self._noise_levels(samples, scales)
+        offsets = self._clock_offsets(grid, speeds, sigma)
         if patient and not all(o.shown for o in offsets.values()):
             return False  # not enough motion yet to place every clock offset
         # booted: the buffers from now on in SI
@@ -556,39 +629,96 @@ class StreamingCalibrator:
             if scales[name] != (1.0, 1.0):
                 both *= np.repeat(scales[name], 3)  # the stored samples, in place
         self.scales, self.unit_warnings, self.sigma = scales, unit_warnings, sigma
-        self.dw_noise_var = derivative_noise_variance(self.lowpass, gb)
+        self.dw_noise_var = derivative_noise_variance(self.lowpass, self.noise[self.base_name][0])
         for name in self.sensors:
             offset = offsets.get(name)
             self.time_offsets[name] = offset
             self.tau0[name] = offset.tau_s if offset is not None and offset.shown else 0.0
         return True
 
+    def _noise_levels(
+        self,
+        samples: dict[str, tuple[np.ndarray, np.ndarray]],
+        scales: dict[str, tuple[float, float]],
+    ) -> dict[str, tuple[float, float]]:
+        """Each IMU's rate and white noise (kept), and each sensor's residual noise per grid
+        sample against the base (gyro, accelerometer)."""
+        for name, (t, both) in samples.items():
+            rate = 1.0 / (float(np.median(np.diff(t))) * 1e-9)  # the IMU's own, as _Spline takes it
+            self.noise[name] = _noise_density(both * np.repeat(scales[name], 3), rate)
+            self.rates_hz[name] = rate
+        gb, ab = self.noise[self.base_name]
+        sigma = {}
+        for name in self.sensors:
+            gs, as_ = self.noise[name]
+            sigma[name] = (
+                float(np.sqrt((gs**2 + gb**2) * self.rate)),
+                float(np.sqrt((as_**2 + ab**2) * self.rate)),
+            )
+        return sigma
+
+    def _clock_offsets(
+        self, grid: np.ndarray, speeds: dict[str, np.ndarray], sigma: dict[str, tuple[float, float]]
+    ) -> dict[str, TimeOffset]:
+        """Each sensor's clock offset from the correlation of ``|w|`` with the base's."""
+        offsets = {}
+        gain = self.lowpass.white_noise_gain()
+        for name, setup in self.sensors.items():
+            if setup.options.max_time_offset_s > 0:
+                offsets[name] = time_offset_shown(
+                    grid,
+                    speeds[self.base_name],
+                    speeds[name],
+                    setup.options.max_time_offset_s,
+                    sigma[name][0],
+                    gain,
+                )
+        return offsets
+
     def _label(self, name: str, key: str) -> tuple[str, str]:
         topic, path = self.labels.get(name, ("", ""))
         return topic or name, f"{path or name}.{key}"
 
+    def _accel_scale(
+        self, name: str, both: np.ndarray, accel_units: str, notes: dict[str, list[str]]
+    ) -> float:
+        """The factor that makes an accelerometer's samples m/s^2: as declared, or (``auto``)
+        by its mean ``|f|``, about 1 for g and 9.8 for m/s^2."""
+        if accel_units != "auto":
+            return GRAVITY_MPS2 if accel_units == "g" else 1.0
+        mean = float(np.mean(np.linalg.norm(both[:, 3:], axis=1)))
+        if 0.5 <= mean <= 2.0:
+            notes.setdefault(name, []).append(
+                f"accelerometer publishes g (mean |f| {mean:.3f}): converted to m/s^2"
+            )
+            return GRAVITY_MPS2
+        if not 5.0 <= mean <= 20.0:
+            raise UnitsError(
+                *self._label(name, "accel_units"),
+                f"the accelerometer's mean |f| is {mean:.3g}: neither m/s^2 (about 9.8) "
+                "nor g (about 1)",
+            )
+        return 1.0
+
     def _units(
-        self, samples: dict[str, tuple[np.ndarray, np.ndarray]], speeds: dict[str, np.ndarray], notes: dict[str, list[str]], final: bool
+        self,
+        samples: dict[str, tuple[np.ndarray, np.ndarray]],
+        speeds: dict[str, np.ndarray],
+        notes: dict[str, list[str]],
+        final: bool,
     ) -> dict[str, tuple[float, float]] | None:
         """Per IMU, the factors (gyro, accelerometer) that make its samples SI: as its setup
         says, or, for ``auto``, an accelerometer whose ``|f|`` averages about 1 publishes g and
         a gyro whose ``|w|`` varies 57.3 times as much as the base's (or the base's as much as
         a sensor's / 57.3) publishes deg/s. None while the base has not moved enough to tell."""
-        units = {self.base_name: self.base_units, **{name: (s.gyro_units, s.accel_units) for name, s in self.sensors.items()}}
+        units = {
+            self.base_name: self.base_units,
+            **{name: (s.gyro_units, s.accel_units) for name, s in self.sensors.items()},
+        }
         scales: dict[str, list[float]] = {}
-        for name, (_, accel_units) in units.items():
-            both = samples[name][1]
-            accel = 1.0
-            if accel_units == "g":
-                accel = GRAVITY_MPS2
-            elif accel_units == "auto":
-                mean = float(np.mean(np.linalg.norm(both[:, 3:], axis=1)))
-                if 0.5 <= mean <= 2.0:
-                    accel = GRAVITY_MPS2
-                    notes.setdefault(name, []).append(f"accelerometer publishes g (mean |f| {mean:.3f}): converted to m/s^2")
-                elif not 5.0 <= mean <= 20.0:
-                    raise UnitsError(*self._label(name, "accel_units"), f"the accelerometer's mean |f| is {mean:.3g}: neither m/s^2 (about 9.8) nor g (about 1)")
-            scales[name] = [{"dps": np.radians(1.0)}.get(units[name][0], 1.0), accel]
+        for name, (gyro_units, accel_units) in units.items():
+            accel = self._accel_scale(name, samples[name][1], accel_units, notes)
+            scales[name] = [{"dps": np.radians(1.0)}.get(gyro_units, 1.0), accel]
         auto = [name for name, (gyro_units, _) in units.items() if gyro_units == "auto"]
         spread = {name: float(np.std(speed)) * scales[name][0] for name, speed in speeds.items()}
         moving = spread[self.base_name] >= MIN_UNIT_MOTION_RADPS
@@ -596,18 +726,30 @@ class StreamingCalibrator:
             return None
         if auto and moving:  # (never moving: taken as declared)
             ratios = {name: spread[name] / spread[self.base_name] for name in self.sensors}
-            if self.base_name in auto and any(abs(np.log(r * DPS)) < np.log(2.0) for r in ratios.values()):
+            if self.base_name in auto and any(
+                abs(np.log(r * DPS)) < np.log(2.0) for r in ratios.values()
+            ):
                 scales[self.base_name][0] = np.radians(1.0)
-                notes.setdefault(self.base_name, []).append("gyro publishes deg/s (the sensors' |w| varies 57.3 times less): converted to rad/s")
+                notes.setdefault(self.base_name, []).append(
+                    "gyro publishes deg/s (the sensors' |w| varies 57.3 times less): converted to "
+                    "rad/s"
+                )
                 ratios = {name: r * DPS for name, r in ratios.items()}
             for name, ratio in ratios.items():
                 if name not in auto:
                     continue
                 if abs(np.log(ratio / DPS)) < np.log(2.0):
                     scales[name][0] = np.radians(1.0)
-                    notes.setdefault(name, []).append(f"gyro publishes deg/s (|w| varies {ratio:.1f} times the base's): converted to rad/s")
+                    notes.setdefault(name, []).append(
+                        f"gyro publishes deg/s (|w| varies {ratio:.1f} times the base's): "
+                        "converted to rad/s"
+                    )
                 elif abs(np.log(ratio)) >= np.log(2.0):
-                    raise UnitsError(*self._label(name, "gyro_units"), f"the gyro's |w| varies {ratio:.3g} times the base's: neither rad/s (1) nor deg/s (57.3)")
+                    raise UnitsError(
+                        *self._label(name, "gyro_units"),
+                        f"the gyro's |w| varies {ratio:.3g} times the base's: neither rad/s (1) "
+                        "nor deg/s (57.3)",
+                    )
         return {name: (g, a) for name, (g, a) in scales.items()}
 
     def process(self, final: bool = False) -> int:
@@ -653,8 +795,10 @@ class StreamingCalibrator:
         return count
 
     def _too_little(self, covered: float) -> str:
-        return (f"too little data: the IMUs overlap for {max(covered, 0.0):.1f} s; calibration "
-                f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window")
+        return (
+            f"too little data: the IMUs overlap for {max(covered, 0.0):.1f} s; calibration "
+            f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window"
+        )
 
     def _need(self, number: int, final: bool) -> float:
         """Seconds from the origin every IMU must cover before window ``number`` is reduced:
@@ -691,15 +835,37 @@ class StreamingCalibrator:
         grid_first, grid_last = block_start + np.array([-n_pad, n_block + n_after - 1]) / self.rate
         first_s, last_s = grid_first - 3.0 / self.rate - 0.1, grid_last + 3.0 / self.rate + 0.1
         samples = {}
-        for name, tau in [(self.base_name, 0.0), *((name, self.tau0[name]) for name in self.sensors)]:
+        for name, tau in [
+            (self.base_name, 0.0),
+            *((name, self.tau0[name]) for name in self.sensors),
+        ]:
             t, both = self.buffers[name].cleaned()
             t = self._seconds(t)  # sorted (cleaned): the samples in the span are a slice
-            a, b = int(np.searchsorted(t, first_s + tau, side="left")), int(np.searchsorted(t, last_s + tau, side="right"))
+            a, b = (
+                int(np.searchsorted(t, first_s + tau, side="left")),
+                int(np.searchsorted(t, last_s + tau, side="right")),
+            )
             if b - a >= MIN_SPAN_SAMPLES:  # an IMU that stopped has none: its windows are not used
                 samples[name] = (tau, t[a:b], both[a:b])
-        reduced = _reduce_block(spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after, self.base_name, samples) if self.base_name in samples else {}
+        reduced = (
+            _reduce_block(
+                spans,
+                self.rate,
+                self.window_s,
+                self.lowpass,
+                n_pad,
+                n_block,
+                n_after,
+                self.base_name,
+                samples,
+            )
+            if self.base_name in samples
+            else {}
+        )
         for name in self.sensors:
-            self.windows[name].extend(reduced.get(name) or [_unused(number, start, end) for number, start, end in spans])
+            self.windows[name].extend(
+                reduced.get(name) or [_unused(number, start, end) for number, start, end in spans]
+            )
 
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
         """Fill in the observability of windows that lack it (all at once)."""
@@ -716,7 +882,10 @@ class StreamingCalibrator:
                 assemble_moments(part, "gyro"),
                 assemble_moments(part, "accel"),
                 setup.prior_T_base_imu.translation,
-                sigma_gyro, sigma_accel, opts.max_rotation_std_deg, opts.translation_bound_m,
+                sigma_gyro,
+                sigma_accel,
+                opts.max_rotation_std_deg,
+                opts.translation_bound_m,
                 self.dw_noise_var,
             )
             for window, info in zip(part, infos, strict=True):
@@ -728,7 +897,10 @@ class StreamingCalibrator:
     def finish(self) -> dict[str, SensorEstimate]:
         """Reduce what is left and return the final estimates."""
         if self.t_ref_ns is None:
-            raise TooLittleData("too little data: no samples from " + ", ".join(n for n, b in self.buffers.items() if b.first_ns is None))
+            raise TooLittleData(
+                "too little data: no samples from "
+                + ", ".join(n for n, b in self.buffers.items() if b.first_ns is None)
+            )
         self.process(final=True)
         self.finished = True
         return self.estimates()
@@ -741,11 +913,22 @@ class StreamingCalibrator:
             tau0 = self.tau0.get(name, 0.0)
             offset = self.time_offsets.get(name)
             if not any(w.info is not None and w.info.selected for w in windows):
-                estimate = unobservable(setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0)
+                estimate = unobservable(
+                    setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0
+                )
             else:
-                clock = ClockEvidence(tau0, offset is None or offset.shown, offset.reason if offset is not None else "")
+                clock = ClockEvidence(
+                    tau0,
+                    offset is None or offset.shown,
+                    offset.reason if offset is not None else "",
+                )
                 estimate = solve(
-                    windows, setup.prior_T_base_imu, setup.options, clock, self.sigma[name], self.lowpass,
+                    windows,
+                    setup.prior_T_base_imu,
+                    setup.options,
+                    clock,
+                    self.sigma[name],
+                    self.lowpass,
                     dw_noise_var=self.dw_noise_var,
                 )
             out[name] = replace(estimate, warnings=self._unit_notes(name) + estimate.warnings)
@@ -754,12 +937,18 @@ class StreamingCalibrator:
     def _unit_notes(self, name: str) -> list[str]:
         """The units converted on the way and the IMUs that stopped while others went on, the
         base's first."""
-        notes = [f"base: {w}" for w in self.unit_warnings.get(self.base_name, [])] + self.unit_warnings.get(name, [])
+        notes = [
+            f"base: {w}" for w in self.unit_warnings.get(self.base_name, [])
+        ] + self.unit_warnings.get(name, [])
         for imu in (self.base_name, name):
             for start, end in self.silences.get(imu, []):
                 topic = self.labels[imu][0] or imu
-                notes.append(f"{topic} sent nothing from {start:.1f} s" + (f" to {end:.1f} s" if end is not None else " to the end of the log")
-                             + " while the other IMUs went on: the windows there are not used for " + ("any sensor" if imu == self.base_name else "this sensor"))
+                notes.append(
+                    f"{topic} sent nothing from {start:.1f} s"
+                    + (f" to {end:.1f} s" if end is not None else " to the end of the log")
+                    + " while the other IMUs went on: the windows there are not used for "
+                    + ("any sensor" if imu == self.base_name else "this sensor")
+                )
         return notes
 
     def window_infos(self, name: str) -> list[WindowInfo]:
@@ -767,5 +956,3 @@ class StreamingCalibrator:
 
     def duplicates(self, imu: str) -> int:
         return self.buffers[imu].duplicates
-
-

@@ -49,7 +49,13 @@ def time_offset_shown(
     energy = float(np.sum(slope**2))
     std = float(noise_std * np.sqrt(noise_gain / energy)) if energy > 0 else float("inf")
     if abs(tau) >= max_offset_s - 1.5 * dt:
-        return TimeOffset(tau, peak, std, False, f"the |w| correlation peaks at the edge of the search (+-{max_offset_s:g} s)")
+        return TimeOffset(
+            tau,
+            peak,
+            std,
+            False,
+            f"the |w| correlation peaks at the edge of the search (+-{max_offset_s:g} s)",
+        )
     if not std <= TIME_OFFSET_MAX_STD_S:
         return TimeOffset(tau, peak, std, False, f"|w| changes too little: std {std * 1e3:.1f} ms")
     return TimeOffset(tau, peak, std, True)
@@ -61,7 +67,8 @@ def estimate_time_offset(
     speed_sensor: np.ndarray,
     max_offset_s: float,
 ) -> tuple[float, float]:
-    """Offset ``tau`` (s) maximising the correlation of ``|w_sensor|(t + tau)`` with ``|w_base|(t)``.
+    """Offset ``tau`` (s) maximising the correlation of ``|w_sensor|(t + tau)`` with
+    ``|w_base|(t)``.
 
     Parameters
     ----------
@@ -82,7 +89,9 @@ def estimate_time_offset(
     max_lag = min(max_lag, n - 2)
     lags = np.arange(-max_lag, max_lag + 1)
     # c[k] = sum_n b[n + k] a[n], only over the few lags searched
-    corr = np.array([np.dot(b[max(k, 0) : n + min(k, 0)], a[max(-k, 0) : n - max(k, 0)]) for k in lags.tolist()])
+    corr = np.array(
+        [np.dot(b[max(k, 0) : n + min(k, 0)], a[max(-k, 0) : n - max(k, 0)]) for k in lags.tolist()]
+    )
     norm = np.sqrt(np.sum(a**2) * np.sum(b**2))
     if norm == 0:
         return 0.0, 0.0

@@ -39,11 +39,18 @@ def jackknife(problem: Problem, fit: Fit) -> np.ndarray | None:
     for group in np.array_split(np.arange(K), min(K, JACKKNIFE_GROUPS)):
         weights = np.ones(K)
         weights[group] = 0.0
-        rep = problem.fit(fit, fit.free, window_weights=weights, max_iterations=JACKKNIFE_ITERATIONS)
-        replicates.append(np.concatenate([
-            rotation_difference(rep.point.R, fit.point.R), rep.point.t - fit.point.t,
-            [rep.point.dtau - fit.point.dtau],
-        ]))
+        rep = problem.fit(
+            fit, fit.free, window_weights=weights, max_iterations=JACKKNIFE_ITERATIONS
+        )
+        replicates.append(
+            np.concatenate(
+                [
+                    rotation_difference(rep.point.R, fit.point.R),
+                    rep.point.t - fit.point.t,
+                    [rep.point.dtau - fit.point.dtau],
+                ]
+            )
+        )
     reps = np.array(replicates)
     G = len(reps)
     centred = reps - reps.mean(axis=0)

@@ -37,10 +37,15 @@ def check_chunk_size(claimed: int, stored: int, compression: str) -> None:
     if compression in ("", "none") and claimed != stored:
         raise ValueError(f"an uncompressed chunk of {stored} bytes claims {claimed}")
     if claimed > MAX_CHUNK_BYTES or claimed > MAX_RATIO * max(stored, 1):
-        raise ValueError(f"a chunk of {stored} bytes claims to decompress to {claimed} (more than {MAX_RATIO}:1 or {MAX_CHUNK_BYTES >> 20} MiB)")
+        raise ValueError(
+            f"a chunk of {stored} bytes claims to decompress to {claimed} (more than {MAX_RATIO}:1 "
+            f"or {MAX_CHUNK_BYTES >> 20} MiB)"
+        )
 
 
-def decompress(compression: str, data: bytes, claimed: int, prefix: bool = False, out: np.ndarray | None = None) -> Any:
+def decompress(
+    compression: str, data: bytes, claimed: int, prefix: bool = False, out: np.ndarray | None = None
+) -> Any:
     """A chunk's data decompressed: exactly ``claimed`` bytes, checked before anything is
     decompressed (:func:`check_chunk_size`) and never decompressed past it. With ``prefix``
     (a chunk cut off or damaged): as much as decompresses, at most ``claimed`` bytes. With
@@ -65,10 +70,14 @@ def decompress(compression: str, data: bytes, claimed: int, prefix: bool = False
             parts.append(bytes(data[: claimed + 1]))
         elif compression == "zstd":
             reader = zstandard.ZstdDecompressor().stream_reader(data)
-            while sum(map(len, parts)) <= claimed and (piece := reader.read(min(claimed + 1, 1 << 20))):
+            while sum(map(len, parts)) <= claimed and (
+                piece := reader.read(min(claimed + 1, 1 << 20))
+            ):
                 parts.append(piece)
         elif compression in ("lz4", "bz2"):
-            stream = lz4.frame.LZ4FrameDecompressor() if compression == "lz4" else bz2.BZ2Decompressor()
+            stream = (
+                lz4.frame.LZ4FrameDecompressor() if compression == "lz4" else bz2.BZ2Decompressor()
+            )
             parts.append(stream.decompress(bytes(data), max_length=claimed + 1))
         else:
             raise ValueError(f"unsupported chunk compression {compression!r}")
@@ -80,7 +89,10 @@ def decompress(compression: str, data: bytes, claimed: int, prefix: bool = False
     if prefix:
         return result[:claimed]
     if size != claimed:
-        raise ValueError(f"decompressed to {'more than ' * (size > claimed)}{min(size, claimed)} bytes, the chunk says {claimed}")
+        raise ValueError(
+            f"decompressed to {'more than ' * (size > claimed)}{min(size, claimed)} bytes, the "
+            f"chunk says {claimed}"
+        )
     if out is None:
         return result
     if parts:
@@ -122,7 +134,9 @@ class Loss:
             span = f", {(self.end_ns - self.start_ns) * 1e-9:.2f} s of log time"
         count = ""
         if self.messages:
-            count = ", " + ", ".join(f"{n} messages of {t}" for t, n in sorted(self.messages.items()))
+            count = ", " + ", ".join(
+                f"{n} messages of {t}" for t, n in sorted(self.messages.items())
+            )
         return f"not read from byte {self.offset} ({self.nbytes} bytes{span}{count}): {self.reason}"
 
 
@@ -152,7 +166,9 @@ class LogReader:
         """Raw batches of ``topics``, each of one topic, in roughly log-time order."""
         raise NotImplementedError
 
-    def follow(self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05) -> Iterator[RawBatch]:
+    def follow(
+        self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05
+    ) -> Iterator[RawBatch]:
         """Follow mode: raw batches of a log still being written, until it ends or ``stop()``."""
         raise self.error("this log cannot be followed while it is written")
 

@@ -27,7 +27,15 @@ IMU_MSGTYPE = "sensor_msgs/msg/Imu"
 _TAIL = 8 * (4 + 9 + 3 + 9 + 3 + 9)
 _GYRO_AFTER_FRAME = 8 * (4 + 9)
 _ACCEL_AFTER_FRAME = 8 * (4 + 9 + 3 + 9)
-_CDR_HEAD = np.dtype([("encapsulation", "<u2"), ("options", "<u2"), ("sec", "<i4"), ("nsec", "<u4"), ("frame_len", "<u4")])
+_CDR_HEAD = np.dtype(
+    [
+        ("encapsulation", "<u2"),
+        ("options", "<u2"),
+        ("sec", "<i4"),
+        ("nsec", "<u4"),
+        ("frame_len", "<u4"),
+    ]
+)
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
 #: How many messages of a batch have their frame id read (evenly spread, the first included).
 FRAME_ID_SAMPLES = 64
@@ -61,13 +69,17 @@ class DecodedBatch:
     errors: int  # messages that could not be decoded (skipped)
 
 
-def pack_blobs(topic: str, encoding: str, blobs: Sequence[bytes], log_time_ns: Sequence[int]) -> RawBatch:
+def pack_blobs(
+    topic: str, encoding: str, blobs: Sequence[bytes], log_time_ns: Sequence[int]
+) -> RawBatch:
     """Serialized messages, one ``bytes`` each, as one batch."""
     lengths = np.fromiter(map(len, blobs), dtype=np.int64, count=len(blobs))
     starts = np.zeros(len(blobs), dtype=np.int64)
     np.cumsum(lengths[:-1], out=starts[1:])
     buffer = np.frombuffer(b"".join(blobs), dtype=np.uint8)
-    return RawBatch(topic, encoding, buffer, starts, lengths, np.asarray(log_time_ns, dtype=np.int64))
+    return RawBatch(
+        topic, encoding, buffer, starts, lengths, np.asarray(log_time_ns, dtype=np.int64)
+    )
 
 
 def bytes_at(buffer: np.ndarray, positions: np.ndarray, nbytes: int) -> np.ndarray:
@@ -76,11 +88,15 @@ def bytes_at(buffer: np.ndarray, positions: np.ndarray, nbytes: int) -> np.ndarr
     byte (a strided view, no copy), so a field costs one index per message, not one per byte."""
     if len(buffer) < nbytes:
         return np.zeros((0, nbytes), dtype=np.uint8)
-    records = np.ndarray(shape=(len(buffer) - nbytes + 1,), dtype=f"V{nbytes}", buffer=buffer, strides=(1,))
+    records = np.ndarray(
+        shape=(len(buffer) - nbytes + 1,), dtype=f"V{nbytes}", buffer=buffer, strides=(1,)
+    )
     return records[positions].view(np.uint8).reshape(len(positions), nbytes)
 
 
-def gather(buffer: np.ndarray, positions: np.ndarray, nbytes: int, dtype: str | np.dtype) -> np.ndarray:
+def gather(
+    buffer: np.ndarray, positions: np.ndarray, nbytes: int, dtype: str | np.dtype
+) -> np.ndarray:
     """:func:`bytes_at` viewed as ``dtype``: an (n, nbytes / itemsize) array."""
     return bytes_at(buffer, positions, nbytes).view(dtype)
 
@@ -101,7 +117,9 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     frame_len = head["frame_len"].astype(np.int64)
     if batch.encoding == "cdr":
         ok &= head["encapsulation"] == 0x0100  # bytes 00 01: CDR, little endian
-        floats_at = 4 + (frame_len + 19) // 8 * 8  # after the body's 12 bytes and the frame id, to 8
+        floats_at = (
+            4 + (frame_len + 19) // 8 * 8
+        )  # after the body's 12 bytes and the frame id, to 8
         frame_chars = frame_len - 1
     else:
         floats_at = 16 + frame_len
@@ -132,7 +150,14 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
             gyro = np.concatenate([gyro, [e[1] for _, e in good]])[order]
             accel = np.concatenate([accel, [e[2] for _, e in good]])[order]
             frame_ids += [e[3] for _, e in good if e[3] not in frame_ids]
-    return DecodedBatch(stamp, log_times, np.ascontiguousarray(gyro, dtype=np.float64), np.ascontiguousarray(accel, dtype=np.float64), frame_ids, errors)
+    return DecodedBatch(
+        stamp,
+        log_times,
+        np.ascontiguousarray(gyro, dtype=np.float64),
+        np.ascontiguousarray(accel, dtype=np.float64),
+        frame_ids,
+        errors,
+    )
 
 
 @cache
@@ -167,7 +192,11 @@ def _frame_ids(buf: np.ndarray, frame_start: np.ndarray, frame_chars: np.ndarray
     for length in [frame_chars[0]] if one_length else np.unique(frame_chars):
         group = np.arange(len(frame_chars)) if one_length else np.flatnonzero(frame_chars == length)
         sample = group[:: max(1, len(group) // FRAME_ID_SAMPLES)]
-        names = bytes_at(buf, frame_start[sample], int(length)) if length else np.zeros((len(sample), 0), np.uint8)
+        names = (
+            bytes_at(buf, frame_start[sample], int(length))
+            if length
+            else np.zeros((len(sample), 0), np.uint8)
+        )
         if (names == names[0]).all():  # one frame id per topic is the rule: check it cheaply
             found.append((int(sample[0]), bytes(names[0])))
             continue

@@ -25,7 +25,15 @@ from imucal_cli.io.rosbag1 import MAGIC as ROSBAG1_MAGIC
 from imucal_cli.io.rosbag1 import Ros1Log
 from imucal_cli.io.rosbag2 import Rosbag2Log, SqliteRecording
 
-__all__ = ["IMU_MSGTYPE", "LogReader", "Loss", "TopicInfo", "check_topics", "open_log", "open_recording"]
+__all__ = [
+    "IMU_MSGTYPE",
+    "LogReader",
+    "Loss",
+    "TopicInfo",
+    "check_topics",
+    "open_log",
+    "open_recording",
+]
 
 
 def open_log(path: str | Path) -> LogReader:
@@ -44,7 +52,9 @@ def open_log(path: str | Path) -> LogReader:
         return McapLog(path)
     if head.startswith(ROSBAG1_MAGIC) or path.suffix.lower() == ".bag":
         return Ros1Log(path)
-    raise LogError(str(path), "unknown log format (expected a .mcap file, a ROS 1 .bag or a rosbag2 folder)")
+    raise LogError(
+        str(path), "unknown log format (expected a .mcap file, a ROS 1 .bag or a rosbag2 folder)"
+    )
 
 
 def check_topics(log: LogReader, wanted: list[str]) -> dict[str, TopicInfo]:
@@ -66,10 +76,11 @@ def open_recording(path: Path) -> LogReader:
     if path.is_dir():
         files = sorted(path.glob("*.mcap")) + sorted(path.glob("*.db3"))
         if len(files) != 1:
-            raise LogError(str(path), f"follow mode reads a rosbag2 folder with one storage file; it has {len(files)}")
+            raise LogError(
+                str(path),
+                f"follow mode reads a rosbag2 folder with one storage file; it has {len(files)}",
+            )
         return McapLog(files[0]) if files[0].suffix == ".mcap" else SqliteRecording(path, files[0])
     if not path.exists():
         raise LogError(str(path), "no such file or directory")
     return McapLog(path)
-
-

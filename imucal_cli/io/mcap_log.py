@@ -7,7 +7,8 @@ through the message indexes, whose entries this module reads as numpy arrays: th
 builds a Python tuple per message, 1.2 s for the 3.2 M messages of an hour of five IMUs
 (docs/performance.md). Every other valid file (no summary, no indexes, channels only inside
 the chunks, no chunks at all) is walked record by record, the library parsing each chunk,
-channel and schema record. A file cut off mid-write has no summary: it is read up to the cut, and the cut is a
+channel and schema record. A file cut off mid-write has no summary: it is read up to the cut, and
+the cut is a
 :class:`Loss`; a chunk that does not decompress is one too.
 """
 
@@ -46,8 +47,24 @@ MAGIC = b"\x89MCAP0\r\n"
 #: 1.5-1.9 s in groups of 2 MiB and 2.0-2.4 s in groups of 16 MiB (docs/performance.md).
 GROUP_BYTES = 2 << 20
 _RECORD = struct.Struct("<BQ")  # opcode, length
-_FOOTER_OP, _SCHEMA_OP, _CHANNEL_OP, _MESSAGE_OP, _CHUNK_OP, _DATA_END_OP = 0x02, 0x03, 0x04, 0x05, 0x06, 0x0F
-_MESSAGE_RECORD = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"), ("log_time", "<u8"), ("publish_time", "<u8")])
+_FOOTER_OP, _SCHEMA_OP, _CHANNEL_OP, _MESSAGE_OP, _CHUNK_OP, _DATA_END_OP = (
+    0x02,
+    0x03,
+    0x04,
+    0x05,
+    0x06,
+    0x0F,
+)
+_MESSAGE_RECORD = np.dtype(
+    [
+        ("opcode", "u1"),
+        ("length", "<u8"),
+        ("channel", "<u2"),
+        ("sequence", "<u4"),
+        ("log_time", "<u8"),
+        ("publish_time", "<u8"),
+    ]
+)
 _MESSAGE_HEADER = _MESSAGE_RECORD.itemsize  # 31 bytes before a message's data
 REPAIR = "`mcap recover FILE -o FIXED.mcap` rewrites what is readable"
 
@@ -87,7 +104,10 @@ class McapLog(LogReader):
             if any(c not in summary.channels for c in index.message_index_offsets):
                 return None
             # each chunk once and inside the file: what a read decompresses is bounded by the file
-            if index.chunk_start_offset < max(end, len(MAGIC)) or index.chunk_start_offset + index.chunk_length > size:
+            if (
+                index.chunk_start_offset < max(end, len(MAGIC))
+                or index.chunk_start_offset + index.chunk_length > size
+            ):
                 return None
             end = index.chunk_start_offset + index.chunk_length
         return summary
@@ -101,7 +121,9 @@ class McapLog(LogReader):
             counts = dict(s.statistics.channel_message_counts) if s.statistics is not None else {}
             try:
                 for index in s.chunk_indexes if not counts else ():
-                    for channel_id, entries in self._message_indexes(index, set(index.message_index_offsets)).items():
+                    for channel_id, entries in self._message_indexes(
+                        index, set(index.message_index_offsets)
+                    ).items():
                         counts[channel_id] = counts.get(channel_id, 0) + len(entries)
                 return dict(s.channels), dict(s.schemas), counts
             except (ValueError, struct.error):  # a damaged message index: the records themselves
@@ -111,7 +133,9 @@ class McapLog(LogReader):
             schemas: dict[int, Schema] = {}
             counts = {}
             for data, at in self._walk(channels, schemas, note=True):
-                for channel_id, n in zip(*np.unique(gather(data, at + 9, 2, "<u2"), return_counts=True), strict=True):
+                for channel_id, n in zip(
+                    *np.unique(gather(data, at + 9, 2, "<u2"), return_counts=True), strict=True
+                ):
                     counts[int(channel_id)] = counts.get(int(channel_id), 0) + int(n)
             lost = [x for x in self.losses if x.lost]
             if not channels and lost:
@@ -124,8 +148,12 @@ class McapLog(LogReader):
         out: dict[str, TopicInfo] = {}
         for channel_id, channel in channels.items():
             schema = schemas.get(channel.schema_id)
-            count = counts.get(channel_id, 0) + (out[channel.topic].count if channel.topic in out else 0)
-            out[channel.topic] = TopicInfo(channel.topic, schema.name if schema else "", count, _encoding(channel))
+            count = counts.get(channel_id, 0) + (
+                out[channel.topic].count if channel.topic in out else 0
+            )
+            out[channel.topic] = TopicInfo(
+                channel.topic, schema.name if schema else "", count, _encoding(channel)
+            )
         return out
 
     # ----------------------------------------------------------------- messages
@@ -133,17 +161,25 @@ class McapLog(LogReader):
     def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
         wanted = set(topics)
         if self._summary is not None:
-            ids = {c: (ch.topic, _encoding(ch)) for c, ch in self._summary.channels.items() if ch.topic in wanted}
+            ids = {
+                c: (ch.topic, _encoding(ch))
+                for c, ch in self._summary.channels.items()
+                if ch.topic in wanted
+            }
             chunks = sorted(self._summary.chunk_indexes, key=lambda i: i.chunk_start_offset)
             # file reads and zstd (outside the GIL) in a thread, ahead of the decode
-            for found in read_ahead(self._group(group, set(ids)) for group in _groups(chunks, set(ids))):
+            for found in read_ahead(
+                self._group(group, set(ids)) for group in _groups(chunks, set(ids))
+            ):
                 yield from self._chunk_batches(*found, ids)
             return
         channels: dict[int, Channel] = {}
         for data, at in self._walk(channels, {}, note=False):
             yield from _channel_batches(data, at, channels, wanted)
 
-    def follow(self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05) -> Iterator[RawBatch]:
+    def follow(
+        self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05
+    ) -> Iterator[RawBatch]:
         """A file still being written (follow mode): the wanted messages of each record as it
         completes, waiting ``poll_s`` for more; ends at the footer, or when ``stop()`` says."""
         channels: dict[int, Channel] = {}
@@ -162,8 +198,14 @@ class McapLog(LogReader):
         size = os.fstat(self._file.fileno()).st_size
         return opcode, length, head + self._file.read(max(0, min(length, size - pos - 9)))
 
-    def _walk(self, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool, stop: Callable[[], bool] | None = None,
-              poll_s: float = 0.05) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    def _walk(
+        self,
+        channels: dict[int, Channel],
+        schemas: dict[int, Schema],
+        note: bool,
+        stop: Callable[[], bool] | None = None,
+        poll_s: float = 0.05,
+    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """The file's records from its start: per chunk (and per top-level message) the data
         and the offsets of its Message records; channels and schemas collected on the way,
         their bodies parsed by the library. A record cut off ends the walk (a :class:`Loss`
@@ -192,38 +234,89 @@ class McapLog(LogReader):
                     break
                 pos += 9 + length
             if note and pos < (size := os.fstat(self._file.fileno()).st_size):
-                self.losses.append(Loss(f"the file is cut off after {messages} messages; what follows is lost; {REPAIR}", pos, size - pos, last_ns, None))
+                self.losses.append(
+                    Loss(
+                        f"the file is cut off after {messages} messages; what follows is lost; "
+                        f"{REPAIR}",
+                        pos,
+                        size - pos,
+                        last_ns,
+                        None,
+                    )
+                )
         except Exception as exc:
             if note:
-                self.losses.append(Loss(
-                    f"the file is damaged after {messages} messages ({type(exc).__name__}: {exc}); "
-                    f"what follows is lost; {REPAIR}", pos, os.fstat(self._file.fileno()).st_size - pos, last_ns, None,
-                ))
+                self.losses.append(
+                    Loss(
+                        f"the file is damaged after {messages} messages ({type(exc).__name__}: "
+                        f"{exc}); "
+                        f"what follows is lost; {REPAIR}",
+                        pos,
+                        os.fstat(self._file.fileno()).st_size - pos,
+                        last_ns,
+                        None,
+                    )
+                )
         finally:
             if note and stop is None and not self.losses:
-                self.losses.append(Loss("the file has no usable summary and indexes: read record by record", lost=False))
+                self.losses.append(
+                    Loss(
+                        "the file has no usable summary and indexes: read record by record",
+                        lost=False,
+                    )
+                )
 
-    def _messages_of(self, data: bytes, pos: int, channels: dict[int, Channel], schemas: dict[int, Schema], note: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _messages_of(
+        self,
+        data: bytes,
+        pos: int,
+        channels: dict[int, Channel],
+        schemas: dict[int, Schema],
+        note: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The top-level record at ``pos``: its records (a chunk's decompressed, as much of a
         cut-off or damaged chunk as decodes: a whole chunk that does not is a :class:`Loss`
         where ``note``; any other record itself) and the offsets of their messages."""
         opcode, length = _RECORD.unpack_from(data, pos)
         if opcode == _CHUNK_OP:
-            chunk = Chunk.read(ReadDataStream(BytesIO(memoryview(data)[pos + 9 : pos + 9 + length])))
+            chunk = Chunk.read(
+                ReadDataStream(BytesIO(memoryview(data)[pos + 9 : pos + 9 + length]))
+            )
             try:
-                check_chunk_size(chunk.uncompressed_size, len(chunk.data), chunk.compression)  # (before the room is made)
-                inner = decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=np.empty(chunk.uncompressed_size, dtype=np.uint8))
+                check_chunk_size(
+                    chunk.uncompressed_size, len(chunk.data), chunk.compression
+                )  # (before the room is made)
+                inner = decompress(
+                    chunk.compression,
+                    chunk.data,
+                    chunk.uncompressed_size,
+                    out=np.empty(chunk.uncompressed_size, dtype=np.uint8),
+                )
             except Exception as exc:  # cut off or damaged: the prefix that decodes
                 if note and pos + 9 + length <= len(data):
-                    self.losses.append(Loss(f"chunk does not read ({exc}); what decodes of it is read; {REPAIR}", pos, 9 + length, chunk.message_start_time, chunk.message_end_time))
-                limit = min(chunk.uncompressed_size, MAX_CHUNK_BYTES, MAX_RATIO * max(len(chunk.data), 1))
-                inner = np.frombuffer(decompress(chunk.compression, chunk.data, limit, prefix=True), dtype=np.uint8)
+                    self.losses.append(
+                        Loss(
+                            f"chunk does not read ({exc}); what decodes of it is read; {REPAIR}",
+                            pos,
+                            9 + length,
+                            chunk.message_start_time,
+                            chunk.message_end_time,
+                        )
+                    )
+                limit = min(
+                    chunk.uncompressed_size, MAX_CHUNK_BYTES, MAX_RATIO * max(len(chunk.data), 1)
+                )
+                inner = np.frombuffer(
+                    decompress(chunk.compression, chunk.data, limit, prefix=True), dtype=np.uint8
+                )
         else:
             inner = np.frombuffer(data, np.uint8, 9 + length, pos)
         return inner, self._records(inner, channels, schemas)
 
     @staticmethod
-    def _records(data: np.ndarray, channels: dict[int, Channel], schemas: dict[int, Schema]) -> np.ndarray:
+    def _records(
+        data: np.ndarray, channels: dict[int, Channel], schemas: dict[int, Schema]
+    ) -> np.ndarray:
         """The offsets of the Message records in ``data`` (records end to end, as in a
         chunk), channels and schemas noted. A record cut off ends the list."""
         raw = data.data
@@ -260,15 +353,22 @@ class McapLog(LogReader):
             at = offset - begin
             opcode, _, cid, nbytes = struct.unpack_from("<BQHI", region, at)
             if opcode != 0x07 or cid != channel_id or at + 15 + nbytes > len(region):
-                raise ValueError(f"message index of channel {channel_id} at byte {offset} is damaged")
+                raise ValueError(
+                    f"message index of channel {channel_id} at byte {offset} is damaged"
+                )
             out[channel_id] = np.frombuffer(region, "<u8", nbytes // 8, at + 15).reshape(-1, 2)
         return out
 
-    def _group(self, group: list[ChunkIndex], channel_ids: set[int]) -> tuple[list[ChunkIndex], np.ndarray, dict[int, np.ndarray]]:
+    def _group(
+        self, group: list[ChunkIndex], channel_ids: set[int]
+    ) -> tuple[list[ChunkIndex], np.ndarray, dict[int, np.ndarray]]:
         """Chunks decompressed into one buffer, with their wanted message index entries
         (offsets into that buffer): one gather per field, channel and group, not per chunk.
         A chunk that does not read is a :class:`Loss`; the others are kept."""
-        believed = [min(index.uncompressed_size, MAX_CHUNK_BYTES, MAX_RATIO * max(index.compressed_size, 1)) for index in group]
+        believed = [
+            min(index.uncompressed_size, MAX_CHUNK_BYTES, MAX_RATIO * max(index.compressed_size, 1))
+            for index in group
+        ]
         buffer = np.empty(sum(believed), dtype=np.uint8)
         entries: dict[int, list[np.ndarray]] = {}
         kept, size = [], 0
@@ -277,15 +377,31 @@ class McapLog(LogReader):
                 found = self._message_indexes(index, channel_ids)
                 self._file.seek(index.chunk_start_offset)
                 record = self._file.read(index.chunk_length)
-                chunk = next(iter(StreamReader(BytesIO(record), skip_magic=True, emit_chunks=True).records))
+                chunk = next(
+                    iter(StreamReader(BytesIO(record), skip_magic=True, emit_chunks=True).records)
+                )
                 if not isinstance(chunk, Chunk):
                     raise ValueError("the chunk index does not point at a chunk")
                 check_chunk_size(chunk.uncompressed_size, len(chunk.data), chunk.compression)
-                if (chunk.uncompressed_size, len(chunk.data)) != (index.uncompressed_size, index.compressed_size):
-                    raise ValueError(f"the chunk's sizes {chunk.uncompressed_size}/{len(chunk.data)} are not its index's")
-                if any(len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > chunk.uncompressed_size for e in found.values()):
+                if (chunk.uncompressed_size, len(chunk.data)) != (
+                    index.uncompressed_size,
+                    index.compressed_size,
+                ):
+                    raise ValueError(
+                        f"the chunk's sizes {chunk.uncompressed_size}/{len(chunk.data)} are not "
+                        "its index's"
+                    )
+                if any(
+                    len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > chunk.uncompressed_size
+                    for e in found.values()
+                ):
                     raise ValueError("a message index points past the chunk's end")
-                decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=buffer[size : size + chunk.uncompressed_size])
+                decompress(
+                    chunk.compression,
+                    chunk.data,
+                    chunk.uncompressed_size,
+                    out=buffer[size : size + chunk.uncompressed_size],
+                )
             except Exception as exc:
                 self._lose_chunk(index, exc)
                 continue
@@ -307,12 +423,24 @@ class McapLog(LogReader):
             messages: dict[str, int] | None = counted
         except Exception:
             messages = None
-        self.losses.append(Loss(
-            f"chunk does not read ({exc}); {REPAIR}", index.chunk_start_offset, index.chunk_length,
-            index.message_start_time, index.message_end_time, messages,
-        ))
+        self.losses.append(
+            Loss(
+                f"chunk does not read ({exc}); {REPAIR}",
+                index.chunk_start_offset,
+                index.chunk_length,
+                index.message_start_time,
+                index.message_end_time,
+                messages,
+            )
+        )
 
-    def _chunk_batches(self, group: list[ChunkIndex], data: np.ndarray, entries: dict[int, np.ndarray], ids: dict[int, tuple[str, str]]) -> list[RawBatch]:
+    def _chunk_batches(
+        self,
+        group: list[ChunkIndex],
+        data: np.ndarray,
+        entries: dict[int, np.ndarray],
+        ids: dict[int, tuple[str, str]],
+    ) -> list[RawBatch]:
         """The wanted messages of a decompressed chunk, a batch per channel, found through
         their message index entries (checked against the records they point at)."""
         batches = []
@@ -321,18 +449,40 @@ class McapLog(LogReader):
                 continue
             head = gather(data, at, _MESSAGE_HEADER, _MESSAGE_RECORD).ravel()
             length = head["length"].astype(np.int64)
-            if (head["opcode"] != _MESSAGE_OP).any() or (head["channel"] != channel_id).any() or (length < 22).any() or (at + 9 + length > len(data)).any():
+            if (
+                (head["opcode"] != _MESSAGE_OP).any()
+                or (head["channel"] != channel_id).any()
+                or (length < 22).any()
+                or (at + 9 + length > len(data)).any()
+            ):
                 if len(group) == 1:
-                    self._lose_chunk(group[0], ValueError("a message index does not point at its messages"))
+                    self._lose_chunk(
+                        group[0], ValueError("a message index does not point at its messages")
+                    )
                     return []
                 # find the chunk at fault: read the group's chunks one by one
-                return [b for index in group for b in self._chunk_batches(*self._group([index], set(ids)), ids)]
+                return [
+                    b
+                    for index in group
+                    for b in self._chunk_batches(*self._group([index], set(ids)), ids)
+                ]
             topic, encoding = ids[channel_id]
-            batches.append(RawBatch(topic, encoding, data, at + _MESSAGE_HEADER, length - 22, head["log_time"].astype(np.int64)))
+            batches.append(
+                RawBatch(
+                    topic,
+                    encoding,
+                    data,
+                    at + _MESSAGE_HEADER,
+                    length - 22,
+                    head["log_time"].astype(np.int64),
+                )
+            )
         return batches
 
 
-def _channel_batches(data: np.ndarray, at: np.ndarray, channels: dict[int, Channel], wanted: set[str]) -> Iterator[RawBatch]:
+def _channel_batches(
+    data: np.ndarray, at: np.ndarray, channels: dict[int, Channel], wanted: set[str]
+) -> Iterator[RawBatch]:
     """The Message records at ``at`` in ``data``, a batch per wanted channel."""
     of = gather(data, at + 9, 2, "<u2").ravel()
     for channel_id in np.unique(of):
@@ -342,7 +492,9 @@ def _channel_batches(data: np.ndarray, at: np.ndarray, channels: dict[int, Chann
         mine = at[of == channel_id]
         length = gather(data, mine + 1, 8, "<u8").ravel().astype(np.int64)
         log_times = gather(data, mine + 15, 8, "<u8").ravel().astype(np.int64)
-        yield RawBatch(channel.topic, _encoding(channel), data, mine + _MESSAGE_HEADER, length - 22, log_times)
+        yield RawBatch(
+            channel.topic, _encoding(channel), data, mine + _MESSAGE_HEADER, length - 22, log_times
+        )
 
 
 def _groups(chunks: list[ChunkIndex], channel_ids: set[int]) -> Iterator[list[ChunkIndex]]:

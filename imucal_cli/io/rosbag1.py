@@ -77,7 +77,9 @@ class Ros1Log(LogReader):
             self._read_index()
         except Exception as exc:
             self.chunks = []
-            self.losses.append(Loss(f"its index cannot be used ({exc}): read record by record", lost=False))
+            self.losses.append(
+                Loss(f"its index cannot be used ({exc}): read record by record", lost=False)
+            )
             self._walk_counts()
 
     def close(self) -> None:
@@ -88,7 +90,9 @@ class Ros1Log(LogReader):
         fields, _, _, _ = _record(head, 0)
         (index_pos,) = struct.unpack("<Q", fields["index_pos"])
         if not len(MAGIC) < index_pos < self._size:
-            raise ValueError(f"index_pos {index_pos} is outside the file (cut off while recording?)")
+            raise ValueError(
+                f"index_pos {index_pos} is outside the file (cut off while recording?)"
+            )
         tail = self._read(index_pos, self._size - index_pos)
         pos, seen = 0, set()
         while pos < len(tail):
@@ -97,8 +101,13 @@ class Ros1Log(LogReader):
                 self._connection(fields, tail[start : start + length])
             elif _op(fields) == 0x06:
                 (chunk_pos,) = struct.unpack("<Q", fields["chunk_pos"])
-                if not len(MAGIC) <= chunk_pos < index_pos or chunk_pos in seen:  # (each chunk read once: bounded work)
-                    raise ValueError(f"the index names a chunk at byte {chunk_pos} {'twice' if chunk_pos in seen else 'outside the chunks'}")
+                if (
+                    not len(MAGIC) <= chunk_pos < index_pos or chunk_pos in seen
+                ):  # (each chunk read once: bounded work)
+                    raise ValueError(
+                        f"the index names a chunk at byte {chunk_pos} "
+                        f"{'twice' if chunk_pos in seen else 'outside the chunks'}"
+                    )
                 seen.add(chunk_pos)
                 entries = np.frombuffer(tail, "<u4", length // 4, start).reshape(-1, 2)
                 per_conn = {int(c): int(n) for c, n in entries}
@@ -136,25 +145,47 @@ class Ros1Log(LogReader):
         for group, found in read_ahead((g, self._group(g, wanted)) for g in groups):
             yield from self._group_batches(group, *found, wanted)
 
-    def _group_batches(self, group: list[tuple[int, dict[int, int]]], data: np.ndarray, entries: dict[int, np.ndarray], wanted: set[int]) -> list[RawBatch]:
+    def _group_batches(
+        self,
+        group: list[tuple[int, dict[int, int]]],
+        data: np.ndarray,
+        entries: dict[int, np.ndarray],
+        wanted: set[int],
+    ) -> list[RawBatch]:
         """The wanted messages of a group of decompressed chunks, a batch per connection."""
         batches = []
         for conn, e in entries.items():
             at = e["offset"].astype(np.int64)
             header_len = gather(data, at, 4, "<u4").ravel().astype(np.int64)
             inside = at + 8 + header_len <= len(data)
-            length = gather(data, np.where(inside, at + 4 + header_len, 0), 4, "<u4").ravel().astype(np.int64)
+            length = (
+                gather(data, np.where(inside, at + 4 + header_len, 0), 4, "<u4")
+                .ravel()
+                .astype(np.int64)
+            )
             if not inside.all() or (at + 8 + header_len + length > len(data)).any():
                 if len(group) == 1:
-                    self._lose_chunk(group[0], ValueError("an index entry does not point at a message"))
+                    self._lose_chunk(
+                        group[0], ValueError("an index entry does not point at a message")
+                    )
                     return []
                 # find the chunk at fault: read the group's chunks one by one
-                return [b for chunk in group for b in self._group_batches([chunk], *self._group([chunk], wanted), wanted)]
+                return [
+                    b
+                    for chunk in group
+                    for b in self._group_batches([chunk], *self._group([chunk], wanted), wanted)
+                ]
             times = e["sec"].astype(np.int64) * 1_000_000_000 + e["nsec"]
-            batches.append(RawBatch(self.connections[conn][0], "ros1", data, at + 8 + header_len, length, times))
+            batches.append(
+                RawBatch(
+                    self.connections[conn][0], "ros1", data, at + 8 + header_len, length, times
+                )
+            )
         return batches
 
-    def _group(self, group: list[tuple[int, dict[int, int]]], wanted: set[int]) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    def _group(
+        self, group: list[tuple[int, dict[int, int]]], wanted: set[int]
+    ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
         """Chunks decompressed into one buffer, with their index entries of the wanted
         connections (offsets into that buffer). A chunk that does not read is a :class:`Loss`."""
         parts: list[bytes] = []
@@ -165,8 +196,14 @@ class Ros1Log(LogReader):
             try:
                 fields, start, length, _ = self._header(chunk_pos)
                 (claimed,) = _U32.unpack(fields["size"])
-                data = decompress(fields["compression"].decode("latin-1"), self._read(chunk_pos + start, length), claimed)
-                index = self._read(chunk_pos + start + length, sum(128 + 12 * n for n in per_conn.values()))
+                data = decompress(
+                    fields["compression"].decode("latin-1"),
+                    self._read(chunk_pos + start, length),
+                    claimed,
+                )
+                index = self._read(
+                    chunk_pos + start + length, sum(128 + 12 * n for n in per_conn.values())
+                )
                 pos, found = 0, {}
                 for _ in per_conn:
                     f, s, n, pos = _record(index, pos)
@@ -194,7 +231,9 @@ class Ros1Log(LogReader):
         for conn, n in chunk[1].items():
             topic = self.connections.get(conn, (f"connection {conn}", ""))[0]
             messages[topic] = messages.get(topic, 0) + n
-        self.losses.append(Loss(f"chunk does not read ({exc}); {REPAIR}", chunk[0], messages=messages))
+        self.losses.append(
+            Loss(f"chunk does not read ({exc}); {REPAIR}", chunk[0], messages=messages)
+        )
 
     def _header(self, pos: int, op: int | None = 0x05) -> tuple[dict[str, bytes], int, int, int]:
         """The header of the record at ``pos`` (of opcode ``op``, a chunk by default): its
@@ -223,7 +262,13 @@ class Ros1Log(LogReader):
                 yield from self._records(record, [0])
                 pos += len(record)
         except Exception as exc:
-            self.losses.append(Loss(f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}", pos, self._size - pos))
+            self.losses.append(
+                Loss(
+                    f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}",
+                    pos,
+                    self._size - pos,
+                )
+            )
 
     def _top_record(self, pos: int) -> bytes:
         """The whole top-level record at ``pos`` (``ValueError`` where the file ends first)."""
@@ -232,7 +277,9 @@ class Ros1Log(LogReader):
             raise ValueError("record cut off")
         return self._read(pos, end)
 
-    def _records(self, buf: bytes, at: list[int], top: bool = True) -> Iterator[tuple[int, int, bytes]]:
+    def _records(
+        self, buf: bytes, at: list[int], top: bool = True
+    ) -> Iterator[tuple[int, int, bytes]]:
         """The message records of ``buf`` from ``at[0]`` (kept at the next record), those of
         its chunks decompressed and walked too (a chunk inside a chunk is damage: it would
         multiply what a few bytes decompress to); connections noted on the way."""
@@ -242,7 +289,11 @@ class Ros1Log(LogReader):
             if op == 0x05 and not top:
                 raise ValueError("a chunk inside a chunk")
             if op == 0x05:
-                data = decompress(fields["compression"].decode("latin-1"), buf[start : start + length], _U32.unpack(fields["size"])[0])
+                data = decompress(
+                    fields["compression"].decode("latin-1"),
+                    buf[start : start + length],
+                    _U32.unpack(fields["size"])[0],
+                )
                 yield from self._records(data, [0], top=False)
             elif op == 0x07:
                 self._connection(fields, buf[start : start + length])

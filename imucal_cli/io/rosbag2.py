@@ -28,7 +28,9 @@ def bag_folder(path: Path) -> Path:
         return path.parent
     if path.is_dir():
         return path
-    raise LogError(str(path), f"a rosbag2 storage file: give its bag folder ({path.parent}) instead")
+    raise LogError(
+        str(path), f"a rosbag2 storage file: give its bag folder ({path.parent}) instead"
+    )
 
 
 def _metadata(folder: Path) -> tuple[dict[str, Any] | None, str]:
@@ -41,7 +43,11 @@ def _metadata(folder: Path) -> tuple[dict[str, Any] | None, str]:
         return None, "it has no metadata.yaml"
     except Exception as exc:
         return None, f"its metadata.yaml does not read ({type(exc).__name__}: {exc})"
-    return (info, "") if isinstance(info, dict) else (None, "its metadata.yaml holds no bag information")
+    return (
+        (info, "")
+        if isinstance(info, dict)
+        else (None, "its metadata.yaml holds no bag information")
+    )
 
 
 class Rosbag2Log(LogReader):
@@ -58,14 +64,18 @@ class Rosbag2Log(LogReader):
         if info is None:
             if not mcaps:
                 raise self.error(f"not a readable rosbag2 folder: {why}; {REINDEX}")
-            self.losses.append(Loss(f"{why}: its {len(mcaps)} mcap storage file(s) read directly", lost=False))
+            self.losses.append(
+                Loss(f"{why}: its {len(mcaps)} mcap storage file(s) read directly", lost=False)
+            )
             self.format_name = "rosbag2-mcap"
             self._storage = [McapLog(f) for f in mcaps]
         elif info.get("storage_identifier") == "mcap" and not info.get("compression_format"):
             self.format_name = "rosbag2-mcap"
             relative = info.get("relative_file_paths", [])
             if not isinstance(relative, list) or not all(isinstance(p, str) for p in relative):
-                raise self.error(f"metadata.yaml: relative_file_paths is not a list of file names; {REINDEX}")
+                raise self.error(
+                    f"metadata.yaml: relative_file_paths is not a list of file names; {REINDEX}"
+                )
             files = [self.path / Path(p).name for p in relative]
             missing = [f.name for f in files if not f.is_file()]
             if missing:
@@ -79,7 +89,10 @@ class Rosbag2Log(LogReader):
                 self._reader = Reader(self.path)
                 self._reader.open()
             except Exception as exc:
-                raise self.error(f"cannot read the rosbag2 folder: {exc}; {REINDEX}; `sqlite3 FILE.db3 .recover` salvages a damaged database") from None
+                raise self.error(
+                    f"cannot read the rosbag2 folder: {exc}; {REINDEX}; `sqlite3 FILE.db3 "
+                    ".recover` salvages a damaged database"
+                ) from None
 
     def close(self) -> None:
         if self._reader is not None:
@@ -98,7 +111,9 @@ class Rosbag2Log(LogReader):
             return out
         for conn in self._reader.connections:
             count = int(conn.msgcount) + (out[conn.topic].count if conn.topic in out else 0)
-            out[conn.topic] = TopicInfo(conn.topic, conn.msgtype, count, getattr(conn.ext, "serialization_format", "cdr"))
+            out[conn.topic] = TopicInfo(
+                conn.topic, conn.msgtype, count, getattr(conn.ext, "serialization_format", "cdr")
+            )
         return out
 
     def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
@@ -111,11 +126,19 @@ class Rosbag2Log(LogReader):
         batcher = Batcher()
         try:
             for conn, timestamp, data in self._reader.messages(connections=connections):
-                batch = batcher.add(conn.topic, getattr(conn.ext, "serialization_format", "cdr"), int(timestamp), bytes(data))
+                batch = batcher.add(
+                    conn.topic,
+                    getattr(conn.ext, "serialization_format", "cdr"),
+                    int(timestamp),
+                    bytes(data),
+                )
                 if batch is not None:
                     yield batch
         except Exception as exc:
-            raise self.error(f"cannot read its messages: {exc}; `sqlite3 FILE.db3 .recover` salvages a damaged database") from None
+            raise self.error(
+                f"cannot read its messages: {exc}; `sqlite3 FILE.db3 .recover` salvages a damaged "
+                "database"
+            ) from None
         yield from batcher.rest()
 
 
@@ -129,7 +152,9 @@ class SqliteRecording(LogReader):
         super().__init__(folder)
         self.db = db
 
-    def follow(self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05) -> Iterator[RawBatch]:
+    def follow(
+        self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05
+    ) -> Iterator[RawBatch]:
         import sqlite3
         import time
 
@@ -138,9 +163,21 @@ class SqliteRecording(LogReader):
             finished = (self.path / "metadata.yaml").is_file()  # before the read: no row is missed
             rows: list[tuple[int, int, int, bytes]] = []
             try:
-                with sqlite3.connect(f"file:{self.db}?mode=ro", uri=True, timeout=1.0) as connection:
-                    ids = {t: (n, f) for t, n, f in connection.execute("SELECT id, name, serialization_format FROM topics") if n in wanted}
-                    rows = connection.execute("SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? ORDER BY id", (last,)).fetchall()
+                with sqlite3.connect(
+                    f"file:{self.db}?mode=ro", uri=True, timeout=1.0
+                ) as connection:
+                    ids = {
+                        t: (n, f)
+                        for t, n, f in connection.execute(
+                            "SELECT id, name, serialization_format FROM topics"
+                        )
+                        if n in wanted
+                    }
+                    rows = connection.execute(
+                        "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? ORDER BY "
+                        "id",
+                        (last,),
+                    ).fetchall()
             except sqlite3.OperationalError:  # locked by the recorder, or no table yet: try again
                 pass
             if rows:

@@ -11,5 +11,12 @@ from imucal_cli.sim.drive import (
 from imucal_cli.sim.scenarios import SCENARIOS, make_scenario
 
 __all__ = [
-    "BASE_TOPIC", "ERROR_CLASSES", "SCENARIOS", "DriveOptions", "SimulatedDrive", "make_scenario", "simulate_drive", "with_errors",
+    "BASE_TOPIC",
+    "ERROR_CLASSES",
+    "SCENARIOS",
+    "DriveOptions",
+    "SimulatedDrive",
+    "make_scenario",
+    "simulate_drive",
+    "with_errors",
 ]

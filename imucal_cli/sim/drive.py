@@ -84,10 +84,15 @@ ERROR_CLASSES: dict[str, dict[str, Any]] = {
 def with_errors(options: DriveOptions, error_class: str) -> DriveOptions:
     """``options`` with the error class ``error_class`` (:data:`ERROR_CLASSES`) applied."""
     if error_class not in ERROR_CLASSES:
-        raise ValueError(f"unknown error class {error_class!r} (expected one of: {', '.join(ERROR_CLASSES)})")
+        raise ValueError(
+            f"unknown error class {error_class!r} (expected one of: {', '.join(ERROR_CLASSES)})"
+        )
     change = ERROR_CLASSES[error_class]
     return replace(
-        options, lidar_model=replace(options.lidar_model, **change.get("lidar", {})), errors=error_class, **change.get("drive", {})
+        options,
+        lidar_model=replace(options.lidar_model, **change.get("lidar", {})),
+        errors=error_class,
+        **change.get("drive", {}),
     )
 
 
@@ -130,7 +135,10 @@ class SimulatedDrive:
 
         def biases(imu: SimulatedImu) -> dict[str, Any]:
             out = {}
-            for key, values in (("gyro_bias_radps", imu.gyro_bias), ("accel_bias_mps2", imu.accel_bias)):
+            for key, values in (
+                ("gyro_bias_radps", imu.gyro_bias),
+                ("accel_bias_mps2", imu.accel_bias),
+            ):
                 out[key] = {
                     "initial": values[0].tolist(),
                     "final": values[-1].tolist(),
@@ -195,7 +203,9 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
     """Simulate a drive. Deterministic for given options (the seed drives every random draw)."""
     o = options or DriveOptions()
     if o.scenario not in SCENARIOS:
-        raise ValueError(f"unknown scenario {o.scenario!r} (expected one of: {', '.join(SCENARIOS)})")
+        raise ValueError(
+            f"unknown scenario {o.scenario!r} (expected one of: {', '.join(SCENARIOS)})"
+        )
     if not 1 <= o.sensors <= len(o.mounts):
         raise ValueError(f"sensors must be between 1 and {len(o.mounts)}, got {o.sensors}")
     if o.noise_scale < 0:
@@ -206,7 +216,11 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
 
     trajectory = make_scenario(o.scenario, o.duration_s, seed=o.seed, dynamics=o.dynamics)
     rng = np.random.default_rng([o.seed, 7919])
-    base_model = replace(o.base_model.scaled(o.noise_scale), accel_units=o.base_accel_units, gyro_units=o.base_gyro_units)
+    base_model = replace(
+        o.base_model.scaled(o.noise_scale),
+        accel_units=o.base_accel_units,
+        gyro_units=o.base_gyro_units,
+    )
     base = simulate_imu(trajectory, Transform.identity(), base_model, rng, o.t0_ns, BASE_FRAME)
 
     offsets: dict[str, float] = {}
@@ -222,8 +236,16 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         if o.lidar_rate_hz is not None:
             model = replace(model, rate_hz=o.lidar_rate_hz)
         sensors[mount.name] = simulate_imu(
-            trajectory, mount.T_base_imu, model, rng, o.t0_ns, mount.imu_frame, o.mount_tilt_rad_per_mps2
+            trajectory,
+            mount.T_base_imu,
+            model,
+            rng,
+            o.t0_ns,
+            mount.imu_frame,
+            o.mount_tilt_rad_per_mps2,
         )
         prior = cad_prior(mount.T_base_imu, rng)
-        priors[mount.name] = Transform(prior.rotation, prior.translation + np.asarray(o.prior_offset_m))
+        priors[mount.name] = Transform(
+            prior.rotation, prior.translation + np.asarray(o.prior_offset_m)
+        )
     return SimulatedDrive(o, trajectory, mounts, base, sensors, offsets, priors)

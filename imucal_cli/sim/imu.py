@@ -15,9 +15,19 @@ MICRO_G = GRAVITY_MPS2 * 1e-6
 
 #: The error figures ``ImuErrorModel.scaled`` multiplies.
 _SCALED = (
-    "gyro_noise_density", "accel_noise_density", "gyro_turn_on_bias_std", "accel_turn_on_bias_std", "gyro_bias_random_walk",
-    "accel_bias_random_walk", "jitter_s", "scale_factor_std", "nonorthogonality_std_rad", "misalignment_std_rad", "g_sensitivity_std",
-    "vibration_accel_mps2", "vibration_gyro_radps",
+    "gyro_noise_density",
+    "accel_noise_density",
+    "gyro_turn_on_bias_std",
+    "accel_turn_on_bias_std",
+    "gyro_bias_random_walk",
+    "accel_bias_random_walk",
+    "jitter_s",
+    "scale_factor_std",
+    "nonorthogonality_std_rad",
+    "misalignment_std_rad",
+    "g_sensitivity_std",
+    "vibration_accel_mps2",
+    "vibration_gyro_radps",
 )
 
 
@@ -46,17 +56,25 @@ class ImuErrorModel:
     float32_output: bool = False  # the driver publishes single-precision values
     # Deterministic sensor errors (drawn once per IMU), none by default:
     scale_factor_std: float = 0.0  # per-axis scale-factor error (fraction), gyro and accel apart
-    nonorthogonality_std_rad: float = 0.0  # symmetric coupling of the axes (the IMU frame stays defined)
-    misalignment_std_rad: float = 0.0  # each triad (gyro, accel) rotated apart by this much per axis
+    nonorthogonality_std_rad: float = (
+        0.0  # symmetric coupling of the axes (the IMU frame stays defined)
+    )
+    misalignment_std_rad: float = (
+        0.0  # each triad (gyro, accel) rotated apart by this much per axis
+    )
     g_sensitivity_std: float = 0.0  # gyro error per unit specific force, rad/s per m/s^2, per entry
-    vibration_band_hz: tuple[float, float] = (20.0, 60.0)  # the mount's vibration frequency is drawn here
+    vibration_band_hz: tuple[float, float] = (
+        20.0,
+        60.0,
+    )  # the mount's vibration frequency is drawn here
     vibration_accel_mps2: float = 0.0  # amplitude of the mount's vibration (each axis)
     vibration_gyro_radps: float = 0.0
     accel_units: str = "mps2"  # what the driver publishes: mps2 | g
     gyro_units: str = "radps"  # radps | dps
 
     def scaled(self, noise_scale: float) -> ImuErrorModel:
-        """Noise, biases, jitter and drop rate multiplied by ``noise_scale`` (0: an ideal sensor)."""
+        """Noise, biases, jitter and drop rate multiplied by ``noise_scale`` (0: an ideal
+        sensor)."""
         ideal = noise_scale <= 0
         return replace(
             self,
@@ -118,8 +136,12 @@ def _has_intrinsic_errors(model: ImuErrorModel) -> bool:
     return any(
         v > 0
         for v in (
-            model.scale_factor_std, model.nonorthogonality_std_rad, model.misalignment_std_rad,
-            model.g_sensitivity_std, model.vibration_accel_mps2, model.vibration_gyro_radps,
+            model.scale_factor_std,
+            model.nonorthogonality_std_rad,
+            model.misalignment_std_rad,
+            model.g_sensitivity_std,
+            model.vibration_accel_mps2,
+            model.vibration_gyro_radps,
         )
     )
 
@@ -145,7 +167,10 @@ def ideal_imu(
     if any(tilt_rad_per_mps2):
         h = 1e-4  # the trajectory is a quintic spline: a central difference is exact to ~h^2
         theta = mount_tilt(state.f_base, tilt_rad_per_mps2)
-        rate = (mount_tilt(trajectory.state(t_s + h).f_base, tilt_rad_per_mps2) - mount_tilt(trajectory.state(t_s - h).f_base, tilt_rad_per_mps2)) / (2 * h)
+        rate = (
+            mount_tilt(trajectory.state(t_s + h).f_base, tilt_rad_per_mps2)
+            - mount_tilt(trajectory.state(t_s - h).f_base, tilt_rad_per_mps2)
+        ) / (2 * h)
         R_imu_base = T_base_imu.rotation.inv() * Rotation.from_rotvec(-theta)
         w_base = w_base + rate
     gyro = R_imu_base.apply(w_base)
@@ -174,7 +199,9 @@ class SimulatedImu:
     accel_bias: np.ndarray  # (N, 3) true accelerometer bias at each sample
     gyro_axes: np.ndarray = field(default_factory=lambda: np.eye(3))  # measured = axes @ true
     accel_axes: np.ndarray = field(default_factory=lambda: np.eye(3))
-    g_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # the gyro's: + G f (rad/s per m/s^2, IMU axes)
+    g_sensitivity: np.ndarray = field(
+        default_factory=lambda: np.zeros((3, 3))
+    )  # the gyro's: + G f (rad/s per m/s^2, IMU axes)
 
 
 def simulate_imu(
@@ -248,4 +275,13 @@ def simulate_imu(
     t_ns = t0_ns + np.round(stamp_s * 1e9).astype(np.int64)
     log_ns = t0_ns + np.round((t_true + model.latency_s) * 1e9).astype(np.int64)
     stream = ImuStream(t_ns[keep], gyro[keep], accel[keep], frame_id)
-    return SimulatedImu(stream, log_ns[keep], t_true[keep], gyro_bias[keep], accel_bias[keep], gyro_axes, accel_axes, g_sensitivity)
+    return SimulatedImu(
+        stream,
+        log_ns[keep],
+        t_true[keep],
+        gyro_bias[keep],
+        accel_bias[keep],
+        gyro_axes,
+        accel_axes,
+        g_sensitivity,
+    )

@@ -93,7 +93,8 @@ class _Program:
         self.curv_knots.append((self.t, self.curv_knots[-1][1]))
 
     def change_speed(self, target: float, accel: float) -> None:
-        """Reach ``target`` m/s with a peak acceleration about ``accel`` (smoothstep: 1.875x mean)."""
+        """Reach ``target`` m/s with a peak acceleration about ``accel`` (smoothstep: 1.875x
+        mean)."""
         duration = max(1.0, 1.875 * abs(target - self.speed) / max(abs(accel), 1e-3))
         self.t += duration
         self.speed_knots.append((self.t, target))
@@ -215,7 +216,9 @@ def _bumps(
     freqs = rng.uniform(band_hz[0], band_hz[1], count)
     phases = rng.uniform(0.0, 2.0 * np.pi, count)
     amps = rng.uniform(0.5, 1.0, count)
-    out = np.sum(amps[:, None] * np.sin(2.0 * np.pi * freqs[:, None] * t[None, :] + phases[:, None]), axis=0)
+    out = np.sum(
+        amps[:, None] * np.sin(2.0 * np.pi * freqs[:, None] * t[None, :] + phases[:, None]), axis=0
+    )
     return out / np.sqrt(0.5 * np.sum(amps**2))
 
 
@@ -260,7 +263,9 @@ def make_scenario(
     # Road grade: a function of the distance travelled (hills every 100-500 m), so a vehicle
     # standing still does not pitch.
     distance = cumulative_trapezoid(np.abs(speed), t, initial=0.0)
-    grade = dyn.max_grade * np.tanh(_bumps(rng, distance, (1.0 / 500.0, 1.0 / 100.0), count=3) * 0.7)
+    grade = dyn.max_grade * np.tanh(
+        _bumps(rng, distance, (1.0 / 500.0, 1.0 / 100.0), count=3) * 0.7
+    )
     distance_rate = speed
     x = cumulative_trapezoid(distance_rate * np.cos(yaw), t, initial=0.0)
     y = cumulative_trapezoid(distance_rate * np.sin(yaw), t, initial=0.0)

@@ -28,8 +28,15 @@ def serialize_cdr(stream: ImuStream, index: slice = slice(None)) -> np.ndarray:
     body_head = 12 + len(frame)
     pad = (-body_head) % 8
     dtype = np.dtype(
-        [("encap", "u1", 4), ("sec", "<i4"), ("nanosec", "<u4"), ("frame_len", "<u4"),
-         ("frame", "u1", len(frame)), ("pad", "u1", pad), ("floats", "<f8", 37)],
+        [
+            ("encap", "u1", 4),
+            ("sec", "<i4"),
+            ("nanosec", "<u4"),
+            ("frame_len", "<u4"),
+            ("frame", "u1", len(frame)),
+            ("pad", "u1", pad),
+            ("floats", "<f8", 37),
+        ],
         align=False,
     )
     t = stream.t_ns[index]
@@ -46,8 +53,14 @@ def serialize_ros1(stream: ImuStream, index: slice = slice(None), first_seq: int
     """(n, size) uint8: ROS 1 messages, as ``rosbags`` ``serialize_ros1`` writes them."""
     frame = stream.frame_id.encode()
     dtype = np.dtype(
-        [("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4"),
-         ("frame", "u1", len(frame)), ("floats", "<f8", 37)],
+        [
+            ("seq", "<u4"),
+            ("sec", "<u4"),
+            ("nsec", "<u4"),
+            ("frame_len", "<u4"),
+            ("frame", "u1", len(frame)),
+            ("floats", "<f8", 37),
+        ],
         align=False,
     )
     t = stream.t_ns[index]

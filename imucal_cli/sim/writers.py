@@ -37,7 +37,9 @@ class TopicData:
     log_time_ns: np.ndarray | None = None  # defaults to the stamps
 
 
-def _messages(topics: Mapping[str, TopicData], progress: Progress | None = None) -> Iterator[tuple[int, str, int]]:
+def _messages(
+    topics: Mapping[str, TopicData], progress: Progress | None = None
+) -> Iterator[tuple[int, str, int]]:
     """``(log_time_ns, topic, index)`` over all topics, merged in log-time order; ``progress``
     told (written, total) every 10,000 messages."""
     merged = _merged(topics)
@@ -79,13 +81,22 @@ def _serialized(topics: Mapping[str, TopicData], ros1: bool) -> dict[str, np.nda
     return {topic: serialize(data.stream) for topic, data in topics.items()}
 
 
-def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool, compression: str = "zstd", chunk_size: int = 1024 * 1024, progress: Progress | None = None) -> None:
+def _write_mcap(
+    path: Path,
+    topics: Mapping[str, TopicData],
+    ros1: bool,
+    compression: str = "zstd",
+    chunk_size: int = 1024 * 1024,
+    progress: Progress | None = None,
+) -> None:
     from mcap.writer import CompressionType, Writer
 
     msgdef, _ = _msgdef(ros1)
     blobs = _serialized(topics, ros1)
     with path.open("wb") as handle:
-        writer = Writer(handle, compression=CompressionType[compression.upper()], chunk_size=chunk_size)
+        writer = Writer(
+            handle, compression=CompressionType[compression.upper()], chunk_size=chunk_size
+        )
         writer.start(profile="ros1" if ros1 else "ros2", library="imucal")
         schema_id = writer.register_schema(
             name="sensor_msgs/Imu" if ros1 else IMU_MSGTYPE,
@@ -111,14 +122,17 @@ def _write_mcap(path: Path, topics: Mapping[str, TopicData], ros1: bool, compres
         writer.finish()
 
 
-def _fill_rosbags_writer(writer: Any, topics: Mapping[str, TopicData], ros1: bool, progress: Progress | None = None) -> None:
+def _fill_rosbags_writer(
+    writer: Any, topics: Mapping[str, TopicData], ros1: bool, progress: Progress | None = None
+) -> None:
     """Open a rosbags writer, add one connection per topic, write every message, close."""
     _, typestore = _msgdef(ros1)
     blobs = _serialized(topics, ros1)
     writer.open()
     try:
         connections = {
-            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore) for topic in topics
+            topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore)
+            for topic in topics
         }
         for log_ns, topic, i in _messages(topics, progress):
             writer.write(connections[topic], log_ns, blobs[topic][i].tobytes())
@@ -126,14 +140,20 @@ def _fill_rosbags_writer(writer: Any, topics: Mapping[str, TopicData], ros1: boo
         writer.close()
 
 
-def _write_rosbag2(path: Path, topics: Mapping[str, TopicData], storage: str, progress: Progress | None = None) -> None:
+def _write_rosbag2(
+    path: Path, topics: Mapping[str, TopicData], storage: str, progress: Progress | None = None
+) -> None:
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    _fill_rosbags_writer(Writer(path, version=9, storage_plugin=plugin), topics, ros1=False, progress=progress)
+    _fill_rosbags_writer(
+        Writer(path, version=9, storage_plugin=plugin), topics, ros1=False, progress=progress
+    )
 
 
-def _write_rosbag1(path: Path, topics: Mapping[str, TopicData], progress: Progress | None = None) -> None:
+def _write_rosbag1(
+    path: Path, topics: Mapping[str, TopicData], progress: Progress | None = None
+) -> None:
     from rosbags.rosbag1 import Writer
 
     writer = Writer(path)
@@ -141,7 +161,13 @@ def _write_rosbag1(path: Path, topics: Mapping[str, TopicData], progress: Progre
     _fill_rosbags_writer(writer, topics, ros1=True, progress=progress)
 
 
-def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData], progress: Progress | None = None, replace: bool = False) -> Path:
+def write_imu_log(
+    out: str | Path,
+    fmt: str,
+    topics: Mapping[str, TopicData],
+    progress: Progress | None = None,
+    replace: bool = False,
+) -> Path:
     """Write IMU topics to ``out`` in format ``fmt`` (one of :data:`FORMATS`).
 
     The log is built in a new temporary folder beside ``out`` and renamed into place once
@@ -155,7 +181,9 @@ def write_imu_log(out: str | Path, fmt: str, topics: Mapping[str, TopicData], pr
     if not out.parent.is_dir():
         raise InputError(f"{out}: output folder {out.parent} does not exist")
     refuse_existing(out, replace)
-    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))  # ours alone
+    work = Path(
+        tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent)
+    )  # ours alone
     tmp = work / out.name
     try:
         if fmt in ("mcap", "mcap-ros1"):

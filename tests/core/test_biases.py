@@ -34,11 +34,16 @@ def _tracker(t, gyro, accel, step: int | None = None):
 
 
 def test_a_bias_past_the_rest_tolerance_still_finds_the_rests_and_is_estimated():
-    bias_a, bias_w = np.array([0.0, 0.0, 0.5]), np.array([0.004, -0.002, 0.003])  # 0.5 m/s^2: five tolerances
+    bias_a, bias_w = (
+        np.array([0.0, 0.0, 0.5]),
+        np.array([0.004, -0.002, 0.003]),
+    )  # 0.5 m/s^2: five tolerances
     report = _tracker(*_drive(bias_a, bias_w))
     assert [(round(r.start_s), round(r.end_s)) for r in report.rest_periods] == [(0, 10), (20, 30)]
     n = report.rest_periods[-1].samples
-    assert abs(report.accel_bias[2] - 0.5) < 4 * NOISE_A / np.sqrt(n)  # the gravity-parallel component
+    assert abs(report.accel_bias[2] - 0.5) < 4 * NOISE_A / np.sqrt(
+        n
+    )  # the gravity-parallel component
     assert np.all(np.abs(report.gyro_bias_final - bias_w) < 4 * NOISE_W / np.sqrt(n))
     assert not report.warnings
 
@@ -46,7 +51,9 @@ def test_a_bias_past_the_rest_tolerance_still_finds_the_rests_and_is_estimated()
 def test_streamed_in_pieces_equals_at_once():
     data = _drive(np.array([0.1, -0.2, 0.3]), np.zeros(3), seed=1)
     whole, pieces = _tracker(*data), _tracker(*data, step=333)
-    assert [(r.start_s, r.end_s) for r in whole.rest_periods] == [(r.start_s, r.end_s) for r in pieces.rest_periods]
+    assert [(r.start_s, r.end_s) for r in whole.rest_periods] == [
+        (r.start_s, r.end_s) for r in pieces.rest_periods
+    ]
     np.testing.assert_allclose(pieces.accel_bias, whole.accel_bias, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(pieces.gyro_bias_final, whole.gyro_bias_final, rtol=1e-9, atol=1e-15)
 
@@ -64,9 +71,19 @@ def test_many_small_batches_equal_one_batch_through_the_merges():
     them)."""
     data = _drive(np.array([0.1, -0.2, 0.3]), np.array([0.001, 0.0, -0.002]), seed=2)
     whole, pieces = _tracker(*data), _tracker(*data, step=7)
-    assert [(r.start_s, r.end_s, r.samples) for r in whole.rest_periods] == [(r.start_s, r.end_s, r.samples) for r in pieces.rest_periods]
-    for name in ("accel_bias", "accel_noise_std", "gyro_bias_final", "gyro_bias_track_std", "gyro_bias_final_std"):
-        np.testing.assert_allclose(getattr(pieces, name), getattr(whole, name), rtol=1e-9, atol=1e-15, err_msg=name)
+    assert [(r.start_s, r.end_s, r.samples) for r in whole.rest_periods] == [
+        (r.start_s, r.end_s, r.samples) for r in pieces.rest_periods
+    ]
+    for name in (
+        "accel_bias",
+        "accel_noise_std",
+        "gyro_bias_final",
+        "gyro_bias_track_std",
+        "gyro_bias_final_std",
+    ):
+        np.testing.assert_allclose(
+            getattr(pieces, name), getattr(whole, name), rtol=1e-9, atol=1e-15, err_msg=name
+        )
 
 
 def test_memory_follows_the_samples_not_the_span_of_their_stamps():
@@ -120,9 +137,19 @@ def test_blocks_judged_as_they_settle_give_what_judging_all_at_the_end_gives(mon
     passes = tracker.report()
     assert max(held) < 600 < len(data[0]) / RATE / 0.1  # blocks held, against blocks in the log
     assert len(whole.rest_periods) == 8
-    assert [(r.start_s, r.end_s, r.samples) for r in passes.rest_periods] == [(r.start_s, r.end_s, r.samples) for r in whole.rest_periods]
-    for name in ("accel_bias", "accel_noise_std", "gyro_bias_final", "gyro_bias_track_std", "gyro_bias_final_std"):
-        np.testing.assert_allclose(getattr(passes, name), getattr(whole, name), rtol=1e-9, atol=1e-15, err_msg=name)
+    assert [(r.start_s, r.end_s, r.samples) for r in passes.rest_periods] == [
+        (r.start_s, r.end_s, r.samples) for r in whole.rest_periods
+    ]
+    for name in (
+        "accel_bias",
+        "accel_noise_std",
+        "gyro_bias_final",
+        "gyro_bias_track_std",
+        "gyro_bias_final_std",
+    ):
+        np.testing.assert_allclose(
+            getattr(passes, name), getattr(whole, name), rtol=1e-9, atol=1e-15, err_msg=name
+        )
 
 
 def test_the_accelerometer_bias_at_rest_is_said_to_be_its_part_along_gravity():
@@ -146,13 +173,17 @@ def test_biases_table_and_document_label_the_accelerometer_bias(tmp_path, short_
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
     write_document(tmp_path / "c.yaml", short_drive.config_document())
     runner = CliRunner()
-    table = runner.invoke(app, ["biases", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "200"})
+    table = runner.invoke(
+        app, ["biases", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "200"}
+    )
     assert "accel bias along g" in table.stdout and "calibrate's accel_bias_mps2" in table.stdout
     document = runner.invoke(app, ["biases", str(log), "-c", str(tmp_path / "c.yaml"), "--json"])
     import json
 
     for imu in json.loads(document.stdout)["imus"].values():
-        assert "accel_bias_along_gravity_mps2" in imu and imu["accel_bias_resolved"].startswith("along gravity only")
+        assert "accel_bias_along_gravity_mps2" in imu and imu["accel_bias_resolved"].startswith(
+            "along gravity only"
+        )
 
 
 def test_fewer_blocks_than_the_rest_test_looks_at_do_not_break_it():

@@ -18,7 +18,9 @@ def calibrate(drive):
 def errors(drive, result, name):
     mount = next(m for m in drive.mounts if m.name == name)
     T = result.T_base_lidar(name)
-    rotation_error_B = (mount.T_base_lidar.rotation * T.rotation.inv()).as_rotvec()  # about base axes
+    rotation_error_B = (
+        mount.T_base_lidar.rotation * T.rotation.inv()
+    ).as_rotvec()  # about base axes
     return rotation_error_B, T.translation - mount.T_base_lidar.translation
 
 
@@ -26,7 +28,14 @@ def errors(drive, result, name):
 def test_noise_free_drive_comes_back_exactly(scenario, duration):
     """Ideal sensors, no clock offsets: dR < 0.001 deg and |dt| < 1 mm for every lidar."""
     drive = simulate_drive(
-        DriveOptions(scenario=scenario, duration_s=duration, seed=2, noise_scale=0.0, time_offsets_s=(0.0,), sensors=4)
+        DriveOptions(
+            scenario=scenario,
+            duration_s=duration,
+            seed=2,
+            noise_scale=0.0,
+            time_offsets_s=(0.0,),
+            sensors=4,
+        )
     )
     result = calibrate(drive)
     for mount in drive.mounts:
@@ -76,8 +85,8 @@ def test_errors_lie_within_the_reported_uncertainty(seed):
         estimate = result.estimates[mount.name]
         std = np.sqrt(np.diag(estimate.lidar_covariance(mount.T_imu_lidar)))
         rot, trans = errors(drive, result, mount.name)
-        assert np.all(np.abs(rot) < 4 * std[:3]), (rot / std[:3])
-        assert np.all(np.abs(trans) < 4 * std[3:]), (trans / std[3:])
+        assert np.all(np.abs(rot) < 4 * std[:3]), rot / std[:3]
+        assert np.all(np.abs(trans) < 4 * std[3:]), trans / std[3:]
         # and the paper's own figures are beaten by far on the aggressive drive
         assert np.degrees(np.linalg.norm(rot)) < 0.05 and np.linalg.norm(trans) < 0.02
 

@@ -33,12 +33,19 @@ def normalized_errors(drive, result, name):
     """Error over the reported std per axis (rotation about the base axes, then xyz)."""
     mount = next(m for m in drive.mounts if m.name == name)
     T = result.T_base_lidar(name)
-    error = np.concatenate([(mount.T_base_lidar.rotation * T.rotation.inv()).as_rotvec(), T.translation - mount.T_base_lidar.translation])
+    error = np.concatenate(
+        [
+            (mount.T_base_lidar.rotation * T.rotation.inv()).as_rotvec(),
+            T.translation - mount.T_base_lidar.translation,
+        ]
+    )
     return error / np.sqrt(np.diag(result.estimates[name].lidar_covariance(mount.T_imu_lidar)))
 
 
 def drive_with(errors, scenario="aggressive", seed=3, **options):
-    return simulate_drive(with_errors(DriveOptions(scenario=scenario, seed=seed, **options), errors))
+    return simulate_drive(
+        with_errors(DriveOptions(scenario=scenario, seed=seed, **options), errors)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +54,10 @@ def si_twin():
     return drive, calibrate(drive)
 
 
-@pytest.mark.parametrize(("errors", "words"), [("accel-g", "accelerometer publishes g"), ("gyro-dps", "gyro publishes deg/s")])
+@pytest.mark.parametrize(
+    ("errors", "words"),
+    [("accel-g", "accelerometer publishes g"), ("gyro-dps", "gyro publishes deg/s")],
+)
 def test_units_are_detected_and_calibrate_as_the_si_twin(si_twin, errors, words):
     """The same drive published in g or deg/s: a warning naming the conversion, the same
     status, and an estimate within a small fraction of its std of the SI twin's (the output
@@ -71,7 +81,9 @@ def test_a_base_gyro_in_deg_per_s_is_detected():
     for mount in drive.mounts:
         estimate = result.estimates[mount.name]
         assert any(w.startswith("base: gyro publishes deg/s") for w in estimate.warnings)
-        assert estimate.status == "ok" and np.all(np.abs(normalized_errors(drive, result, mount.name)) < 4)
+        assert estimate.status == "ok" and np.all(
+            np.abs(normalized_errors(drive, result, mount.name)) < 4
+        )
 
 
 def test_declared_units_are_taken_as_declared():
@@ -95,7 +107,9 @@ def test_units_that_cannot_be_told_are_an_error_naming_topic_and_key():
     odd = ImuStream(stream.t_ns, stream.gyro, stream.accel * 3.0, stream.frame_id)  # |f| about 29
     with pytest.raises(UnitsError) as error:
         run_calibrate(DriveStreams(drive.base.stream, {mount.name: odd}, 0), drive.config())
-    assert mount.imu_topic in str(error.value) and f"sensors.{mount.name}.accel_units" in str(error.value)
+    assert mount.imu_topic in str(error.value) and f"sensors.{mount.name}.accel_units" in str(
+        error.value
+    )
     assert isinstance(error.value, ImucalError)
 
 
@@ -110,7 +124,9 @@ def test_a_tilting_mount_is_inconsistent_and_its_tilt_measured():
         rigid = estimate.checks["rigid_mount"]
         assert estimate.status == "inconsistent" and not rigid["pass"]
         tilt, std = np.array(rigid["tilt_deg_per_mps2"]), np.array(rigid["std"])
-        assert np.all(np.abs(tilt - truth) <= 0.3 * truth) and np.all(np.abs(tilt - truth) < 4 * std)
+        assert np.all(np.abs(tilt - truth) <= 0.3 * truth) and np.all(
+            np.abs(tilt - truth) < 4 * std
+        )
         assert any("not rigid" in w for w in estimate.warnings)
         assert np.all(np.abs(normalized_errors(drive, result, mount.name)) < 3)
 
@@ -120,7 +136,10 @@ def test_gyro_and_accelerometer_misaligned_apart_fail_the_rotation_check():
     result = calibrate(drive)
     for mount in drive.mounts:
         estimate = result.estimates[mount.name]
-        assert estimate.status == "inconsistent" and not estimate.checks["gyro_vs_accel_rotation"]["pass"]
+        assert (
+            estimate.status == "inconsistent"
+            and not estimate.checks["gyro_vs_accel_rotation"]["pass"]
+        )
         assert np.all(np.abs(normalized_errors(drive, result, mount.name)) < 3)
 
 
@@ -146,10 +165,18 @@ def test_clean_drives_pass_every_check(si_twin):
         assert all(check["pass"] for check in sensor["checks"].values())
         assert sensor["time_offset_observable"] is True
         assert sensor["accel_intrinsics"]["estimated"] is False
-        assert sensor["gyro_intrinsics"]["estimated"] is False and sensor["gyro_intrinsics"]["g_sensitivity"]["estimated"] is False
+        assert (
+            sensor["gyro_intrinsics"]["estimated"] is False
+            and sensor["gyro_intrinsics"]["g_sensitivity"]["estimated"] is False
+        )
         cov = np.array(sensor["covariance"]["matrix"])
-        assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
-        assert np.allclose(np.sqrt(np.diag(cov)), [*np.radians(sensor["rotation_std_deg"]), *sensor["translation_std_m"]])
+        assert (
+            cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+        )
+        assert np.allclose(
+            np.sqrt(np.diag(cov)),
+            [*np.radians(sensor["rotation_std_deg"]), *sensor["translation_std_m"]],
+        )
 
 
 def test_floors_of_the_config_are_added_to_the_std(si_twin):
@@ -162,8 +189,12 @@ def test_floors_of_the_config_are_added_to_the_std(si_twin):
     floored = run_calibrate(drive.streams(), drive.config(floors))
     for mount in drive.mounts:
         a, b = plain.estimates[mount.name], floored.estimates[mount.name]
-        np.testing.assert_allclose(b.rotation_std_deg**2, a.rotation_std_deg**2 + 0.05**2, rtol=1e-9)
-        np.testing.assert_allclose(b.translation_std_m**2, a.translation_std_m**2 + 0.01**2, rtol=1e-9)
+        np.testing.assert_allclose(
+            b.rotation_std_deg**2, a.rotation_std_deg**2 + 0.05**2, rtol=1e-9
+        )
+        np.testing.assert_allclose(
+            b.translation_std_m**2, a.translation_std_m**2 + 0.01**2, rtol=1e-9
+        )
 
 
 def test_a_flat_or_edge_correlation_does_not_place_the_clock_offset():
@@ -173,11 +204,24 @@ def test_a_flat_or_edge_correlation_does_not_place_the_clock_offset():
     freqs, phases = rng.uniform(0.1, 2.0, 8), rng.uniform(0, 2 * np.pi, 8)
 
     def speed(t, amplitude):
-        return 0.3 + np.sum(amplitude * np.sin(2 * np.pi * freqs[:, None] * t[None, :] + phases[:, None]), axis=0)
+        return 0.3 + np.sum(
+            amplitude * np.sin(2 * np.pi * freqs[:, None] * t[None, :] + phases[:, None]), axis=0
+        )
 
     rich = time_offset_shown(grid, speed(grid, 0.05), speed(grid - 0.02, 0.05), 0.1, 1e-3, gain)
-    assert rich.shown and abs(rich.tau_s - 0.02) < 3 * rich.std_s and rich.std_s < TIME_OFFSET_MAX_STD_S
-    flat = time_offset_shown(grid, speed(grid, 1e-5), speed(grid - 0.02, 1e-5) + rng.normal(0, 1e-3, len(grid)), 0.1, 1e-3, gain)
+    assert (
+        rich.shown
+        and abs(rich.tau_s - 0.02) < 3 * rich.std_s
+        and rich.std_s < TIME_OFFSET_MAX_STD_S
+    )
+    flat = time_offset_shown(
+        grid,
+        speed(grid, 1e-5),
+        speed(grid - 0.02, 1e-5) + rng.normal(0, 1e-3, len(grid)),
+        0.1,
+        1e-3,
+        gain,
+    )
     assert not flat.shown and flat.std_s > TIME_OFFSET_MAX_STD_S
     edge = time_offset_shown(grid, speed(grid, 0.05), speed(grid - 0.3, 0.05), 0.1, 1e-3, gain)
     assert not edge.shown and "edge" in edge.reason
@@ -254,7 +298,12 @@ def test_gyro_axis_errors_and_g_sensitivity_are_estimated_where_they_show():
     document carries them."""
     from imucal_cli.types import GRAVITY_MPS2
 
-    model = replace(MEMS_LIDAR, scale_factor_std=0.005, nonorthogonality_std_rad=np.radians(0.2), g_sensitivity_std=np.radians(0.1) / GRAVITY_MPS2)
+    model = replace(
+        MEMS_LIDAR,
+        scale_factor_std=0.005,
+        nonorthogonality_std_rad=np.radians(0.2),
+        g_sensitivity_std=np.radians(0.1) / GRAVITY_MPS2,
+    )
     drive = simulate_drive(DriveOptions(scenario="urban", seed=4, sensors=4, lidar_model=model))
     result = calibrate(drive)
     document = calibration_document(result, "sim.mcap")
@@ -271,7 +320,10 @@ def test_gyro_axis_errors_and_g_sensitivity_are_estimated_where_they_show():
         shown = np.isfinite(std)
         assert np.all(np.abs(value - truth)[shown] < 4 * std[shown])
         per_g = np.degrees(1.0) * GRAVITY_MPS2
-        g_value, g_std = np.array(axes["g_sensitivity"]["dps_per_g"]), np.array(axes["g_sensitivity"]["std_dps_per_g"])
+        g_value, g_std = (
+            np.array(axes["g_sensitivity"]["dps_per_g"]),
+            np.array(axes["g_sensitivity"]["std_dps_per_g"]),
+        )
         shown = np.isfinite(g_std)
         assert shown.sum() >= 6
         assert np.all(np.abs(g_value - per_g * simulated.g_sensitivity)[shown] < 4 * g_std[shown])

@@ -41,8 +41,11 @@ def _point(rng: np.random.Generator, K: int = 4) -> tuple[Point, np.ndarray, np.
     """A random point, errors and tilt included, and two knots' biases per window."""
     errors = rng.normal(size=model.SENSOR_ERRORS.stop - model.SENSOR_ERRORS.start) * 0.01
     point = Point(
-        Rotation.from_rotvec(rng.normal(size=3)), rng.normal(size=3) * 2.0,
-        float(rng.normal() * 0.01), rng.normal(size=2) * 0.01, errors,
+        Rotation.from_rotvec(rng.normal(size=3)),
+        rng.normal(size=3) * 2.0,
+        float(rng.normal() * 0.01),
+        rng.normal(size=2) * 0.01,
+        errors,
     )
     return point, rng.normal(size=(K, KNOT.size)) * 0.1, rng.normal(size=(K, KNOT.size)) * 0.1
 
@@ -52,14 +55,18 @@ def _C(which: str, point: Point, bj: np.ndarray, bk: np.ndarray) -> np.ndarray:
     return coefficients(point, bj[:, biases], bk[:, biases])
 
 
-def _difference(which: str, point: Point, bj: np.ndarray, bk: np.ndarray, parameter: int) -> np.ndarray:
+def _difference(
+    which: str, point: Point, bj: np.ndarray, bk: np.ndarray, parameter: int
+) -> np.ndarray:
     step = np.zeros(N_PARAMETERS)
     step[parameter] = H
     ahead, behind = _C(which, point.moved(step), bj, bk), _C(which, point.moved(-step), bj, bk)
     return (ahead - behind) / (2 * H)
 
 
-def _bias_difference(which: str, point: Point, bj: np.ndarray, bk: np.ndarray, knot: int, axis: int) -> np.ndarray:
+def _bias_difference(
+    which: str, point: Point, bj: np.ndarray, bk: np.ndarray, knot: int, axis: int
+) -> np.ndarray:
     column = EQUATIONS[which][3].start + axis
     moved = []
     for h in (H, -H):
@@ -91,7 +98,9 @@ def test_each_global_derivative_is_the_models(seed, which):
     for column, parameter in enumerate(globals_):
         numeric = _difference(which, point, bj, bk, int(parameter))
         tolerance = 1e-8 * max(1.0, np.abs(numeric).max())
-        np.testing.assert_allclose(D[:, column], numeric, rtol=0, atol=tolerance, err_msg=f"{which}: {parameter}")
+        np.testing.assert_allclose(
+            D[:, column], numeric, rtol=0, atol=tolerance, err_msg=f"{which}: {parameter}"
+        )
 
 
 @pytest.mark.parametrize("which", ["gyro", "accel"])
@@ -101,7 +110,9 @@ def test_the_globals_a_residual_does_not_hold_have_no_derivative(which):
     point, bj, bk = _point(np.random.default_rng(7))
     held = set(EQUATIONS[which][2].tolist())
     for parameter in sorted(set(range(N_PARAMETERS)) - held):
-        assert np.abs(_difference(which, point, bj, bk, parameter)).max() == 0.0, f"{which}: {parameter}"
+        assert np.abs(_difference(which, point, bj, bk, parameter)).max() == 0.0, (
+            f"{which}: {parameter}"
+        )
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -118,7 +129,9 @@ def test_normal_equations_with_the_biases_sparse_blocks_are_the_full_products(se
     S = X.transpose(0, 2, 1) @ X  # moments: symmetric, positive definite
     _, derivatives, globals_, _ = EQUATIONS[which]
     columns = [_difference(which, point, bj, bk, int(q)) for q in globals_]
-    columns += [_bias_difference(which, point, bj, bk, knot, axis) for knot in (0, 1) for axis in range(3)]
+    columns += [
+        _bias_difference(which, point, bj, bk, knot, axis) for knot in (0, 1) for axis in range(3)
+    ]
     D_full = np.stack(columns, axis=1)  # (K, P + 6, 3, dim)
     Hs, g, cost = normal_equations(derivatives(point, C), S, C)
     H_full = np.einsum("kpid,kde,kqie->kpq", D_full, S, D_full)
@@ -139,22 +152,38 @@ def test_the_residual_of_noise_free_signals_at_the_truth_is_zero():
     ddw_B = rng.normal(size=(n, 3))
     u = np.linspace(0.0, 1.0, n)
     Rt = point.R.inv().as_matrix()
-    axes_g, axes_a = model.triad_axes(point.own(model.GYRO_AXES)), model.triad_axes(point.own(model.ACCEL_AXES))
+    axes_g, axes_a = (
+        model.triad_axes(point.own(model.GYRO_AXES)),
+        model.triad_axes(point.own(model.ACCEL_AXES)),
+    )
     G = point.own(model.G_SENSITIVITY).reshape(3, 3)
     A = np.array([skew(w) @ skew(w) + skew(d) for w, d in zip(w_B, dw_B, strict=True)])
-    dA = np.array([
-        skew(d) @ skew(w) + skew(w) @ skew(d) + skew(dd)
-        for w, d, dd in zip(w_B, dw_B, ddw_B, strict=True)
-    ])
-    b_g = bj[0, KNOT["gyro_bias"]] + u[:, None] * (bk[0, KNOT["gyro_bias"]] - bj[0, KNOT["gyro_bias"]])
-    b_a = bj[0, KNOT["accel_bias"]] + u[:, None] * (bk[0, KNOT["accel_bias"]] - bj[0, KNOT["accel_bias"]])
+    dA = np.array(
+        [
+            skew(d) @ skew(w) + skew(w) @ skew(d) + skew(dd)
+            for w, d, dd in zip(w_B, dw_B, ddw_B, strict=True)
+        ]
+    )
+    b_g = bj[0, KNOT["gyro_bias"]] + u[:, None] * (
+        bk[0, KNOT["gyro_bias"]] - bj[0, KNOT["gyro_bias"]]
+    )
+    b_a = bj[0, KNOT["accel_bias"]] + u[:, None] * (
+        bk[0, KNOT["accel_bias"]] - bj[0, KNOT["accel_bias"]]
+    )
     k_roll, k_pitch = point.tilt
     theta = np.column_stack([k_roll * f_B[:, 1], k_pitch * f_B[:, 0], np.zeros(n)])
-    specific = f_B - point.dtau * df_B + np.einsum("nij,j->ni", A - point.dtau * dA, point.t) + np.cross(f_B, theta)
+    specific = (
+        f_B
+        - point.dtau * df_B
+        + np.einsum("nij,j->ni", A - point.dtau * dA, point.t)
+        + np.cross(f_B, theta)
+    )
     f_I = specific @ (axes_a @ Rt).T + b_a
     w_I = (w_B - point.dtau * dw_B) @ (axes_g @ Rt).T + f_I @ G.T + b_g
     vec = lambda M: M.transpose(0, 2, 1).reshape(n, 9)  # noqa: E731 (column-major vec)
-    q = np.column_stack([f_B[:, 1] * f_B[:, 2], f_B[:, 1] ** 2, f_B[:, 0] * f_B[:, 2], f_B[:, 0] ** 2])
+    q = np.column_stack(
+        [f_B[:, 1] * f_B[:, 2], f_B[:, 1] ** 2, f_B[:, 0] * f_B[:, 2], f_B[:, 0] ** 2]
+    )
     x_g = np.column_stack([w_I, f_I, w_B, dw_B, np.ones(n), u])
     x_a = np.column_stack([f_I, f_B, df_B, vec(A), vec(dA), q, np.ones(n), u])
     r_g = x_g @ _C("gyro", point, bj, bk)[0].T

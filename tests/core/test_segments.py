@@ -11,7 +11,8 @@ from imucal_cli.sim import DriveOptions, simulate_drive
 
 
 def _vec(A):
-    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9), ``A t = (t^T x I) vec A``."""
+    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9),
+    ``A t = (t^T x I) vec A``."""
     return A.transpose(0, 2, 1).reshape(len(A), 9)
 
 
@@ -21,8 +22,12 @@ def test_planar_motion_leaves_height_unobservable():
     from imucal_cli.sim.scenarios import VehicleDynamics
 
     flat = VehicleDynamics(
-        roll_per_lateral_accel=0.0, pitch_per_longitudinal_accel=0.0, bump_roll_rad=0.0,
-        bump_pitch_rad=0.0, bump_heave_m=0.0, max_grade=0.0,
+        roll_per_lateral_accel=0.0,
+        pitch_per_longitudinal_accel=0.0,
+        bump_roll_rad=0.0,
+        bump_pitch_rad=0.0,
+        bump_heave_m=0.0,
+        max_grade=0.0,
     )
     drive = simulate_drive(DriveOptions(scenario="parking", seed=3, dynamics=flat))
     result = run_calibrate(drive.streams(), drive.config())
@@ -34,10 +39,18 @@ def test_planar_motion_leaves_height_unobservable():
         assert estimate.T_base_imu.translation[2] == sensor.prior_T_base_imu.translation[2]
         # the reported z std is the search box's, and the true height is inside it
         mount = next(m for m in drive.mounts if m.name == sensor.name)
-        assert estimate.translation_std_m[2] == pytest.approx(sensor.translation_bound_m / np.sqrt(3))
-        assert abs(estimate.T_base_imu.translation[2] - mount.T_base_imu.translation[2]) < sensor.translation_bound_m
+        assert estimate.translation_std_m[2] == pytest.approx(
+            sensor.translation_bound_m / np.sqrt(3)
+        )
+        assert (
+            abs(estimate.T_base_imu.translation[2] - mount.T_base_imu.translation[2])
+            < sensor.translation_bound_m
+        )
         # x and y are still found
-        assert np.all(np.abs(estimate.T_base_imu.translation[:2] - mount.T_base_imu.translation[:2]) < 4 * estimate.translation_std_m[:2])
+        assert np.all(
+            np.abs(estimate.T_base_imu.translation[:2] - mount.T_base_imu.translation[:2])
+            < 4 * estimate.translation_std_m[:2]
+        )
 
 
 def _plain_window_info(w_base, f_base, A, lever_arm, gyro_noise_std, accel_noise_std):
@@ -53,7 +66,9 @@ def _plain_window_info(w_base, f_base, A, lever_arm, gyro_noise_std, accel_noise
 
     v = f_base + np.einsum("nij,j->ni", A, lever_arm)  # the specific force predicted at the IMU
     rotation = information(-skew(w_base), gyro_noise_std) + information(-skew(v), accel_noise_std)
-    return float(np.linalg.svd(rotation, compute_uv=False)[-1]), _std_from_information(information(A, accel_noise_std))
+    return float(np.linalg.svd(rotation, compute_uv=False)[-1]), _std_from_information(
+        information(A, accel_noise_std)
+    )
 
 
 def test_window_information_from_moments_equals_the_sample_sums():
@@ -65,12 +80,33 @@ def test_window_information_from_moments_equals_the_sample_sums():
     w, f, A = rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=(n, 3, 3))
     lever = np.array([4.0, 1.0, 3.0])
     ones, u = np.ones((n, 1)), np.linspace(0, 1, n)[:, None]
-    x_g = np.hstack([rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), w, rng.normal(size=(n, 3)), ones, u])  # [w_I, f_I, w_B, dw_B, 1, u]
+    x_g = np.hstack(
+        [rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), w, rng.normal(size=(n, 3)), ones, u]
+    )  # [w_I, f_I, w_B, dw_B, 1, u]
     q = rng.normal(size=(n, 4))  # the tilt terms
-    x_a = np.hstack([rng.normal(size=(n, 3)), f, rng.normal(size=(n, 3)), _vec(A), _vec(rng.normal(size=(n, 3, 3))), q, ones, u])
+    x_a = np.hstack(
+        [
+            rng.normal(size=(n, 3)),
+            f,
+            rng.normal(size=(n, 3)),
+            _vec(A),
+            _vec(rng.normal(size=(n, 3, 3))),
+            q,
+            ones,
+            u,
+        ]
+    )
     sigma_min, t_std = _plain_window_info(w, f, A, lever, 0.01, 0.02)
     (c,) = window_infos_from_moments(
-        [(0.0, 10.0, True)], np.array([n]), (x_g.T @ x_g)[None], (x_a.T @ x_a)[None], lever, 0.01, 0.02, 1.0, 0.3
+        [(0.0, 10.0, True)],
+        np.array([n]),
+        (x_g.T @ x_g)[None],
+        (x_a.T @ x_a)[None],
+        lever,
+        0.01,
+        0.02,
+        1.0,
+        0.3,
     )
     assert c.min_singular_value == pytest.approx(sigma_min, rel=1e-9)
     np.testing.assert_allclose(c.translation_std_m, t_std, rtol=1e-9)
@@ -88,7 +124,9 @@ def test_segments_table_gives_the_unit_of_the_min_singular_value(tmp_path, short
 
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
     write_document(tmp_path / "c.yaml", short_drive.config_document())
-    result = CliRunner().invoke(app, ["segments", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "200"})
+    result = CliRunner().invoke(
+        app, ["segments", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "200"}
+    )
     assert result.exit_code == 0, result.output
     assert "min singular value 1/rad^2" in result.stdout
 
@@ -106,7 +144,9 @@ def test_a_short_gap_is_bridged_and_a_long_one_is_said_in_the_table(tmp_path):
     from imucal_cli.sim.writers import TopicData, write_imu_log
     from imucal_cli.types import ImuStream
 
-    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=40.0, seed=9, lidar_rate_hz=200.0))
+    drive = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=40.0, seed=9, lidar_rate_hz=200.0)
+    )
     topics = drive.topics()
     sensor = list(topics)[1]
     data = topics[sensor]
@@ -118,23 +158,40 @@ def test_a_short_gap_is_bridged_and_a_long_one_is_said_in_the_table(tmp_path):
         keep[at : at + count] = False
         s = data.stream
         log_ns = data.log_time_ns[keep] if data.log_time_ns is not None else None
-        return {**topics, sensor: TopicData(ImuStream(s.t_ns[keep], s.gyro[keep], s.accel[keep], s.frame_id), log_ns)}
+        return {
+            **topics,
+            sensor: TopicData(
+                ImuStream(s.t_ns[keep], s.gyro[keep], s.accel[keep], s.frame_id), log_ns
+            ),
+        }
 
     write_document(tmp_path / "c.yaml", drive.config_document())
     runner = CliRunner()
     documents = {}
-    for name, changed in (("intact", topics), ("short", without(17.0, 3)), ("long", without(17.0, 40))):
+    for name, changed in (
+        ("intact", topics),
+        ("short", without(17.0, 3)),
+        ("long", without(17.0, 40)),
+    ):
         log = write_imu_log(tmp_path / f"{name}.mcap", "mcap", changed)
-        result = runner.invoke(app, ["segments", str(log), "-c", str(tmp_path / "c.yaml"), "--json"])
+        result = runner.invoke(
+            app, ["segments", str(log), "-c", str(tmp_path / "c.yaml"), "--json"]
+        )
         assert result.exit_code == 0, result.output
         import json
 
         documents[name] = json.loads(result.stdout)["sensors"]
         if name == "long":
-            table = runner.invoke(app, ["segments", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "220"})
+            table = runner.invoke(
+                app, ["segments", str(log), "-c", str(tmp_path / "c.yaml")], env={"COLUMNS": "220"}
+            )
             assert "no: gap in the data" in table.stdout
-    gone = next(n for n, s in drive.config_document()["sensors"].items() if s["imu_topic"] == sensor)
+    gone = next(
+        n for n, s in drive.config_document()["sensors"].items() if s["imu_topic"] == sensor
+    )
     intact, short, long = (documents[k][gone]["windows"] for k in ("intact", "short", "long"))
-    assert [w["selected"] for w in short] == [w["selected"] for w in intact]  # three dropped messages bridged
+    assert [w["selected"] for w in short] == [
+        w["selected"] for w in intact
+    ]  # three dropped messages bridged
     assert not any(w.get("gap") for w in short)
     assert sum(bool(w.get("gap")) for w in long) == 1  # 40 messages (200 ms): a gap, one window

@@ -28,7 +28,11 @@ def test_lowpass_with_a_second_cutoff_is_the_two_filters_in_turn():
     x = np.cumsum(rng.normal(size=(4000, 2)), axis=0)
     both = Lowpass(5.0, 200.0, 4, 40.0)(x)
     in_turn = Lowpass(5.0, 200.0)(Lowpass(40.0, 200.0)(x))
-    np.testing.assert_allclose(both[200:-200], in_turn[200:-200], rtol=0, atol=1e-9 * np.abs(x).max())
+    np.testing.assert_allclose(
+        both[200:-200], in_turn[200:-200], rtol=0, atol=1e-9 * np.abs(x).max()
+    )
     t = np.arange(4000) / 200.0
     slow = np.sin(2 * np.pi * 0.2 * t)
-    np.testing.assert_allclose(Lowpass(5.0, 200.0, 4, 40.0)(slow)[200:-200], slow[200:-200], atol=1e-6)
+    np.testing.assert_allclose(
+        Lowpass(5.0, 200.0, 4, 40.0)(slow)[200:-200], slow[200:-200], atol=1e-6
+    )

@@ -35,15 +35,25 @@ def test_thebounded_step_is_the_free_minimiser_inside_the_box_and_the_box_s_own_
         L = np.linalg.cholesky(S)
         free = np.linalg.solve(S, s)
         wide = np.abs(free).max() + 1.0
-        np.testing.assert_allclose(bounded_step(L, s, np.full(7, -wide), np.full(7, wide))[0], free, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            bounded_step(L, s, np.full(7, -wide), np.full(7, wide))[0], free, rtol=1e-12, atol=1e-12
+        )
         lower, upper = np.full(7, -np.inf), np.full(7, np.inf)
-        lower[3:6], upper[3:6] = -0.3 * np.abs(free[3:6]) - 0.01, 0.3 * np.abs(free[3:6]) + 0.01  # the box cuts it
+        lower[3:6], upper[3:6] = (
+            -0.3 * np.abs(free[3:6]) - 0.01,
+            0.3 * np.abs(free[3:6]) + 0.01,
+        )  # the box cuts it
         step = bounded_step(L, s, lower, upper)[0]
-        expected = lsq_linear(L.T, np.linalg.solve(L, s), bounds=(lower, upper), method="bvls", tol=1e-12).x
+        expected = lsq_linear(
+            L.T, np.linalg.solve(L, s), bounds=(lower, upper), method="bvls", tol=1e-12
+        ).x
         np.testing.assert_allclose(step, expected, rtol=1e-9, atol=1e-12)
         assert np.all(step >= lower - 1e-12) and np.all(step <= upper + 1e-12)
         gradient = S @ step - s
-        at_lower, at_upper = np.isclose(step, lower, atol=1e-10), np.isclose(step, upper, atol=1e-10)
+        at_lower, at_upper = (
+            np.isclose(step, lower, atol=1e-10),
+            np.isclose(step, upper, atol=1e-10),
+        )
         inside = ~(at_lower | at_upper)
         assert (at_lower | at_upper).any()
         np.testing.assert_allclose(gradient[inside], 0.0, atol=1e-8 * np.abs(s).max())
@@ -71,7 +81,9 @@ def test_the_bias_prior_in_banded_storage_is_the_random_walk_information():
     np.testing.assert_allclose(rebuilt, dense, rtol=1e-14, atol=0)
     x = np.random.default_rng(3).normal(size=len(dense))
     np.testing.assert_allclose(band_times(band, x), dense @ x, rtol=1e-12)
-    np.testing.assert_allclose(cho_solve_banded((cholesky_banded(band), False), x), np.linalg.solve(dense, x), rtol=1e-10)
+    np.testing.assert_allclose(
+        cho_solve_banded((cholesky_banded(band), False), x), np.linalg.solve(dense, x), rtol=1e-10
+    )
 
 
 @pytest.mark.parametrize("dim", [14, 33])
@@ -91,7 +103,9 @@ def test_the_normal_equations_read_the_bias_blocks_off_the_moments(dim):
         bias[:, 3 + m, m, dim - 1] = -1.0
     full = np.concatenate([D, bias], axis=1)
     H, g, cost = normal_equations(D, S, C)
-    np.testing.assert_allclose(H, np.einsum("kpra,kab,kqrb->kpq", full, S, full), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(
+        H, np.einsum("kpra,kab,kqrb->kpq", full, S, full), rtol=1e-12, atol=1e-9
+    )
     np.testing.assert_allclose(g, np.einsum("kpra,kab,krb->kp", full, S, C), rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(cost, np.einsum("kra,kab,krb->k", C, S, C), rtol=1e-12)
 
@@ -104,7 +118,16 @@ def test_kabsch_recovers_a_rotation_with_per_window_bias():
     for _ in range(4):
         w_base = rng.normal(size=(500, 3))
         w_imu = R.inv().apply(w_base) + rng.normal(size=3)
-        x = np.hstack([w_imu, np.zeros((500, 3)), w_base, np.zeros((500, 3)), np.ones((500, 1)), np.linspace(0, 1, 500)[:, None]])  # x_g; f_I, dw_B unused
+        x = np.hstack(
+            [
+                w_imu,
+                np.zeros((500, 3)),
+                w_base,
+                np.zeros((500, 3)),
+                np.ones((500, 1)),
+                np.linspace(0, 1, 500)[:, None],
+            ]
+        )  # x_g; f_I, dw_B unused
         moments.append(x.T @ x)
     estimate = kabsch_rotation(np.stack(moments), np.full(4, 500.0))
     assert rotation_angle_deg(estimate, R) < 1e-9

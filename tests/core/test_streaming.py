@@ -11,7 +11,8 @@ from imucal_cli.sim import DriveOptions, simulate_drive
 
 
 def _vec(A):
-    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9), ``A t = (t^T x I) vec A``."""
+    """Column-major vec of a stack of 3x3 matrices: (n, 3, 3) -> (n, 9),
+    ``A t = (t^T x I) vec A``."""
     return A.transpose(0, 2, 1).reshape(len(A), 9)
 
 
@@ -25,14 +26,18 @@ def test_live_feed_gives_an_estimate_after_every_window_and_the_batch_result():
 
     drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=100.0, seed=8))
     config = parse_config(drive.config_document(), "sim.config.yaml")
-    streams = DriveStreams(drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0)
+    streams = DriveStreams(
+        drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0
+    )
     batch = make_calibrator(config)
     feed(batch, streams)
     expected = batch.finish()
 
     live = StreamingCalibrator(list(make_calibrator(config).sensors.values()), block_windows=1)
     all_streams = {"base": streams.base, **streams.sensors}
-    events = sorted((int(s.t_ns[i]), name, i) for name, s in all_streams.items() for i in range(len(s.t_ns)))
+    events = sorted(
+        (int(s.t_ns[i]), name, i) for name, s in all_streams.items() for i in range(len(s.t_ns))
+    )
     seen = 0
     for _, name, i in events:
         s = all_streams[name]
@@ -45,9 +50,14 @@ def test_live_feed_gives_an_estimate_after_every_window_and_the_batch_result():
     assert seen >= 3
     for name, estimate in expected.items():
         std = np.sqrt(np.diag(estimate.covariance))
-        angle = np.radians(rotation_angle_deg(final[name].T_base_imu.rotation, estimate.T_base_imu.rotation))
+        angle = np.radians(
+            rotation_angle_deg(final[name].T_base_imu.rotation, estimate.T_base_imu.rotation)
+        )
         assert angle < 0.05 * std[:3].min()
-        assert np.all(np.abs(final[name].T_base_imu.translation - estimate.T_base_imu.translation) < 0.05 * std[3:])
+        assert np.all(
+            np.abs(final[name].T_base_imu.translation - estimate.T_base_imu.translation)
+            < 0.05 * std[3:]
+        )
 
 
 def test_a_live_feed_may_reuse_its_buffers_after_each_add():
@@ -57,9 +67,15 @@ def test_a_live_feed_may_reuse_its_buffers_after_each_add():
 
     drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=60.0, seed=3))
     config = parse_config(drive.config_document(), "sim.config.yaml")
-    streams = {"base": drive.base.stream, **{m.name: drive.sensors[m.name].stream for m in drive.mounts}}
+    streams = {
+        "base": drive.base.stream,
+        **{m.name: drive.sensors[m.name].stream for m in drive.mounts},
+    }
     fresh, reused = make_calibrator(config), make_calibrator(config)
-    buffers = {name: (np.empty(50, dtype=np.int64), np.empty((50, 3)), np.empty((50, 3))) for name in streams}
+    buffers = {
+        name: (np.empty(50, dtype=np.int64), np.empty((50, 3)), np.empty((50, 3)))
+        for name in streams
+    }
     for start in range(0, max(len(s.t_ns) for s in streams.values()), 50):
         for name, s in streams.items():
             part = slice(start, min(start + 50, len(s.t_ns)))
@@ -72,7 +88,9 @@ def test_a_live_feed_may_reuse_its_buffers_after_each_add():
             reused.add(name, t[:n], g[:n], a[:n])
     expected, got = fresh.finish(), reused.finish()
     for name, estimate in expected.items():
-        assert got[name].T_base_imu.as_matrix().tobytes() == estimate.T_base_imu.as_matrix().tobytes()
+        assert (
+            got[name].T_base_imu.as_matrix().tobytes() == estimate.T_base_imu.as_matrix().tobytes()
+        )
 
 
 def test_natural_cubic_spline_interpolates_and_matches_the_b_spline_away_from_the_ends():

@@ -38,13 +38,15 @@ with rosbag.Bag(out, "w", compression="bz2") as bag:
         m.header.seq = i
         m.header.stamp = rospy.Time(t0 + i // 100, (i % 100) * 10_000_000)
         m.header.frame_id = "imu_link"
-        m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = i * 0.001, -i * 0.002, 0.5
+        w = m.angular_velocity
+        w.x, w.y, w.z = i * 0.001, -i * 0.002, 0.5
         m.linear_acceleration.x, m.linear_acceleration.y = 0.1, 0.2
         m.linear_acceleration.z = 9.81 + i * 1e-4
         m.orientation_covariance[0] = -1.0
         bag.write("/imu/data", m, m.header.stamp + rospy.Duration(0, 1_000_000))
     for i in range(chatter):
-        bag.write("/chatter", String(data="hello %d" % i), rospy.Time(t0 + i // 25, (i % 25) * 40_000_000))
+        stamp = rospy.Time(t0 + i // 25, (i % 25) * 40_000_000)
+        bag.write("/chatter", String(data="hello %d" % i), stamp)
 """
 
 
@@ -69,7 +71,11 @@ def make_mcap_ros1() -> None:
             m.header.seq = i
             m.header.stamp = genpy.Time(T0_S + i // 100, (i % 100) * 10_000_000)
             m.header.frame_id = "imu_link"
-            m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = i * 0.001, -i * 0.002, 0.5
+            m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = (
+                i * 0.001,
+                -i * 0.002,
+                0.5,
+            )
             m.linear_acceleration.x, m.linear_acceleration.y = 0.1, 0.2
             m.linear_acceleration.z = 9.81 + i * 1e-4
             log_ns = m.header.stamp.to_nsec() + 1_000_000
@@ -139,8 +145,15 @@ def make_rosbag2_converted() -> None:
     shutil.rmtree(out, ignore_errors=True)
     subprocess.run(
         [
-            "rosbags-convert", "--src", str(HERE / "ros1_rosbag.bag"), "--dst", str(out),
-            "--dst-storage", "sqlite3", "--dst-typestore", "ros2_humble",
+            "rosbags-convert",
+            "--src",
+            str(HERE / "ros1_rosbag.bag"),
+            "--dst",
+            str(out),
+            "--dst-storage",
+            "sqlite3",
+            "--dst-typestore",
+            "ros2_humble",
         ],
         check=True,
     )

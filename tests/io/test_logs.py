@@ -68,7 +68,11 @@ def test_out_of_order_duplicate_and_zero_stamps_are_counted(tmp_path, fmt):
     t[70] = t[69]  # a duplicate stamp
     t[90] = 0  # a zero stamp: log time is used
     log_ns = s.t_ns + 1_000_000
-    path = write_imu_log(log_name(tmp_path, fmt), fmt, {"/imu": TopicData(ImuStream(t, s.gyro, s.accel, "imu"), log_ns)})
+    path = write_imu_log(
+        log_name(tmp_path, fmt),
+        fmt,
+        {"/imu": TopicData(ImuStream(t, s.gyro, s.accel, "imu"), log_ns)},
+    )
     got = read_imu(path, ["/imu"])["/imu"]
     assert got.stats.messages == 100
     assert got.stats.zero_stamps == 1
@@ -137,7 +141,9 @@ def test_inspect_timing_streamed_agrees_with_sorting_every_stamp(seed):
     period = int(1e9 / rng.choice([100.0, 200.0, 400.0]))
     jitter = int(rng.choice([0, 300_000]))
     t = np.arange(n, dtype=np.int64) * period + rng.integers(-jitter, jitter + 1, n)
-    t[rng.choice(n, 50, replace=False)] += int(rng.integers(20, 200)) * period  # gaps (moved stamps)
+    t[rng.choice(n, 50, replace=False)] += (
+        int(rng.integers(20, 200)) * period
+    )  # gaps (moved stamps)
     for i in rng.choice(n - 1, 100, replace=False):  # reordered within the reordering window
         t[i], t[i + 1] = t[i + 1], t[i]
     dup = rng.choice(n - 1, 30, replace=False)
@@ -151,7 +157,11 @@ def test_inspect_timing_streamed_agrees_with_sorting_every_stamp(seed):
     s = np.sort(t)
     steps = np.diff(s)
     median = float(np.median(steps[steps > 0]))
-    gaps = [((a - t.min()) * 1e-9, (b - t.min()) * 1e-9) for a, b, d in zip(s[:-1], s[1:], steps, strict=True) if d > GAP_PERIODS * median]
+    gaps = [
+        ((a - t.min()) * 1e-9, (b - t.min()) * 1e-9)
+        for a, b, d in zip(s[:-1], s[1:], steps, strict=True)
+        if d > GAP_PERIODS * median
+    ]
     assert got.count == n and got.duration_s == (s[-1] - s[0]) * 1e-9
     assert got.backwards == int(np.count_nonzero(np.diff(t) < 0))
     assert got.duplicates == int(np.count_nonzero(steps == 0))

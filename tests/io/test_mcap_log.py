@@ -18,10 +18,18 @@ CONFORMANCE = Path(__file__).resolve().parents[3] / "shared" / "conformance" / "
 
 
 def _expected() -> dict[str, dict[str, int]]:
-    return json.loads((CONFORMANCE / "expected_counts.json").read_text()) if CONFORMANCE.is_dir() else {}
+    return (
+        json.loads((CONFORMANCE / "expected_counts.json").read_text())
+        if CONFORMANCE.is_dir()
+        else {}
+    )
 
 
-@pytest.mark.skipif(not CONFORMANCE.is_dir(), reason="the MCAP project's conformance files (kept outside this repository) are not on this machine")
+@pytest.mark.skipif(
+    not CONFORMANCE.is_dir(),
+    reason="the MCAP project's conformance files (kept outside this repository) are not on "
+    "this machine",
+)
 def test_every_conformance_file_lists_the_topics_and_counts_the_mcap_library_reads():
     wrong = []
     for name, counts in _expected().items():
@@ -29,7 +37,9 @@ def test_every_conformance_file_lists_the_topics_and_counts_the_mcap_library_rea
         got = json.loads(result.stdout)["topics"] if result.exit_code == 0 else result.output
         if result.exit_code != 0 or {t: v["count"] for t, v in got.items()} != counts:
             wrong.append((name, counts, got))
-        elif not counts and "warning" in result.stderr:  # a complete file with no messages is not cut off
+        elif (
+            not counts and "warning" in result.stderr
+        ):  # a complete file with no messages is not cut off
             wrong.append((name, counts, result.stderr))
     assert not wrong, f"{len(wrong)} of {len(_expected())} files read wrong, first: {wrong[0]}"
     assert len(_expected()) == 255
@@ -44,10 +54,20 @@ def _write(path: Path, topics, **options) -> Path:
     with path.open("wb") as handle:
         writer = Writer(handle, **options)
         writer.start(profile="ros2", library="test")
-        schema = writer.register_schema(name="sensor_msgs/msg/Imu", encoding="ros2msg", data=msgdef.encode())
-        channels = {t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema) for t in topics}
+        schema = writer.register_schema(
+            name="sensor_msgs/msg/Imu", encoding="ros2msg", data=msgdef.encode()
+        )
+        channels = {
+            t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema)
+            for t in topics
+        }
         for log_ns, topic, i in _messages(topics):
-            writer.add_message(channel_id=channels[topic], log_time=log_ns, data=blobs[topic][i].tobytes(), publish_time=log_ns)
+            writer.add_message(
+                channel_id=channels[topic],
+                log_time=log_ns,
+                data=blobs[topic][i].tobytes(),
+                publish_time=log_ns,
+            )
         writer.finish()
     return path
 
@@ -71,7 +91,9 @@ def layouts(tmp_path_factory, short_drive):
     topics = short_drive.topics()
     made = {
         "default": _write(root / "default.mcap", topics),
-        "no repeated channels or schemas": _write(root / "norepeat.mcap", topics, repeat_channels=False, repeat_schemas=False),
+        "no repeated channels or schemas": _write(
+            root / "norepeat.mcap", topics, repeat_channels=False, repeat_schemas=False
+        ),
         "message indexes only": _write(root / "mx.mcap", topics, index_types=IndexType.MESSAGE),
         "chunk indexes only": _write(root / "chx.mcap", topics, index_types=IndexType.CHUNK),
         "unchunked": _write(root / "unchunked.mcap", topics, use_chunking=False),
@@ -81,7 +103,17 @@ def layouts(tmp_path_factory, short_drive):
     return made, list(topics)
 
 
-@pytest.mark.parametrize("layout", ["no repeated channels or schemas", "message indexes only", "chunk indexes only", "unchunked", "no statistics", "no summary"])
+@pytest.mark.parametrize(
+    "layout",
+    [
+        "no repeated channels or schemas",
+        "message indexes only",
+        "chunk indexes only",
+        "unchunked",
+        "no statistics",
+        "no summary",
+    ],
+)
 def test_every_layout_of_the_official_writer_reads_the_same_samples(layouts, layout):
     made, topics = layouts
     want, got = read_imu(made["default"], topics), read_imu(made[layout], topics)
@@ -92,7 +124,9 @@ def test_every_layout_of_the_official_writer_reads_the_same_samples(layouts, lay
         assert got[topic].stats.to_dict() == want[topic].stats.to_dict()
 
 
-@pytest.mark.parametrize("layout", ["no repeated channels or schemas", "chunk indexes only", "no summary"])
+@pytest.mark.parametrize(
+    "layout", ["no repeated channels or schemas", "chunk indexes only", "no summary"]
+)
 def test_calibrate_gives_the_same_result_on_every_layout(layouts, layout, tmp_path, short_drive):
     from imucal_cli.documents import write_document
 
@@ -113,9 +147,14 @@ def test_a_rosbag2_given_as_its_metadata_file_reads_as_its_folder(tmp_path, shor
     topics = short_drive.topics()
     for fmt in ("rosbag2-sqlite3", "rosbag2-mcap"):
         bag = write_imu_log(tmp_path / fmt, fmt, topics)
-        by_folder, by_metadata = read_imu(bag, list(topics)), read_imu(bag / "metadata.yaml", list(topics))
+        by_folder, by_metadata = (
+            read_imu(bag, list(topics)),
+            read_imu(bag / "metadata.yaml", list(topics)),
+        )
         for topic in topics:
-            assert by_metadata[topic].stream.t_ns.tobytes() == by_folder[topic].stream.t_ns.tobytes()
+            assert (
+                by_metadata[topic].stream.t_ns.tobytes() == by_folder[topic].stream.t_ns.tobytes()
+            )
 
 
 def test_a_storage_file_or_a_folder_that_is_not_a_bag_says_what_to_give(tmp_path, short_drive):
@@ -126,7 +165,11 @@ def test_a_storage_file_or_a_folder_that_is_not_a_bag_says_what_to_give(tmp_path
     empty = tmp_path / "empty"
     empty.mkdir()
     result = runner.invoke(app, ["inspect", str(empty)])
-    assert result.exit_code == 2 and "no metadata.yaml" in result.stderr and "ros2 bag reindex" in result.stderr
+    assert (
+        result.exit_code == 2
+        and "no metadata.yaml" in result.stderr
+        and "ros2 bag reindex" in result.stderr
+    )
     zstd = tmp_path / "bag2" / "x.db3.zstd"
     zstd.parent.mkdir()
     zstd.write_bytes(b"\x28\xb5\x2f\xfd")

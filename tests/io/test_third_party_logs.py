@@ -18,8 +18,14 @@ COUNT, T0_S = 150, 1_600_000_000
 FIXTURES = {
     "ros1_rosbag.bag": ("rosbag1", {"/imu/data": "sensor_msgs/Imu", "/chatter": "std_msgs/String"}),
     "ros1_mcap_ros1_writer.mcap": ("mcap", {"/imu/data": "sensor_msgs/Imu"}),
-    "ros2_mcap_ros2_writer.mcap": ("mcap", {"/imu/data": "sensor_msgs/msg/Imu", "/chatter": "std_msgs/msg/String"}),
-    "rosbag2_converted_sqlite3": ("rosbag2-sqlite3", {"/imu/data": "sensor_msgs/msg/Imu", "/chatter": "std_msgs/msg/String"}),
+    "ros2_mcap_ros2_writer.mcap": (
+        "mcap",
+        {"/imu/data": "sensor_msgs/msg/Imu", "/chatter": "std_msgs/msg/String"},
+    ),
+    "rosbag2_converted_sqlite3": (
+        "rosbag2-sqlite3",
+        {"/imu/data": "sensor_msgs/msg/Imu", "/chatter": "std_msgs/msg/String"},
+    ),
 }
 
 
@@ -27,7 +33,9 @@ def expected_imu():
     i = np.arange(COUNT)
     t_ns = (T0_S + i // 100) * 1_000_000_000 + (i % 100) * 10_000_000
     gyro = np.column_stack([[k * 0.001 for k in i], [-k * 0.002 for k in i], np.full(COUNT, 0.5)])
-    accel = np.column_stack([np.full(COUNT, 0.1), np.full(COUNT, 0.2), [9.81 + k * 1e-4 for k in i]])
+    accel = np.column_stack(
+        [np.full(COUNT, 0.1), np.full(COUNT, 0.2), [9.81 + k * 1e-4 for k in i]]
+    )
     return t_ns.astype(np.int64), gyro, accel
 
 
@@ -49,7 +57,9 @@ def test_third_party_log_inspect(name):
     summary = summarize_log(DATA / name)
     assert summary.format_name == fmt
     got = {t.topic: (t.msgtype, t.count) for t in summary.topics}
-    assert got == {topic: (msgtype, COUNT if "imu" in topic else 40) for topic, msgtype in types.items()}
+    assert got == {
+        topic: (msgtype, COUNT if "imu" in topic else 40) for topic, msgtype in types.items()
+    }
     imu = next(t for t in summary.topics if t.topic == "/imu/data")
     assert imu.rate_hz == pytest.approx(100.0) and imu.time_source == "header.stamp"
     assert imu.duration_s == pytest.approx(1.49)
@@ -67,4 +77,8 @@ def test_wrong_type_names_both_types():
     with pytest.raises(LogError) as info:
         read_imu(DATA / "ros2_mcap_ros2_writer.mcap", ["/chatter"])
     message = str(info.value)
-    assert "/chatter" in message and "std_msgs/msg/String" in message and "sensor_msgs/msg/Imu" in message
+    assert (
+        "/chatter" in message
+        and "std_msgs/msg/String" in message
+        and "sensor_msgs/msg/Imu" in message
+    )

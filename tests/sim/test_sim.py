@@ -48,7 +48,10 @@ def test_angular_velocity_and_acceleration_match_finite_differences(scenario):
     R_minus = trajectory.state(t - H).R_world_base
     R_plus = trajectory.state(t + H).R_world_base
     # R(t)^T R(t+h) ~ exp([w] h): central estimate in the body frame at t
-    w_fd = ((state.R_world_base.inv() * R_plus).as_rotvec() - (state.R_world_base.inv() * R_minus).as_rotvec()) / (2 * H)
+    w_fd = (
+        (state.R_world_base.inv() * R_plus).as_rotvec()
+        - (state.R_world_base.inv() * R_minus).as_rotvec()
+    ) / (2 * H)
     np.testing.assert_allclose(state.w_base, w_fd, atol=1e-6, rtol=0)
     dw_fd = (trajectory.state(t + H).w_base - trajectory.state(t - H).w_base) / (2 * H)
     np.testing.assert_allclose(state.dw_base, dw_fd, atol=1e-5, rtol=0)
@@ -100,24 +103,46 @@ def test_noise_matches_the_error_model():
     model = MEMS_LIDAR.scaled(1.0)
     from dataclasses import replace
 
-    model = replace(model, gyro_turn_on_bias_std=0.0, accel_turn_on_bias_std=0.0, gyro_bias_random_walk=0.0,
-                    accel_bias_random_walk=0.0, drop_fraction=0.0, jitter_s=0.0, gyro_lsb=0.0, accel_lsb=0.0)
+    model = replace(
+        model,
+        gyro_turn_on_bias_std=0.0,
+        accel_turn_on_bias_std=0.0,
+        gyro_bias_random_walk=0.0,
+        accel_bias_random_walk=0.0,
+        drop_fraction=0.0,
+        jitter_s=0.0,
+        gyro_lsb=0.0,
+        accel_lsb=0.0,
+    )
     T = Transform(Rotation.from_euler("z", 40, degrees=True), np.array([4.0, 1.0, 3.0]))
     imu = simulate_imu(trajectory, T, model, np.random.default_rng(0), 0, "imu")
     gyro, accel = ideal_imu(trajectory, T, imu.true_time_s)
     n = len(imu.stream)
-    for measured, ideal, expected in ((imu.stream.gyro, gyro, model.gyro_noise_std()), (imu.stream.accel, accel, model.accel_noise_std())):
+    for measured, ideal, expected in (
+        (imu.stream.gyro, gyro, model.gyro_noise_std()),
+        (imu.stream.accel, accel, model.accel_noise_std()),
+    ):
         std = np.std(measured - ideal, axis=0)
         assert np.all(np.abs(std / expected - 1.0) < 5.0 / np.sqrt(2 * n))
         assert np.all(np.abs(np.mean(measured - ideal, axis=0)) < 5.0 * expected / np.sqrt(n))
 
 
 def test_time_offsets_shift_the_stamps():
-    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=10.0, seed=1, noise_scale=0.0, time_offsets_s=(0.042, -0.017)))
+    drive = simulate_drive(
+        DriveOptions(
+            scenario="aggressive",
+            duration_s=10.0,
+            seed=1,
+            noise_scale=0.0,
+            time_offsets_s=(0.042, -0.017),
+        )
+    )
     t0 = drive.options.t0_ns
     for (name, imu), offset in zip(drive.sensors.items(), (0.042, -0.017), strict=True):
         assert drive.time_offsets_s[name] == offset
-        np.testing.assert_allclose((imu.stream.t_ns - t0) * 1e-9 - imu.true_time_s, offset, atol=1e-9)
+        np.testing.assert_allclose(
+            (imu.stream.t_ns - t0) * 1e-9 - imu.true_time_s, offset, atol=1e-9
+        )
         assert np.all(imu.log_time_ns > t0 + (imu.true_time_s * 1e9).astype(np.int64))  # latency
 
 
@@ -183,10 +208,16 @@ def test_truth_and_config_documents(short_drive):
         t = truth["sensors"][sensor.name]
         T_base_imu = Transform.from_dict(t["T_base_imu"])
         T_base_lidar = Transform.from_dict(t["T_base_lidar"])
-        np.testing.assert_allclose((T_base_imu * sensor.T_imu_lidar).as_matrix(), T_base_lidar.as_matrix(), atol=1e-12)
-        np.testing.assert_allclose(sensor.T_imu_lidar.as_matrix(), OUSTER_T_IMU_LIDAR.as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(
+            (T_base_imu * sensor.T_imu_lidar).as_matrix(), T_base_lidar.as_matrix(), atol=1e-12
+        )
+        np.testing.assert_allclose(
+            sensor.T_imu_lidar.as_matrix(), OUSTER_T_IMU_LIDAR.as_matrix(), atol=1e-12
+        )
         # the CAD prior is off by a few degrees and centimetres, inside the search box
-        angle = np.degrees((sensor.prior_T_base_imu.rotation.inv() * T_base_imu.rotation).magnitude())
+        angle = np.degrees(
+            (sensor.prior_T_base_imu.rotation.inv() * T_base_imu.rotation).magnitude()
+        )
         offset = np.abs(sensor.prior_T_base_imu.translation - T_base_imu.translation)
         assert 0.3 < angle < 12.0 and np.all(offset <= 0.1) and np.any(offset > 0.005)
         assert np.all(offset < sensor.translation_bound_m)
@@ -199,20 +230,28 @@ def test_truth_and_config_documents(short_drive):
 def test_ouster_imu_to_lidar():
     """IMU at [6.253, -11.775, 7.645] mm in the sensor frame; lidar 180 deg about z, 36.18 mm up."""
     lidar_origin_in_imu = OUSTER_T_IMU_LIDAR.translation
-    np.testing.assert_allclose(lidar_origin_in_imu, [-6.253e-3, 11.775e-3, 36.18e-3 - 7.645e-3], atol=1e-12)
-    np.testing.assert_allclose(OUSTER_T_IMU_LIDAR.rotation.apply([1.0, 0, 0]), [-1.0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(
+        lidar_origin_in_imu, [-6.253e-3, 11.775e-3, 36.18e-3 - 7.645e-3], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        OUSTER_T_IMU_LIDAR.rotation.apply([1.0, 0, 0]), [-1.0, 0, 0], atol=1e-12
+    )
 
 
 def test_same_seed_same_drive():
     a = simulate_drive(DriveOptions(scenario="parking", duration_s=15.0, seed=3))
     b = simulate_drive(DriveOptions(scenario="parking", duration_s=15.0, seed=3))
     c = simulate_drive(DriveOptions(scenario="parking", duration_s=15.0, seed=4))
-    assert np.array_equal(a.sensors["front_left_top"].stream.gyro, b.sensors["front_left_top"].stream.gyro)
+    assert np.array_equal(
+        a.sensors["front_left_top"].stream.gyro, b.sensors["front_left_top"].stream.gyro
+    )
     assert not np.array_equal(a.base.stream.accel[:100], c.base.stream.accel[:100])
 
 
 def test_four_sensors_and_rates():
-    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=5.0, sensors=4, lidar_rate_hz=200.0))
+    drive = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=5.0, sensors=4, lidar_rate_hz=200.0)
+    )
     assert len(drive.sensors) == 4
     for imu in drive.sensors.values():
         assert abs(len(imu.stream) - 1000) < 10
@@ -226,7 +265,14 @@ def test_writing_a_log_reports_its_progress_to_the_total(tmp_path, short_drive):
 
     for fmt, name in (("mcap", "p.mcap"), ("rosbag1", "p.bag")):
         seen: list[tuple[int, int]] = []
-        log = write_imu_log(tmp_path / name, fmt, short_drive.topics(), lambda count, total, seen=seen: seen.append((count, total)))
+        log = write_imu_log(
+            tmp_path / name,
+            fmt,
+            short_drive.topics(),
+            lambda count, total, seen=seen: seen.append((count, total)),
+        )
         total = sum(len(d.stream) for d in short_drive.topics().values())
         assert seen[-1] == (total, total) and all(t == total for _, t in seen)
-        assert sum(len(r.stream) for r in read_imu(log, list(short_drive.topics())).values()) == total
+        assert (
+            sum(len(r.stream) for r in read_imu(log, list(short_drive.topics())).values()) == total
+        )
