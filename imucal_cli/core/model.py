@@ -239,7 +239,7 @@ def _rotating(C: np.ndarray, layout: Layout, fixed: Sequence[str]) -> np.ndarray
     """``C`` without the columns that do not turn with ``(I + E) R^T``."""
     out = C.copy()
     for name in fixed:
-        out[:, :, layout[name]] = 0.0
+        out[:, layout[name]] = 0.0
     return out
 
 
@@ -251,48 +251,51 @@ def _axis_derivatives(
     ``S_b (I + E)^-1`` of itself; ``columns``: the rotation's three, then the axis errors' six."""
     inverse = np.linalg.inv(axes)
     for m in range(3):
-        D[:, columns[m]] = -(axes @ skew(np.eye(3)[m]) @ inverse) @ rotating
+        D[columns[m]] = -(axes @ skew(np.eye(3)[m]) @ inverse) @ rotating
     for b in range(6):
-        D[:, columns[3 + b]] = (SYMMETRIC[b] @ inverse) @ rotating
+        D[columns[3 + b]] = (SYMMETRIC[b] @ inverse) @ rotating
 
 
-def gyro_derivatives(point: Point, C: np.ndarray) -> np.ndarray:
-    """``dC_g / dp`` for the globals in :data:`GYRO_GLOBALS`: (K, 19, 3, 14). The biases'
-    derivatives are constant (the solver's own, on ``1`` and ``u``)."""
+def gyro_derivatives(point: Point) -> np.ndarray:
+    """``dC_g / dp`` for the globals in :data:`GYRO_GLOBALS`: (19, 3, 14), the same for every
+    window (the biases enter only the ``1`` and ``u`` columns, which no global moves; their
+    own derivatives are constant, the solver's)."""
     D, P = GYRO_DATA, list(GYRO_GLOBALS)
     axes = triad_axes(point.own(GYRO_AXES))
     Rt = axes @ point.R.inv().as_matrix()
-    out = np.zeros((len(C), len(P), 3, D.size))
+    C = gyro_coefficients(point, np.zeros((1, 3)), np.zeros((1, 3)))[0]
+    out = np.zeros((len(P), 3, D.size))
     rotating = _rotating(C, D, ("w_I", "f_I", "one", "u"))
     axis_columns = [P.index(p) for p in (*range(3), *range(GYRO_AXES.start, GYRO_AXES.stop))]
     _axis_derivatives(out, axis_columns, rotating, axes)
-    out[:, P.index(TIME_OFFSET), :, D["dw_B"]] = Rt
+    out[P.index(TIME_OFFSET), :, D["dw_B"]] = Rt
     f_I = D["f_I"].start
     for i in range(3):
         for j in range(3):  # G_ij: row i of f_I's block takes -1 in column j
-            out[:, P.index(G_SENSITIVITY.start + 3 * i + j), i, f_I + j] = -1.0
+            out[P.index(G_SENSITIVITY.start + 3 * i + j), i, f_I + j] = -1.0
     return out
 
 
-def accel_derivatives(point: Point, C: np.ndarray) -> np.ndarray:
-    """``dC_a / dp`` for the globals in :data:`ACCEL_GLOBALS`: (K, 15, 3, 33). The biases'
-    derivatives are constant (the solver's own, on ``1`` and ``u``)."""
+def accel_derivatives(point: Point) -> np.ndarray:
+    """``dC_a / dp`` for the globals in :data:`ACCEL_GLOBALS`: (15, 3, 33), the same for every
+    window (as :func:`gyro_derivatives`)."""
     D, P = ACCEL_DATA, list(ACCEL_GLOBALS)
     axes = triad_axes(point.own(ACCEL_AXES))
     Rt = axes @ point.R.inv().as_matrix()
-    out = np.zeros((len(C), len(P), 3, D.size))
+    C = accel_coefficients(point, np.zeros((1, 3)), np.zeros((1, 3)))[0]
+    out = np.zeros((len(P), 3, D.size))
     rotating = _rotating(C, D, ("f_I", "one", "u"))
     axis_columns = [P.index(p) for p in (*range(3), *range(ACCEL_AXES.start, ACCEL_AXES.stop))]
     _axis_derivatives(out, axis_columns, rotating, axes)
     for m in range(3):
         E = kron_t(np.eye(3)[m])
-        out[:, P.index(TRANSLATION.start + m), :, D["vec_A"]] = -Rt @ E
-        out[:, P.index(TRANSLATION.start + m), :, D["vec_dA"]] = point.dtau * Rt @ E
+        out[P.index(TRANSLATION.start + m), :, D["vec_A"]] = -Rt @ E
+        out[P.index(TRANSLATION.start + m), :, D["vec_dA"]] = point.dtau * Rt @ E
     tau = P.index(TIME_OFFSET)
-    out[:, tau, :, D["df_B"]] = Rt
-    out[:, tau, :, D["vec_dA"]] = Rt @ kron_t(point.t)
+    out[tau, :, D["df_B"]] = Rt
+    out[tau, :, D["vec_dA"]] = Rt @ kron_t(point.t)
     for k, unit in enumerate(np.eye(2)):
-        out[:, P.index(TILT.start + k), :, D["tilt_terms"]] = tilt_columns(Rt, unit)
+        out[P.index(TILT.start + k), :, D["tilt_terms"]] = tilt_columns(Rt, unit)
     return out
 
 

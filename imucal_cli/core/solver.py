@@ -95,41 +95,54 @@ def band_times(band: np.ndarray, x: np.ndarray) -> np.ndarray:
     return y
 
 
-def normal_equations(
+def window_equations(
     D: np.ndarray, S: np.ndarray, C: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per window: the GN Hessian ``tr(D_p S D_q^T)``, gradient ``tr(D_p S C^T)`` and cost
-    ``tr(C S C^T)``, over the parameters whose derivatives ``D`` (K, P, 3, dim) gives, then the
-    window's two bias knots (3 + 3): ``(K, P + 6, P + 6)``, ``(K, P + 6)``, ``(K,)``.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per window, all of its Gauss-Newton normal equations but the globals' own block
+    (:func:`globals_block`, which sums over windows): the globals' coupling to the window's two
+    bias knots ``tr(D_p S D_b^T)`` (K, P, 6), the gradient ``tr(D_p S C^T)`` over the globals
+    then the knots (K, P + 6), the cost ``tr(C S C^T)`` (K,) and the knots' block (K, 6, 6).
+    ``D`` (P, 3, dim): the globals' derivatives, the same for every window; ``S`` (K, dim, dim)
+    the moments; ``C`` (K, 3, dim) each window's coefficients.
 
     A bias knot's derivative is constant and sparse: the residual's row ``m`` takes ``-b_j`` on
     the constant column ``a`` of ``x`` and ``-(b_k - b_j)`` on the time column ``b`` (the last
     two of either data vector), so its products with ``S`` are entries of ``D S``, ``C S`` and
-    ``S`` itself: only the other parameters' ``D S`` is multiplied out."""
-    K, P, rows, dim = D.shape
+    ``S`` itself."""
+    K, dim = len(S), S.shape[-1]
+    P = len(D)
     a, b = dim - 2, dim - 1
     assert (a, b) in (
         (GYRO_DATA.index("one"), GYRO_DATA.index("u")),
         (ACCEL_DATA.index("one"), ACCEL_DATA.index("u")),
     )
-    DS = (D.reshape(K, P * rows, dim) @ S).reshape(K, P, rows, dim)
+    DS_a = np.einsum("pmd,kd->kpm", D, S[:, :, a])
+    DS_b = np.einsum("pmd,kd->kpm", D, S[:, :, b])
+    coupling = np.empty((K, P, 6))
+    coupling[:, :, 0:3] = DS_b - DS_a  # b_j: -e_a + e_b on row m
+    coupling[:, :, 3:6] = -DS_b  # b_k: -e_b on row m
     CS = C @ S
-    H = np.zeros((K, P + 6, P + 6))
-    H[:, :P, :P] = DS.reshape(K, P, rows * dim) @ D.reshape(K, P, rows * dim).transpose(0, 2, 1)
-    H[:, :P, P : P + 3] = DS[:, :, :, b] - DS[:, :, :, a]  # b_j: -e_a + e_b on row m
-    H[:, :P, P + 3 :] = -DS[:, :, :, b]  # b_k: -e_b on row m
-    H[:, P:, :P] = H[:, :P, P:].transpose(0, 2, 1)
-    S_aa, S_ab, S_bb = S[:, a, a], S[:, a, b], S[:, b, b]
-    for m in range(3):
-        H[:, P + m, P + m] = S_aa - 2.0 * S_ab + S_bb
-        H[:, P + m, P + 3 + m] = H[:, P + 3 + m, P + m] = S_ab - S_bb
-        H[:, P + 3 + m, P + 3 + m] = S_bb
     g = np.empty((K, P + 6))
-    g[:, :P] = (DS.reshape(K, P, rows * dim) @ C.reshape(K, rows * dim, 1))[:, :, 0]
+    g[:, :P] = np.einsum("pmd,kmd->kp", D, CS)  # S symmetric: tr(D_p S C^T) = sum D_p * (C S)
     g[:, P : P + 3] = CS[:, :, b] - CS[:, :, a]
     g[:, P + 3 :] = -CS[:, :, b]
     cost = np.sum(CS * C, axis=(1, 2))
-    return H, g, cost
+    bias = np.zeros((K, 6, 6))
+    S_aa, S_ab, S_bb = S[:, a, a], S[:, a, b], S[:, b, b]
+    for m in range(3):
+        bias[:, m, m] = S_aa - 2.0 * S_ab + S_bb
+        bias[:, m, 3 + m] = bias[:, 3 + m, m] = S_ab - S_bb
+        bias[:, 3 + m, 3 + m] = S_bb
+    return coupling, g, cost, bias
+
+
+def globals_block(D: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``tr(D_p S D_q^T)`` (P, P) for moments ``S`` (dim, dim) summed over windows (weighted):
+    the globals' derivatives are the same in every window, so their block of the normal
+    equations needs only the sum of the windows' moments."""
+    P, rows, dim = D.shape
+    DS = (D.reshape(P * rows, dim) @ S).reshape(P, rows * dim)
+    return DS @ D.reshape(P, rows * dim).T
 
 
 def bounded_step(
@@ -195,15 +208,30 @@ class Fit:
         return Rm @ self.covariance[ROTATION, ROTATION] @ Rm.T
 
 
-class Linearisation(NamedTuple):
-    """Every window's unweighted normal equations at a point, each equation's."""
+class Equations(NamedTuple):
+    """One equation's normal equations at a point (:func:`window_equations`): the globals'
+    derivatives and, per window, the rest."""
 
-    H_g: np.ndarray
-    g_g: np.ndarray
-    cost_g: np.ndarray
-    H_a: np.ndarray
-    g_a: np.ndarray
-    cost_a: np.ndarray
+    D: np.ndarray  # (P, 3, dim)
+    coupling: np.ndarray  # (K, P, 6)
+    gradient: np.ndarray  # (K, P + 6)
+    cost: np.ndarray  # (K,)
+    bias: np.ndarray  # (K, 6, 6)
+
+
+class Linearisation(NamedTuple):
+    """Both equations' normal equations at a point, unweighted."""
+
+    gyro: Equations
+    accel: Equations
+
+    @property
+    def cost_g(self) -> np.ndarray:
+        return self.gyro.cost
+
+    @property
+    def cost_a(self) -> np.ndarray:
+        return self.accel.cost
 
 
 class _Reduced(NamedTuple):
@@ -328,7 +356,7 @@ class Problem:
         return [self._S_a(a) for a in self.starts]
 
     def linearised(self, point: Point, knots: np.ndarray) -> Linearisation:
-        """Every window's unweighted normal equations at a point (:func:`normal_equations`).
+        """Every window's unweighted normal equations at a point (:func:`window_equations`).
         The last point's are kept: the jackknife's replicates and the one-equation checks all
         take their one step from the same fit."""
         key = point.key() + knots.tobytes()
@@ -338,19 +366,26 @@ class Problem:
         gyro, accel = KNOT["gyro_bias"], KNOT["accel_bias"]
         Cg = gyro_coefficients(point, bj[:, gyro], bk[:, gyro])
         Ca = accel_coefficients(point, bj[:, accel], bk[:, accel])
-        parts_g, parts_a = [], []
-        for a, S_a in zip(self.starts, self.accel_moments(), strict=True):
-            chunk = slice(a, a + SOLVE_CHUNK)  # the derivatives are large: in slices
-            parts_g.append(
-                normal_equations(gyro_derivatives(point, Cg[chunk]), self.S_g[chunk], Cg[chunk])
-            )
-            parts_a.append(normal_equations(accel_derivatives(point, Ca[chunk]), S_a, Ca[chunk]))
-        g_parts, a_parts = (
-            [np.concatenate([p[i] for p in parts]) for i in range(3)]
-            for parts in (parts_g, parts_a)
+        Dg, Da = gyro_derivatives(point), accel_derivatives(point)
+        parts_a = [
+            window_equations(Da, S_a, Ca[a : a + SOLVE_CHUNK])
+            for a, S_a in zip(self.starts, self.accel_moments(), strict=True)
+        ]
+        accel_parts = [np.concatenate([p[i] for p in parts_a]) for i in range(4)]
+        lin = Linearisation(
+            Equations(Dg, *window_equations(Dg, self.S_g, Cg)), Equations(Da, *accel_parts)
         )
-        self._last = (key, Linearisation(*g_parts, *a_parts))
-        return self._last[1]
+        self._last = (key, lin)
+        return lin
+
+    def weighted_moments(self, w_g: np.ndarray, w_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The windows' moments summed with weights, each equation's."""
+        S_g = np.einsum("k,kde->de", w_g, self.S_g)
+        S_a = sum(
+            np.einsum("k,kde->de", w_a[a : a + SOLVE_CHUNK], S)
+            for a, S in zip(self.starts, self.accel_moments(), strict=True)
+        )
+        return S_g, np.asarray(S_a)
 
     def translation_information_diagonal(self) -> np.ndarray:
         """Per axis, the lever arm's information ``sum (A - mean A)^T (A - mean A)`` over the
@@ -459,9 +494,7 @@ class Problem:
         """The weighted normal equations, the biases eliminated (Schur complement)."""
         wg = self.gain / scales[0] ** 2 * use[0] * weights
         wa = self.gain / scales[1] ** 2 * use[1] * weights
-        Hg, gg = wg[:, None, None] * lin.H_g, wg[:, None] * lin.g_g
-        Ha, ga = wa[:, None, None] * lin.H_a, wa[:, None] * lin.g_a
-        H_gg_all, H_gb_all, H_bb, grad_g, grad_b = self._assemble(Hg, gg, Ha, ga, knots)
+        H_gg_all, H_gb_all, H_bb, grad_g, grad_b = self._assemble(lin, wg, wa, knots)
         H_gg, H_gb = H_gg_all[np.ix_(free_idx, free_idx)], H_gb_all[free_idx]
         factor = (cholesky_banded(H_bb, lower=False), False)
         X = cho_solve_banded(factor, H_gb.T)
@@ -473,24 +506,32 @@ class Problem:
         return _Reduced(S, s, factor, H_gb, grad_b, X)
 
     def _assemble(
-        self, Hg: np.ndarray, gg: np.ndarray, Ha: np.ndarray, ga: np.ndarray, knots: np.ndarray
+        self, lin: Linearisation, wg: np.ndarray, wa: np.ndarray, knots: np.ndarray
     ) -> tuple[np.ndarray, ...]:
-        """The normal equations: the globals' block, their coupling to the biases, the biases'
-        banded block (with the prior), and the gradient's two parts."""
+        """The normal equations with each window weighted (``wg``, ``wa``): the globals' block,
+        their coupling to the biases, the biases' banded block (with the prior), and the
+        gradient's two parts."""
         n_bias, P_g, P_a = self.n_bias, len(GYRO_GLOBALS), len(ACCEL_GLOBALS)
+        g, a = lin.gyro, lin.accel
+        S_g, S_a = self.weighted_moments(wg, wa)
         H_gg = np.zeros((N_PARAMETERS, N_PARAMETERS))
-        H_gg[np.ix_(GYRO_GLOBALS, GYRO_GLOBALS)] += Hg[:, :P_g, :P_g].sum(axis=0)
-        H_gg[np.ix_(ACCEL_GLOBALS, ACCEL_GLOBALS)] += Ha[:, :P_a, :P_a].sum(axis=0)
+        H_gg[np.ix_(GYRO_GLOBALS, GYRO_GLOBALS)] += globals_block(g.D, S_g)
+        H_gg[np.ix_(ACCEL_GLOBALS, ACCEL_GLOBALS)] += globals_block(a.D, S_a)
         H_gb = (
-            np.bincount(self.cross_g, Hg[:, :P_g, P_g:].ravel(), N_PARAMETERS * n_bias)
-            + np.bincount(self.cross_a, Ha[:, :P_a, P_a:].ravel(), N_PARAMETERS * n_bias)
+            np.bincount(
+                self.cross_g, (wg[:, None, None] * g.coupling).ravel(), N_PARAMETERS * n_bias
+            )
+            + np.bincount(
+                self.cross_a, (wa[:, None, None] * a.coupling).ravel(), N_PARAMETERS * n_bias
+            )
         ).reshape(N_PARAMETERS, n_bias)
         size, u6 = (BAND + 1) * n_bias, self.upper6
         H_bb = (
-            np.bincount(self.band_g, Hg[:, P_g:, P_g:][:, u6[0], u6[1]].ravel(), size)
-            + np.bincount(self.band_a, Ha[:, P_a:, P_a:][:, u6[0], u6[1]].ravel(), size)
+            np.bincount(self.band_g, (wg[:, None] * g.bias[:, u6[0], u6[1]]).ravel(), size)
+            + np.bincount(self.band_a, (wa[:, None] * a.bias[:, u6[0], u6[1]]).ravel(), size)
         ).reshape(BAND + 1, n_bias)
         H_bb += self.prior_band
+        gg, ga = wg[:, None] * g.gradient, wa[:, None] * a.gradient
         grad_g = np.zeros(N_PARAMETERS)
         grad_g[ACCEL_GLOBALS] -= ga[:, :P_a].sum(axis=0)
         grad_g[GYRO_GLOBALS] -= gg[:, :P_g].sum(axis=0)

@@ -5,9 +5,10 @@ The estimator's residuals are ``r = C(p) x`` per window (:mod:`imucal_cli.core.m
 ``gyro_coefficients``, ``accel_coefficients``); the Gauss-Newton normal equations and the
 reported covariance are built from hand-derived ``dC/dp`` (``gyro_derivatives``,
 ``accel_derivatives``) and the biases' sparse blocks written out in
-``solver.normal_equations``. Each is compared here, at random points, with central differences
-of ``C`` under the model's own update (:meth:`Point.moved`: ``R <- R exp([d]x)``, the rest
-additive). Adding an error term to the model adds its parameters to these loops.
+``solver.window_equations`` and ``solver.globals_block``. Each is compared here, at random
+points, with central differences of ``C`` under the model's own update (:meth:`Point.moved`:
+``R <- R exp([d]x)``, the rest additive). Adding an error term to the model adds its
+parameters to these loops.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from imucal_cli.core.model import (
     Point,
 )
 from imucal_cli.core.so3 import skew
-from imucal_cli.core.solver import normal_equations
+from imucal_cli.core.solver import globals_block, window_equations
 
 H = 1e-6  # central differences: truncation ~H^2, round-off ~1e-16/H
 EQUATIONS = {
@@ -93,14 +94,15 @@ def test_the_layouts_are_contiguous_and_every_parameter_is_in_an_equation():
 def test_each_global_derivative_is_the_models(seed, which):
     point, bj, bk = _point(np.random.default_rng(seed))
     _, derivatives, globals_, _ = EQUATIONS[which]
-    D = derivatives(point, _C(which, point, bj, bk))
-    assert D.shape[1] == len(globals_)
+    D = derivatives(point)
+    assert len(D) == len(globals_)
     for column, parameter in enumerate(globals_):
-        numeric = _difference(which, point, bj, bk, int(parameter))
+        numeric = _difference(which, point, bj, bk, int(parameter))  # (K, 3, dim): every window
         tolerance = 1e-8 * max(1.0, np.abs(numeric).max())
-        np.testing.assert_allclose(
-            D[:, column], numeric, rtol=0, atol=tolerance, err_msg=f"{which}: {parameter}"
-        )
+        for window in numeric:  # the same in every window, whatever its biases
+            np.testing.assert_allclose(
+                D[column], window, rtol=0, atol=tolerance, err_msg=f"{which}: {parameter}"
+            )
 
 
 @pytest.mark.parametrize("which", ["gyro", "accel"])
@@ -117,9 +119,10 @@ def test_the_globals_a_residual_does_not_hold_have_no_derivative(which):
 
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("which", ["gyro", "accel"])
-def test_normal_equations_with_the_biases_sparse_blocks_are_the_full_products(seed, which):
-    """``normal_equations`` writes the two bias knots' blocks out by hand; with every
-    derivative taken numerically (the biases' too) the Hessian, gradient and cost are
+def test_the_normal_equations_with_the_biases_sparse_blocks_are_the_full_products(seed, which):
+    """``window_equations`` writes the two bias knots' blocks out by hand and
+    ``globals_block`` takes the globals' block from the moments alone; with every derivative
+    taken numerically (the biases' too) the Hessian, gradient and cost are
     ``tr(D_p S D_q^T)``, ``tr(D_p S C^T)`` and ``tr(C S C^T)``."""
     rng = np.random.default_rng(100 + seed)
     point, bj, bk = _point(rng)
@@ -133,13 +136,27 @@ def test_normal_equations_with_the_biases_sparse_blocks_are_the_full_products(se
         _bias_difference(which, point, bj, bk, knot, axis) for knot in (0, 1) for axis in range(3)
     ]
     D_full = np.stack(columns, axis=1)  # (K, P + 6, 3, dim)
-    Hs, g, cost = normal_equations(derivatives(point, C), S, C)
+    D = derivatives(point)
+    P = len(D)
+    coupling, g, cost, bias = window_equations(D, S, C)
+    H = np.zeros((K, P + 6, P + 6))
+    for k in range(K):
+        H[k, :P, :P] = globals_block(D, S[k])
+    H[:, :P, P:], H[:, P:, :P], H[:, P:, P:] = coupling, coupling.transpose(0, 2, 1), bias
     H_full = np.einsum("kpid,kde,kqie->kpq", D_full, S, D_full)
     g_full = np.einsum("kpid,kde,kie->kp", D_full, S, C)
     cost_full = np.einsum("kid,kde,kie->k", C, S, C)
-    np.testing.assert_allclose(Hs, H_full, rtol=0, atol=1e-7 * np.abs(H_full).max())
+    np.testing.assert_allclose(H, H_full, rtol=0, atol=1e-7 * np.abs(H_full).max())
     np.testing.assert_allclose(g, g_full, rtol=0, atol=1e-7 * np.abs(g_full).max())
     np.testing.assert_allclose(cost, cost_full, rtol=1e-12)
+    # summed over windows with weights, the globals' block is the weighted sum of the windows'
+    w = rng.uniform(size=K)
+    np.testing.assert_allclose(
+        globals_block(D, np.einsum("k,kde->de", w, S)),
+        np.einsum("k,kpq->pq", w, H[:, :P, :P]),
+        rtol=1e-12,
+        atol=1e-12 * np.abs(H).max(),
+    )
 
 
 def test_the_residual_of_noise_free_signals_at_the_truth_is_zero():

@@ -15,8 +15,9 @@ from imucal_cli.core.solver import (
     band_times,
     bias_prior,
     bounded_step,
+    globals_block,
     kabsch_rotation,
-    normal_equations,
+    window_equations,
 )
 
 
@@ -96,13 +97,18 @@ def test_the_normal_equations_read_the_bias_blocks_off_the_moments(dim):
     K, P = 5, 4
     X = rng.normal(size=(K, 50, dim))
     S = np.einsum("kna,knb->kab", X, X)
-    C, D = rng.normal(size=(K, 3, dim)), rng.normal(size=(K, P, 3, dim))
+    C, D = rng.normal(size=(K, 3, dim)), rng.normal(size=(P, 3, dim))
     bias = np.zeros((K, 6, 3, dim))
     for m in range(3):
         bias[:, m, m, dim - 2], bias[:, m, m, dim - 1] = -1.0, 1.0
         bias[:, 3 + m, m, dim - 1] = -1.0
-    full = np.concatenate([D, bias], axis=1)
-    H, g, cost = normal_equations(D, S, C)
+    full = np.concatenate([np.broadcast_to(D, (K, P, 3, dim)), bias], axis=1)
+    coupling, g, cost, bias_block = window_equations(D, S, C)
+    H = np.zeros((K, P + 6, P + 6))
+    for k in range(K):
+        H[k, :P, :P] = globals_block(D, S[k])
+    H[:, :P, P:], H[:, P:, :P] = coupling, coupling.transpose(0, 2, 1)
+    H[:, P:, P:] = bias_block
     np.testing.assert_allclose(
         H, np.einsum("kpra,kab,kqrb->kpq", full, S, full), rtol=1e-12, atol=1e-9
     )
