@@ -293,10 +293,11 @@ class ImuBatches:
                 if self.follow is None:
                     available = check_topics(log, self.topics)
                     self.expected = {t: available[t].count for t in self.topics}
-                    batches = log.batches(self.topics)
+                    pairs = log.decoded_batches(self.topics, lambda b: _decode(log, b))
                 else:  # topics appear as they are recorded
-                    batches = log.follow(self.topics, self.follow)
-                for batch, decoded in ((b, _decode(log, b)) for b in batches):
+                    follow = log.follow(self.topics, self.follow)
+                    pairs = ((b, _decode(log, b)) for b in follow)
+                for batch, decoded in pairs:
                     st = self.stats[batch.topic]
                     st.messages += len(batch.starts)
                     st.decode_errors += decoded.errors

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-import scipy.fft
 
 from imucal_cli.errors import ImucalError
 
@@ -105,6 +104,8 @@ class Lowpass:
             2.0 * ends[1], extended[:, pad + n - 2 : n - 2 : -1], out=extended[:, pad + n : m]
         )
         extended[:, m:] = 0.0
+        import scipy.fft  # (imported when first used: 0.2 s)
+
         spectrum = scipy.fft.rfft(extended, axis=1, overwrite_x=True)
         spectrum *= _response(self, size)
         filtered = scipy.fft.irfft(spectrum, n=size, axis=1, overwrite_x=True)[:, pad : pad + n]
@@ -143,7 +144,7 @@ def _even_power(ratio: np.ndarray, order: int) -> np.ndarray:
 def _response(lowpass: Lowpass, size: int) -> np.ndarray:
     """``lowpass``'s response at the frequencies of a real FFT of ``size`` samples (kept: every
     block of a calibration filters the same lengths)."""
-    gain = lowpass.gain(scipy.fft.rfftfreq(size, d=1.0 / lowpass.rate_hz))
+    gain = lowpass.gain(np.fft.rfftfreq(size, d=1.0 / lowpass.rate_hz))
     gain.flags.writeable = False
     return gain
 

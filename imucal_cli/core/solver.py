@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from imucal_cli.core.model import (
     ACCEL_DATA,
@@ -41,6 +40,21 @@ if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
     from imucal_cli.core.signals import Lowpass
+
+
+def cholesky_banded(band: np.ndarray, lower: bool = False) -> np.ndarray:
+    """LAPACK's banded Cholesky factor (scipy's, imported when first used)."""
+    from scipy.linalg import cholesky_banded as factor
+
+    return factor(band, lower=lower)
+
+
+def cho_solve_banded(factor: tuple[np.ndarray, bool], b: np.ndarray) -> np.ndarray:
+    """Solve with a banded Cholesky factor (scipy's, imported when first used)."""
+    from scipy.linalg import cho_solve_banded as solve
+
+    return solve(factor, b)
+
 
 #: Upper bandwidth of the biases' block of the normal equations: a window couples the biases
 #: of its two knots, at most ``2 KNOT.size - 1`` apart.

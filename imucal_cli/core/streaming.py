@@ -13,12 +13,13 @@ matrices, and :func:`imucal_cli.core.calibrate.solve` estimates from them.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
-from scipy.linalg.lapack import dptsv
 
 from imucal_cli.core.calibrate import (
     CalibrationOptions,
@@ -60,6 +61,8 @@ BLOCK_WINDOWS = 6
 #: An IMU with no sample for this long (s) while another goes on has stopped (a driver that
 #: died, a topic not recorded): the others' windows go on without it, its own are not used.
 STOPPED_S = 30.0
+#: Blocks of windows under way in the worker thread at most (each holds its samples).
+PENDING_BLOCKS = 2
 #: Windows whose observability is computed together (bounds scratch memory).
 INFO_CHUNK = 128
 
@@ -211,6 +214,8 @@ class _NaturalCubic:
         diagonal *= 2.0
         # with stamps strictly increasing (the buffers are cleaned) the system is diagonally
         # dominant, so positive definite
+        from scipy.linalg.lapack import dptsv  # (imported when first used)
+
         _, _, inner, info = dptsv(diagonal, h[1:-1], rhs, overwrite_b=True)
         if info != 0:
             raise ValueError("spline stamps must strictly increase")
@@ -480,6 +485,7 @@ class StreamingCalibrator:
         reorder_s: float = REORDER_S,
         base_units: tuple[str, str] = ("auto", "auto"),
         base_label: tuple[str, str] = ("", ""),
+        threaded: bool = True,
     ) -> None:
         if not sensors:
             raise ValueError("no sensors")
@@ -494,6 +500,13 @@ class StreamingCalibrator:
         self.t_ref_ns: int | None = None
         self.next_window = 0
         self.windows: dict[str, list[WindowMoments]] = {name: [] for name in self.sensors}
+        #: Windows are reduced in a worker thread (the FFTs and products release the GIL, so it
+        #: runs beside the decoding): the blocks under way, in order.
+        self.threaded = threaded
+        self._pending: deque[
+            tuple[list[tuple[int, float, float]], Future[dict[str, list[WindowMoments]]]]
+        ] = deque()
+        self._worker: ThreadPoolExecutor | None = None
         self.tau0: dict[str, float] = {}
         #: Each sensor's clock offset as the boot's correlation placed it (None: not estimated).
         self.time_offsets: dict[str, TimeOffset | None] = {}
@@ -790,6 +803,8 @@ class StreamingCalibrator:
                 buffer.drop_before(self.t_ref_ns + int(keep_from * 1e9))
             if partial or len(spans) < self.block_windows:
                 break
+        if final:
+            self._collect(wait=True)
         if final and not any(self.windows.values()):
             raise TooLittleData(self._too_little(covered))
         return count
@@ -847,28 +862,37 @@ class StreamingCalibrator:
             )
             if b - a >= MIN_SPAN_SAMPLES:  # an IMU that stopped has none: its windows are not used
                 samples[name] = (tau, t[a:b], both[a:b])
-        reduced = (
-            _reduce_block(
-                spans,
-                self.rate,
-                self.window_s,
-                self.lowpass,
-                n_pad,
-                n_block,
-                n_after,
-                self.base_name,
-                samples,
-            )
-            if self.base_name in samples
-            else {}
-        )
-        for name in self.sensors:
-            self.windows[name].extend(
-                reduced.get(name) or [_unused(number, start, end) for number, start, end in spans]
-            )
+        args = (spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after)
+        future: Future[dict[str, list[WindowMoments]]]
+        if self.base_name in samples and self.threaded:
+            future = self._executor().submit(_reduce_block, *args, self.base_name, samples)
+        else:
+            future = Future()
+            has_base = self.base_name in samples
+            future.set_result(_reduce_block(*args, self.base_name, samples) if has_base else {})
+        self._pending.append((spans, future))
+        self._collect(wait=len(self._pending) > PENDING_BLOCKS)
+
+    def _executor(self) -> ThreadPoolExecutor:
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(1, thread_name_prefix="imucal-windows")
+        return self._worker
+
+    def _collect(self, wait: bool = False) -> None:
+        """The windows of the blocks reduced in the worker thread, in order: those done, or
+        (``wait``) every one."""
+        while self._pending and (wait or self._pending[0][1].done()):
+            spans, future = self._pending.popleft()
+            reduced = future.result()
+            for name in self.sensors:
+                self.windows[name].extend(
+                    reduced.get(name)
+                    or [_unused(number, start, end) for number, start, end in spans]
+                )
 
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
         """Fill in the observability of windows that lack it (all at once)."""
+        self._collect(wait=True)
         windows = self.windows[name]
         missing = [w for w in windows if w.info is None]
         setup = self.sensors[name]

@@ -20,6 +20,7 @@ BATCH_MESSAGES = 8192
 READ_AHEAD_GROUPS = 2
 
 T = TypeVar("T")
+D = TypeVar("D")
 
 #: The largest decompressed chunk believed. Recorders write chunks of 768 KiB (rosbag) to a few
 #: MiB (MCAP); a chunk claiming more than this is damaged or hostile, and is lost alone.
@@ -165,6 +166,13 @@ class LogReader:
     def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
         """Raw batches of ``topics``, each of one topic, in roughly log-time order."""
         raise NotImplementedError
+
+    def decoded_batches(
+        self, topics: Iterable[str], decode: Callable[[RawBatch], D]
+    ) -> Iterator[tuple[RawBatch, D]]:
+        """:meth:`batches`, each with ``decode(batch)``: a reader that decompresses ahead in a
+        thread decodes there too, while the bytes are in that core's cache."""
+        return ((batch, decode(batch)) for batch in self.batches(topics))
 
     def follow(
         self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05
