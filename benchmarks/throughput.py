@@ -236,7 +236,7 @@ def main() -> None:
         checks.append(("1h mcap calibrate peak RSS MB", best["calibrate"][1], "<= 1000"))
         for name in COMMANDS[1:]:
             checks.append(
-                (f"1h mcap {name} / calibrate", best[name][0] / best["calibrate"][0], "<= 3")
+                (f"1h mcap {name} / calibrate", best[name][0] / best["calibrate"][0], "<= 1")
             )
     if ("1h", "mcap") in rows and ("4h", "mcap") in rows:
         one, four = rows[("1h", "mcap")][1]["calibrate"][0], rows[("4h", "mcap")][1]["calibrate"][0]
