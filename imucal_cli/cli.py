@@ -357,7 +357,9 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
 
     config = load_config(config_path)
     with _progress(f"reading {log}") as progress:
-        streamed = stream_log(log, config, progress=progress)
+        # one log: its windows reduced beside the reading, on the second core (a batch runs
+        # a process per core instead)
+        streamed = stream_log(log, config, progress=progress, threaded=True)
     _note_losses(log, streamed.losses)
     for topic, stats in streamed.stats.items():
         _note_read(log, topic, stats.to_dict() | {"duplicates": streamed.duplicates[topic]})

@@ -53,7 +53,10 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
 
 
 def make_calibrator(
-    config: Config, block_windows: int | None = None, reorder_s: float | None = None
+    config: Config,
+    block_windows: int | None = None,
+    reorder_s: float | None = None,
+    threaded: bool = False,
 ) -> StreamingCalibrator:
     """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names
     (``block_windows=1``: every window reduced as soon as the data cover it, for live use)."""
@@ -76,6 +79,7 @@ def make_calibrator(
         base_name="base",
         base_units=(config.base.gyro_units, config.base.accel_units),
         base_label=(config.base.topic, "base"),
+        threaded=threaded,
         **extra,
     )
 
@@ -297,12 +301,15 @@ def _finish(
 
 
 def stream_log(
-    log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None
+    log: str | Path,
+    config: Config,
+    progress: Callable[[int, int], None] | None = None,
+    threaded: bool = False,
 ) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
-    log's length: windows reduced, nothing solved yet."""
+    log's length: windows reduced (in a worker thread where ``threaded``), nothing solved yet."""
     reader = ImuBatches(Path(log), imu_names(config))
-    calibrator = make_calibrator(config)
+    calibrator = make_calibrator(config, threaded=threaded)
     t0_ns = read_log(reader, config, calibrator.add, progress=progress)
     return _finish(reader, calibrator, t0_ns, config)
 

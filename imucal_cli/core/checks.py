@@ -17,6 +17,7 @@ import numpy as np
 from imucal_cli.core.model import (
     ACCEL_AXES,
     ACCEL_GLOBALS,
+    AXIS_ERRORS,
     G_SENSITIVITY,
     GYRO_AXES,
     N_PARAMETERS,
@@ -28,6 +29,7 @@ from imucal_cli.core.model import (
 from imucal_cli.core.solver import Fit, Problem
 from imucal_cli.types import GRAVITY_MPS2
 
+SCALE, SKEW = AXIS_ERRORS["scale"], AXIS_ERRORS["nonorthogonality"]
 #: Residual std over the noise the data imply, above which the model does not explain the data.
 RESIDUAL_LEVEL_MAX = 2.0
 #: What the grid's interpolation and filtering leave of a signal, relative to its RMS about each
@@ -191,10 +193,10 @@ def axes_figures(found: dict[str, Any]) -> dict[str, Any]:
         "estimated": found["estimated"],
         "chi2": found["chi2"],
         "dof": found["dof"],
-        "scale": value[:3].tolist(),
-        "nonorthogonality_deg": np.degrees(value[3:]).tolist(),
-        "scale_std": std[:3].tolist(),
-        "nonorthogonality_std_deg": np.degrees(std[3:]).tolist(),
+        "scale": value[SCALE].tolist(),
+        "nonorthogonality_deg": np.degrees(value[SKEW]).tolist(),
+        "scale_std": std[SCALE].tolist(),
+        "nonorthogonality_std_deg": np.degrees(std[SKEW]).tolist(),
     }
 
 

@@ -128,6 +128,8 @@ ACCEL_OWN = ACCEL_DATA.size - ACCEL_BASE.size
 #: Bias unknowns per knot.
 KNOT = Layout(("gyro_bias", 3), ("accel_bias", 3))
 
+#: A triad's six axis errors (a block of :data:`PARAMETERS`), in :data:`SYMMETRIC`'s order.
+AXIS_ERRORS = Layout(("scale", 3), ("nonorthogonality", 3))
 SYMMETRIC = np.zeros((6, 3, 3))
 for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
     SYMMETRIC[_k, _i, _j] = SYMMETRIC[_k, _j, _i] = 1.0

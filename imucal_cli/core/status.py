@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from imucal_cli.core.checks import Check
+from imucal_cli.core.checks import SCALE, SKEW, Check
 from imucal_cli.core.segments import WindowInfo
 from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S
 from imucal_cli.core.uncertainty import Uncertainty
@@ -60,9 +60,9 @@ def own_error_sentences(found: dict[str, dict[str, Any]]) -> list[str]:
             what = f"{name} axis errors"
             detail = (
                 "scale "
-                + ", ".join(f"{100 * v:+.2f}%" for v in value[:3])
+                + ", ".join(f"{100 * v:+.2f}%" for v in value[SCALE])
                 + "; non-orthogonality "
-                + ", ".join(f"{v:+.3f}" for v in np.degrees(value[3:]))
+                + ", ".join(f"{v:+.3f}" for v in np.degrees(value[SKEW]))
                 + " deg"
             )
         out.append(
