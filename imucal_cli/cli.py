@@ -24,7 +24,27 @@ from imucal_cli.version import version
 P = ParamSpec("P")
 R = TypeVar("R")
 
+
+def _flag(option: Any) -> Any:
+    """The help option shown as the flag it is: no ``<bool>`` (Typer 0.29 gives its own
+    ``--help`` a type; this program's flags have ``metavar=""``)."""
+    if option is not None:
+        option.metavar = ""
+    return option
+
+
+class _Command(typer.core.TyperCommand):
+    def get_help_option(self, ctx: Any) -> Any:
+        return _flag(super().get_help_option(ctx))
+
+
+class _Group(typer.core.TyperGroup):
+    def get_help_option(self, ctx: Any) -> Any:
+        return _flag(super().get_help_option(ctx))
+
+
 app = typer.Typer(
+    cls=_Group,
     name="imucal",
     help="Calibrate the extrinsics of every lidar on a vehicle from raw IMU signals alone.",
     add_completion=False,
@@ -277,7 +297,7 @@ def _render_inspect(document: dict[str, Any]) -> None:
     )
 
 
-@app.command(rich_help_panel=PANEL_LOGS)
+@app.command(cls=_Command, rich_help_panel=PANEL_LOGS)
 @handles_errors
 def inspect(
     log: Annotated[Path, typer.Argument(help=LOG_HELP)],
@@ -301,7 +321,7 @@ def inspect(
 # --------------------------------------------------------------------------- config
 
 
-@app.command("check-config", rich_help_panel=PANEL_CONFIG)
+@app.command("check-config", cls=_Command, rich_help_panel=PANEL_CONFIG)
 @handles_errors
 def check_config(
     config: Annotated[Path, typer.Argument(help="Calibration config (YAML).")],
@@ -372,7 +392,7 @@ def _fmt(values: Any, digits: int) -> str:
     return "[" + ", ".join(f"{v:.{digits}f}" for v in values) + "]"
 
 
-@app.command(rich_help_panel=PANEL_CAL)
+@app.command(cls=_Command, rich_help_panel=PANEL_CAL)
 @handles_errors
 def biases(
     log: Annotated[Path, typer.Argument(help=LOG_HELP)],
@@ -427,7 +447,7 @@ def biases(
     _emit(document, out, as_json, render)
 
 
-@app.command(rich_help_panel=PANEL_CAL)
+@app.command(cls=_Command, rich_help_panel=PANEL_CAL)
 @handles_errors
 def segments(
     log: Annotated[Path, typer.Argument(help=LOG_HELP)],
@@ -476,7 +496,7 @@ def segments(
     _emit(document, out, as_json, render)
 
 
-@app.command(rich_help_panel=PANEL_CAL)
+@app.command(cls=_Command, rich_help_panel=PANEL_CAL)
 @handles_errors
 def calibrate(
     log: Annotated[Path, typer.Argument(help=LOG_HELP)],
@@ -748,7 +768,7 @@ def _parse_transform(text: str) -> Any:
 LAUNCH_SUFFIX = {"tf-static-ros2": ".launch.xml", "tf-static-ros1": ".launch"}
 
 
-@app.command(rich_help_panel=PANEL_EXPORT)
+@app.command(cls=_Command, rich_help_panel=PANEL_EXPORT)
 @handles_errors
 def export(
     extrinsics: Annotated[
@@ -843,7 +863,7 @@ def export(
 PANEL_FLEET = "Fleet"
 
 
-@app.command(rich_help_panel=PANEL_FLEET)
+@app.command(cls=_Command, rich_help_panel=PANEL_FLEET)
 @handles_errors
 def batch(
     logs: Annotated[
@@ -1032,7 +1052,7 @@ def batch(
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
-@app.command(rich_help_panel=PANEL_CAL)
+@app.command(cls=_Command, rich_help_panel=PANEL_CAL)
 @handles_errors
 def evaluate(
     estimate: Annotated[Path, typer.Argument(help="Output of imucal calibrate (YAML/JSON).")],
@@ -1122,7 +1142,7 @@ def evaluate(
 SUFFIX_FORMAT = {".mcap": "mcap", ".bag": "rosbag1"}
 
 
-@app.command(rich_help_panel=PANEL_SIM)
+@app.command(cls=_Command, rich_help_panel=PANEL_SIM)
 @handles_errors
 def simulate(
     out: Annotated[

@@ -43,6 +43,11 @@ def pyplot() -> Any:
     return plt
 
 
+def _legend(ax: Any, **kwargs: Any) -> None:
+    """The axes' legend beside them, on the right, where it covers no data."""
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8, **kwargs)
+
+
 def _save(fig: Any, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     import matplotlib.pyplot as plt
@@ -75,7 +80,7 @@ def bias_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: P
         row[1].set_title(f"{name}: relative accelerometer bias (IMU axes)", fontsize=10)
         for ax in row:
             ax.grid(alpha=0.3)
-            ax.legend(loc="upper right", fontsize=8, ncol=3)
+            _legend(ax)
     for ax in axes[-1]:
         ax.set_xlabel("time since the log's first IMU stamp (s)")
     fig.tight_layout()
@@ -120,7 +125,7 @@ def windows_figure(
             f"{name}: windows ({sum(w.selected for w in infos)} of {len(infos)} selected)",
             fontsize=10,
         )
-        ax.legend(loc="upper right", fontsize=8)
+        _legend(ax)
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("time since the log's first IMU stamp (s)")
     fig.tight_layout()
@@ -152,7 +157,7 @@ def residual_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, pat
             ax.set_ylabel(f"residual ({unit})")
             ax.set_yscale("log")
             ax.grid(alpha=0.3)
-            ax.legend(loc="upper right", fontsize=8)
+            _legend(ax)
         row[0].set_title(f"{name}: gyro residual after calibration (eq. 10)", fontsize=10)
         row[1].set_title(f"{name}: specific-force residual after calibration (eq. 11)", fontsize=10)
     for ax in axes[-1]:
@@ -178,7 +183,7 @@ def std_figure(plt: Any, stds: Mapping[str, tuple[Any, Any]], path: Path) -> Pat
     for ax in (rot, tra):
         ax.set_xticks(x, names, rotation=15)
         ax.grid(alpha=0.3, axis="y")
-        ax.legend(fontsize=8)
+        _legend(ax)
     fig.tight_layout()
     return _save(fig, path)
 

@@ -215,3 +215,24 @@ def test_plain_flags_show_no_metavar_in_help():
             if "--json" in line or "--require-observable" in line or "--allow-missing" in line
         ]
         assert flags and all("<bool>" not in line for line in flags), (command, flags)
+
+
+def test_no_help_page_shows_a_bool_metavar():
+    """Typer's own ``--help`` showed ``<bool>`` on every page (the flags of this program did
+    not): no page shows one, the program's and each command's."""
+    commands = [
+        [],
+        *(
+            [c]
+            for c in app.registered_commands
+            and [
+                (cmd.name or cmd.callback.__name__.replace("_", "-"))
+                for cmd in app.registered_commands
+            ]
+        ),
+    ]
+    assert len(commands) > 5
+    for command in commands:
+        result = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "200"})
+        assert result.exit_code == 0, (command, result.output)
+        assert "--help" in result.stdout and "<bool>" not in result.stdout, command

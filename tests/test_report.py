@@ -73,3 +73,30 @@ def test_report_folder_parent_missing_exits_2(tmp_path):
         ],
     )
     assert result.exit_code == 2 and "no/r" in result.stderr
+
+
+def test_no_legend_covers_a_plot(tmp_path, monkeypatch):
+    """Every legend of every figure lies outside every axes' data area (the legends sat at
+    the upper right, over the lines)."""
+    from imucal_cli import report
+
+    checked = []
+    real_save = report._save
+
+    def check(fig, path):
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        areas = [ax.get_window_extent(renderer) for ax in fig.axes]
+        legends = [ax.get_legend() for ax in fig.axes] + list(fig.legends)
+        for legend in (x for x in legends if x is not None):
+            box = legend.get_window_extent(renderer)
+            assert not any(box.overlaps(area) for area in areas), path.name
+            checked.append(path.name)
+        return real_save(fig, path)
+
+    monkeypatch.setattr(report, "_save", check)
+    argv = ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c"]
+    argv += [str(SAMPLE_DATA / "aggressive.config.yaml"), "--report", str(tmp_path / "r")]
+    result = CliRunner().invoke(app, argv)
+    assert result.exit_code == 0, result.output
+    assert {"biases.png", "windows.png", "residuals.png", "std.png", "vehicle.png"} <= set(checked)
