@@ -26,10 +26,12 @@ T = TypeVar("T")
 
 @dataclass(frozen=True)
 class BaseConfig:
-    """The base IMU: the GNSS/INS IMU, already expressed in frame B."""
+    """The base IMU: the GNSS/INS IMU, at ``T_base_imu`` in frame B."""
 
     topic: str
     frame: str = "base_link"
+    #: Where the base IMU sits in B (default: at B's origin, in B's axes).
+    T_base_imu: Transform = field(default_factory=Transform.identity)
     accel_units: str = "auto"  # auto | mps2 | g
     gyro_units: str = "auto"  # auto | radps | dps
 
@@ -199,7 +201,7 @@ class _Section:
             self.used.add(f.name)
             value, key = self.data.get(f.name), self.key(f.name)
             if value is None:
-                if f.default is MISSING:
+                if f.default is MISSING and f.default_factory is MISSING:
                     raise ConfigError(self.source, key, "missing required key")
                 continue
             values[f.name] = _parse(value, f.name, f.type, self.source, key)
@@ -256,6 +258,13 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     """Validate a config mapping (as loaded from YAML) into a :class:`Config`."""
     top = _Section(data, source, "")
     base = top.section("base", required=True).fields(BaseConfig)
+    length = float(np.linalg.norm(base.T_base_imu.translation))
+    if length > MAX_PRIOR_M:
+        raise ConfigError(
+            source,
+            "base.T_base_imu.translation",
+            f"{length:.4g} m from the origin, more than {MAX_PRIOR_M:g} m",
+        )
     sensors_section = top.section("sensors", required=True)
     if not sensors_section.data:
         raise ConfigError(source, "sensors", "needs at least one sensor")

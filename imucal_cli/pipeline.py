@@ -79,6 +79,7 @@ def make_calibrator(
         base_name="base",
         base_units=(config.base.gyro_units, config.base.accel_units),
         base_label=(config.base.topic, "base"),
+        base_pose=config.base.T_base_imu,
         threaded=threaded,
         **extra,
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from typer.testing import CliRunner
 from imucal_cli.cli import app
 from imucal_cli.config import Config, load_config, parse_config
 from imucal_cli.errors import ConfigError
+from imucal_cli.types import Transform
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "configs" / "default.yaml"
@@ -57,8 +59,12 @@ def test_to_dict_round_trips(base_dict):
         )
         for ta, tb in ((a.T_imu_lidar, b.T_imu_lidar), (a.prior_T_base_imu, b.prior_T_base_imu)):
             np.testing.assert_allclose(ta.as_matrix(), tb.as_matrix(), atol=1e-12)
-    assert (again.base, again.rest, again.gyro_bias, again.segments, again.calibration) == (
-        config.base,
+    np.testing.assert_allclose(
+        again.base.T_base_imu.as_matrix(), config.base.T_base_imu.as_matrix(), atol=1e-12
+    )
+    identity = Transform.identity()
+    assert replace(again.base, T_base_imu=identity) == replace(config.base, T_base_imu=identity)
+    assert (again.rest, again.gyro_bias, again.segments, again.calibration) == (
         config.rest,
         config.gyro_bias,
         config.segments,

@@ -486,9 +486,28 @@ class StreamingCalibrator:
         base_units: tuple[str, str] = ("auto", "auto"),
         base_label: tuple[str, str] = ("", ""),
         threaded: bool = False,
+        base_pose: Transform | None = None,
     ) -> None:
         if not sensors:
             raise ValueError("no sensors")
+        #: Where the base IMU sits in B. Its samples are turned into B's axes as they come, and
+        #: each sensor is estimated relative to it: the lever arms the model sees are from the
+        #: base IMU (its centripetal and Euler terms are the sensors' own, less its own), and
+        #: the estimates are moved back to B's origin (:meth:`estimates`).
+        self.base_pose = base_pose
+        R = base_pose.rotation.as_matrix() if base_pose is not None else np.eye(3)
+        self.R_base_baseimu = None if np.array_equal(R, np.eye(3)) else R
+        offset = base_pose.translation if base_pose is not None else np.zeros(3)
+        self.t_base_baseimu = offset
+        sensors = [
+            replace(
+                s,
+                prior_T_base_imu=Transform(
+                    s.prior_T_base_imu.rotation, s.prior_T_base_imu.translation - offset
+                ),
+            )
+            for s in sensors
+        ]
         self.sensors = {s.name: s for s in sensors}
         self.base_name = base_name
         opts = sensors[0].options
@@ -556,6 +575,9 @@ class StreamingCalibrator:
         if imu in self.scales:  # after boot: in SI, as the boot found the units
             both[:, :3] *= self.scales[imu][0]
             both[:, 3:] *= self.scales[imu][1]
+        if imu == self.base_name and self.R_base_baseimu is not None:  # into B's axes
+            both[:, :3] = both[:, :3] @ self.R_base_baseimu.T
+            both[:, 3:] = both[:, 3:] @ self.R_base_baseimu.T
         buffer.append(t_ns, both)
         if self.t_ref_ns is None and all(b.first_ns is not None for b in self.buffers.values()):
             self.t_ref_ns = max(int(b.first_ns) for b in self.buffers.values())  # type: ignore[arg-type]
@@ -957,7 +979,10 @@ class StreamingCalibrator:
                     self.lowpass,
                     dw_noise_var=self.dw_noise_var,
                 )
-            out[name] = replace(estimate, warnings=self._unit_notes(name) + estimate.warnings)
+            T = estimate.T_base_imu  # from the base IMU's position back to B's origin
+            T = Transform(T.rotation, T.translation + self.t_base_baseimu)
+            notes = self._unit_notes(name) + estimate.warnings
+            out[name] = replace(estimate, T_base_imu=T, warnings=notes)
         return out
 
     def _unit_notes(self, name: str) -> list[str]:

@@ -55,6 +55,8 @@ class DriveOptions:
     #: Units the base IMU's driver publishes (the lidar IMUs': ``lidar_model``).
     base_accel_units: str = "mps2"
     base_gyro_units: str = "radps"
+    #: Where the base IMU sits in B (an INS is rarely at the rear-axle centre in B's axes).
+    base_T_base_imu: Transform = field(default_factory=Transform.identity)
     errors: str = "none"  # the error class applied (:func:`with_errors`), for the truth file
 
 
@@ -189,8 +191,11 @@ class SimulatedDrive:
             }
             for mount in self.mounts
         }
+        base: dict[str, Any] = {"topic": BASE_TOPIC, "frame": BASE_FRAME}
+        if not np.allclose(self.options.base_T_base_imu.as_matrix(), np.eye(4), atol=0.0):
+            base["T_base_imu"] = self.options.base_T_base_imu.to_dict()
         return {
-            "base": {"topic": BASE_TOPIC, "frame": BASE_FRAME},
+            "base": base,
             "sensors": sensors,
             "rest": asdict(RestConfig()),
             "gyro_bias": asdict(GyroBiasConfig()),
@@ -221,7 +226,7 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         accel_units=o.base_accel_units,
         gyro_units=o.base_gyro_units,
     )
-    base = simulate_imu(trajectory, Transform.identity(), base_model, rng, o.t0_ns, BASE_FRAME)
+    base = simulate_imu(trajectory, o.base_T_base_imu, base_model, rng, o.t0_ns, BASE_FRAME)
 
     offsets: dict[str, float] = {}
     sensors: dict[str, SimulatedImu] = {}
