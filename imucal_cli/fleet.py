@@ -157,6 +157,9 @@ def run_one(task: Task) -> Outcome:
     for sensor, s in run.document["sensors"].items():
         T = run.result.T_base_lidar(sensor)
         std_r, std_t = s["rotation_std_deg"], s["translation_std_m"]
+        statistical = s.get("statistical_std") or {}  # how far two drives differ: for "moved"
+        stat_r = max(statistical["rotation_deg"]) if statistical else None
+        stat_t = max(statistical["translation_m"]) if statistical else None
         x, y, z = (float(v) for v in T.translation)
         roll, pitch, yaw = (float(v) for v in np.degrees(T.rpy_rad))
         row = Row(
@@ -193,14 +196,10 @@ def run_one(task: Task) -> Outcome:
             if task.reference:
                 ref_r, ref_t = task.reference_std.get(sensor, (None, None))
                 limit_r = (
-                    limit_r
-                    if limit_r is not None
-                    else _combined(row.rotation_std_deg, ref_r, MOVED_FALLBACK_DEG)
+                    limit_r if limit_r is not None else _combined(stat_r, ref_r, MOVED_FALLBACK_DEG)
                 )
                 limit_t = (
-                    limit_t
-                    if limit_t is not None
-                    else _combined(row.translation_std_m, ref_t, MOVED_FALLBACK_M)
+                    limit_t if limit_t is not None else _combined(stat_t, ref_t, MOVED_FALLBACK_M)
                 )
             over = (limit_r is not None and row.rotation_error_deg > limit_r) or (
                 limit_t is not None and row.translation_error_m > limit_t
@@ -564,7 +563,9 @@ def check_batch_outputs(
 
 
 def _reference_std(path: str) -> dict[str, tuple[float | None, float | None]]:
-    """Per sensor of a reference calibration: its largest rotation (deg) and translation (m) std."""
+    """Per sensor of a reference calibration: its largest rotation (deg) and translation (m)
+    statistical std (SPEC ``statistical_std``: how far two drives differ), or its total std in
+    a document without one."""
     from imucal_cli.documents import load_document
 
     def largest(value: Any, key: str) -> float | None:
@@ -582,13 +583,21 @@ def _reference_std(path: str) -> dict[str, tuple[float | None, float | None]]:
     sensors = document.get("sensors") if isinstance(document, dict) else None
     if not isinstance(sensors, dict) or not all(isinstance(s, dict) for s in sensors.values()):
         raise InputError(f"{path}: not a calibration (expected sensors: NAME: {{...}})")
-    return {
-        name: (
-            largest(s.get("rotation_std_deg"), f"sensors.{name}.rotation_std_deg"),
-            largest(s.get("translation_std_m"), f"sensors.{name}.translation_std_m"),
-        )
-        for name, s in sensors.items()
-    }
+    out = {}
+    for name, s in sensors.items():
+        statistical = s.get("statistical_std")
+        if isinstance(statistical, dict):
+            key = f"sensors.{name}.statistical_std"
+            out[name] = (
+                largest(statistical.get("rotation_deg"), f"{key}.rotation_deg"),
+                largest(statistical.get("translation_m"), f"{key}.translation_m"),
+            )
+        else:
+            out[name] = (
+                largest(s.get("rotation_std_deg"), f"sensors.{name}.rotation_std_deg"),
+                largest(s.get("translation_std_m"), f"sensors.{name}.translation_std_m"),
+            )
+    return out
 
 
 def read_manifest(path: Path) -> list[dict[str, str]]:

@@ -239,6 +239,12 @@ def calibration_document(
             "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
             "rotation_std_deg": _std_list(est.rotation_std_deg),
             "translation_std_m": _std_list(est.translation_std_m),
+            "statistical_std": None
+            if est.statistical_covariance is None
+            else {
+                "rotation_deg": _std_list(est.statistical_rotation_std_deg),
+                "translation_m": _std_list(est.statistical_translation_std_m),
+            },
             "covariance": None
             if cov is None
             else {

@@ -99,10 +99,12 @@ MANOEUVRES = {
 
 def missing_axes(estimate: SensorEstimate, stop: Any) -> list[str]:
     """The axes whose std is not yet within the ``stop:`` targets, each with the driving that
-    supplies it: from the estimate's covariance (its Fisher information, made honest)."""
-    if estimate.covariance is None:
+    supplies it: from the estimate's statistical std (what more driving shrinks)."""
+    if estimate.statistical_covariance is None:
         return [f"{axis}: {what}" for axis, what in MANOEUVRES.items()]
-    rotation, translation = estimate.rotation_std_deg, estimate.translation_std_m
+    # the statistical std: what more driving shrinks (the total adds what it cannot)
+    rotation = estimate.statistical_rotation_std_deg
+    translation = estimate.statistical_translation_std_m
     assert rotation is not None and translation is not None
     names = list(MANOEUVRES)
     out = [

@@ -89,6 +89,21 @@ class SensorEstimate:
     gyro_intrinsics: dict[str, Any] = field(default_factory=dict)
     #: Per window used: start (s, grid clock), gyro and accelerometer residual RMS of the fit.
     window_residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    #: The statistical part of ``covariance``: what more driving shrinks (SPEC
+    #: ``statistical_std``); the total adds failed checks, the box and the floors.
+    statistical_covariance: np.ndarray | None = None
+
+    @property
+    def statistical_rotation_std_deg(self) -> np.ndarray | None:
+        if self.statistical_covariance is None:
+            return None
+        return np.degrees(np.sqrt(np.diag(self.statistical_covariance)[ROTATION]))
+
+    @property
+    def statistical_translation_std_m(self) -> np.ndarray | None:
+        if self.statistical_covariance is None:
+            return None
+        return np.sqrt(np.diag(self.statistical_covariance)[TRANSLATION])
 
     @property
     def rotation_std_deg(self) -> np.ndarray | None:
@@ -278,6 +293,7 @@ def _estimate(
         status=verdict,
         T_base_imu=Transform(fit.point.R, fit.point.t),
         covariance=spread.covariance,
+        statistical_covariance=spread.statistical,
         translation_observable=observable,
         time_offset_s=float(clock.tau0_s + fit.point.dtau) if clock.shown else 0.0,
         time_offset_std_s=spread.time_offset_std_s,

@@ -62,6 +62,10 @@ class Uncertainty:
     """The reported covariance and what went into it."""
 
     covariance: np.ndarray  # 6x6: rotation about the base axes (rad), t_base_imu (m)
+    #: The statistical part (6x6): the Fisher information's, inflated to the jackknife's
+    #: spread; what more driving shrinks. The total adds what the drive cannot resolve: failed
+    #: checks, the box, the floors.
+    statistical: np.ndarray
     time_offset_std_s: float | None
     jackknifed: bool  # False: too few windows to check the std against the data's spread
     on_box: np.ndarray  # (3,) bool: translation axes resting on their box
@@ -90,6 +94,7 @@ def uncertainty(
         scale = np.where(fisher_std[free7] > 0, fisher_std[free7], np.inf)
         inflation[free7] = np.maximum(1.0, jk_std[free7] / scale)
     cov7 = inflation[:, None] * fisher * inflation[None, :]
+    statistical = cov7[:TIME_OFFSET, :TIME_OFFSET].copy()
     if failed:
         cov7 *= max(c.inflation for c in failed)
     prior, bound = problem.settings.translation_prior, problem.settings.translation_bound_m
@@ -98,10 +103,11 @@ def uncertainty(
     pulls = np.where(on_box, np.abs(fit.unconstrained_t - fit.point.t), 0.0)
     for axis in np.flatnonzero(on_box).tolist():  # the std covers where the data pull it
         cov7[TRANSLATION.start + axis, TRANSLATION.start + axis] += pulls[axis] ** 2
-    for axis in np.flatnonzero(~t_free).tolist():
+    for axis in np.flatnonzero(~t_free).tolist():  # not determined: the box's own variance
         cov7[TRANSLATION.start + axis, TRANSLATION.start + axis] = bound**2 / 3.0
+        statistical[TRANSLATION.start + axis, TRANSLATION.start + axis] = bound**2 / 3.0
     cov6 = cov7[:TIME_OFFSET, :TIME_OFFSET].copy()
     cov6[ROTATION, ROTATION] += floors[0] ** 2 * np.eye(3)
     cov6[TRANSLATION, TRANSLATION] += floors[1] ** 2 * np.eye(3)
     tau_std = float(np.sqrt(cov7[TIME_OFFSET, TIME_OFFSET])) if fit.free[TIME_OFFSET] else None
-    return Uncertainty(cov6, tau_std, spread is not None, on_box, pulls)
+    return Uncertainty(cov6, statistical, tau_std, spread is not None, on_box, pulls)
