@@ -62,10 +62,7 @@ def time_offset_shown(
 
 
 def estimate_time_offset(
-    grid_s: np.ndarray,
-    speed_base: np.ndarray,
-    speed_sensor: np.ndarray,
-    max_offset_s: float,
+    grid_s: np.ndarray, speed_base: np.ndarray, speed_sensor: np.ndarray, max_offset_s: float
 ) -> tuple[float, float]:
     """Offset ``tau`` (s) maximising the correlation of ``|w_sensor|(t + tau)`` with
     ``|w_base|(t)``.

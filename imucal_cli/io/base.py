@@ -5,7 +5,7 @@ from __future__ import annotations
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -208,6 +208,30 @@ class Batcher:
 
     def rest(self) -> Iterator[RawBatch]:
         yield from (b for b in map(self.flush, list(self.data)) if b is not None)
+
+
+#: A topic's batch of a group longer than this (ns) is cut, the pieces given in time order: a topic
+#: read minutes ahead of another (low-rate chunks) looks to the calibrator like one that stopped.
+BATCH_SPAN_NS = 10_000_000_000
+
+
+def interleaved(batches: list[RawBatch], span_ns: int = BATCH_SPAN_NS) -> list[RawBatch]:
+    """``batches``, each longer than ``span_ns`` of log time cut into pieces of it, in the order of
+    their first log time (as they are where none is cut)."""
+    pieces = []
+    for b in batches:
+        t = b.log_time_ns
+        if not len(t) or t[-1] - t[0] <= span_ns:
+            pieces.append(b)
+            continue
+        ends = [*(np.flatnonzero(np.diff((t - t[0]) // span_ns)) + 1).tolist(), len(t)]
+        for a, z in zip([0, *ends[:-1]], ends, strict=True):
+            pieces.append(
+                replace(b, starts=b.starts[a:z], lengths=b.lengths[a:z], log_time_ns=t[a:z])
+            )
+    if len(pieces) == len(batches):
+        return batches
+    return sorted(pieces, key=lambda p: int(p.log_time_ns[0]) if len(p.log_time_ns) else 0)
 
 
 def read_ahead(items: Iterator[T], depth: int = READ_AHEAD_GROUPS) -> Iterator[T]:

@@ -18,7 +18,15 @@ from typing import BinaryIO
 
 import numpy as np
 
-from imucal_cli.io.base import Batcher, LogReader, Loss, TopicInfo, decompress, read_ahead
+from imucal_cli.io.base import (
+    Batcher,
+    LogReader,
+    Loss,
+    TopicInfo,
+    decompress,
+    interleaved,
+    read_ahead,
+)
 from imucal_cli.io.imu_msg import RawBatch, gather
 
 MAGIC = b"#ROSBAG V2.0\n"
@@ -143,7 +151,7 @@ class Ros1Log(LogReader):
         groups = [chunks[i : i + GROUP_CHUNKS] for i in range(0, len(chunks), GROUP_CHUNKS)]
         # file reads and lz4 (outside the GIL) in a thread, ahead of the decode
         for group, found in read_ahead((g, self._group(g, wanted)) for g in groups):
-            yield from self._group_batches(group, *found, wanted)
+            yield from interleaved(self._group_batches(group, *found, wanted))
 
     def _group_batches(
         self,
@@ -176,11 +184,8 @@ class Ros1Log(LogReader):
                     for b in self._group_batches([chunk], *self._group([chunk], wanted), wanted)
                 ]
             times = e["sec"].astype(np.int64) * 1_000_000_000 + e["nsec"]
-            batches.append(
-                RawBatch(
-                    self.connections[conn][0], "ros1", data, at + 8 + header_len, length, times
-                )
-            )
+            topic = self.connections[conn][0]
+            batches.append(RawBatch(topic, "ros1", data, at + 8 + header_len, length, times))
         return batches
 
     def _group(
@@ -262,13 +267,8 @@ class Ros1Log(LogReader):
                 yield from self._records(record, [0])
                 pos += len(record)
         except Exception as exc:
-            self.losses.append(
-                Loss(
-                    f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}",
-                    pos,
-                    self._size - pos,
-                )
-            )
+            why = f"the bag is cut off or damaged here ({exc}); what follows is lost; {REPAIR}"
+            self.losses.append(Loss(why, pos, self._size - pos))
 
     def _top_record(self, pos: int) -> bytes:
         """The whole top-level record at ``pos`` (``ValueError`` where the file ends first)."""

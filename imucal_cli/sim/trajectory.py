@@ -79,11 +79,7 @@ def euler_rates_to_body(
     sphi, cphi = np.sin(phi), np.cos(phi)
     sth, cth = np.sin(theta), np.cos(theta)
     w = np.column_stack(
-        [
-            dphi - dpsi * sth,
-            dtheta * cphi + dpsi * sphi * cth,
-            -dtheta * sphi + dpsi * cphi * cth,
-        ]
+        [dphi - dpsi * sth, dtheta * cphi + dpsi * sphi * cth, -dtheta * sphi + dpsi * cphi * cth]
     )
     dw = np.column_stack(
         [

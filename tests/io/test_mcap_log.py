@@ -189,3 +189,30 @@ def test_a_damaged_chunk_in_a_file_without_summary_is_said_not_hidden(layouts):
     full = read_imu(made["default"], topics)
     assert sum(len(r.stream) for r in got.values()) < sum(len(r.stream) for r in full.values())
     assert [x for x in losses if x.lost and "chunk does not read" in x.reason]
+
+
+def test_the_topics_of_a_group_spanning_a_minute_arrive_interleaved(tmp_path, monkeypatch):
+    """A group of chunks can span minutes of a low-rate log (the real IMU array board's: 400
+    s); each topic's batch of it was given whole, so one topic ran minutes ahead of the other
+    and the calibrator took the other for stopped, its windows lost. Batches are now cut at
+    ``BATCH_SPAN_NS`` and given in time order."""
+    from imucal_cli.io import base, mcap_log
+    from imucal_cli.pipeline import calibrate_log
+    from imucal_cli.reading import ImuBatches
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import write_imu_log
+
+    monkeypatch.setattr(mcap_log, "GROUP_BYTES", 256 << 20)  # the whole log in one group
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=81.0, seed=4, sensors=1))
+    log = write_imu_log(tmp_path / "g.mcap", "mcap", drive.topics())
+    reached: dict[str, int] = {}
+    lead = 0
+    for topic, stamps, *_ in ImuBatches(log, list(drive.topics())):
+        reached[topic] = max(reached.get(topic, 0), int(stamps.max()))
+        if len(reached) == 2:
+            lead = max(lead, max(reached.values()) - min(reached.values()))
+    assert 0 < lead <= base.BATCH_SPAN_NS + 1_000_000_000
+    run = calibrate_log(log, drive.config())
+    for sensor in run.document["sensors"].values():
+        assert not any("sent nothing" in w for w in sensor["warnings"]), sensor["warnings"]
+        assert sensor["status"] == "ok"
