@@ -1,0 +1,45 @@
+"""Real two-IMU rigs (``multi_imu``: public recordings converted to MCAP, kept outside this
+repository): what imucal says of each, against its truth (see that folder's README)."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import REALDATA
+
+from imucal_cli.api import evaluate
+from imucal_cli.pipeline import calibrate_log
+
+RIGS = REALDATA / "multi_imu"
+
+
+def _run(rig: str):
+    folder = RIGS / rig
+    if not (folder / "log.mcap").exists():
+        pytest.skip(
+            f"the real rig recording {rig} (kept outside this repository) is not on this machine"
+        )
+    run = calibrate_log(folder / "log.mcap", folder / "config.yaml")
+    return run, evaluate(run.document, folder / "truth.yaml")
+
+
+@pytest.mark.parametrize("rig", ["erle_31-3-2015_83", "quad_flight1_dot1_dot7"])
+def test_two_imus_on_one_board_come_back_within_a_degree_and_a_half_of_identity(rig):
+    """The autopilot board (both chips rotated into the board frame) and the quadrotor plate
+    (the DOTs placed by hand, measured 0.8 deg apart): identity by design to about 1 deg."""
+    run, verdict = _run(rig)
+    assert verdict["sensors"]["imu2"]["rotation_error_deg"] < 1.5
+    assert run.document["sensors"]["imu2"]["status"] != "unobservable"
+
+
+def test_a_robot_that_only_yaws_is_not_called_ok():
+    """The hallway robot's lever arm lies along its only rotation axis: no confident number."""
+    run, _ = _run("magpie_ugv1_b1_b5_kcal")
+    assert run.document["sensors"]["imu2"]["status"] != "ok"
+
+
+def test_the_array_board_is_read_whole_no_topic_taken_for_stopped():
+    """The array board's log packs 400 s in a read group: both topics are read interleaved,
+    so no window is lost to a topic taken for stopped (it was, from 47 s to 142 s)."""
+    run, _ = _run("mimu_exp1_imu8")
+    sensor = run.document["sensors"]["imu2"]
+    assert not any("sent nothing" in w for w in sensor["warnings"]), sensor["warnings"]
