@@ -38,7 +38,7 @@ from imucal_cli.core.signals import (
     true_runs,
     white_noise_density,
 )
-from imucal_cli.core.timing import TimeOffset, time_offset_shown
+from imucal_cli.core.timing import TimeOffset, refine_time_offset, time_offset_shown
 from imucal_cli.errors import ImucalError
 from imucal_cli.types import GAP_PERIODS, GRAVITY_MPS2, Transform
 
@@ -659,6 +659,17 @@ class StreamingCalibrator:
         speeds = {name: raw_speeds[name] * scales[name][0] for name in samples}  # |w| scales
         sigma = self._noise_levels(samples, scales)
         offsets = self._clock_offsets(grid, speeds, sigma)
+        base_speed = speeds[self.base_name] - speeds[self.base_name].mean()
+        for name, found in offsets.items():  # below the grid's step, by the sensor's spline
+            scale = scales[name][0]
+
+            def correlation(tau: float, spline: _Spline = splines[name], k: float = scale) -> float:
+                speed = k * np.linalg.norm(self.lowpass(spline.gyro(grid + tau)), axis=1)
+                return -float(np.sum((speed - speed.mean() - base_speed) ** 2))
+
+            if found.shown:
+                tau = refine_time_offset(found.tau_s, 1.0 / self.rate, correlation)
+                offsets[name] = replace(found, tau_s=tau)
         if patient and not all(o.shown for o in offsets.values()):
             return False  # not enough motion yet to place every clock offset
         # booted: the buffers from now on in SI
