@@ -43,6 +43,8 @@ CASES = [
     ("urban", "prior-off"),
     ("urban", "accel-g"),
     ("urban", "gyro-dps"),
+    ("aggressive", "ins-away"),
+    ("aggressive", "clock-jitter"),
 ]
 TARGETS = {  # clean scenario: (max median rotation error deg, max median |dt| m)
     "aggressive": (0.05, 0.02),

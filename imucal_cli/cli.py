@@ -1189,7 +1189,9 @@ def simulate(
             help="Sensor or mount errors beyond the estimator's model: none, mems (scale factors, "
             "non-orthogonality, g-sensitivity, vibration), misaligned (gyro and accelerometer "
             "triads "
-            "apart), tilting-mount, clock-offsets (+-40 ms), prior-off (0.5 m), accel-g, gyro-dps.",
+            "apart), tilting-mount, clock-offsets (+-40 ms), prior-off (0.5 m), accel-g, gyro-dps, "
+            "ins-away (the base IMU turned and 1.6 m away, declared), clock-jitter (+-40 ms, "
+            "0.5 ms jitter, 1% drops, 200 Hz).",
         ),
     ] = "none",
     force: Annotated[

@@ -71,6 +71,8 @@ MEMS_ERRORS = {
 }
 
 #: Error classes (``imucal simulate --errors``): what each changes in a drive's options.
+#: Where the ``ins-away`` error class puts the base IMU in B.
+INS_AWAY = Transform.from_rpy(np.radians([180.0, 0.0, 90.0]), np.array([1.4, 0.0, 0.75]))
 ERROR_CLASSES: dict[str, dict[str, Any]] = {
     "none": {},
     "mems": {"lidar": MEMS_ERRORS},
@@ -80,6 +82,13 @@ ERROR_CLASSES: dict[str, dict[str, Any]] = {
     "prior-off": {"drive": {"prior_offset_m": (0.5, 0.0, 0.0)}},
     "accel-g": {"lidar": {"accel_units": "g"}},
     "gyro-dps": {"lidar": {"gyro_units": "dps"}},
+    # an INS upside down, yawed 90 deg, 1.4 m ahead and 0.75 m up (declared: base.T_base_imu)
+    "ins-away": {"drive": {"base_T_base_imu": INS_AWAY}},
+    # clocks up to 40 ms off on 200 Hz lidar IMUs, 0.5 ms stamp jitter, 1% messages dropped
+    "clock-jitter": {
+        "drive": {"max_time_offset_s": 0.04, "lidar_rate_hz": 200.0},
+        "lidar": {"jitter_s": 0.0005, "drop_fraction": 0.01},
+    },
 }
 
 
