@@ -226,11 +226,13 @@ def solve(
     sigma: tuple[float, float],
     lowpass: Lowpass,
     dw_noise_var: float = 0.0,
+    given: tuple[checks.Check, ...] = (),
 ) -> SensorEstimate:
     """The estimate from the selected windows' moments, with its checks and honest covariance:
     the joint fit (:func:`_first_fit`), the sensor's own errors where the drive shows them,
     the rigid mount (failing, the tilt joins the model), the clock, the rotation agreement and
-    the residual levels, then the covariance (:func:`.uncertainty.uncertainty`)."""
+    the residual levels, then the covariance (:func:`.uncertainty.uncertainty`). ``given``:
+    checks made before (the base IMU's gravity), counted as the others."""
     problem = _problem(windows, prior, options, sigma, lowpass, dw_noise_var)
     alpha = options.consistency_alpha
     fit = _first_fit(problem, options, clock)
@@ -240,6 +242,7 @@ def solve(
         fit = tilted
     fit, clock_placed, clock_notes = _clock(problem, fit, options, clock)
     later = [checks.rotation_agreement(problem, fit, alpha), checks.residual_level(problem, fit)]
+    later += given
     found = [rigid, *later]
     failed = [c for c in found if not c.passed]
     floors = (np.radians(options.rotation_floor_deg), options.translation_floor_m)

@@ -30,6 +30,8 @@ from imucal_cli.core.solver import Fit, Problem
 from imucal_cli.types import GRAVITY_MPS2
 
 SCALE, SKEW = AXIS_ERRORS["scale"], AXIS_ERRORS["nonorthogonality"]
+#: How far the base IMU's mean specific force may lean from B's z axis (deg).
+BASE_GRAVITY_MAX_DEG = 15.0
 #: Residual std over the noise the data imply, above which the model does not explain the data.
 RESIDUAL_LEVEL_MAX = 2.0
 #: What the grid's interpolation and filtering leave of a signal, relative to its RMS about each
@@ -182,6 +184,16 @@ def residual_level(problem: Problem, fit: Fit) -> Check:
     passed = bool(np.all(levels <= RESIDUAL_LEVEL_MAX))
     figures = {"gyro": float(levels[0]), "accel": float(levels[1])}
     return Check("residual_level", passed, figures, float(max(1.0, np.max(levels) ** 2)))
+
+
+def base_gravity(mean_f: np.ndarray) -> Check:
+    """The base IMU's mean specific force (in B's axes, as ``base.T_base_imu`` turns it) against
+    B's z axis: a drive's mean is gravity within a few degrees (roads slope, vehicles lean), so
+    an INS on its side or upside down that the config does not declare shows here (a yaw about
+    gravity does not)."""
+    norm = float(np.linalg.norm(mean_f))
+    angle = float(np.degrees(np.arccos(np.clip(mean_f[2] / norm, -1.0, 1.0)))) if norm else 180.0
+    return Check("base_gravity", angle <= BASE_GRAVITY_MAX_DEG, {"angle_deg": angle})
 
 
 def axes_figures(found: dict[str, Any]) -> dict[str, Any]:

@@ -92,6 +92,12 @@ def check_sentences(checks: Sequence[Check]) -> list[str]:
                 f"{f['difference_deg']:.3f} deg (chi2 {f['chi2']:.1f}, 3 dof): their axes are "
                 "misaligned differently, or the mount moves"
             )
+        elif check.name == "base_gravity":
+            out.append(
+                f"the base IMU's gravity lies {f['angle_deg']:.1f} deg from B's z axis: the base "
+                "IMU is not posed as the config says (base.T_base_imu), and every estimate is "
+                "turned with it"
+            )
         elif check.name == "residual_level":
             out.append(
                 f"residuals {f['gyro']:.1f}x (gyro) and {f['accel']:.1f}x (accelerometer) the "

@@ -28,6 +28,7 @@ from imucal_cli.core.calibrate import (
     solve,
     unobservable,
 )
+from imucal_cli.core.checks import Check, base_gravity
 from imucal_cli.core.model import ACCEL_BASE, GYRO_BASE, GYRO_DATA, GYRO_OWN, Layout
 from imucal_cli.core.moments import WindowMoments, assemble_moments, base_moments
 from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
@@ -544,6 +545,8 @@ class StreamingCalibrator:
         #: Median sample rate of every IMU (Hz), measured at boot.
         self.rates_hz: dict[str, float] = {}
         self.finished = False
+        #: Checks of the whole rig made at boot, counted in every sensor's status.
+        self.given_checks: tuple[Check, ...] = ()
         self.block_windows = max(1, int(block_windows))
         #: How far out of order stamps may arrive (s): windows wait this long for them.
         self.reorder_s = reorder_s
@@ -677,6 +680,8 @@ class StreamingCalibrator:
             if scales[name] != (1.0, 1.0):
                 both *= np.repeat(scales[name], 3)  # the stored samples, in place
         self.scales, self.unit_warnings, self.sigma = scales, unit_warnings, sigma
+        # the base's mean specific force over the boot, in B's axes (turned as it came)
+        self.given_checks = (base_gravity(samples[self.base_name][1][:, 3:].mean(axis=0)),)
         self.dw_noise_var = derivative_noise_variance(self.lowpass, self.noise[self.base_name][0])
         for name in self.sensors:
             offset = offsets.get(name)
@@ -989,6 +994,7 @@ class StreamingCalibrator:
                     self.sigma[name],
                     self.lowpass,
                     dw_noise_var=self.dw_noise_var,
+                    given=self.given_checks,
                 )
             T = estimate.T_base_imu  # from the base IMU's position back to B's origin
             T = Transform(T.rotation, T.translation + self.t_base_baseimu)

@@ -73,3 +73,19 @@ def test_the_config_takes_the_base_pose_and_bounds_it():
     document["base"]["T_base_imu"] = {"translation": [140.0, 0.0, 0.0], "rpy_deg": [0, 0, 0]}
     with pytest.raises(ConfigError, match=r"base\.T_base_imu\.translation"):
         parse_config(document, "c.yaml")
+
+
+def test_an_ins_upside_down_that_the_config_does_not_declare_is_not_called_ok():
+    """Its gravity points down B's z: every sensor `inconsistent`, the check saying why (a yaw
+    alone would not show: nothing in the data tells B's heading from the INS's)."""
+    drive = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=81.0, seed=6, base_T_base_imu=INS)
+    )
+    config = drive.config(lambda document: document["base"].pop("T_base_imu"))
+    assert np.array_equal(config.base.T_base_imu.as_matrix(), np.eye(4))
+    result = run_calibrate(drive.streams(), config)
+    for name, estimate in result.estimates.items():
+        assert estimate.status == "inconsistent", name
+        assert estimate.checks["base_gravity"]["pass"] is False
+        assert estimate.checks["base_gravity"]["angle_deg"] > 170.0
+        assert any("base.T_base_imu" in w for w in estimate.warnings), estimate.warnings
