@@ -116,3 +116,12 @@ def test_skip_reasons_speak_to_a_user_not_of_this_workplace():
             assert (
                 "shared" not in reason and "not present" not in reason and "not here" not in reason
             ), (path.name, reason)
+
+
+def test_no_function_in_core_is_over_60_lines():
+    """The estimator's functions each do one job (issue 29: ``solve()`` was 203 lines)."""
+    for path in (PACKAGE / "core").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = node.end_lineno - node.lineno + 1  # type: ignore[operator]
+                assert length <= 60, f"{path.name}: {node.name} is {length} lines"

@@ -491,24 +491,7 @@ class StreamingCalibrator:
     ) -> None:
         if not sensors:
             raise ValueError("no sensors")
-        #: Where the base IMU sits in B. Its samples are turned into B's axes as they come, and
-        #: each sensor is estimated relative to it: the lever arms the model sees are from the
-        #: base IMU (its centripetal and Euler terms are the sensors' own, less its own), and
-        #: the estimates are moved back to B's origin (:meth:`estimates`).
-        self.base_pose = base_pose
-        R = base_pose.rotation.as_matrix() if base_pose is not None else np.eye(3)
-        self.R_base_baseimu = None if np.array_equal(R, np.eye(3)) else R
-        offset = base_pose.translation if base_pose is not None else np.zeros(3)
-        self.t_base_baseimu = offset
-        sensors = [
-            replace(
-                s,
-                prior_T_base_imu=Transform(
-                    s.prior_T_base_imu.rotation, s.prior_T_base_imu.translation - offset
-                ),
-            )
-            for s in sensors
-        ]
+        sensors = self._place_base(sensors, base_pose)
         self.sensors = {s.name: s for s in sensors}
         self.base_name = base_name
         opts = sensors[0].options
@@ -553,6 +536,28 @@ class StreamingCalibrator:
         #: Per IMU that stopped sending while the others went on: [from, to] seconds from the
         #: origin of each silence (``to`` None while it lasts).
         self.silences: dict[str, list[list[float | None]]] = {}
+
+    def _place_base(
+        self, sensors: Sequence[SensorSetup], base_pose: Transform | None
+    ) -> list[SensorSetup]:
+        """Where the base IMU sits in B. Its samples are turned into B's axes as they come, and
+        each sensor is estimated relative to it: the lever arms the model sees are from the
+        base IMU (its centripetal and Euler terms are the sensors' own, less its own), and the
+        estimates are moved back to B's origin (:meth:`estimates`). Returns the sensors with
+        their priors from the base IMU."""
+        R = base_pose.rotation.as_matrix() if base_pose is not None else np.eye(3)
+        self.R_base_baseimu = None if np.array_equal(R, np.eye(3)) else R
+        offset = base_pose.translation if base_pose is not None else np.zeros(3)
+        self.t_base_baseimu = offset
+        return [
+            replace(
+                s,
+                prior_T_base_imu=Transform(
+                    s.prior_T_base_imu.rotation, s.prior_T_base_imu.translation - offset
+                ),
+            )
+            for s in sensors
+        ]
 
     # ---------------------------------------------------------------- input
 
@@ -661,18 +666,7 @@ class StreamingCalibrator:
             return False  # not enough motion yet to tell the gyros' units
         speeds = {name: raw_speeds[name] * scales[name][0] for name in samples}  # |w| scales
         sigma = self._noise_levels(samples, scales)
-        offsets = self._clock_offsets(grid, speeds, sigma)
-        base_speed = speeds[self.base_name] - speeds[self.base_name].mean()
-        for name, found in offsets.items():  # below the grid's step, by the sensor's spline
-            scale = scales[name][0]
-
-            def correlation(tau: float, spline: _Spline = splines[name], k: float = scale) -> float:
-                speed = k * np.linalg.norm(self.lowpass(spline.gyro(grid + tau)), axis=1)
-                return -float(np.sum((speed - speed.mean() - base_speed) ** 2))
-
-            if found.shown:
-                tau = refine_time_offset(found.tau_s, 1.0 / self.rate, correlation)
-                offsets[name] = replace(found, tau_s=tau)
+        offsets = self._clock_offsets(grid, speeds, sigma, splines, scales)
         if patient and not all(o.shown for o in offsets.values()):
             return False  # not enough motion yet to place every clock offset
         # booted: the buffers from now on in SI
@@ -710,10 +704,40 @@ class StreamingCalibrator:
             )
         return sigma
 
+    def _refine_offsets(
+        self,
+        offsets: dict[str, TimeOffset],
+        grid: np.ndarray,
+        splines: dict[str, _Spline],
+        speeds: dict[str, np.ndarray],
+        scales: dict[str, tuple[float, float]],
+    ) -> None:
+        """Each placed offset refined below the grid's step, by the sensor's own spline: the
+        one minimising the squared difference of the two ``|w|`` (:func:`refine_time_offset`)."""
+        base_speed = speeds[self.base_name] - speeds[self.base_name].mean()
+        for name, found in offsets.items():
+            if not found.shown:
+                continue
+
+            def misfit(
+                tau: float, spline: _Spline = splines[name], k: float = scales[name][0]
+            ) -> float:
+                speed = k * np.linalg.norm(self.lowpass(spline.gyro(grid + tau)), axis=1)
+                return -float(np.sum((speed - speed.mean() - base_speed) ** 2))
+
+            tau = refine_time_offset(found.tau_s, 1.0 / self.rate, misfit)
+            offsets[name] = replace(found, tau_s=tau)
+
     def _clock_offsets(
-        self, grid: np.ndarray, speeds: dict[str, np.ndarray], sigma: dict[str, tuple[float, float]]
+        self,
+        grid: np.ndarray,
+        speeds: dict[str, np.ndarray],
+        sigma: dict[str, tuple[float, float]],
+        splines: dict[str, _Spline],
+        scales: dict[str, tuple[float, float]],
     ) -> dict[str, TimeOffset]:
-        """Each sensor's clock offset from the correlation of ``|w|`` with the base's."""
+        """Each sensor's clock offset from the correlation of ``|w|`` with the base's, refined
+        by its own spline (:meth:`_refine_offsets`)."""
         offsets = {}
         gain = self.lowpass.white_noise_gain()
         for name, setup in self.sensors.items():
@@ -726,6 +750,7 @@ class StreamingCalibrator:
                     sigma[name][0],
                     gain,
                 )
+        self._refine_offsets(offsets, grid, splines, speeds, scales)
         return offsets
 
     def _label(self, name: str, key: str) -> tuple[str, str]:
