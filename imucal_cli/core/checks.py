@@ -25,9 +25,10 @@ from imucal_cli.core.model import (
     SENSOR_ERRORS,
     TILT,
     TIME_OFFSET,
+    TRANSLATION,
 )
 from imucal_cli.core.solver import Fit, Problem
-from imucal_cli.types import GRAVITY_MPS2
+from imucal_cli.types import GRAVITY_MPS2, rotation_type
 
 SCALE, SKEW = AXIS_ERRORS["scale"], AXIS_ERRORS["nonorthogonality"]
 #: How far the base IMU's mean specific force may lean from B's z axis (deg).
@@ -63,6 +64,9 @@ class Check:
     figures: dict[str, Any]
     #: Variance inflation the failed check calls for (1 where it passed).
     inflation: float = 1.0
+    #: What the failed check measured of the estimate's error, added to its covariance (6x6:
+    #: rotation about base axes, translation), or None.
+    cover: np.ndarray | None = None
 
 
 def chi2_limit(dof: int, alpha: float) -> float:
@@ -170,9 +174,31 @@ def rotation_agreement(problem: Problem, fit: Fit, alpha: float) -> Check:
     delta = rotation_difference(by_accel.point.R, by_gyro.point.R)
     chi2 = _chi2(delta, by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base())
     figures = {"chi2": chi2, "dof": 3, "difference_deg": float(np.degrees(np.linalg.norm(delta)))}
+    passed = chi2 <= chi2_limit(3, alpha)
     return Check(
-        "gyro_vs_accel_rotation", chi2 <= chi2_limit(3, alpha), figures, max(1.0, chi2 / 3)
+        "gyro_vs_accel_rotation",
+        passed,
+        figures,
+        1.0,
+        None if passed else _cover(problem, fit, delta),
     )
+
+
+def _cover(problem: Problem, fit: Fit, delta: np.ndarray) -> np.ndarray:
+    """What a rotation discrepancy ``delta`` (base axes) between the gyro and the accelerometer
+    measures of the estimate's error: the rotation may be either equation's (``delta``), and
+    the lever arm moves by as much as refitting it at the gyro's rotation moves it. Added to
+    the covariance (``delta delta^T`` and ``dt dt^T``): the std then covers the discrepancy the
+    check saw, not a token share of it."""
+    free = fit.free.copy()
+    free[ROTATION] = False
+    turned = replace(fit.point, R=rotation_type().from_rotvec(-delta / 2.0) * fit.point.R)
+    refit = problem.fit(replace(fit, point=turned), free)
+    dt = 2.0 * (refit.point.t - fit.point.t)  # (half the discrepancy each way)
+    cover = np.zeros((6, 6))
+    cover[ROTATION, ROTATION] = np.outer(delta, delta)
+    cover[TRANSLATION, TRANSLATION] = np.outer(dt, dt)
+    return cover
 
 
 def residual_level(problem: Problem, fit: Fit) -> Check:

@@ -97,6 +97,9 @@ def uncertainty(
     statistical = cov7[:TIME_OFFSET, :TIME_OFFSET].copy()
     if failed:
         cov7 *= max(c.inflation for c in failed)
+        for check in failed:  # what each measured of the error
+            if check.cover is not None:
+                cov7[:TIME_OFFSET, :TIME_OFFSET] += check.cover
     prior, bound = problem.settings.translation_prior, problem.settings.translation_bound_m
     t_free = fit.free[TRANSLATION]
     on_box = t_free & (np.abs(fit.point.t - prior) >= bound * (1.0 - 1e-6))

@@ -341,3 +341,23 @@ def test_a_mount_vibration_is_not_counted_as_white_noise():
     density = white_noise_density(x, rate, (10.0, 20.0))
     np.testing.assert_allclose(density * np.sqrt(rate), std, rtol=0.05)
     assert np.all(white_noise_std(x) > 3 * std)
+
+
+def test_a_failed_rotation_check_covers_the_discrepancy_it_measured():
+    """Gyro and accelerometer triads 0.2 deg apart: the check fails, and the reported rotation
+    std covers the rotation difference it measured (its variance holds ``delta delta^T``), not
+    a share of it scaled by the chi-square (issue 30, item 5)."""
+    drive = simulate_drive(
+        with_errors(DriveOptions(scenario="urban", seed=3, sensors=2), "misaligned")
+    )
+    result = run_calibrate(drive.streams(), drive.config())
+    failed = 0
+    for estimate in result.estimates.values():
+        check = estimate.checks["gyro_vs_accel_rotation"]
+        if check["pass"]:
+            continue
+        failed += 1
+        assert estimate.status == "inconsistent"
+        total = float(np.sqrt(np.sum(estimate.rotation_std_deg**2)))
+        assert total >= check["difference_deg"], (total, check["difference_deg"])
+    assert failed
