@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.documents import to_plain
 from imucal_cli.version import version
 
@@ -299,7 +300,7 @@ def transform_errors(estimate: Transform, truth: Transform) -> dict[str, Any]:
     delta = estimate.translation - truth.translation
     norm = float(np.linalg.norm(delta))
     return {
-        "rotation_error_deg": _rotation_angle_deg(estimate.rotation, truth.rotation),
+        "rotation_error_deg": rotation_angle_deg(estimate.rotation, truth.rotation),
         "translation_error_m": norm,
         "translation_error_eq20_m": norm / 3.0,
         "translation_error_xyz_m": [float(v) for v in delta],
@@ -348,9 +349,3 @@ def evaluate_document(
             "pass": passed,
         }
     )
-
-
-def _rotation_angle_deg(a: Any, b: Any) -> float:
-    from imucal_cli.core.so3 import rotation_angle_deg
-
-    return rotation_angle_deg(a, b)

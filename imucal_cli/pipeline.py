@@ -297,9 +297,23 @@ def _finish(
         calibrator.process(final=True)
     except ImucalError as exc:
         raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
+    return _streamed(reader, calibrator, t0_ns, config)
+
+
+def _streamed(
+    reader: ImuBatches, calibrator: StreamingCalibrator, t0_ns: int | None, config: Config
+) -> StreamedLog:
+    """What the reader and the calibrator found, as one :class:`StreamedLog`."""
     duplicates = {topic: calibrator.duplicates(name) for topic, name in imu_names(config).items()}
     return StreamedLog(
-        log, config, calibrator, t0_ns, reader.stats, duplicates, reader.losses, reader.format_name
+        reader.path,
+        config,
+        calibrator,
+        int(t0_ns or 0),
+        reader.stats,
+        duplicates,
+        reader.losses,
+        reader.format_name,
     )
 
 
@@ -423,17 +437,7 @@ def follow_log(
         interrupted = True
         t0_ns = _first_stamp(calibrator)
     if done[0] and not stop():  # converged: the estimate that did
-        duplicates = {t: calibrator.duplicates(n) for t, n in imu_names(config).items()}
-        streamed = StreamedLog(
-            Path(log),
-            config,
-            calibrator,
-            int(t0_ns or 0),
-            reader.stats,
-            duplicates,
-            reader.losses,
-            reader.format_name,
-        )
+        streamed = _streamed(reader, calibrator, t0_ns, config)
         result = state["result"]
     else:  # the recording ended, time is up, or a Ctrl-C: what is buffered, reduced
         try:
@@ -441,16 +445,7 @@ def follow_log(
         except ImucalError:
             if not interrupted or state["result"] is None:  # after a Ctrl-C: the estimate so far
                 raise
-            streamed = StreamedLog(
-                Path(log),
-                config,
-                calibrator,
-                int(t0_ns or 0),
-                reader.stats,
-                {},
-                reader.losses,
-                reader.format_name,
-            )
+            streamed = _streamed(reader, calibrator, t0_ns, config)
         result = _estimate_now(calibrator, config) or state["result"]
     if result is None:
         raise InputError(

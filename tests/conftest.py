@@ -1,4 +1,4 @@
-"""Shared fixtures: small simulated drives and paths to the shipped data."""
+"""Shared fixtures and helpers: small simulated drives, the shipped data, a lidar's error."""
 
 from __future__ import annotations
 
@@ -35,3 +35,16 @@ def ideal_drive():
             sensors=4,
         )
     )
+
+
+def lidar_error(drive, result, name):
+    """A lidar's ``T_base_lidar`` error against the simulated truth (rotation about the base
+    axes, rad, then xyz, m) and the reported std of each axis (None without a covariance)."""
+    import numpy as np
+
+    mount = next(m for m in drive.mounts if m.name == name)
+    T = result.T_base_lidar(name)
+    rotation = (mount.T_base_lidar.rotation * T.rotation.inv()).as_rotvec()
+    error = np.concatenate([rotation, T.translation - mount.T_base_lidar.translation])
+    covariance = result.estimates[name].lidar_covariance(mount.T_imu_lidar)
+    return error, None if covariance is None else np.sqrt(np.diag(covariance))

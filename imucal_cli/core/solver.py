@@ -317,12 +317,12 @@ class Problem:
         )
         self.floor_a = (RESOLUTION**2) * trace_f / (3 * self.samples)
 
-        def spread(rows: np.ndarray, n: int, one: int) -> float:  # sum |x - mean|^2
-            return float(np.trace(rows[:, 0:3]) - rows[:, one] @ rows[:, one] / n)
+        def spread(rows: np.ndarray, own: slice, n: int, one: int) -> float:  # sum |x - mean|^2
+            return float(np.trace(rows[:, own]) - rows[:, one] @ rows[:, one] / n)
 
         one_g, one_a = GYRO_DATA.index("one"), ACCEL_DATA.index("one")
-        gyro = sum(spread(w.rows_gyro[w_I], w.samples, one_g) for w in used)
-        accel = sum(spread(w.rows_accel, w.samples, one_a) for w in used)
+        gyro = sum(spread(w.rows_gyro[w_I], w_I, w.samples, one_g) for w in used)
+        accel = sum(spread(w.rows_accel, f_I, w.samples, one_a) for w in used)
         self.signal_rms = (
             float(np.sqrt(gyro / (3 * self.samples))),
             float(np.sqrt(accel / (3 * self.samples))),

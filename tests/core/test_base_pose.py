@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import lidar_error
 
 from imucal_cli.config import parse_config
 from imucal_cli.errors import ConfigError
@@ -19,11 +20,8 @@ def _errors(drive, result):
     """Per sensor: rotation error about base axes (rad), translation error (m), and the std."""
     out = {}
     for mount in drive.mounts:
-        T = result.T_base_lidar(mount.name)
-        rotation = (mount.T_base_lidar.rotation * T.rotation.inv()).as_rotvec()
-        estimate = result.estimates[mount.name]
-        std = np.sqrt(np.diag(estimate.lidar_covariance(mount.T_imu_lidar)))
-        out[mount.name] = (rotation, T.translation - mount.T_base_lidar.translation, std)
+        error, std = lidar_error(drive, result, mount.name)
+        out[mount.name] = (error[:3], error[3:], std)
     return out
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import lidar_error
 
 from imucal_cli.config import parse_config
 from imucal_cli.core.so3 import rotation_angle_deg
@@ -16,12 +17,9 @@ def calibrate(drive):
 
 
 def errors(drive, result, name):
-    mount = next(m for m in drive.mounts if m.name == name)
-    T = result.T_base_lidar(name)
-    rotation_error_B = (
-        mount.T_base_lidar.rotation * T.rotation.inv()
-    ).as_rotvec()  # about base axes
-    return rotation_error_B, T.translation - mount.T_base_lidar.translation
+    """Rotation error about the base axes and translation error of a lidar."""
+    error, _ = lidar_error(drive, result, name)
+    return error[:3], error[3:]
 
 
 @pytest.mark.parametrize(("scenario", "duration"), [("aggressive", 81.0), ("parking", 60.0)])

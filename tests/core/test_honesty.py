@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import lidar_error
 
 from imucal_cli.config import parse_config
 from imucal_cli.core.signals import (
@@ -31,15 +32,8 @@ def calibrate(drive):
 
 def normalized_errors(drive, result, name):
     """Error over the reported std per axis (rotation about the base axes, then xyz)."""
-    mount = next(m for m in drive.mounts if m.name == name)
-    T = result.T_base_lidar(name)
-    error = np.concatenate(
-        [
-            (mount.T_base_lidar.rotation * T.rotation.inv()).as_rotvec(),
-            T.translation - mount.T_base_lidar.translation,
-        ]
-    )
-    return error / np.sqrt(np.diag(result.estimates[name].lidar_covariance(mount.T_imu_lidar)))
+    error, std = lidar_error(drive, result, name)
+    return error / std
 
 
 def drive_with(errors, scenario="aggressive", seed=3, **options):
