@@ -32,6 +32,7 @@ class BaseConfig:
     frame: str = "base_link"
     #: Where the base IMU sits in B (default: at B's origin, in B's axes).
     T_base_imu: Transform = field(default_factory=Transform.identity)
+    grade: str = "tactical"  # SPEC "IMU grades": a vehicle INS
     accel_units: str = "auto"  # auto | mps2 | g
     gyro_units: str = "auto"  # auto | radps | dps
 
@@ -48,6 +49,7 @@ class SensorConfig:
     translation_bound_m: float = 0.3
     accel_units: str = "auto"  # auto | mps2 | g
     gyro_units: str = "auto"  # auto | radps | dps
+    grade: str = "consumer"  # SPEC "IMU grades": the IMU inside a lidar
     rotation_floor_deg: float = 0.0  # systematic std the data cannot see, added to the result's
     translation_floor_m: float = 0.0
 
@@ -139,7 +141,23 @@ SECTIONS = {
 }
 #: Keys whose value may be zero (every other number must be positive), and keys with choices.
 MAY_BE_ZERO = {"rotation_floor_deg", "translation_floor_m", "max_time_offset_s"}
-CHOICES = {"accel_units": ("auto", "mps2", "g"), "gyro_units": ("auto", "radps", "dps")}
+CHOICES = {
+    "accel_units": ("auto", "mps2", "g"),
+    "gyro_units": ("auto", "radps", "dps"),
+    "grade": ("consumer", "industrial", "tactical", "navigation", "ideal"),
+}
+#: Per IMU grade (SPEC), the std of its triads' alignment to its housing (deg, per axis): what no
+#: drive can see, carried into the total rotation std. Consumer MEMS chips sit 0.3-1 deg off
+#: their board (the IMU array board's README, ../shared/realdata/multi_imu); calibrated modules
+#: and INS units are aligned to their housing by their maker. The grades' other priors (scale,
+#: non-orthogonality, g-sensitivity) are not yet used.
+HOUSING_ALIGNMENT_STD_DEG = {
+    "consumer": 0.5,
+    "industrial": 0.1,
+    "tactical": 0.05,
+    "navigation": 0.01,
+    "ideal": 0.0,
+}
 #: Sane ranges of the numbers (inclusive), with why: a value outside is a mistake (a unit, a
 #: typo) or would cost unbounded work (``window_s: 1e-6`` over an hour is 3.6 G windows).
 RANGES: dict[str, tuple[float, float, str]] = {

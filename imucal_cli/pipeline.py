@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from imucal_cli.config import Config, SensorConfig, load_config
+from imucal_cli.config import HOUSING_ALIGNMENT_STD_DEG, Config, SensorConfig, load_config
 from imucal_cli.core.biases import BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
 from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
@@ -47,7 +47,16 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
         gyro_bias_walk=np.radians(config.gyro_bias.process_noise_dps),
         gyro_bias_prior_std=np.radians(config.gyro_bias.initial_std_dps),
         consistency_alpha=config.calibration.consistency_alpha,
-        rotation_floor_deg=sensor.rotation_floor_deg,
+        # what no drive sees: the config's floor and both IMUs' alignment to their housings
+        rotation_floor_deg=float(
+            np.hypot.reduce(
+                [
+                    sensor.rotation_floor_deg,
+                    HOUSING_ALIGNMENT_STD_DEG[sensor.grade],
+                    HOUSING_ALIGNMENT_STD_DEG[config.base.grade],
+                ]
+            )
+        ),
         translation_floor_m=sensor.translation_floor_m,
     )
 

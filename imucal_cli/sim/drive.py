@@ -197,10 +197,12 @@ class SimulatedDrive:
                 "T_imu_lidar": mount.T_imu_lidar.to_dict(),
                 "prior_T_base_imu": self.priors[mount.name].to_dict(),
                 "translation_bound_m": 0.3,
+                "grade": "ideal",
             }
             for mount in self.mounts
         }
-        base: dict[str, Any] = {"topic": BASE_TOPIC, "frame": BASE_FRAME}
+        # simulated IMUs sit exactly in their housings: grade ideal (SPEC)
+        base: dict[str, Any] = {"topic": BASE_TOPIC, "frame": BASE_FRAME, "grade": "ideal"}
         if not np.allclose(self.options.base_T_base_imu.as_matrix(), np.eye(4), atol=0.0):
             base["T_base_imu"] = self.options.base_T_base_imu.to_dict()
         return {
