@@ -166,13 +166,16 @@ class _Spline:
         period = float(np.median(np.diff(t)))
         rate = 1.0 / period
         anti_alias = 0.4 * grid_rate if rate > 1.5 * grid_rate else None
+        knots = t
         if smooth is not None:
-            both = replace(smooth, rate_hz=rate, second_cutoff_hz=anti_alias)(both)
+            smooth = replace(smooth, rate_hz=rate, second_cutoff_hz=anti_alias)
+            step = _decimation(smooth, grid_rate)
+            both, knots = smooth(both, step), t[::step]
         elif anti_alias is not None:
             both = Lowpass(anti_alias, rate)(both)
         self.t = t
         self.period = period
-        self.spline = _NaturalCubic(t, both)
+        self.spline = _NaturalCubic(knots, both)
 
     def gyro(self, query: np.ndarray) -> np.ndarray:
         return self.spline(query)[:, 0:3]
@@ -187,6 +190,20 @@ class _Spline:
         j = np.clip(np.searchsorted(self.t, query), 1, len(self.t) - 1)
         inside = (query >= self.t[0]) & (query <= self.t[-1])
         return inside & (self.t[j] - self.t[j - 1] <= GAP_PERIODS * self.period)
+
+
+#: The largest response the low-pass may have above a decimated rate's Nyquist frequency.
+ALIAS_GAIN = 1e-7
+
+
+def _decimation(smooth: Lowpass, grid_rate: float) -> int:
+    """Every how many samples the low-passed signal can be kept: the most that leaves a rate
+    of at least the grid's and the filter's response below :data:`ALIAS_GAIN` at the new
+    Nyquist frequency (a spline through them then misses nothing the filter passes)."""
+    step = max(1, int(smooth.rate_hz / grid_rate + 1e-9))
+    while step > 1 and smooth.gain(np.array([smooth.rate_hz / step / 2]))[0] > ALIAS_GAIN:
+        step -= 1
+    return step
 
 
 class _NaturalCubic:

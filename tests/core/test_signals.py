@@ -36,3 +36,34 @@ def test_lowpass_with_a_second_cutoff_is_the_two_filters_in_turn():
     np.testing.assert_allclose(
         Lowpass(5.0, 200.0, 4, 40.0)(slow)[200:-200], slow[200:-200], atol=1e-6
     )
+
+
+@pytest.mark.parametrize(("n", "step"), [(4000, 2), (3001, 2), (2999, 4), (50, 2)])
+def test_lowpass_decimated_is_every_step_th_sample(n, step):
+    """Kept every ``step``-th sample, the low-pass gives what the full filter gives there: to
+    its response at the new Nyquist frequency (white noise in, the worst case, and a smooth
+    signal, whose only content there is what the transform's wrap-around leaves)."""
+    from imucal_cli.core.signals import Lowpass
+    from imucal_cli.core.streaming import ALIAS_GAIN, _decimation
+
+    lowpass = Lowpass(5.0, 200.0 * step / 2, 4, 40.0 * step / 2)
+    assert _decimation(lowpass, 100.0) == step
+    rng = np.random.default_rng(n)
+    noise = rng.normal(size=(n, 3))
+    full, kept = lowpass(noise), lowpass(noise, step)
+    assert kept.shape == full[::step].shape
+    np.testing.assert_allclose(kept, full[::step], rtol=0, atol=10 * ALIAS_GAIN)
+    t = np.arange(n) / lowpass.rate_hz
+    slow = np.stack([np.sin(2 * np.pi * 0.7 * t), 0.3 * t + np.cos(2 * np.pi * 1.9 * t)], 1)
+    np.testing.assert_allclose(
+        lowpass(slow, step), lowpass(slow)[::step], rtol=0, atol=10 * ALIAS_GAIN
+    )
+
+
+def test_no_decimation_where_the_response_would_alias():
+    """A low-pass that passes content near the new Nyquist frequency is not decimated."""
+    from imucal_cli.core.signals import Lowpass
+    from imucal_cli.core.streaming import _decimation
+
+    assert _decimation(Lowpass(20.0, 200.0, 4, 40.0), 100.0) == 1
+    assert _decimation(Lowpass(5.0, 150.0, 4, 40.0), 100.0) == 1
