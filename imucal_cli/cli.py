@@ -1191,9 +1191,22 @@ def simulate(
             "triads "
             "apart), tilting-mount, clock-offsets (+-40 ms), prior-off (0.5 m), accel-g, gyro-dps, "
             "ins-away (the base IMU turned and 1.6 m away, declared), clock-jitter (+-40 ms, "
-            "0.5 ms jitter, 1% drops, 200 Hz).",
+            "0.5 ms jitter, 1% drops, 200 Hz); consumer, industrial, mems-base (errors drawn "
+            "from those grades), gyros-low (both gyros 10% low).",
         ),
     ] = "none",
+    lidar_grade: Annotated[
+        str | None,
+        typer.Option(
+            help="Draw each lidar IMU's own errors from this grade (consumer, industrial, "
+            "tactical, navigation, ideal) and declare it in the config (default: ideal, or "
+            "the error class's).",
+        ),
+    ] = None,
+    base_grade: Annotated[
+        str | None,
+        typer.Option(help="The same for the base IMU (default: ideal, or the error class's)."),
+    ] = None,
     force: Annotated[
         bool,
         typer.Option(
@@ -1204,6 +1217,9 @@ def simulate(
     ] = False,
 ) -> None:
     """Simulate a drive: a log OUT with STEM.truth.yaml and STEM.config.yaml beside it."""
+    from dataclasses import replace
+
+    from imucal_cli.core.grades import GRADES
     from imucal_cli.documents import write_document
     from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
     from imucal_cli.sim.writers import write_imu_log
@@ -1231,8 +1247,20 @@ def simulate(
         time_offsets_s=tuple(time_offset_s) if time_offset_s else None,
         lidar_rate_hz=lidar_rate_hz,
     )
+    grades = {"lidar_grade": lidar_grade, "base_grade": base_grade}
+    for key, grade in grades.items():
+        if grade is not None and grade not in GRADES:
+            raise InputError(
+                f"--{key.replace('_', '-')}: {grade!r} is not one of {', '.join(GRADES)}"
+            )
     try:
-        drive = simulate_drive(with_errors(options, errors))
+        options = with_errors(options, errors)
+        options = replace(
+            options,
+            lidar_grade=lidar_grade or options.lidar_grade,
+            base_grade=base_grade or options.base_grade,
+        )
+        drive = simulate_drive(options)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     with _progress(f"writing {out}") as progress:

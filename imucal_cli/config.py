@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from imucal_cli.core.grades import GRADES
 from imucal_cli.errors import ConfigError, InputError
 from imucal_cli.names import name_problem, printable
 from imucal_cli.types import Transform
@@ -144,19 +145,7 @@ MAY_BE_ZERO = {"rotation_floor_deg", "translation_floor_m", "max_time_offset_s"}
 CHOICES = {
     "accel_units": ("auto", "mps2", "g"),
     "gyro_units": ("auto", "radps", "dps"),
-    "grade": ("consumer", "industrial", "tactical", "navigation", "ideal"),
-}
-#: Per IMU grade (SPEC), the std of its triads' alignment to its housing (deg, per axis): what no
-#: drive can see, carried into the total rotation std. Consumer MEMS chips sit 0.3-1 deg off
-#: their board (the IMU array board's README, ../shared/realdata/multi_imu); calibrated modules
-#: and INS units are aligned to their housing by their maker. The grades' other priors (scale,
-#: non-orthogonality, g-sensitivity) are not yet used.
-HOUSING_ALIGNMENT_STD_DEG = {
-    "consumer": 0.5,
-    "industrial": 0.1,
-    "tactical": 0.05,
-    "navigation": 0.01,
-    "ideal": 0.0,
+    "grade": tuple(GRADES),
 }
 #: Sane ranges of the numbers (inclusive), with why: a value outside is a mistake (a unit, a
 #: typo) or would cost unbounded work (``window_s: 1e-6`` over an hour is 3.6 G windows).

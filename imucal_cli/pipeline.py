@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from imucal_cli.config import HOUSING_ALIGNMENT_STD_DEG, Config, SensorConfig, load_config
+from imucal_cli.config import Config, SensorConfig, load_config
 from imucal_cli.core.biases import BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
+from imucal_cli.core.grades import GRADES
 from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.base import Loss
@@ -52,12 +53,14 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
             np.hypot.reduce(
                 [
                     sensor.rotation_floor_deg,
-                    HOUSING_ALIGNMENT_STD_DEG[sensor.grade],
-                    HOUSING_ALIGNMENT_STD_DEG[config.base.grade],
+                    np.degrees(GRADES[sensor.grade].housing_rad),
+                    np.degrees(GRADES[config.base.grade].housing_rad),
                 ]
             )
         ),
         translation_floor_m=sensor.translation_floor_m,
+        sensor_grade=sensor.grade,
+        base_grade=config.base.grade,
     )
 
 

@@ -252,13 +252,15 @@ def test_check_config_prints_no_negative_zero():
 def test_grades_default_to_a_consumer_lidar_imu_and_a_tactical_ins(base_dict):
     """SPEC grades: the housing alignment a grade carries joins the rotation floor of both
     IMUs (consumer 0.5 deg, tactical 0.05 deg); ``ideal`` adds none."""
-    from imucal_cli.config import HOUSING_ALIGNMENT_STD_DEG
+    from imucal_cli.core.grades import GRADES
     from imucal_cli.pipeline import options_for
 
     config = parse_config(base_dict, "x.yaml")
     assert config.base.grade == "tactical" and all(s.grade == "consumer" for s in config.sensors)
     floor = options_for(config, config.sensors[0]).rotation_floor_deg
     assert floor == pytest.approx(np.hypot(0.5, 0.05), rel=1e-12)
-    assert HOUSING_ALIGNMENT_STD_DEG["ideal"] == 0.0
+    assert GRADES["ideal"].housing_rad == 0.0
+    options = options_for(config, config.sensors[0])
+    assert (options.sensor_grade, options.base_grade) == ("consumer", "tactical")
     with pytest.raises(ConfigError, match="grade"):
         parse_config(_mutate(base_dict, "base.grade", "excellent"), "x.yaml")

@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.core import checks, status
-from imucal_cli.core.model import KNOT, ROTATION, TIME_OFFSET, TRANSLATION
+from imucal_cli.core.grades import GRADES, error_prior_std
+from imucal_cli.core.model import ACCEL_ROTATION, KNOT, ROTATION, TIME_OFFSET, TRANSLATION
 from imucal_cli.core.moments import WindowMoments
 from imucal_cli.core.segments import OBSERVABLE_FRACTION_OF_BOUND, WindowInfo
 from imucal_cli.core.signals import LOWPASS_HZ, Lowpass
@@ -53,6 +54,8 @@ class CalibrationOptions:
     consistency_alpha: float = 0.001  # false-alarm rate of each model-consistency check
     rotation_floor_deg: float = 0.0  # systematic std the data cannot see, added to the result's
     translation_floor_m: float = 0.0
+    sensor_grade: str = "ideal"  # SPEC "IMU grades" (core.grades.GRADES): the priors on the
+    base_grade: str = "ideal"  # IMUs' own errors carried into the std
 
 
 @dataclass(frozen=True)
@@ -236,17 +239,21 @@ def solve(
     problem = _problem(windows, prior, options, sigma, lowpass, dw_noise_var)
     alpha = options.consistency_alpha
     fit = _first_fit(problem, options, clock)
-    fit, own = checks.own_errors(problem, fit, alpha)
+    prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
+    fit, own = checks.own_errors(problem, fit, alpha, prior_std)
     rigid, tilted = checks.rigid_mount(problem, fit, alpha)
     if not rigid.passed:
         fit = tilted
     fit, clock_placed, clock_notes = _clock(problem, fit, options, clock)
-    later = [checks.rotation_agreement(problem, fit, alpha), checks.residual_level(problem, fit)]
+    later = [
+        checks.rotation_agreement(problem, fit, alpha, prior_std[ACCEL_ROTATION]),
+        checks.residual_level(problem, fit),
+    ]
     later += given
     found = [rigid, *later]
     failed = [c for c in found if not c.passed]
     floors = (np.radians(options.rotation_floor_deg), options.translation_floor_m)
-    spread = uncertainty(problem, fit, failed, floors)
+    spread = uncertainty(problem, fit, failed, floors, prior_std)
     observable = fit.free[TRANSLATION].copy()
     warnings = [
         *status.own_error_sentences(own),

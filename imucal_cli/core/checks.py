@@ -17,7 +17,9 @@ import numpy as np
 from imucal_cli.core.model import (
     ACCEL_AXES,
     ACCEL_GLOBALS,
+    ACCEL_ROTATION,
     AXIS_ERRORS,
+    BASE_GYRO_SCALE,
     G_SENSITIVITY,
     GYRO_AXES,
     N_PARAMETERS,
@@ -53,6 +55,14 @@ OWN_ERRORS = (
     ("gyro", GYRO_AXES, INTRINSICS_MAX_STD),
     ("g-sensitivity", G_SENSITIVITY, G_SENSITIVITY_MAX_STD),
 )
+#: The accelerometer triad's misalignment to the gyro's: estimated with the others where the
+#: grades declared allow one (with ``ideal`` IMUs a disagreement is the rotation check's).
+MISALIGNMENT = ("misalignment", ACCEL_ROTATION, INTRINSICS_MAX_STD)
+#: The base gyro's scale error, tested after the sensor's errors: in the gyro's equation it is
+#: the sensor gyro's common scale, only the lever arm's terms tell it apart.
+BASE_SCALE = ("base gyro scale", BASE_GYRO_SCALE, INTRINSICS_MAX_STD)
+BASE_SCALE_FREE = np.zeros(N_PARAMETERS, dtype=bool)
+BASE_SCALE_FREE[BASE_GYRO_SCALE] = True
 
 
 @dataclass(frozen=True)
@@ -94,25 +104,58 @@ def _without_errors(fit: Fit, keep: np.ndarray) -> Fit:
     return replace(fit, point=point)
 
 
-def own_errors(problem: Problem, fit: Fit, alpha: float) -> tuple[Fit, dict[str, dict[str, Any]]]:
-    """The sensor's own errors (:data:`OWN_ERRORS`) from one joint fit: the components the
-    drive determines to their group's std, a group kept where a chi-square test at ``alpha``
-    finds it. Returns the fit (with the groups kept) and per group ``estimated`` and, where any
-    component was determined, ``chi2``, ``dof``, ``value`` and ``std`` (NaN: not determined)."""
-    free = fit.free.copy()
-    free[SENSOR_ERRORS] = True
+def own_errors(
+    problem: Problem, fit: Fit, alpha: float, prior_std: np.ndarray | None = None
+) -> tuple[Fit, dict[str, dict[str, Any]]]:
+    """The IMUs' own errors: the sensor's (:func:`sensor_errors`; the triads' misalignment
+    where ``prior_std``, the grades', allows one), then the base gyro's scale
+    (:data:`BASE_SCALE`) where the drive determines it and a chi-square test finds it."""
+    groups: tuple[tuple[str, slice, float], ...] = OWN_ERRORS
+    if prior_std is not None and prior_std[ACCEL_ROTATION].any():
+        groups = (*OWN_ERRORS, MISALIGNMENT)
+    fit, found = sensor_errors(problem, fit, alpha, groups)
+    name, which, max_std = BASE_SCALE
+    found[name] = {"estimated": False}
+    try:
+        joint = problem.fit(fit, fit.free | BASE_SCALE_FREE)
+    except np.linalg.LinAlgError:  # the drive does not tell it from the sensor gyro's scale
+        return fit, found
+    std, value = joint.std()[which], joint.point.own(which)
+    if not std[0] <= max_std:
+        return fit, found
+    chi2 = _chi2(value, joint.covariance[which, which])
+    present = chi2 > chi2_limit(1, alpha)
+    found[name] = {"estimated": present, "chi2": chi2, "dof": 1, "value": value, "std": std}
+    return (joint if present else fit), found
+
+
+def sensor_errors(
+    problem: Problem,
+    fit: Fit,
+    alpha: float,
+    groups: tuple[tuple[str, slice, float], ...] = OWN_ERRORS,
+) -> tuple[Fit, dict[str, dict[str, Any]]]:
+    """The sensor's own errors (``groups``, each (name, globals, std to be estimated)) from one
+    joint fit: the components the drive determines to their group's std, a group kept where a
+    chi-square test at ``alpha`` finds it. Returns the fit (with the groups kept) and per group
+    ``estimated`` and, where any component was determined, ``chi2``, ``dof``, ``value`` and
+    ``std`` (NaN: not determined)."""
+    estimable = np.zeros(N_PARAMETERS, dtype=bool)
+    for _, which, _ in groups:
+        estimable[which] = True
+    free = fit.free | estimable
     joint = problem.fit(fit, free)
     std = joint.std()
     shown = np.zeros(N_PARAMETERS, dtype=bool)
-    for _, which, max_std in OWN_ERRORS:
+    for _, which, max_std in groups:
         shown[which] = std[which] <= max_std
     if not shown.any():
-        return fit, {name: {"estimated": False} for name, _, _ in OWN_ERRORS}
+        return fit, {name: {"estimated": False} for name, _, _ in groups}
     free[SENSOR_ERRORS] = shown[SENSOR_ERRORS]
     joint = problem.fit(_without_errors(joint, shown[SENSOR_ERRORS]), free)
     found: dict[str, dict[str, Any]] = {}
     kept = fit.free.copy()
-    for name, which, _ in OWN_ERRORS:
+    for name, which, _ in groups:
         group = shown[which]
         if not group.any():
             found[name] = {"estimated": False}
@@ -154,10 +197,14 @@ def rigid_mount(problem: Problem, fit: Fit, alpha: float) -> tuple[Check, Fit]:
     return Check("rigid_mount", chi2 <= chi2_limit(2, alpha), figures), tilted
 
 
-def rotation_agreement(problem: Problem, fit: Fit, alpha: float) -> Check:
+def rotation_agreement(
+    problem: Problem, fit: Fit, alpha: float, misalignment_std: np.ndarray | None = None
+) -> Check:
     """The rotation from the gyro alone against the one from the accelerometer alone: one
     linear step each from the joint solution (a direction one equation alone leaves free stays
-    put, with its large covariance, instead of wandering off)."""
+    put, with its large covariance, instead of wandering off). Where the triads' misalignment
+    is not estimated, the grades' prior on it (``misalignment_std``, rad per axis) is a
+    disagreement the model allows."""
     rotation_only = np.zeros(N_PARAMETERS, dtype=bool)
     rotation_only[ROTATION] = True
     by_gyro = problem.fit(
@@ -167,12 +214,17 @@ def rotation_agreement(problem: Problem, fit: Fit, alpha: float) -> Check:
         N_PARAMETERS, dtype=bool
     )  # the free globals the accelerometer holds, but tau
     accel_only[ACCEL_GLOBALS] = fit.free[ACCEL_GLOBALS]
-    accel_only[TIME_OFFSET] = False
+    accel_only[TIME_OFFSET] = accel_only[ACCEL_ROTATION] = False
     by_accel = problem.fit(
         fit, accel_only, use=(False, True), max_iterations=1, rotation_prior_std=1.0
     )
     delta = rotation_difference(by_accel.point.R, by_gyro.point.R)
-    chi2 = _chi2(delta, by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base())
+    allowed = np.zeros((3, 3))
+    if misalignment_std is not None and not fit.free[ACCEL_ROTATION].any():
+        allowed = np.diag(np.square(misalignment_std))
+    chi2 = _chi2(
+        delta, by_gyro.rotation_covariance_base() + by_accel.rotation_covariance_base() + allowed
+    )
     figures = {"chi2": chi2, "dof": 3, "difference_deg": float(np.degrees(np.linalg.norm(delta)))}
     passed = chi2 <= chi2_limit(3, alpha)
     return Check(

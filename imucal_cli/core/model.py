@@ -6,19 +6,29 @@ both triads resampled onto the base's grid at ``t + tau0`` and low-passed alike:
 
 - gyro (eq. 10)::
 
-      w_I = (I + E_g) R^T (w_B - dtau dw_B) + G f_I + b_g(t)
+      w_I = (I + E_g) R^T (w_B - dtau dw_B) / (1 + s_B) + G f_I + b_g(t)
 
 - accelerometer (eqs. 11-12)::
 
-      f_I = (I + E_a) R^T (f_B - dtau df_B + (A - dtau dA) t + f_B x theta) + b_a(t)
+      f_I = (I + E_a) (I - [phi]x) R^T ((I + D_B)^-1 (f_B - dtau df_B)
+            + (A - dtau dA) t + f_B x theta) + b_a(t)
 
-  with ``A = [w_B]x^2 + [dw_B]x`` (centripetal and Euler terms) and ``dA`` its derivative.
+  with ``A = [w_B]x^2 + [dw_B]x`` (centripetal and Euler terms) and ``dA`` its derivative, both
+  from the base gyro's readings corrected for its scale: the symmetric parts (``[w]x^2``,
+  ``[dw]x[w]x + [w]x[dw]x``) divided by ``(1 + s_B)^2``, the skew parts (``[dw]x``,
+  ``[ddw]x``) by ``1 + s_B``.
 
 The sensor's own errors: ``E_a``, ``E_g`` each triad's axis errors (symmetric: scale factors
 on the diagonal, non-orthogonality off it, :data:`SYMMETRIC`), ``G`` the gyro's g-sensitivity
-(rad/s per m/s^2, acting on the sensor's own specific force), ``theta = (k_roll f_y, k_pitch
-f_x, 0)`` a mount that tilts with the vehicle's specific force (base axes), ``b_g``, ``b_a`` the
-relative biases, piecewise linear in time with a knot every window.
+(rad/s per m/s^2, acting on the sensor's own specific force), ``phi`` the accelerometer
+triad's misalignment to the gyro triad (``R`` is the gyro triad's), ``theta = (k_roll f_y,
+k_pitch f_x, 0)`` a mount that tilts with the vehicle's specific force (base axes), ``b_g``,
+``b_a`` the relative biases, piecewise linear in time with a knot every window. The base IMU's
+own errors that the sensor's relative ones cannot absorb: ``s_B`` its gyro's common scale error
+(it scales the centripetal and Euler terms unlike the sensor's specific force) and ``D_B`` its
+accelerometer's axis errors (they scale ``f_B`` and not the lever arm's term). The estimator
+estimates the errors a drive determines and carries the rest, with each IMU grade's prior
+(:mod:`imucal_cli.core.grades`), into the reported std.
 
 Every residual is linear in a data vector ``x``, ``r = C(p) x``:
 
@@ -85,7 +95,8 @@ class Layout:
 #: The estimate's global unknowns. ``rotation``: a step right-multiplied onto ``R_base_imu``
 #: (IMU axes); ``tilt``: roll per lateral and pitch per longitudinal specific force (rad per
 #: m/s^2); ``accel_axes`` and ``gyro_axes``: each triad's ``E`` by :data:`SYMMETRIC`;
-#: ``g_sensitivity``: ``G`` row-major (the IMU's axes).
+#: ``g_sensitivity``: ``G`` row-major (the IMU's axes); ``accel_rotation``: ``phi``;
+#: ``base_gyro_scale``: ``s_B``; ``base_accel_axes``: ``D_B`` by :data:`SYMMETRIC`.
 PARAMETERS = Layout(
     ("rotation", 3),
     ("translation", 3),
@@ -94,19 +105,35 @@ PARAMETERS = Layout(
     ("accel_axes", 6),
     ("gyro_axes", 6),
     ("g_sensitivity", 9),
+    ("accel_rotation", 3),
+    ("base_gyro_scale", 1),
+    ("base_accel_axes", 6),
 )
 N_PARAMETERS = PARAMETERS.size
 ROTATION, TRANSLATION, TILT = PARAMETERS["rotation"], PARAMETERS["translation"], PARAMETERS["tilt"]
 TIME_OFFSET = PARAMETERS.index("time_offset")
 ACCEL_AXES, GYRO_AXES = PARAMETERS["accel_axes"], PARAMETERS["gyro_axes"]
 G_SENSITIVITY = PARAMETERS["g_sensitivity"]
-#: The sensor's own errors, as :attr:`Point.errors` holds them.
-SENSOR_ERRORS = slice(ACCEL_AXES.start, G_SENSITIVITY.stop)
+ACCEL_ROTATION, BASE_GYRO_SCALE = PARAMETERS["accel_rotation"], PARAMETERS["base_gyro_scale"]
+BASE_ACCEL_AXES = PARAMETERS["base_accel_axes"]
+#: Both IMUs' own errors, as :attr:`Point.errors` holds them.
+SENSOR_ERRORS = slice(ACCEL_AXES.start, BASE_ACCEL_AXES.stop)
 #: The extrinsics and the clock: what the jackknife and the reported covariance cover.
 EXTRINSICS = slice(ROTATION.start, TIME_OFFSET + 1)
 #: The globals each equation holds, in the order of its derivatives' columns.
-GYRO_GLOBALS = PARAMETERS.indices("rotation", "time_offset", "gyro_axes", "g_sensitivity")
-ACCEL_GLOBALS = PARAMETERS.indices("rotation", "translation", "time_offset", "tilt", "accel_axes")
+GYRO_GLOBALS = PARAMETERS.indices(
+    "rotation", "time_offset", "gyro_axes", "g_sensitivity", "base_gyro_scale"
+)
+ACCEL_GLOBALS = PARAMETERS.indices(
+    "rotation",
+    "translation",
+    "time_offset",
+    "tilt",
+    "accel_axes",
+    "accel_rotation",
+    "base_gyro_scale",
+    "base_accel_axes",
+)
 
 GYRO_DATA = Layout(("w_I", 3), ("f_I", 3), ("w_B", 3), ("dw_B", 3), ("one", 1), ("u", 1))
 ACCEL_DATA = Layout(
@@ -146,6 +173,12 @@ for _column, _row, _component, _sign in (
     (2, 1, 0, -1),
 ):
     VEC_SKEW[3 * _column + _row, _component] = _sign
+#: The symmetric and skew parts of a 3x3 matrix on its column-major vec (9x9 each).
+_TRANSPOSE = np.zeros((9, 9))
+for _i in range(3):
+    for _j in range(3):
+        _TRANSPOSE[3 * _j + _i, 3 * _i + _j] = 1.0
+VEC_SYMMETRIC, VEC_SKEW_PART = (np.eye(9) + _TRANSPOSE) / 2, (np.eye(9) - _TRANSPOSE) / 2
 
 
 @dataclass
@@ -185,6 +218,34 @@ def triad_axes(errors: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.tensordot(errors, SYMMETRIC, axes=1)
 
 
+def _accel_axes(point: Point) -> tuple[np.ndarray, np.ndarray]:
+    """The accelerometer's ``(I + E_a)`` and ``(I + E_a)(I - [phi]x)``: what stands left of
+    ``R^T`` in its equation."""
+    axes = triad_axes(point.own(ACCEL_AXES))
+    return axes, axes @ (np.eye(3) - skew(point.own(ACCEL_ROTATION)))
+
+
+def _gyro_gain(point: Point) -> float:
+    """``1 / (1 + s_B)``: the base gyro's readings to rates."""
+    return 1.0 / (1.0 + float(point.own(BASE_GYRO_SCALE)[0]))
+
+
+def _vec_gain(g: float) -> np.ndarray:
+    """``vec A``'s correction for the base gyro's scale (9x9): symmetric part ``g^2``, skew
+    ``g``."""
+    return g * g * VEC_SYMMETRIC + g * VEC_SKEW_PART
+
+
+def _vec_gain_derivative(g: float) -> np.ndarray:
+    """``d (vec gain) / d s_B`` with ``g = 1 / (1 + s_B)`` (``dg/ds_B = -g^2``)."""
+    return -2.0 * g**3 * VEC_SYMMETRIC - g * g * VEC_SKEW_PART
+
+
+def _base_accel_inverse(point: Point) -> np.ndarray:
+    """``(I + D_B)^-1``: the base accelerometer's readings to specific force."""
+    return np.linalg.inv(triad_axes(point.own(BASE_ACCEL_AXES)))
+
+
 def kron_t(t: np.ndarray) -> np.ndarray:
     """``t^T (x) I3``: (3, 9) with ``A t = (t^T (x) I3) vec A``."""
     return np.hstack([t[0] * np.eye(3), t[1] * np.eye(3), t[2] * np.eye(3)])
@@ -211,7 +272,7 @@ def _bias_columns(C: np.ndarray, layout: Layout, bj: np.ndarray, bk: np.ndarray)
 def gyro_coefficients(point: Point, bj: np.ndarray, bk: np.ndarray) -> np.ndarray:
     """``C`` of ``r_g = C x_g`` per window, (K, 3, 14), the gyro biases at the window's knots."""
     D = GYRO_DATA
-    Rt = triad_axes(point.own(GYRO_AXES)) @ point.R.inv().as_matrix()
+    Rt = triad_axes(point.own(GYRO_AXES)) @ point.R.inv().as_matrix() * _gyro_gain(point)
     C = np.zeros((len(bj), 3, D.size))
     C[:, :, D["w_I"]] = np.eye(3)
     C[:, :, D["f_I"]] = -point.own(G_SENSITIVITY).reshape(3, 3)
@@ -224,12 +285,13 @@ def gyro_coefficients(point: Point, bj: np.ndarray, bk: np.ndarray) -> np.ndarra
 def accel_coefficients(point: Point, aj: np.ndarray, ak: np.ndarray) -> np.ndarray:
     """``C`` of ``r_a = C x_a`` per window, (K, 3, 33), the accelerometer biases at the knots."""
     D = ACCEL_DATA
-    Rt = triad_axes(point.own(ACCEL_AXES)) @ point.R.inv().as_matrix()
-    T = kron_t(point.t)
+    Rt = _accel_axes(point)[1] @ point.R.inv().as_matrix()
+    T = kron_t(point.t) @ _vec_gain(_gyro_gain(point))
+    F = Rt @ _base_accel_inverse(point)
     C = np.zeros((len(aj), 3, D.size))
     C[:, :, D["f_I"]] = np.eye(3)
-    C[:, :, D["f_B"]] = -Rt
-    C[:, :, D["df_B"]] = point.dtau * Rt
+    C[:, :, D["f_B"]] = -F
+    C[:, :, D["df_B"]] = point.dtau * F
     C[:, :, D["vec_A"]] = -Rt @ T
     C[:, :, D["vec_dA"]] = point.dtau * Rt @ T
     C[:, :, D["tilt_terms"]] = tilt_columns(Rt, point.tilt)
@@ -246,14 +308,20 @@ def _rotating(C: np.ndarray, layout: Layout, fixed: Sequence[str]) -> np.ndarray
 
 
 def _axis_derivatives(
-    D: np.ndarray, columns: Sequence[int], rotating: np.ndarray, axes: np.ndarray
+    D: np.ndarray,
+    columns: Sequence[int],
+    rotating: np.ndarray,
+    axes: np.ndarray,
+    left: np.ndarray | None = None,
 ) -> None:
-    """Every column ``-(I + E) R^T K`` (``K`` data-free) under a rotation step (``R^T -> (I -
-    [d]x) R^T``) takes ``-(I + E) [d]x (I + E)^-1`` of itself, and under an axis error ``E_b``
-    ``S_b (I + E)^-1`` of itself; ``columns``: the rotation's three, then the axis errors' six."""
-    inverse = np.linalg.inv(axes)
+    """Every column ``-L R^T K`` (``K`` data-free; ``L = (I + E) M``, ``left``, ``M = I`` by
+    default) under a rotation step (``R^T -> (I - [d]x) R^T``) takes ``-L [d]x L^-1`` of
+    itself, and under an axis error ``E_b`` ``S_b (I + E)^-1`` of itself; ``columns``: the
+    rotation's three, then the axis errors' six."""
+    left = axes if left is None else left
+    inverse, left_inverse = np.linalg.inv(axes), np.linalg.inv(left)
     for m in range(3):
-        D[columns[m]] = -(axes @ skew(np.eye(3)[m]) @ inverse) @ rotating
+        D[columns[m]] = -(left @ skew(np.eye(3)[m]) @ left_inverse) @ rotating
     for b in range(6):
         D[columns[3 + b]] = (SYMMETRIC[b] @ inverse) @ rotating
 
@@ -270,7 +338,10 @@ def gyro_derivatives(point: Point) -> np.ndarray:
     rotating = _rotating(C, D, ("w_I", "f_I", "one", "u"))
     axis_columns = [P.index(p) for p in (*range(3), *range(GYRO_AXES.start, GYRO_AXES.stop))]
     _axis_derivatives(out, axis_columns, rotating, axes)
-    out[P.index(TIME_OFFSET), :, D["dw_B"]] = Rt
+    out[P.index(TIME_OFFSET), :, D["dw_B"]] = Rt * _gyro_gain(point)
+    # 1 / (1 + s_B) on the base's columns: its derivative is -1 / (1 + s_B) of them
+    base = np.r_[D["w_B"], D["dw_B"]]
+    out[P.index(BASE_GYRO_SCALE.start)][:, base] = -_gyro_gain(point) * C[:, base]
     f_I = D["f_I"].start
     for i in range(3):
         for j in range(3):  # G_ij: row i of f_I's block takes -1 in column j
@@ -282,22 +353,34 @@ def accel_derivatives(point: Point) -> np.ndarray:
     """``dC_a / dp`` for the globals in :data:`ACCEL_GLOBALS`: (15, 3, 33), the same for every
     window (as :func:`gyro_derivatives`)."""
     D, P = ACCEL_DATA, list(ACCEL_GLOBALS)
-    axes = triad_axes(point.own(ACCEL_AXES))
-    Rt = axes @ point.R.inv().as_matrix()
+    axes, left = _accel_axes(point)
+    Rt = left @ point.R.inv().as_matrix()
+    g, inverse_B = _gyro_gain(point), _base_accel_inverse(point)
     C = accel_coefficients(point, np.zeros((1, 3)), np.zeros((1, 3)))[0]
     out = np.zeros((len(P), 3, D.size))
     rotating = _rotating(C, D, ("f_I", "one", "u"))
     axis_columns = [P.index(p) for p in (*range(3), *range(ACCEL_AXES.start, ACCEL_AXES.stop))]
-    _axis_derivatives(out, axis_columns, rotating, axes)
+    _axis_derivatives(out, axis_columns, rotating, axes, left)
+    to_rotating = np.linalg.inv(left)  # rotating = -L R^T K; phi_m: (I + E) [e_m]x R^T K
     for m in range(3):
-        E = kron_t(np.eye(3)[m])
+        out[P.index(ACCEL_ROTATION.start + m)] = (
+            -(axes @ skew(np.eye(3)[m]) @ to_rotating) @ rotating
+        )
+        E = kron_t(np.eye(3)[m]) @ _vec_gain(g)
         out[P.index(TRANSLATION.start + m), :, D["vec_A"]] = -Rt @ E
         out[P.index(TRANSLATION.start + m), :, D["vec_dA"]] = point.dtau * Rt @ E
     tau = P.index(TIME_OFFSET)
-    out[tau, :, D["df_B"]] = Rt
-    out[tau, :, D["vec_dA"]] = Rt @ kron_t(point.t)
+    out[tau, :, D["df_B"]] = Rt @ inverse_B
+    out[tau, :, D["vec_dA"]] = Rt @ kron_t(point.t) @ _vec_gain(g)
     for k, unit in enumerate(np.eye(2)):
         out[P.index(TILT.start + k), :, D["tilt_terms"]] = tilt_columns(Rt, unit)
+    gain_step = Rt @ kron_t(point.t) @ _vec_gain_derivative(g)
+    scale = P.index(BASE_GYRO_SCALE.start)
+    out[scale, :, D["vec_A"]], out[scale, :, D["vec_dA"]] = -gain_step, point.dtau * gain_step
+    for b in range(6):  # d (I + D_B)^-1 = -(I + D_B)^-1 S_b (I + D_B)^-1
+        step_B = Rt @ inverse_B @ SYMMETRIC[b] @ inverse_B
+        column = P.index(BASE_ACCEL_AXES.start + b)
+        out[column, :, D["f_B"]], out[column, :, D["df_B"]] = step_B, -point.dtau * step_B
     return out
 
 

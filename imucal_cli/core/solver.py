@@ -484,6 +484,15 @@ class Problem:
             iterations,
         )
 
+    def information(self, fit: Fit, free: np.ndarray) -> np.ndarray:
+        """The Fisher information of the ``free`` globals at the fit's point, with its
+        residual scales, the biases eliminated (the inverse covariance :meth:`fit` reports)."""
+        lin = self.linearised(fit.point, fit.knots)
+        weights = np.ones(len(self.used))
+        scales = (fit.scale_g, fit.scale_a)
+        free_idx = np.flatnonzero(free)
+        return self._reduce(lin, scales, (True, True), weights, fit.knots, free_idx, None).S
+
     def _scales(
         self, lin: Linearisation, weights: np.ndarray, t: np.ndarray
     ) -> tuple[float, float]:

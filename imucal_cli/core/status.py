@@ -56,6 +56,12 @@ def own_error_sentences(found: dict[str, dict[str, Any]]) -> list[str]:
         if name == "g-sensitivity":
             what = "gyro g-sensitivity"
             detail = f"largest {np.degrees(np.max(np.abs(value))) * GRAVITY_MPS2:.3f} deg/s per g"
+        elif name == "misalignment":
+            what = "the accelerometer triad's misalignment to the gyro's"
+            detail = ", ".join(f"{v:+.3f}" for v in np.degrees(value)) + " deg"
+        elif name == "base gyro scale":
+            what = "the base gyro's scale error"
+            detail = f"{100 * value[0]:+.2f}% (it scales the lever arm's terms)"
         else:
             what = f"{name} axis errors"
             detail = (

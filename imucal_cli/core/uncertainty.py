@@ -4,7 +4,8 @@ The inverse Fisher information (the residual variance from the fit, corrected fo
 low-pass's correlation of neighbouring residuals) is inflated per axis to a delete-a-group
 jackknife over the windows where that spreads more, then by the checks that fail; a
 translation axis on its box gets the distance to where the data pull it, an axis the drive does
-not determine the box's own variance, and the config's systematic floors are added.
+not determine the box's own variance; what the IMUs' own errors the fit holds at zero would
+move (their grades' priors) and the config's systematic floors are added.
 """
 
 from __future__ import annotations
@@ -72,18 +73,47 @@ class Uncertainty:
     pulls_m: np.ndarray  # (3,) how much further the data pull each axis on the box
 
 
-def fisher_extrinsics(fit: Fit) -> np.ndarray:
-    """The Fisher covariance of the extrinsics and the clock (7x7), rotation about base axes."""
+def carried(problem: Problem, fit: Fit, prior_std: np.ndarray) -> np.ndarray:
+    """What the errors the fit holds at zero (not free, with a prior std in ``prior_std``, per
+    global) add to the extrinsics' covariance (6x6, rotation about the base axes): the
+    consider covariance ``K P K^T``, ``K = I_ff^-1 I_fc`` the free globals' response to the
+    held ones (``I`` the Fisher information of both at the fit), ``P`` their prior."""
+    held = ~fit.free & (prior_std > 0)
+    if not held.any():
+        return np.zeros((6, 6))
+    both = fit.free | held
+    information = problem.information(fit, both)
+    in_both = np.flatnonzero(both)
+    f, c = fit.free[in_both], held[in_both]
+    response = np.linalg.solve(information[np.ix_(f, f)], information[np.ix_(f, c)])
+    spread = np.zeros((len(prior_std), len(prior_std)))
+    spread[np.ix_(fit.free, fit.free)] = (response * prior_std[held] ** 2) @ response.T
+    return _to_base(fit, spread[EXTRINSICS, EXTRINSICS])[:TIME_OFFSET, :TIME_OFFSET]
+
+
+def _to_base(fit: Fit, covariance: np.ndarray) -> np.ndarray:
+    """A 7x7 covariance of the extrinsics and the clock with the rotation about base axes."""
     to_base = np.eye(7)
     to_base[ROTATION, ROTATION] = fit.point.R.as_matrix()
-    return to_base @ fit.covariance[EXTRINSICS, EXTRINSICS] @ to_base.T
+    return to_base @ covariance @ to_base.T
+
+
+def fisher_extrinsics(fit: Fit) -> np.ndarray:
+    """The Fisher covariance of the extrinsics and the clock (7x7), rotation about base axes."""
+    return _to_base(fit, fit.covariance[EXTRINSICS, EXTRINSICS])
 
 
 def uncertainty(
-    problem: Problem, fit: Fit, failed: Sequence[Check], floors: tuple[float, float]
+    problem: Problem,
+    fit: Fit,
+    failed: Sequence[Check],
+    floors: tuple[float, float],
+    prior_std: np.ndarray | None = None,
 ) -> Uncertainty:
     """The covariance to report (module docstring); ``floors``: the systematic std of the
-    rotation (rad) and the translation (m) the data cannot see."""
+    rotation (rad) and the translation (m) the data cannot see; ``prior_std``: the IMUs' own
+    errors' prior (per global, :func:`~imucal_cli.core.grades.error_prior_std`), what of them
+    the fit holds at zero carried into the total (:func:`carried`)."""
     free7 = fit.free[EXTRINSICS]
     fisher = fisher_extrinsics(fit)
     fisher_std = np.sqrt(np.clip(np.diag(fisher), 0.0, None))
@@ -110,6 +140,8 @@ def uncertainty(
         cov7[TRANSLATION.start + axis, TRANSLATION.start + axis] = bound**2 / 3.0
         statistical[TRANSLATION.start + axis, TRANSLATION.start + axis] = bound**2 / 3.0
     cov6 = cov7[:TIME_OFFSET, :TIME_OFFSET].copy()
+    if prior_std is not None:
+        cov6 += carried(problem, fit, prior_std)
     cov6[ROTATION, ROTATION] += floors[0] ** 2 * np.eye(3)
     cov6[TRANSLATION, TRANSLATION] += floors[1] ** 2 * np.eye(3)
     tau_std = float(np.sqrt(cov7[TIME_OFFSET, TIME_OFFSET])) if fit.free[TIME_OFFSET] else None

@@ -17,6 +17,7 @@ from imucal_cli.config import (
     SegmentsConfig,
     parse_config,
 )
+from imucal_cli.core.grades import GRADES
 from imucal_cli.pipeline import DriveStreams
 from imucal_cli.sim.imu import MEMS_LIDAR, TACTICAL_BASE, ImuErrorModel, SimulatedImu, simulate_imu
 from imucal_cli.sim.rig import DEFAULT_MOUNTS, LidarMount, cad_prior
@@ -58,6 +59,10 @@ class DriveOptions:
     #: Where the base IMU sits in B (an INS is rarely at the rear-axle centre in B's axes).
     base_T_base_imu: Transform = field(default_factory=Transform.identity)
     errors: str = "none"  # the error class applied (:func:`with_errors`), for the truth file
+    #: The grades (SPEC "IMU grades") each IMU's own errors are drawn from and the config
+    #: declares; ``ideal``: none beyond the models' (and the error class's).
+    lidar_grade: str = "ideal"
+    base_grade: str = "ideal"
 
 
 #: Realistic MEMS errors of a lidar's IMU beyond noise and bias: 0.5% scale factors, 0.2 deg
@@ -84,6 +89,18 @@ ERROR_CLASSES: dict[str, dict[str, Any]] = {
     "gyro-dps": {"lidar": {"gyro_units": "dps"}},
     # an INS upside down, yawed 90 deg, 1.4 m ahead and 0.75 m up (declared: base.T_base_imu)
     "ins-away": {"drive": {"base_T_base_imu": INS_AWAY}},
+    # each IMU's errors drawn from the grade the config declares (SPEC "IMU grades")
+    "consumer": {"drive": {"lidar_grade": "consumer", "base_grade": "tactical"}},
+    "industrial": {"drive": {"lidar_grade": "industrial", "base_grade": "tactical"}},
+    "mems-base": {
+        "drive": {"lidar_grade": "consumer", "base_grade": "consumer", "base_model": MEMS_LIDAR}
+    },
+    # both gyros read 10% low (declared consumer and tactical: beyond either grade)
+    "gyros-low": {
+        "drive": {"lidar_grade": "consumer", "base_grade": "tactical"},
+        "lidar": {"gyro_scale": -0.1},
+        "base": {"gyro_scale": -0.1},
+    },
     # clocks up to 40 ms off on 200 Hz lidar IMUs, 0.5 ms stamp jitter, 1% messages dropped
     "clock-jitter": {
         "drive": {"max_time_offset_s": 0.04, "lidar_rate_hz": 200.0},
@@ -99,11 +116,28 @@ def with_errors(options: DriveOptions, error_class: str) -> DriveOptions:
             f"unknown error class {error_class!r} (expected one of: {', '.join(ERROR_CLASSES)})"
         )
     change = ERROR_CLASSES[error_class]
+    drive = {"base_model": options.base_model, **change.get("drive", {})}
     return replace(
         options,
+        **{**drive, "base_model": replace(drive["base_model"], **change.get("base", {}))},
         lidar_model=replace(options.lidar_model, **change.get("lidar", {})),
         errors=error_class,
-        **change.get("drive", {}),
+    )
+
+
+def grade_errors(model: ImuErrorModel, grade: str) -> ImuErrorModel:
+    """``model`` with its own errors drawn from ``grade``'s prior (:data:`GRADES`); the
+    triads' misalignment to each other split between the two."""
+    if grade == "ideal":
+        return model
+    g = GRADES[grade]
+    return replace(
+        model,
+        scale_factor_std=g.scale,
+        nonorthogonality_std_rad=g.nonorthogonality_rad,
+        misalignment_std_rad=g.misalignment_rad / np.sqrt(2.0),
+        g_sensitivity_std=g.g_sensitivity,
+        housing_std_rad=g.housing_rad,
     )
 
 
@@ -197,12 +231,16 @@ class SimulatedDrive:
                 "T_imu_lidar": mount.T_imu_lidar.to_dict(),
                 "prior_T_base_imu": self.priors[mount.name].to_dict(),
                 "translation_bound_m": 0.3,
-                "grade": "ideal",
+                "grade": self.options.lidar_grade,
             }
             for mount in self.mounts
         }
-        # simulated IMUs sit exactly in their housings: grade ideal (SPEC)
-        base: dict[str, Any] = {"topic": BASE_TOPIC, "frame": BASE_FRAME, "grade": "ideal"}
+        # the grades the IMUs' errors were drawn from (ideal: exactly in their housings)
+        base: dict[str, Any] = {
+            "topic": BASE_TOPIC,
+            "frame": BASE_FRAME,
+            "grade": self.options.base_grade,
+        }
         if not np.allclose(self.options.base_T_base_imu.as_matrix(), np.eye(4), atol=0.0):
             base["T_base_imu"] = self.options.base_T_base_imu.to_dict()
         return {
@@ -233,7 +271,7 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
     trajectory = make_scenario(o.scenario, o.duration_s, seed=o.seed, dynamics=o.dynamics)
     rng = np.random.default_rng([o.seed, 7919])
     base_model = replace(
-        o.base_model.scaled(o.noise_scale),
+        grade_errors(o.base_model, o.base_grade).scaled(o.noise_scale),
         accel_units=o.base_accel_units,
         gyro_units=o.base_gyro_units,
     )
@@ -248,7 +286,9 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         else:
             offset = float(o.time_offsets_s[k if len(o.time_offsets_s) > 1 else 0])
         offsets[mount.name] = offset
-        model = replace(o.lidar_model.scaled(o.noise_scale), time_offset_s=offset)
+        model = replace(
+            grade_errors(o.lidar_model, o.lidar_grade).scaled(o.noise_scale), time_offset_s=offset
+        )
         if o.lidar_rate_hz is not None:
             model = replace(model, rate_hz=o.lidar_rate_hz)
         sensors[mount.name] = simulate_imu(

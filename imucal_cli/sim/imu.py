@@ -63,6 +63,8 @@ class ImuErrorModel:
         0.0  # each triad (gyro, accel) rotated apart by this much per axis
     )
     g_sensitivity_std: float = 0.0  # gyro error per unit specific force, rad/s per m/s^2, per entry
+    housing_std_rad: float = 0.0  # both triads rotated together against the housing, per axis
+    gyro_scale: float = 0.0  # the gyro's common scale error (fraction): -0.1 reads 10% low
     vibration_band_hz: tuple[float, float] = (
         20.0,
         60.0,
@@ -140,6 +142,8 @@ def _has_intrinsic_errors(model: ImuErrorModel) -> bool:
             model.nonorthogonality_std_rad,
             model.misalignment_std_rad,
             model.g_sensitivity_std,
+            model.housing_std_rad,
+            model.gyro_scale,
             model.vibration_accel_mps2,
             model.vibration_gyro_radps,
         )
@@ -237,10 +241,15 @@ def simulate_imu(
             wave = np.sin(2 * np.pi * freq * t_true[:, None] + phases)
             accel = accel + model.vibration_accel_mps2 * wave[:, :3]
             gyro = gyro + model.vibration_gyro_radps * wave[:, 3:]
-        gyro_axes = _axis_errors(model, intrinsic)
+        gyro_axes = _axis_errors(model, intrinsic) * (1.0 + model.gyro_scale)
         g_sensitivity = intrinsic.normal(0.0, model.g_sensitivity_std, (3, 3))
-        gyro = gyro @ gyro_axes.T + accel @ g_sensitivity.T
         accel_axes = _axis_errors(model, intrinsic)
+        if model.housing_std_rad > 0:  # the triads' frame against the housing's (drawn last)
+            from scipy.spatial.transform import Rotation
+
+            housing = Rotation.from_rotvec(intrinsic.normal(0.0, model.housing_std_rad, 3))
+            gyro_axes, accel_axes = (m @ housing.as_matrix() for m in (gyro_axes, accel_axes))
+        gyro = gyro @ gyro_axes.T + accel @ g_sensitivity.T
         accel = accel @ accel_axes.T
 
     def bias(turn_on: float, walk: float) -> np.ndarray:

@@ -189,14 +189,20 @@ def test_the_residual_of_noise_free_signals_at_the_truth_is_zero():
     )
     k_roll, k_pitch = point.tilt
     theta = np.column_stack([k_roll * f_B[:, 1], k_pitch * f_B[:, 0], np.zeros(n)])
+    # the base's readings corrected for its own errors: the gyro's scale (A's symmetric parts
+    # go with the rate squared, its skew parts with the rate), the accelerometer's axes
+    g = 1.0 / (1.0 + point.own(model.BASE_GYRO_SCALE)[0])
+    symmetric = lambda M: (M + M.transpose(0, 2, 1)) / 2  # noqa: E731
+    a_true, da_true = (g * g * symmetric(M) + g * (M - symmetric(M)) for M in (A, dA))
+    to_force = np.linalg.inv(model.triad_axes(point.own(model.BASE_ACCEL_AXES)))
     specific = (
-        f_B
-        - point.dtau * df_B
-        + np.einsum("nij,j->ni", A - point.dtau * dA, point.t)
+        (f_B - point.dtau * df_B) @ to_force.T
+        + np.einsum("nij,j->ni", a_true - point.dtau * da_true, point.t)
         + np.cross(f_B, theta)
     )
-    f_I = specific @ (axes_a @ Rt).T + b_a
-    w_I = (w_B - point.dtau * dw_B) @ (axes_g @ Rt).T + f_I @ G.T + b_g
+    accel_rotation = np.eye(3) - skew(point.own(model.ACCEL_ROTATION))
+    f_I = specific @ (axes_a @ accel_rotation @ Rt).T + b_a
+    w_I = g * (w_B - point.dtau * dw_B) @ (axes_g @ Rt).T + f_I @ G.T + b_g
     vec = lambda M: M.transpose(0, 2, 1).reshape(n, 9)  # noqa: E731 (column-major vec)
     q = np.column_stack(
         [f_B[:, 1] * f_B[:, 2], f_B[:, 1] ** 2, f_B[:, 0] * f_B[:, 2], f_B[:, 0] ** 2]
