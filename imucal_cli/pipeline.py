@@ -48,15 +48,10 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
         gyro_bias_walk=np.radians(config.gyro_bias.process_noise_dps),
         gyro_bias_prior_std=np.radians(config.gyro_bias.initial_std_dps),
         consistency_alpha=config.calibration.consistency_alpha,
-        # what no drive sees: the config's floor and both IMUs' alignment to their housings
+        # what no drive sees: the config's floor and the sensor IMU's alignment to its housing
+        # (the base's turns the lever arm too: the solve carries it, core.uncertainty)
         rotation_floor_deg=float(
-            np.hypot.reduce(
-                [
-                    sensor.rotation_floor_deg,
-                    np.degrees(GRADES[sensor.grade].housing_rad),
-                    np.degrees(GRADES[config.base.grade].housing_rad),
-                ]
-            )
+            np.hypot(sensor.rotation_floor_deg, np.degrees(GRADES[sensor.grade].housing_rad))
         ),
         translation_floor_m=sensor.translation_floor_m,
         sensor_grade=sensor.grade,

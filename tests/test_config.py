@@ -258,7 +258,7 @@ def test_grades_default_to_a_consumer_lidar_imu_and_a_tactical_ins(base_dict):
     config = parse_config(base_dict, "x.yaml")
     assert config.base.grade == "tactical" and all(s.grade == "consumer" for s in config.sensors)
     floor = options_for(config, config.sensors[0]).rotation_floor_deg
-    assert floor == pytest.approx(np.hypot(0.5, 0.05), rel=1e-12)
+    assert floor == pytest.approx(0.5, rel=1e-12)  # the base's 0.05 deg: with its lever arm
     assert GRADES["ideal"].housing_rad == 0.0
     options = options_for(config, config.sensors[0])
     assert (options.sensor_grade, options.base_grade) == ("consumer", "tactical")

@@ -253,7 +253,8 @@ def solve(
     found = [rigid, *later]
     failed = [c for c in found if not c.passed]
     floors = (np.radians(options.rotation_floor_deg), options.translation_floor_m)
-    spread = uncertainty(problem, fit, failed, floors, prior_std)
+    base_housing = GRADES[options.base_grade].housing_rad
+    spread = uncertainty(problem, fit, failed, floors, prior_std, base_housing)
     observable = fit.free[TRANSLATION].copy()
     warnings = [
         *status.own_error_sentences(own),

@@ -17,6 +17,7 @@ import numpy as np
 
 from imucal_cli.core.checks import Check, rotation_difference
 from imucal_cli.core.model import EXTRINSICS, ROTATION, TIME_OFFSET, TRANSLATION
+from imucal_cli.core.so3 import skew
 from imucal_cli.core.solver import Fit, Problem
 
 #: Delete-a-group jackknife: at most this many groups of consecutive windows.
@@ -91,6 +92,15 @@ def carried(problem: Problem, fit: Fit, prior_std: np.ndarray) -> np.ndarray:
     return _to_base(fit, spread[EXTRINSICS, EXTRINSICS])[:TIME_OFFSET, :TIME_OFFSET]
 
 
+def turned_frame(t: np.ndarray, std: float) -> np.ndarray:
+    """What a rotation of the base IMU's frame against B (``std`` rad per axis: its alignment
+    to its housing, which no drive sees) does to an estimate (6x6, rotation about the base
+    axes, translation): the rotation turns by it and the lever arm ``t`` with it, ``dt = rho x
+    t = -[t]x rho``."""
+    J = np.vstack([np.eye(3), -skew(t)])
+    return std**2 * J @ J.T
+
+
 def _to_base(fit: Fit, covariance: np.ndarray) -> np.ndarray:
     """A 7x7 covariance of the extrinsics and the clock with the rotation about base axes."""
     to_base = np.eye(7)
@@ -109,11 +119,13 @@ def uncertainty(
     failed: Sequence[Check],
     floors: tuple[float, float],
     prior_std: np.ndarray | None = None,
+    base_housing_std: float = 0.0,
 ) -> Uncertainty:
     """The covariance to report (module docstring); ``floors``: the systematic std of the
     rotation (rad) and the translation (m) the data cannot see; ``prior_std``: the IMUs' own
     errors' prior (per global, :func:`~imucal_cli.core.grades.error_prior_std`), what of them
-    the fit holds at zero carried into the total (:func:`carried`)."""
+    the fit holds at zero carried into the total (:func:`carried`); ``base_housing_std``: the
+    base IMU's alignment to its housing (rad per axis, :func:`turned_frame`)."""
     free7 = fit.free[EXTRINSICS]
     fisher = fisher_extrinsics(fit)
     fisher_std = np.sqrt(np.clip(np.diag(fisher), 0.0, None))
@@ -142,6 +154,7 @@ def uncertainty(
     cov6 = cov7[:TIME_OFFSET, :TIME_OFFSET].copy()
     if prior_std is not None:
         cov6 += carried(problem, fit, prior_std)
+    cov6 += turned_frame(fit.point.t, base_housing_std)
     cov6[ROTATION, ROTATION] += floors[0] ** 2 * np.eye(3)
     cov6[TRANSLATION, TRANSLATION] += floors[1] ** 2 * np.eye(3)
     tau_std = float(np.sqrt(cov7[TIME_OFFSET, TIME_OFFSET])) if fit.free[TIME_OFFSET] else None

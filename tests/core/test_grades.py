@@ -81,3 +81,24 @@ def test_the_priors_follow_the_grades_and_ideal_carries_nothing():
     for worse, better in pairwise(order):
         for field in ("scale", "nonorthogonality_rad", "misalignment_rad", "housing_rad"):
             assert getattr(GRADES[better], field) <= getattr(GRADES[worse], field)
+
+
+def test_the_base_housing_turns_the_lever_arm_with_the_rotation():
+    """A base IMU turned against B by ``rho`` turns every estimate with it: the rotation by
+    ``rho`` and the lever arm ``t`` to ``exp(rho) t``. The covariance carried is that map's,
+    ``J std^2 J^T`` with ``J = d[rotation, t]/d rho``, checked by turning ``t``."""
+    from imucal_cli.core.uncertainty import turned_frame
+
+    rng = np.random.default_rng(11)
+    t, std = rng.normal(size=3) * 3.0, np.radians(0.05)
+    rho = rng.normal(size=3) * 1e-7
+    moved = Rotation.from_rotvec(rho).apply(t) - t
+    J = np.zeros((6, 3))
+    for k in range(3):  # the map, column by column, from the rotation itself
+        step = np.zeros(3)
+        step[k] = 1e-7
+        J[:3, k] = step / 1e-7
+        J[3:, k] = (Rotation.from_rotvec(step).apply(t) - t) / 1e-7
+    np.testing.assert_allclose(J[3:] @ rho, moved, rtol=1e-5, atol=1e-15)
+    np.testing.assert_allclose(turned_frame(t, std), std**2 * J @ J.T, rtol=1e-5, atol=1e-14)
+    assert np.all(turned_frame(t, 0.0) == 0.0)
