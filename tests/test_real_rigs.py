@@ -14,13 +14,30 @@ from imucal_cli.pipeline import calibrate_log
 RIGS = REALDATA / "multi_imu"
 
 
-def _run(rig: str):
+def _folder(rig: str):
     folder = RIGS / rig
     if not (folder / "log.mcap").exists():
         pytest.skip(
             f"the real rig recording {rig} (kept outside this repository) is not on this machine"
         )
-    run = calibrate_log(folder / "log.mcap", folder / "config.yaml")
+    return folder
+
+
+def _config(folder):
+    """The rig's config with both IMUs declared what they are: consumer MEMS parts (the base
+    too: SPEC grades; left out, the base would be taken for a tactical INS)."""
+    from imucal_cli.documents import load_document
+
+    document = load_document(folder / "config.yaml")
+    document["base"]["grade"] = "consumer"
+    for sensor in document["sensors"].values():
+        sensor["grade"] = "consumer"
+    return parse_config(document, str(folder / "config.yaml"))
+
+
+def _run(rig: str):
+    folder = _folder(rig)
+    run = calibrate_log(folder / "log.mcap", _config(folder))
     return run, evaluate(run.document, folder / "truth.yaml")
 
 
@@ -51,19 +68,32 @@ def test_the_quadrotor_plate_is_ok_only_inside_its_std():
     """The plate's DOTs are consumer MEMS on both sides (SPEC grades): each triad's alignment
     to its housing (0.5 deg a grade) is in the total std, so an `ok` 1 deg from the plate's
     identity lies inside it; the std was 0.02-0.11 deg without it (about 10 std)."""
-    folder = RIGS / "quad_flight1_dot1_dot7"
-    if not (folder / "log.mcap").exists():
-        pytest.skip(
-            "the real rig recording quad_flight1_dot1_dot7 (kept outside this repository) "
-            "is not on this machine"
-        )
-    from imucal_cli.documents import load_document
-
-    document = load_document(folder / "config.yaml")
-    document["base"]["grade"] = "consumer"  # an Xsens DOT, as the sensor
-    run = calibrate_log(folder / "log.mcap", parse_config(document, "quad.yaml"))
-    truth = load_transforms(folder / "truth.yaml")["imu2"]
+    run, _ = _run("quad_flight1_dot1_dot7")
+    truth = load_transforms(_folder("quad_flight1_dot1_dot7") / "truth.yaml")["imu2"]
     sensor = run.document["sensors"]["imu2"]
     error = (truth.rotation * run.result.T_base_lidar("imu2").rotation.inv()).as_rotvec()
     assert sensor["status"] == "ok"
     assert np.all(np.degrees(np.abs(error)) < 4 * np.array(sensor["rotation_std_deg"]))
+
+
+def test_parts_of_the_array_boards_run_agree_within_their_statistical_std():
+    """The array board's 600 s in three parts of 200 s, each calibrated alone: every two parts
+    differ by at most 3 combined statistical std on at least 95% of the axes (what two drives
+    of one rig differ by is what the statistical std says more driving shrinks)."""
+    import sys
+    from itertools import combinations
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from real_rigs import agreement, read_streams, split
+
+    from imucal_cli.pipeline import run_calibrate
+
+    folder = _folder("mimu_exp1_imu8")
+    config = _config(folder)
+    parts = split(read_streams(folder / "log.mcap", config), 3)
+    results = [run_calibrate(part, config) for part in parts]
+    ratios = [agreement(a, b, "imu2") for a, b in combinations(results, 2)]
+    assert all(r is not None for r in ratios)
+    every = np.abs(np.concatenate(ratios))
+    assert (every <= 3).mean() >= 0.95, every

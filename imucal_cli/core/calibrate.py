@@ -203,6 +203,26 @@ def _first_fit(problem: Problem, options: CalibrationOptions, clock: ClockEviden
     return fit
 
 
+def _own_errors(
+    problem: Problem, fit: Fit, options: CalibrationOptions, prior_std: np.ndarray
+) -> tuple[Fit, dict[str, dict[str, Any]]]:
+    """The IMUs' own errors the drive shows (:func:`.checks.own_errors`), unless taking them in
+    leaves a lever-arm axis the fit determined undetermined (a short drive: the errors and the
+    lever arm then share what little the drive shows); the errors are then carried instead."""
+    with_errors, own = checks.own_errors(problem, fit, options.consistency_alpha, prior_std)
+    if _keeps_lever_arm(fit, with_errors, options):
+        return with_errors, own
+    return fit, {name: group | {"estimated": False} for name, group in own.items()}
+
+
+def _keeps_lever_arm(before: Fit, after: Fit, options: CalibrationOptions) -> bool:
+    """Whether every lever-arm axis ``before`` determined (std under a third of the box) is
+    still determined in ``after``, a fit with more globals free."""
+    bound = OBSERVABLE_FRACTION_OF_BOUND * options.translation_bound_m
+    determined = before.free[TRANSLATION] & (before.std()[TRANSLATION] < bound)
+    return bool(np.all(after.std()[TRANSLATION][determined] < bound))
+
+
 def _clock(
     problem: Problem, fit: Fit, options: CalibrationOptions, clock: ClockEvidence
 ) -> tuple[Fit, bool, list[str]]:
@@ -240,10 +260,10 @@ def solve(
     alpha = options.consistency_alpha
     fit = _first_fit(problem, options, clock)
     prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
-    fit, own = checks.own_errors(problem, fit, alpha, prior_std)
+    fit, own = _own_errors(problem, fit, options, prior_std)
     rigid, tilted = checks.rigid_mount(problem, fit, alpha)
-    if not rigid.passed:
-        fit = tilted
+    if not rigid.passed and _keeps_lever_arm(fit, tilted, options):
+        fit = tilted  # (else the tilt and the lever arm share what the drive shows: kept out)
     fit, clock_placed, clock_notes = _clock(problem, fit, options, clock)
     later = [
         checks.rotation_agreement(problem, fit, alpha, prior_std[ACCEL_ROTATION]),

@@ -247,7 +247,11 @@ def _cover(problem: Problem, fit: Fit, delta: np.ndarray) -> np.ndarray:
     free = fit.free.copy()
     free[ROTATION] = False
     turned = replace(fit.point, R=rotation_type().from_rotvec(-delta / 2.0) * fit.point.R)
-    refit = problem.fit(replace(fit, point=turned), free)
+    try:
+        refit = problem.fit(replace(fit, point=turned), free)
+    except np.linalg.LinAlgError:  # the rotation held, the IMUs' errors are not determined:
+        free[SENSOR_ERRORS] = False  # held at their estimates
+        refit = problem.fit(replace(fit, point=turned), free)
     dt = 2.0 * (refit.point.t - fit.point.t)  # (half the discrepancy each way)
     cover = np.zeros((6, 6))
     # along delta the discrepancy itself; across it the triads' common turn against the housing

@@ -269,6 +269,16 @@ class Settings:
     max_iterations: int
 
 
+def _spd_inverse(S: np.ndarray) -> np.ndarray:
+    """The inverse of a symmetric positive-definite matrix through its Cholesky factor:
+    ``L^-T L^-1``, whose diagonal is a sum of squares. ``np.linalg.inv`` of an ill-conditioned
+    information matrix (a short drive, many globals free) gave variances below zero."""
+    from scipy.linalg import solve_triangular
+
+    L_inv = solve_triangular(np.linalg.cholesky(S), np.eye(len(S)), lower=True)
+    return L_inv.T @ L_inv
+
+
 class Problem:
     """The normal equations' parts of one sensor's selected windows that stay fixed over
     iterations: moments, where each window's entries go, the bias prior. :meth:`fit` solves it
@@ -461,7 +471,7 @@ class Problem:
                 reduced.factor, reduced.grad_b - reduced.H_gb.T @ step[free_idx]
             )
             point, knots = point.moved(step), knots + step_bias.reshape(self.n_knots, KNOT.size)
-            S_inv = np.linalg.inv(reduced.S)
+            S_inv = _spd_inverse(reduced.S)
             small = (
                 np.max(np.abs(step[ROTATION])) < 1e-10
                 and np.max(np.abs(step[ROTATION.stop :])) < 1e-8

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from imucal_cli.core.checks import Check, rotation_difference
-from imucal_cli.core.model import EXTRINSICS, ROTATION, TIME_OFFSET, TRANSLATION
+from imucal_cli.core.model import EXTRINSICS, ROTATION, SENSOR_ERRORS, TIME_OFFSET, TRANSLATION
 from imucal_cli.core.so3 import skew
 from imucal_cli.core.solver import Fit, Problem
 
@@ -41,9 +41,14 @@ def jackknife(problem: Problem, fit: Fit) -> np.ndarray | None:
     for group in np.array_split(np.arange(K), min(K, JACKKNIFE_GROUPS)):
         weights = np.ones(K)
         weights[group] = 0.0
-        rep = problem.fit(
-            fit, fit.free, window_weights=weights, max_iterations=JACKKNIFE_ITERATIONS
-        )
+        try:
+            rep = problem.fit(
+                fit, fit.free, window_weights=weights, max_iterations=JACKKNIFE_ITERATIONS
+            )
+        except np.linalg.LinAlgError:  # the group held all a sensor's error was known from:
+            held = fit.free.copy()  # the replicate keeps the errors at the fit's values
+            held[SENSOR_ERRORS] = False
+            rep = problem.fit(fit, held, window_weights=weights, max_iterations=1)
         replicates.append(
             np.concatenate(
                 [
