@@ -543,6 +543,15 @@ def calibrate(
             help="With --follow: stop after this many seconds (exit 1 with --until-converged).",
         ),
     ] = None,
+    quiet: Annotated[
+        bool,
+        typer.Option(
+            "--quiet",
+            "-q",
+            metavar="",
+            help="With -o or --json: print no status lines on stderr.",
+        ),
+    ] = False,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
     _check_output(out, log, config)
@@ -628,10 +637,27 @@ def calibrate(
             written = write_report(report, log, result, streamed, document, progress)
         _err(f"imucal: report: {written[-1]}")
     _emit(document, out, as_json, render)
+    if (out is not None or as_json) and not quiet:
+        _status_lines(document)
     if require_observable and not result.all_ok:
         weak = [n for n, e in result.estimates.items() if e.status != "ok"]
         _err(f"imucal: not fully observable: {', '.join(weak)}")
         raise typer.Exit(EXIT_CHECK_FAILED)
+
+
+def _status_lines(document: dict[str, Any]) -> None:
+    """Where the readable summary is not printed (``-o``, ``--json``): each sensor's status
+    with its worst std, then each of its warnings, one line each on stderr, so that a terminal
+    or a job's log shows what is wrong without opening the output."""
+    for name, sensor in document["sensors"].items():
+        line = f"imucal: {name}: {sensor['status']}"
+        if sensor["rotation_std_deg"] is not None:
+            line += f", std {max(sensor['rotation_std_deg']):.3g} deg"
+        if sensor["translation_std_m"] is not None:
+            line += f" and {1000 * max(sensor['translation_std_m']):.3g} mm (worst axis)"
+        _err(f"{line}, {sensor['segments']['selected']}/{sensor['segments']['total']} windows")
+        for warning in sensor["warnings"]:
+            _err(f"imucal: {name}: {warning}")
 
 
 def _follow_table(log: Path, windows: int, result: Any, sensors: dict[str, Any]) -> Any:

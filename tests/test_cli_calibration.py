@@ -344,3 +344,26 @@ def test_evaluate_junit_names_the_threshold_and_the_value_and_passing_cases_carr
     passing = [c for c in cases.values() if c.find("failure") is None]
     assert passing and all("rotation_error_deg" in c.find("system-out").text for c in passing)
     assert int(suite.get("failures")) == sum(c.find("failure") is not None for c in cases.values())
+
+
+def test_calibrate_with_an_output_says_each_status_and_warning_on_stderr(tmp_path):
+    """With -o (or --json) the summary is not printed: a sensor that is not ok must still show
+    in a terminal or a job's log, its status and each warning one line on stderr; --quiet
+    silences them."""
+    document = yaml.safe_load(CONFIG.read_text())
+    for sensor in document["sensors"].values():  # a prior 0.5 m off: the box binds
+        sensor["prior_T_base_imu"]["translation"][0] += 0.5
+    config = tmp_path / "off.yaml"
+    config.write_text(yaml.safe_dump(document))
+    out = tmp_path / "out.yaml"
+    result = runner.invoke(app, ["calibrate", str(LOG), "-c", str(config), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    written = yaml.safe_load(out.read_text())
+    lines = result.stderr.splitlines()
+    for name, sensor in written["sensors"].items():
+        assert sensor["status"] != "ok" and sensor["warnings"]
+        assert any(line.startswith(f"imucal: {name}: {sensor['status']}, std ") for line in lines)
+        for warning in sensor["warnings"]:
+            assert f"imucal: {name}: {warning}" in lines
+    quiet = runner.invoke(app, ["calibrate", str(LOG), "-c", str(config), "-o", str(out), "-q"])
+    assert quiet.exit_code == 0 and quiet.stderr == ""
