@@ -328,12 +328,18 @@ def check_config(
     as_json: Annotated[
         bool, typer.Option("--json", metavar="", help="Print JSON instead of YAML.")
     ] = False,
+    log: Annotated[
+        Path | None,
+        typer.Option(
+            "--log", help="Take the transforms the config leaves out from this log's /tf_static."
+        ),
+    ] = None,
 ) -> None:
     """Validate a config and print it with every default filled in."""
     from imucal_cli.config import load_config
     from imucal_cli.documents import dumps
 
-    typer.echo(dumps(load_config(config).to_dict(), as_json=as_json), nl=False)
+    typer.echo(dumps(load_config(config, log).to_dict(), as_json=as_json), nl=False)
 
 
 # --------------------------------------------------------------------------- calibration commands
@@ -375,7 +381,7 @@ def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
     from imucal_cli.api import stream_log
     from imucal_cli.config import load_config
 
-    config = load_config(config_path)
+    config = load_config(config_path, log)  # what the config leaves out, from /tf_static
     with _progress(f"reading {log}") as progress:
         # one log: its windows reduced beside the reading, on the second core (a batch runs
         # a process per core instead)
@@ -405,7 +411,7 @@ def biases(
     from imucal_cli.config import load_config
 
     _check_output(out, log, config)
-    cfg = load_config(config)
+    cfg = load_config(config, log)
     with _progress(f"reading {log}") as progress:
         document = stream_biases(log, cfg, progress)
     _note_losses(log, document["losses"])
@@ -1233,6 +1239,15 @@ def simulate(
         str | None,
         typer.Option(help="The same for the base IMU (default: ideal, or the error class's)."),
     ] = None,
+    tf_static: Annotated[
+        bool,
+        typer.Option(
+            "--tf-static",
+            metavar="",
+            help="Write /tf_static: per lidar <name>/os_sensor at the CAD prior with the IMU's "
+            "and the lidar's frames under it, and the base IMU's frame gnss_imu in base_link.",
+        ),
+    ] = False,
     force: Annotated[
         bool,
         typer.Option(
@@ -1285,12 +1300,13 @@ def simulate(
             options,
             lidar_grade=lidar_grade or options.lidar_grade,
             base_grade=base_grade or options.base_grade,
+            tf_static=tf_static,
         )
         drive = simulate_drive(options)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     with _progress(f"writing {out}") as progress:
-        write_imu_log(out, fmt, drive.topics(), progress, replace=force)
+        write_imu_log(out, fmt, drive.topics(), progress, force, drive.static_transforms())
     write_document(truth_path, drive.truth_document())
     write_document(config_path, drive.config_document())
     counts = {topic: len(data.stream) for topic, data in drive.topics().items()}

@@ -105,6 +105,9 @@ class Config:
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     stop: StopConfig = field(default_factory=StopConfig)
     source: str = "<config>"
+    #: Per sensor, where each transform came from: config (or its default) or tf_static
+    #: (:func:`imucal_cli.frames.complete_from_log`); empty where no log was asked.
+    priors: Mapping[str, Mapping[str, str]] = field(default_factory=dict)
 
     def sensor(self, name: str) -> SensorConfig:
         for sensor in self.sensors:
@@ -332,8 +335,9 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     return Config(base=base, sensors=tuple(sensors), **sections, source=source)
 
 
-def load_config(path: str | Path) -> Config:
-    """Load and validate a YAML config file.
+def load_config(path: str | Path, log: str | Path | None = None) -> Config:
+    """Load and validate a YAML config file; with ``log``, the transforms it leaves out are
+    taken from the log's ``/tf_static`` (:func:`imucal_cli.frames.complete_from_log`).
 
     Raises
     ------
@@ -348,4 +352,9 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError(str(path), "", str(exc).removeprefix(f"{path}: ")) from None
     if data is None:
         raise ConfigError(str(path), "", "the file is empty")
-    return parse_config(data, str(path))
+    if log is None:
+        return parse_config(data, str(path))
+    from imucal_cli.frames import complete_from_log
+
+    data, priors = complete_from_log(data, log, str(path))
+    return replace(parse_config(data, str(path)), priors=priors)

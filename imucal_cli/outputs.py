@@ -234,6 +234,11 @@ def calibration_document(
             ],
             "imu_topic": sensor.imu_topic,
             "lidar_frame": sensor.lidar_frame,
+            # where each transform came from (SPEC): config (or its default), tf_static
+            "priors": dict(
+                config.priors.get(sensor.name)
+                or dict.fromkeys(("T_imu_lidar", "prior_T_base_imu", "base.T_base_imu"), "config")
+            ),
             "imu_rate_hz": _rate(result, sensor.name),
             "imu_noise": imu_noise(result, sensor.name),
             "T_base_imu": est.T_base_imu.to_dict(),

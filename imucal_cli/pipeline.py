@@ -394,7 +394,7 @@ def calibrate_log(
     ROS 1 bag). ``config`` is a :class:`Config` or the path of its YAML file; ``progress`` is
     called with (messages read, messages in the log) as reading goes."""
     if not isinstance(config, Config):
-        config = load_config(config)
+        config = load_config(config, log)  # what it leaves out, from the log's /tf_static
     streamed = stream_log(log, config, progress)
     return _calibration(streamed, estimate(streamed))
 

@@ -28,6 +28,8 @@ from imucal_cli.types import GRAVITY_MPS2, Transform
 
 BASE_TOPIC = "/gnss/imu"
 BASE_FRAME = "base_link"
+#: The base IMU's own frame where the log carries /tf_static (its messages name it).
+BASE_IMU_FRAME = "gnss_imu"
 DEFAULT_T0_NS = 1_700_000_000_000_000_000
 
 
@@ -63,6 +65,9 @@ class DriveOptions:
     #: declares; ``ideal``: none beyond the models' (and the error class's).
     lidar_grade: str = "ideal"
     base_grade: str = "ideal"
+    #: The log carries /tf_static: Ouster-style frames per lidar (``<name>/os_sensor`` with
+    #: the IMU's and the lidar's frames under it, at the CAD prior) and the base IMU's frame.
+    tf_static: bool = False
 
 
 #: Realistic MEMS errors of a lidar's IMU beyond noise and bias: 0.5% scale factors, 0.2 deg
@@ -175,6 +180,23 @@ class SimulatedDrive:
             out[mount.imu_topic] = TopicData(imu.stream, imu.log_time_ns)
         return out
 
+    def static_transforms(self) -> list[tuple[str, str, Transform]]:
+        """What the drive's /tf_static holds (``options.tf_static``; else nothing): the base
+        IMU's frame in B, and per lidar an Ouster-style tree, ``<name>/os_sensor`` at the CAD
+        prior with the IMU's frame and the lidar's under it (the supplier's transforms)."""
+        if not self.options.tf_static:
+            return []
+        out = [(BASE_FRAME, BASE_IMU_FRAME, self.options.base_T_base_imu)]
+        for mount in self.mounts:
+            T_sensor_imu = mount.T_imu_lidar.inverse()  # the sensor frame is the lidar's
+            sensor = f"{mount.name}/os_sensor"
+            out += [
+                (BASE_FRAME, sensor, self.priors[mount.name] * T_sensor_imu.inverse()),
+                (sensor, mount.imu_frame, T_sensor_imu),
+                (sensor, mount.lidar_frame, Transform.identity()),
+            ]
+        return out
+
     def truth_document(self) -> dict[str, Any]:
         """The SPEC truth file, plus ``T_base_imu``, time offsets and the true biases."""
 
@@ -275,7 +297,8 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         accel_units=o.base_accel_units,
         gyro_units=o.base_gyro_units,
     )
-    base = simulate_imu(trajectory, o.base_T_base_imu, base_model, rng, o.t0_ns, BASE_FRAME)
+    base_frame = BASE_IMU_FRAME if o.tf_static else BASE_FRAME
+    base = simulate_imu(trajectory, o.base_T_base_imu, base_model, rng, o.t0_ns, base_frame)
 
     offsets: dict[str, float] = {}
     sensors: dict[str, SimulatedImu] = {}

@@ -10,7 +10,7 @@ from __future__ import annotations
 import heapq
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,12 +21,33 @@ from imucal_cli.errors import InputError
 from imucal_cli.io.imu_msg import IMU_MSGTYPE
 from imucal_cli.paths import refuse_existing
 from imucal_cli.sim.serialize import serialize_cdr, serialize_ros1
-from imucal_cli.types import ImuStream
+from imucal_cli.types import ImuStream, Transform
 
 #: ``--format`` names: plain MCAP with ROS 2 CDR, plain MCAP with ROS 1 encoding, rosbag2
 #: directories with sqlite3 or mcap storage, ROS 1 bag.
 FORMATS = ("mcap", "mcap-ros1", "rosbag2-sqlite3", "rosbag2-mcap", "rosbag1")
 Progress = Callable[[int, int], None]
+#: Static transforms to write on ``/tf_static``: ``(parent, child, T_parent_child)``.
+StaticTransforms = Sequence[tuple[str, str, Transform]]
+
+
+def _first_ns(topics: Mapping[str, TopicData]) -> int:
+    """The log time of the log's first message."""
+    return min(
+        int((d.stream.t_ns if d.log_time_ns is None else d.log_time_ns).min())
+        for d in topics.values()
+    )
+
+
+def _tf_blob(tf_static: StaticTransforms, topics: Mapping[str, TopicData], ros1: bool) -> bytes:
+    """``tf_static`` as one serialised ``TFMessage``, stamped at the log's first message."""
+    from imucal_cli.frames import TF_MSGTYPES, tf_message, tf_typestore
+
+    store = tf_typestore(ros1)
+    stamp = _first_ns(topics)
+    message = tf_message(store, list(tf_static), stamp)
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+    return bytes(serialize(message, TF_MSGTYPES[0]))
 
 
 @dataclass(frozen=True)
@@ -88,6 +109,7 @@ def _write_mcap(
     compression: str = "zstd",
     chunk_size: int = 1024 * 1024,
     progress: Progress | None = None,
+    tf_static: StaticTransforms = (),
 ) -> None:
     from mcap.writer import CompressionType, Writer
 
@@ -109,6 +131,8 @@ def _write_mcap(
             )
             for topic in topics
         }
+        if tf_static:
+            _mcap_tf(writer, tf_static, topics, ros1)
         sequence = dict.fromkeys(topics, 0)
         for log_ns, topic, i in _messages(topics, progress):
             writer.add_message(
@@ -122,14 +146,44 @@ def _write_mcap(
         writer.finish()
 
 
+def _mcap_tf(
+    writer: Any, tf_static: StaticTransforms, topics: Mapping[str, TopicData], ros1: bool
+) -> None:
+    """``/tf_static`` into an MCAP writer: its schema, channel and one message."""
+    from imucal_cli.frames import TF_MSGTYPES, TF_TOPIC, tf_typestore
+
+    text, _ = tf_typestore(ros1).generate_msgdef(TF_MSGTYPES[0], ros_version=1 if ros1 else 2)
+    schema = writer.register_schema(
+        name=TF_MSGTYPES[1] if ros1 else TF_MSGTYPES[0],
+        encoding="ros1msg" if ros1 else "ros2msg",
+        data=text.encode(),
+    )
+    channel = writer.register_channel(
+        topic=TF_TOPIC, message_encoding="ros1" if ros1 else "cdr", schema_id=schema
+    )
+    blob = _tf_blob(tf_static, topics, ros1)
+    stamp = _first_ns(topics)
+    writer.add_message(channel_id=channel, log_time=stamp, data=blob, publish_time=stamp)
+
+
 def _fill_rosbags_writer(
-    writer: Any, topics: Mapping[str, TopicData], ros1: bool, progress: Progress | None = None
+    writer: Any,
+    topics: Mapping[str, TopicData],
+    ros1: bool,
+    progress: Progress | None = None,
+    tf_static: StaticTransforms = (),
 ) -> None:
     """Open a rosbags writer, add one connection per topic, write every message, close."""
     _, typestore = _msgdef(ros1)
     blobs = _serialized(topics, ros1)
     writer.open()
     try:
+        if tf_static:
+            from imucal_cli.frames import TF_MSGTYPES, TF_TOPIC, tf_typestore
+
+            tf = writer.add_connection(TF_TOPIC, TF_MSGTYPES[0], typestore=tf_typestore(ros1))
+            stamp = _first_ns(topics)
+            writer.write(tf, stamp, _tf_blob(tf_static, topics, ros1))
         connections = {
             topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore)
             for topic in topics
@@ -141,24 +195,30 @@ def _fill_rosbags_writer(
 
 
 def _write_rosbag2(
-    path: Path, topics: Mapping[str, TopicData], storage: str, progress: Progress | None = None
+    path: Path,
+    topics: Mapping[str, TopicData],
+    storage: str,
+    progress: Progress | None = None,
+    tf_static: StaticTransforms = (),
 ) -> None:
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    _fill_rosbags_writer(
-        Writer(path, version=9, storage_plugin=plugin), topics, ros1=False, progress=progress
-    )
+    writer = Writer(path, version=9, storage_plugin=plugin)
+    _fill_rosbags_writer(writer, topics, False, progress, tf_static)
 
 
 def _write_rosbag1(
-    path: Path, topics: Mapping[str, TopicData], progress: Progress | None = None
+    path: Path,
+    topics: Mapping[str, TopicData],
+    progress: Progress | None = None,
+    tf_static: StaticTransforms = (),
 ) -> None:
     from rosbags.rosbag1 import Writer
 
     writer = Writer(path)
     writer.set_compression(Writer.CompressionFormat.LZ4)
-    _fill_rosbags_writer(writer, topics, ros1=True, progress=progress)
+    _fill_rosbags_writer(writer, topics, True, progress, tf_static)
 
 
 def write_imu_log(
@@ -167,8 +227,10 @@ def write_imu_log(
     topics: Mapping[str, TopicData],
     progress: Progress | None = None,
     replace: bool = False,
+    tf_static: StaticTransforms = (),
 ) -> Path:
-    """Write IMU topics to ``out`` in format ``fmt`` (one of :data:`FORMATS`).
+    """Write IMU topics to ``out`` in format ``fmt`` (one of :data:`FORMATS`), and
+    ``tf_static`` (where given) as one ``/tf_static`` message at the log's start.
 
     The log is built in a new temporary folder beside ``out`` and renamed into place once
     complete, so an interrupted write leaves no partial log. An existing ``out`` is an error;
@@ -187,11 +249,12 @@ def write_imu_log(
     tmp = work / out.name
     try:
         if fmt in ("mcap", "mcap-ros1"):
-            _write_mcap(tmp, topics, ros1=fmt == "mcap-ros1", progress=progress)
+            ros1 = fmt == "mcap-ros1"
+            _write_mcap(tmp, topics, ros1, progress=progress, tf_static=tf_static)
         elif fmt == "rosbag1":
-            _write_rosbag1(tmp, topics, progress)
+            _write_rosbag1(tmp, topics, progress, tf_static)
         else:
-            _write_rosbag2(tmp, topics, storage=fmt.removeprefix("rosbag2-"), progress=progress)
+            _write_rosbag2(tmp, topics, fmt.removeprefix("rosbag2-"), progress, tf_static)
         if out.exists() or out.is_symlink():
             refuse_existing(out, replace)  # (again: it may have appeared meanwhile)
             shutil.rmtree(out) if out.is_dir() else out.unlink()

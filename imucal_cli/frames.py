@@ -1,0 +1,222 @@
+"""Priors from the log (SPEC "Inputs"): ``/tf_static`` stands in for config keys.
+
+A ROS log already says where its sensors are meant to be: the lidar drivers publish their IMU
+and lidar frames (Ouster: ``os_sensor``, ``os_imu``, ``os_lidar``) and the vehicle's static
+transforms chain them to the base frame. Each IMU message names its frame
+(``header.frame_id``). A config key left out is taken from that tree:
+
+- ``sensors.<name>.T_imu_lidar``: the IMU's frame to ``lidar_frame``;
+- ``sensors.<name>.prior_T_base_imu``: ``base.frame`` to the IMU's frame;
+- ``base.T_base_imu``: ``base.frame`` to the base IMU's frame (identity where the base IMU
+  names ``base.frame`` itself or no chain joins them).
+
+A key given in the config wins. What is read is bounded (:data:`MAX_TF_MESSAGES`,
+:data:`MAX_TRANSFORMS`): a static tree is small.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imucal_cli.errors import ConfigError
+from imucal_cli.types import Transform, rotation_type
+
+TF_TOPIC = "/tf_static"
+TF_MSGTYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage")
+#: Most /tf_static messages and transforms read: a static tree holds tens.
+MAX_TF_MESSAGES, MAX_TRANSFORMS = 1000, 10_000
+#: Sensor keys a tree may supply, and the base's.
+SENSOR_KEYS, BASE_KEY = ("T_imu_lidar", "prior_T_base_imu"), "T_base_imu"
+
+
+class FrameTree:
+    """Static transforms between named frames; :meth:`lookup` composes any chain."""
+
+    def __init__(self) -> None:
+        self.edges: dict[str, list[tuple[str, Transform]]] = {}
+
+    def add(self, parent: str, child: str, T_parent_child: Transform) -> None:
+        self.edges.setdefault(parent, []).append((child, T_parent_child))
+        self.edges.setdefault(child, []).append((parent, T_parent_child.inverse()))
+
+    def lookup(self, target: str, source: str) -> Transform | None:
+        """``T_target_source`` (a point in ``source`` to ``target``), or None: no chain."""
+        if target not in self.edges or source not in self.edges:
+            return None
+        reached: dict[str, Transform] = {target: Transform.identity()}
+        queue = deque([target])
+        while queue:
+            frame = queue.popleft()
+            for neighbour, T in self.edges[frame]:
+                if neighbour not in reached:
+                    reached[neighbour] = reached[frame] * T
+                    queue.append(neighbour)
+        return reached.get(source)
+
+
+def tf_typestore(ros1: bool) -> Any:
+    """The ``rosbags`` type store of the encoding, with ``tf2_msgs/msg/TFMessage`` (the ROS 1
+    store lacks it)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if TF_MSGTYPES[0] not in store.types:
+        text = "geometry_msgs/TransformStamped[] transforms"
+        store.register(get_types_from_msg(text, TF_MSGTYPES[0]))
+    return store
+
+
+def tf_message(store: Any, transforms: list[tuple[str, str, Transform]], stamp_ns: int) -> Any:
+    """A ``TFMessage`` of ``(parent, child, T_parent_child)`` stamped ``stamp_ns``."""
+    types = store.types
+    header = types["std_msgs/msg/Header"]
+    time = types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    extra = {"seq": 0} if "seq" in header.__dataclass_fields__ else {}
+    stamped = [
+        types["geometry_msgs/msg/TransformStamped"](
+            header=header(stamp=time, frame_id=parent, **extra),
+            child_frame_id=child,
+            transform=types["geometry_msgs/msg/Transform"](
+                translation=types["geometry_msgs/msg/Vector3"](*map(float, T.translation)),
+                rotation=types["geometry_msgs/msg/Quaternion"](*map(float, T.quaternion_xyzw)),
+            ),
+        )
+        for parent, child, T in transforms
+    ]
+    return types[TF_MSGTYPES[0]](transforms=stamped)
+
+
+def read_tf_static(reader: Any) -> FrameTree:
+    """The log's ``/tf_static`` (ROS 2 or ROS 1 encoding) as a tree; empty without one."""
+    tree = FrameTree()
+    info = reader.topics().get(TF_TOPIC)
+    if info is None or info.msgtype not in TF_MSGTYPES:
+        return tree
+    messages = transforms = 0
+    for batch in reader.batches([TF_TOPIC]):
+        ros1 = batch.encoding == "ros1"
+        store = tf_typestore(ros1)
+        for start, length in zip(batch.starts.tolist(), batch.lengths.tolist(), strict=True):
+            messages += 1
+            if messages > MAX_TF_MESSAGES:
+                return tree
+            data = batch.buffer[start : start + length].tobytes()
+            try:
+                read = store.deserialize_ros1 if ros1 else store.deserialize_cdr
+                message: Any = read(data, "tf2_msgs/msg/TFMessage")
+            except Exception:  # (a damaged message: the tree is read from the others)
+                continue
+            for stamped in message.transforms:
+                transforms += 1
+                if transforms > MAX_TRANSFORMS:
+                    return tree
+                t, q = stamped.transform.translation, stamped.transform.rotation
+                xyzw = np.array([q.x, q.y, q.z, q.w])
+                if not np.all(np.isfinite(xyzw)) or np.linalg.norm(xyzw) < 1e-9:
+                    continue
+                rotation = rotation_type().from_quat(xyzw / np.linalg.norm(xyzw))
+                T = Transform(rotation, np.array([t.x, t.y, t.z]))
+                tree.add(stamped.header.frame_id.lstrip("/"), stamped.child_frame_id.lstrip("/"), T)
+    return tree
+
+
+def imu_frames(reader: Any, topics: list[str]) -> dict[str, str]:
+    """Each IMU topic's frame (the ``header.frame_id`` of its first message)."""
+    from imucal_cli.io.imu_msg import decode_imu
+
+    frames: dict[str, str] = {}
+    for batch in reader.batches(topics):
+        if batch.topic not in frames:
+            decoded = decode_imu(batch)
+            if decoded.frame_ids:
+                frames[batch.topic] = decoded.frame_ids[0].lstrip("/")
+        if len(frames) == len(topics):
+            break
+    return frames
+
+
+def _missing(data: Mapping[str, Any]) -> tuple[list[tuple[str, str]], bool]:
+    """The sensor keys and whether the base's key the config leaves out."""
+    sensors = data.get("sensors")
+    missing = [
+        (name, key)
+        for name, sensor in (sensors.items() if isinstance(sensors, Mapping) else ())
+        if isinstance(sensor, Mapping)
+        for key in SENSOR_KEYS
+        if sensor.get(key) is None
+    ]
+    base = data.get("base")
+    return missing, isinstance(base, Mapping) and base.get(BASE_KEY) is None
+
+
+def complete_from_log(
+    data: Any, log: str | Path, source: str
+) -> tuple[Any, dict[str, dict[str, str]]]:
+    """The config document with the transforms it leaves out taken from ``log``'s
+    ``/tf_static``, and where each transform came from, per sensor (``config``: the config or
+    its default; ``tf_static``). Raises :class:`ConfigError` naming the key and the frames
+    where the tree cannot supply one."""
+    if not isinstance(data, Mapping) or not isinstance(data.get("sensors"), Mapping):
+        return data, {}
+    missing, base_missing = _missing(data)
+    names = [n for n, s in data["sensors"].items() if isinstance(s, Mapping)]
+    sources = {name: dict.fromkeys((*SENSOR_KEYS, f"base.{BASE_KEY}"), "config") for name in names}
+    if not missing and not base_missing:
+        return data, sources
+    from imucal_cli.io.logs import open_log
+
+    document = {**data, "base": dict(data["base"]), "sensors": dict(data["sensors"])}
+    with open_log(log) as reader:
+        tree = read_tf_static(reader)
+        if not tree.edges and not missing:  # (the base at the config's default)
+            return data, sources
+        wanted = [document["base"].get("topic")] + [
+            document["sensors"][n].get("imu_topic") for n, _ in missing
+        ]
+        available = reader.topics()
+        topics = [t for t in dict.fromkeys(wanted) if isinstance(t, str) and t in available]
+        frames = imu_frames(reader, topics) if topics else {}
+    base = document["base"]
+    base_frame = str(base.get("frame", "base_link"))
+    if base_missing:
+        base_imu = frames.get(str(base.get("topic")))
+        T = tree.lookup(base_frame, base_imu) if base_imu else None
+        if T is not None and base_imu != base_frame:
+            base[BASE_KEY] = T.to_dict()
+            for name in names:
+                sources[name][f"base.{BASE_KEY}"] = "tf_static"
+    for name, key in missing:
+        sensor = document["sensors"][name] = dict(document["sensors"][name])
+        imu = frames.get(str(sensor.get("imu_topic")))
+        lidar = str(sensor.get("lidar_frame") or f"{name}_lidar")
+        ends = (imu, lidar) if key == "T_imu_lidar" else (base_frame, imu)
+        T = tree.lookup(*ends) if imu else None
+        if T is None:
+            raise ConfigError(source, f"sensors.{name}.{key}", _why(log, tree, ends, imu, key))
+        sensor[key] = T.to_dict()
+        sources[name][key] = "tf_static"
+    return document, sources
+
+
+def _why(log: str | Path, tree: FrameTree, ends: tuple[Any, Any], imu: str | None, key: str) -> str:
+    """Why the tree cannot supply ``key``, and what settles it."""
+    if not tree.edges:
+        return f"missing required key, and {log} has no {TF_TOPIC} to take it from"
+    if imu is None:
+        return f"missing required key, and the IMU topic's messages in {log} name no frame"
+    gap = [f for f in ends if f not in tree.edges]
+    settle = "give it in the config" + (
+        ", or lidar_frame naming the lidar's frame in the tree" if key == "T_imu_lidar" else ""
+    )
+    where = (
+        f"frame {gap[0]!r} is not in {TF_TOPIC}"
+        if gap
+        else f"no chain joins {ends[0]!r} and {ends[1]!r} in {TF_TOPIC}"
+    )
+    known = ", ".join(sorted(tree.edges)[:12])
+    return f"missing required key: {where} of {log} (its frames: {known}); {settle}"

@@ -1,0 +1,116 @@
+"""Priors from the log (imucal_cli/frames.py): /tf_static stands in for the config's transforms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imucal_cli.config import load_config
+from imucal_cli.documents import write_document
+from imucal_cli.errors import ConfigError
+from imucal_cli.frames import FrameTree
+from imucal_cli.pipeline import calibrate_log
+from imucal_cli.sim import DriveOptions, simulate_drive
+from imucal_cli.sim.drive import INS_AWAY
+from imucal_cli.sim.writers import write_imu_log
+from imucal_cli.types import Transform
+
+
+@pytest.fixture(scope="module")
+def drive():
+    """A short drive whose INS sits away from B's origin, turned, its log carrying /tf_static."""
+    return simulate_drive(
+        DriveOptions(
+            scenario="aggressive", duration_s=60.0, seed=3, base_T_base_imu=INS_AWAY, tf_static=True
+        )
+    )
+
+
+def _minimal(full: dict) -> dict:
+    """The config a ROS user writes first: the topics and the frames, no transform."""
+    return {
+        "base": {k: full["base"][k] for k in ("topic", "frame", "grade")},
+        "sensors": {
+            name: {k: s[k] for k in ("imu_topic", "lidar_frame", "grade")}
+            for name, s in full["sensors"].items()
+        },
+    }
+
+
+@pytest.mark.parametrize(("fmt", "suffix"), [("mcap", ".mcap"), ("rosbag1", ".bag")])
+def test_a_config_naming_only_topics_and_frames_calibrates_as_the_full_one(
+    drive, tmp_path, fmt, suffix
+):
+    """The Ouster-style tree (``<name>/os_sensor`` at the CAD prior, the IMU's and the lidar's
+    frames under it) and the INS's frame in B give every transform the full config gives: the
+    same result, and the output says where each came from."""
+    log = write_imu_log(
+        tmp_path / f"d{suffix}", fmt, drive.topics(), tf_static=drive.static_transforms()
+    )
+    full = drive.config_document()
+    write_document(tmp_path / "full.yaml", full)
+    write_document(tmp_path / "min.yaml", _minimal(full))
+    with_config = calibrate_log(log, tmp_path / "full.yaml")
+    from_log = calibrate_log(log, tmp_path / "min.yaml")
+    loaded = load_config(tmp_path / "min.yaml", log)
+    for sensor in load_config(tmp_path / "full.yaml").sensors:
+        mine = loaded.sensor(sensor.name)
+        for key in ("T_imu_lidar", "prior_T_base_imu"):
+            np.testing.assert_allclose(
+                getattr(mine, key).as_matrix(), getattr(sensor, key).as_matrix(), atol=1e-12
+            )
+        np.testing.assert_allclose(
+            from_log.result.T_base_lidar(sensor.name).as_matrix(),
+            with_config.result.T_base_lidar(sensor.name).as_matrix(),
+            atol=1e-9,
+        )
+        assert from_log.document["sensors"][sensor.name]["priors"] == dict.fromkeys(
+            ("T_imu_lidar", "prior_T_base_imu", "base.T_base_imu"), "tf_static"
+        )
+        given = with_config.document["sensors"][sensor.name]["priors"]
+        assert given["T_imu_lidar"] == given["prior_T_base_imu"] == "config"
+    np.testing.assert_allclose(loaded.base.T_base_imu.as_matrix(), INS_AWAY.as_matrix(), atol=1e-12)
+
+
+def test_a_frame_the_tree_lacks_is_an_error_naming_the_key_and_the_frame(drive, tmp_path):
+    log = write_imu_log(
+        tmp_path / "d.mcap", "mcap", drive.topics(), tf_static=drive.static_transforms()
+    )
+    document = _minimal(drive.config_document())
+    name = next(iter(document["sensors"]))
+    document["sensors"][name]["lidar_frame"] = "nowhere_lidar"
+    write_document(tmp_path / "bad.yaml", document)
+    with pytest.raises(ConfigError) as caught:
+        load_config(tmp_path / "bad.yaml", log)
+    message = str(caught.value)
+    assert f"sensors.{name}.T_imu_lidar" in message and "'nowhere_lidar'" in message
+    assert "lidar_frame" in message  # what settles it
+
+
+def test_a_log_without_tf_static_names_the_missing_key(tmp_path):
+    plain = simulate_drive(DriveOptions(scenario="aggressive", duration_s=30.0, seed=1))
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", plain.topics())
+    write_document(tmp_path / "min.yaml", _minimal(plain.config_document()))
+    with pytest.raises(
+        ConfigError, match=r"T_imu_lidar: missing required key, and .* no /tf_static"
+    ):
+        load_config(tmp_path / "min.yaml", log)
+
+
+def test_the_tree_composes_any_chain_both_ways():
+    rng = np.random.default_rng(2)
+
+    def random() -> Transform:
+        return Transform.from_rpy(rng.normal(size=3), rng.normal(size=3))
+
+    a_b, b_c, d_c = random(), random(), random()
+    tree = FrameTree()
+    tree.add("a", "b", a_b)
+    tree.add("b", "c", b_c)
+    tree.add("d", "c", d_c)
+    expected = a_b * b_c * d_c.inverse()
+    np.testing.assert_allclose(tree.lookup("a", "d").as_matrix(), expected.as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        tree.lookup("d", "a").as_matrix(), expected.inverse().as_matrix(), atol=1e-12
+    )
+    assert tree.lookup("a", "e") is None
