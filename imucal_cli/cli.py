@@ -321,6 +321,40 @@ def inspect(
 # --------------------------------------------------------------------------- config
 
 
+@app.command("init", cls=_Command, rich_help_panel=PANEL_CONFIG)
+@handles_errors
+def init(
+    log: Annotated[Path, typer.Argument(help=LOG_HELP)],
+    out: Annotated[
+        Path | None, typer.Option("-o", "--out", help="Write the config here (.yaml).")
+    ] = None,
+    base: Annotated[
+        str | None,
+        typer.Option("--base", help="The base IMU's topic (default: found from /tf_static)."),
+    ] = None,
+    frame: Annotated[str, typer.Option("--frame", help="The base frame B.")] = "base_link",
+) -> None:
+    """Write a starting config from a log: its IMU topics, the base, the transforms in its
+    /tf_static, a commented placeholder for each one it lacks."""
+    from imucal_cli.init import find, render
+    from imucal_cli.version import version
+
+    if out is not None and out.suffix.lower() not in {".yaml", ".yml"}:
+        raise InputError(f"{out}: the config is YAML: name it .yaml")
+    _check_output(out, log)
+    found = find(log, base, frame)
+    text = render(found, log, version())
+    if out is None:
+        typer.echo(text, nl=False)
+    else:
+        from imucal_cli.documents import write_text_atomic
+
+        write_text_atomic(out, text)
+        _err(f"imucal: config: {out} (base {found.base_topic}, {len(found.sensors)} sensors)")
+    for name, key in found.missing:
+        _err(f"imucal: {name}: {key} is not in the log: fill its placeholder")
+
+
 @app.command("check-config", cls=_Command, rich_help_panel=PANEL_CONFIG)
 @handles_errors
 def check_config(

@@ -22,7 +22,8 @@ def test_calibrate_log_equals_the_cli(tmp_path):
         .exit_code
         == 0
     )
-    run = imucal_cli.calibrate_log(log, imucal_cli.load_config(config))
+    # the config read as the CLI reads it: what it leaves out from the log's /tf_static
+    run = imucal_cli.calibrate_log(log, imucal_cli.load_config(config, log))
     assert yaml.safe_load(yaml.safe_dump(to_plain(run.document))) == yaml.safe_load(out.read_text())
     name = next(iter(run.document["sensors"]))
     T = run.result.T_base_lidar(name)

@@ -115,7 +115,7 @@ def own_errors(
     groups: tuple[tuple[str, slice, float], ...] = OWN_ERRORS
     if prior_std is not None and prior_std[ACCEL_ROTATION].any():
         groups = (*OWN_ERRORS, MISALIGNMENT)
-    fit, found = sensor_errors(problem, fit, alpha, groups)
+    fit, found = sensor_errors(problem, fit, alpha, groups, prior_std)
     name, which, max_std = BASE_SCALE
     found[name] = {"estimated": False}
     try:
@@ -136,12 +136,14 @@ def sensor_errors(
     fit: Fit,
     alpha: float,
     groups: tuple[tuple[str, slice, float], ...] = OWN_ERRORS,
+    prior_std: np.ndarray | None = None,
 ) -> tuple[Fit, dict[str, dict[str, Any]]]:
     """The sensor's own errors (``groups``, each (name, globals, std to be estimated)) from one
     joint fit: the components the drive determines to their group's std, a group kept where a
-    chi-square test at ``alpha`` finds it. Returns the fit (with the groups kept) and per group
-    ``estimated`` and, where any component was determined, ``chi2``, ``dof``, ``value`` and
-    ``std`` (NaN: not determined)."""
+    chi-square test at ``alpha`` finds it or the grades' prior (``prior_std``) expects it.
+    Returns the fit (with the groups kept) and per group ``estimated`` and, where any
+    component was determined, ``chi2``, ``dof``, ``value`` and ``std`` (NaN: not
+    determined)."""
     estimable = np.zeros(N_PARAMETERS, dtype=bool)
     for _, which, _ in groups:
         estimable[which] = True
@@ -164,7 +166,10 @@ def sensor_errors(
             continue
         value = joint.point.own(which)
         chi2 = _chi2(value[group], joint.covariance[which, which][np.ix_(group, group)])
-        present = chi2 > chi2_limit(int(group.sum()), alpha)
+        # a group the grades expect (a prior) is kept wherever the drive determines it: held
+        # at zero it would be carried at its whole prior, though the data bound it tighter
+        expected = prior_std is not None and bool(prior_std[which].any())
+        present = expected or chi2 > chi2_limit(int(group.sum()), alpha)
         found[name] = {
             "estimated": bool(present),
             "chi2": chi2,

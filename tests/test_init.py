@@ -1,0 +1,69 @@
+"""`imucal init` (imucal_cli/init.py): a starting config from what a log holds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imucal_cli.config import load_config
+from imucal_cli.errors import ConfigError
+from imucal_cli.init import sensor_name
+from imucal_cli.pipeline import calibrate_log
+from imucal_cli.sim import DriveOptions, simulate_drive
+from imucal_cli.sim.writers import write_imu_log
+
+
+def test_sensor_names_come_from_the_topics_distinctive_tokens():
+    taken: set[str] = set()
+    assert sensor_name("/lidar/front_left_top/imu", taken) == "front_left_top"
+    assert sensor_name("/ouster/imu", taken) == "lidar"
+    assert sensor_name("/livox/imu", {"lidar"}) == "lidar_2"
+    assert sensor_name("/os1-64/imu", taken) == "os1_64"
+    assert sensor_name("/3d/imu", taken) == "lidar_3d"
+
+
+@pytest.mark.parametrize("name", ["aggressive", "urban"])
+def test_init_on_a_sample_log_writes_a_config_that_checks_and_calibrates(tmp_path, name):
+    """The sample logs carry /tf_static: `imucal init` finds the base, every transform, and
+    its config passes check-config and calibrates as the shipped one does, the priors read
+    from the log equal to the shipped config's to the digits it writes."""
+    from conftest import SAMPLE_DATA
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+
+    runner = CliRunner()
+    log, config = SAMPLE_DATA / f"{name}.mcap", tmp_path / "init.yaml"
+    made = runner.invoke(app, ["init", str(log), "-o", str(config)])
+    assert made.exit_code == 0, made.output
+    assert "not in the log" not in made.stderr
+    assert runner.invoke(app, ["check-config", str(config)]).exit_code == 0
+    written, shipped = load_config(config), load_config(SAMPLE_DATA / f"{name}.config.yaml")
+    assert written.base.topic == shipped.base.topic
+    for sensor in shipped.sensors:
+        mine = written.sensor(sensor.name)
+        assert mine.imu_topic == sensor.imu_topic and mine.lidar_frame == sensor.lidar_frame
+        for key in ("T_imu_lidar", "prior_T_base_imu"):
+            np.testing.assert_allclose(
+                getattr(mine, key).as_matrix(), getattr(sensor, key).as_matrix(), atol=1e-8
+            )
+    run = calibrate_log(log, written)
+    assert all(s["status"] == "ok" for s in run.document["sensors"].values())
+
+
+def test_init_on_a_log_without_transforms_writes_placeholders_and_says_which(tmp_path):
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+
+    plain = simulate_drive(DriveOptions(scenario="aggressive", duration_s=30.0, seed=1))
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", plain.topics())
+    made = CliRunner().invoke(app, ["init", str(log), "-o", str(tmp_path / "c.yaml")])
+    assert made.exit_code == 0, made.output
+    text = (tmp_path / "c.yaml").read_text()
+    for name in plain.config_document()["sensors"]:
+        for key in ("T_imu_lidar", "prior_T_base_imu"):
+            assert f"imucal: {name}: {key} is not in the log" in made.stderr
+    assert text.count("# T_imu_lidar: {translation: [0, 0, 0]") == 2
+    with pytest.raises(ConfigError, match="T_imu_lidar: missing required key"):
+        load_config(tmp_path / "c.yaml")
