@@ -595,10 +595,7 @@ def calibrate(
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
     _check_output(out, log, config)
-    if follow:
-        _follow(log, config, out, as_json, until_converged, timeout)
-        return
-    if until_converged or timeout is not None:
+    if not follow and (until_converged or timeout is not None):
         raise InputError("--until-converged and --timeout go with --follow")
     if report is not None:
         if not report.parent.is_dir():
@@ -618,6 +615,9 @@ def calibrate(
         from imucal_cli.report import pyplot
 
         pyplot()  # fail before the work when matplotlib is missing
+    if follow:
+        _follow(log, config, out, as_json, until_converged, timeout, report)
+        return
     _cfg, streamed = _stream_log(log, config)
     from imucal_cli.api import estimate
     from imucal_cli.outputs import calibration_document
@@ -731,9 +731,12 @@ def _follow(
     as_json: bool,
     until_converged: bool,
     timeout: float | None,
+    report: Path | None = None,
 ) -> None:
-    """calibrate --follow: an update per window (a JSON line with --json, else a line on
-    stderr), then the last estimate with each sensor's missing axes; exit codes as the SPEC says."""
+    """calibrate --follow: from the first data what each sensor has and waits for, then an
+    update per window (a JSON line with --json, a table on a terminal, else a line on stderr),
+    then the last estimate with each sensor's missing axes, and why it stopped; exit codes as
+    the SPEC says."""
     import json
     import time
 
@@ -744,6 +747,7 @@ def _follow(
 
     cfg = load_config(config_path)
     deadline = None if timeout is None else time.monotonic() + timeout
+    _wait_for(log, deadline)
     live = None
     if not as_json and sys.stderr.isatty():  # a table on the terminal, redrawn each window
         from rich.console import Console
@@ -774,19 +778,40 @@ def _follow(
                 )
             )
 
+    told = [-1e9]
+
+    def progress(state: dict[str, Any]) -> None:  # before the first estimate
+        if as_json:
+            typer.echo(json.dumps(to_plain({"windows": 0, **state})))
+        elif live is not None:
+            live.update(_waiting_table(log, state), refresh=True)
+        elif time.monotonic() - told[0] >= 5.0:  # (a log file: every 5 s)
+            told[0] = time.monotonic()
+            first: dict[str, Any] = next(iter(state["sensors"].values()), {})
+            _err(
+                f"imucal: following {log}: "
+                + ", ".join(f"{n} {v['samples']:,} samples" for n, v in state["sensors"].items())
+                + f"; waiting for {first.get('waiting_for', 'data')}"
+            )
+
+    def timed_out() -> bool:
+        return deadline is not None and time.monotonic() > deadline
+
     if live is not None:
         live.start()
     try:
         run, good, interrupted = follow_log(
-            log,
-            cfg,
-            update,
-            lambda: deadline is not None and time.monotonic() > deadline,
-            until_converged,
+            log, cfg, update, timed_out, until_converged, on_progress=progress
         )
     finally:
         if live is not None:
             live.stop()
+    if report is not None:
+        from imucal_cli.report import write_report
+
+        with _progress("drawing the report", "figures") as bar:
+            written = write_report(report, log, run.result, run.streamed, run.document, bar)
+        _err(f"imucal: report: {written[-1]}")
     if out is not None:
         from imucal_cli.documents import write_document
 
@@ -797,9 +822,49 @@ def _follow(
     if interrupted:
         _err("imucal: interrupted")
         raise typer.Exit(EXIT_INTERRUPTED)
+    ended = "--timeout reached" if timed_out() else f"the recording {log} ended"
+    if not (until_converged and good):
+        _err(f"imucal: {ended}")
     if until_converged and not good:
-        _err("imucal: not converged" + (" before --timeout" if timeout is not None else ""))
+        _err("imucal: not converged" + (" before --timeout" if timed_out() else ""))
         raise typer.Exit(EXIT_CHECK_FAILED)
+
+
+#: Follow mode without --timeout: how long a log that does not exist yet is waited for (s).
+WAIT_FOR_LOG_S = 30.0
+
+
+def _wait_for(log: Path, deadline: float | None) -> None:
+    """Follow mode started beside a recorder: wait (within --timeout, else
+    :data:`WAIT_FOR_LOG_S`) for the log to appear, a rosbag2 folder for its storage file."""
+    import time
+
+    def present() -> bool:
+        if log.is_dir():
+            return any(log.glob("*.mcap")) or any(log.glob("*.db3"))
+        return log.exists()
+
+    if present():
+        return
+    limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
+    _err(f"imucal: waiting for {log} to be created")
+    while not present():
+        if time.monotonic() > limit:
+            raise InputError(f"{log}: no such file or directory (waited for it to be created)")
+        time.sleep(0.1)
+
+
+def _waiting_table(log: Path, state: dict[str, Any]) -> Any:
+    """Follow mode's table before the first estimate: per sensor, samples and what it waits
+    for."""
+    from rich.table import Table
+
+    table = Table(title=f"following {log}: base {state['base_samples']:,} samples")
+    for column in ("sensor", "samples", "windows", "waiting for"):
+        table.add_column(column)
+    for name, s in state["sensors"].items():
+        table.add_row(name, f"{s['samples']:,}", str(s["windows"]), s["waiting_for"])
+    return table
 
 
 PANEL_EXPORT = "Export"

@@ -7,6 +7,7 @@ prints; the CLI draws progress and writes the documents.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +19,7 @@ from imucal_cli.config import Config, SensorConfig, load_config
 from imucal_cli.core.biases import BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
 from imucal_cli.core.grades import GRADES
-from imucal_cli.core.streaming import SensorSetup, StreamingCalibrator
+from imucal_cli.core.streaming import BOOT_S, SensorSetup, StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.base import Loss
 from imucal_cli.reading import ImuBatches, ReadStats
@@ -412,6 +413,7 @@ def follow_log(
     on_update: Callable[[CalibrationResult, int], None] | None = None,
     stop: Callable[[], bool] = lambda: False,
     until_converged: bool = False,
+    on_progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> tuple[LogCalibration, bool, bool]:
     """Follow a log that is still being written (an MCAP file, or a rosbag2 folder recording
     to mcap or sqlite3 storage): the estimate after every window, ``on_update(result,
@@ -419,11 +421,25 @@ def follow_log(
     sensor is within the config's ``stop:`` targets. The read loop, its checks and the final
     reduction are :func:`calibrate_log`'s. Returns the last calibration (its document with each
     sensor's ``missing`` axes and ``converged``), whether it converged, and whether a Ctrl-C
-    ended it (the estimate so far is returned all the same)."""
+    ended it (the estimate so far is returned all the same). Until the first estimate,
+    ``on_progress`` is told at most every :data:`PROGRESS_S` what each sensor has and waits for
+    (:func:`waiting`)."""
     calibrator = make_calibrator(config, block_windows=1, reorder_s=FOLLOW_REORDER_S)
     done = [False]
     reader = ImuBatches(Path(log), imu_names(config), follow=lambda: done[0] or stop())
-    state: dict[str, Any] = {"windows": 0, "result": None}
+    state: dict[str, Any] = {"windows": 0, "result": None, "told": -np.inf}
+    samples = dict.fromkeys(["base", *(s.name for s in config.sensors)], 0)
+
+    def sink(name: str, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        samples[name] += len(t)
+        calibrator.add(name, t, gyro, accel)
+
+    def talk() -> None:
+        now = time.monotonic()
+        if on_progress is None or state["result"] is not None or now - state["told"] < PROGRESS_S:
+            return
+        state["told"] = now
+        on_progress(waiting(calibrator, config, samples))
 
     def update() -> None:
         reduced = min(len(w) for w in calibrator.windows.values())
@@ -437,9 +453,13 @@ def follow_log(
                 on_update(result, reduced)
             done[0] = done[0] or (until_converged and converged(result))
 
+    def after() -> None:
+        update()
+        talk()
+
     t0_ns, interrupted = None, False
     try:
-        t0_ns = read_log(reader, config, calibrator.add, after=update)
+        t0_ns = read_log(reader, config, sink, after=after)
     except KeyboardInterrupt:
         interrupted = True
         t0_ns = _first_stamp(calibrator)
@@ -464,6 +484,37 @@ def follow_log(
         run.document["sensors"][name]["missing"] = missing_axes(sensor, config.stop)
     run.document["converged"] = good
     return run, good, interrupted
+
+
+#: Follow mode: how often the state before the first estimate is told (s of wall time).
+PROGRESS_S = 1.0
+
+
+def waiting(
+    calibrator: StreamingCalibrator, config: Config, samples: Mapping[str, int]
+) -> dict[str, Any]:
+    """Per sensor before its first estimate: samples seen, windows reduced and what it waits
+    for, in words that say what driving supplies it."""
+    booted = bool(calibrator.tau0)
+    out: dict[str, Any] = {"base_samples": samples.get("base", 0), "sensors": {}}
+    for sensor in config.sensors:
+        windows = len(calibrator.windows.get(sensor.name, []))
+        if not booted:
+            what = (
+                "motion that places the clock offsets: turns and changes of speed (the start "
+                f"reads the first {BOOT_S:g} s of driving, and waits for such motion)"
+            )
+        elif not windows:
+            what = f"the first window: {config.segments.window_s:g} s of data after the start"
+        else:
+            what = "the first estimate"
+        out["sensors"][sensor.name] = {
+            "status": "waiting",
+            "samples": samples.get(sensor.name, 0),
+            "windows": windows,
+            "waiting_for": what,
+        }
+    return out
 
 
 def _first_stamp(calibrator: StreamingCalibrator) -> int | None:

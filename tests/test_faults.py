@@ -761,5 +761,7 @@ def test_follow_runs_the_clock_check_calibrate_runs(tmp_path, short_drive):
     for extra in ([], ["--follow", "--timeout", "60"]):
         result = runner.invoke(app, ["calibrate", str(log), "-c", str(config), *extra])
         assert result.exit_code == 2, (extra, result.output)
-        lines.append(result.stderr.strip())
+        *talk, error = result.stderr.strip().splitlines()
+        assert all(line.startswith("imucal: following ") for line in talk)  # (follow mode)
+        lines.append(error)
     assert lines[0] == lines[1] and name in lines[0] and "max_time_offset_s" in lines[0]

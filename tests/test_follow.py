@@ -276,7 +276,9 @@ def test_ctrl_c_while_following_writes_the_last_estimate_and_exits_130(aggressiv
         stderr=subprocess.PIPE,
         start_new_session=True,
     )
-    first = process.stdout.readline()  # the first update: the calibrator has booted
+    first = process.stdout.readline()  # what it has and waits for, then the first estimate
+    while first and '"waiting"' in first.decode():
+        first = process.stdout.readline()
     assert first, process.stderr.read()
     os.killpg(process.pid, signal.SIGINT)
     _, stderr = process.communicate(timeout=60)
@@ -350,3 +352,37 @@ def test_a_sensor_on_another_clock_stops_calibrate_and_follow_alike(tmp_path, ag
     assert result.exit_code == 2, result.output
     assert name in result.stderr and "max_time_offset_s" in result.stderr
     assert not (tmp_path / "e.yaml").exists()
+
+
+def test_follow_talks_from_the_first_data_and_stops_when_the_recording_ends(aggressive, tmp_path):
+    """Started before the recorder creates the log, follow mode waits for it; a JSON line
+    within 2 s of the first message says per sensor what it has and waits for (before any
+    window completes); when the recording ends it says so and exits within 2 s."""
+    import subprocess
+    import sys
+    import time
+
+    config = tmp_path / "c.yaml"
+    write_document(config, aggressive.config_document())
+    live = tmp_path / "live.mcap"
+    argv = [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(live), "-c", str(config)]
+    process = subprocess.Popen(
+        [*argv, "--follow", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    time.sleep(1.0)  # the recorder starts after imucal does
+    recorder = record(live, aggressive, factor=2.0)
+    recorder.started_writing.wait(30)
+    started = time.monotonic()
+    first = json.loads(process.stdout.readline())
+    assert time.monotonic() - started < 2.0 + 1.0  # (a message is flushed with its chunk)
+    assert first["windows"] == 0
+    assert first["base_samples"] + sum(s["samples"] for s in first["sensors"].values()) > 0
+    for sensor in first["sensors"].values():
+        assert sensor["status"] == "waiting" and "clock offsets" in sensor["waiting_for"]
+    recorder.finished.wait(120)
+    ended = time.monotonic()
+    _, stderr = process.communicate(timeout=60)
+    assert time.monotonic() - ended < 2.0 + 1.0, stderr
+    assert process.returncode == 0, stderr
+    assert b"waiting for" in stderr and b"to be created" in stderr
+    assert b"the recording" in stderr and b"ended" in stderr
