@@ -63,6 +63,12 @@ def bias_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: P
     )
     for row, (name, est) in zip(axes, estimates.items(), strict=True):
         t = est.bias_knots_s + offset_s
+        if est.status == "unobservable":
+            for ax in row:
+                not_observable(ax)
+            row[0].set_title(f"{name}: relative gyro bias", fontsize=10)
+            row[1].set_title(f"{name}: relative accelerometer bias", fontsize=10)
+            continue
         for k in range(3):
             row[0].plot(
                 t,
@@ -132,27 +138,42 @@ def windows_figure(
     return _save(fig, path)
 
 
+def not_observable(ax: Any) -> None:
+    """An unobservable sensor's panel: said, not drawn empty."""
+    ax.text(0.5, 0.5, "not observable", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
 def residual_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: Path) -> Path:
-    """Per sensor: the fit's residual RMS in every window used, against the noise floor."""
+    """Per sensor: the fit's residual RMS in every window used (per grid sample, after the
+    low-pass), against the level the residual check holds them to and its limit."""
+    from imucal_cli.core.checks import RESIDUAL_LEVEL_MAX
+
     fig, axes = plt.subplots(
         len(estimates), 2, figsize=(13, 2.6 * len(estimates)), sharex=True, squeeze=False
     )
     for row, (name, est) in zip(axes, estimates.items(), strict=True):
         r = est.window_residuals
-        for ax, col, unit, noise in (
-            (row[0], 1, "rad/s", "gyro_radps"),
-            (row[1], 2, "m/s^2", "accel_mps2"),
+        level = (getattr(est, "checks", None) or {}).get("residual_level", {})
+        for ax, col, unit, key in (
+            (row[0], 1, "rad/s", "expected_gyro_radps"),
+            (row[1], 2, "m/s^2", "expected_accel_mps2"),
         ):
+            if est.status == "unobservable" or not len(r):
+                not_observable(ax)
+                continue
             ax.plot(
                 r[:, 0] + offset_s, r[:, col], ".", color="black", ms=3, label="window residual RMS"
             )
-            if noise in est.noise_std:
+            if key in level:
+                ax.axhline(level[key], color="tab:blue", ls="--", lw=1, label="the noise level")
                 ax.axhline(
-                    est.noise_std[noise],
-                    color="tab:blue",
-                    ls="--",
+                    RESIDUAL_LEVEL_MAX * level[key],
+                    color="tab:red",
+                    ls=":",
                     lw=1,
-                    label="noise the data imply",
+                    label=f"the check's limit ({RESIDUAL_LEVEL_MAX:g}x)",
                 )
             ax.set_ylabel(f"residual ({unit})")
             ax.set_yscale("log")
@@ -184,6 +205,9 @@ def std_figure(plt: Any, stds: Mapping[str, tuple[Any, Any]], path: Path) -> Pat
         ax.set_xticks(x, names, rotation=15)
         ax.grid(alpha=0.3, axis="y")
         _legend(ax)
+        for i, name in enumerate(names):  # (an unobservable sensor has no std: said so)
+            if stds[name][0] is None:
+                ax.text(i, 0.5, "not observable", ha="center", transform=ax.get_xaxis_transform())
     fig.tight_layout()
     return _save(fig, path)
 
@@ -287,7 +311,9 @@ def html_page(title: str, document: Mapping[str, Any], figures: list[tuple[Path,
                     ", ".join(f"{v:.3f}" for v in T["rpy_deg"]),
                     "-" if std_t is None else ", ".join(f"{1000 * v:.2f}" for v in std_t),
                     "-" if std_r is None else ", ".join(f"{v:.4f}" for v in std_r),
-                    f"{1000 * s['time_offset_s']:.2f}",
+                    f"{1000 * s['time_offset_s']:.2f}"
+                    if s["time_offset_observable"] and s["status"] != "unobservable"
+                    else "not shown",
                     f"{s['segments']['selected']}/{s['segments']['total']}",
                 )
             )
@@ -306,6 +332,7 @@ def html_page(title: str, document: Mapping[str, Any], figures: list[tuple[Path,
             "windows",
         )
     )
+    notes = "".join(_sensor_notes(name, s) for name, s in document["sensors"].items())
     images = "".join(
         f'<figure><img alt="{html.escape(path.name)}" '
         f'src="data:image/png;base64,{base64.b64encode(path.read_bytes()).decode()}"/>'
@@ -321,8 +348,35 @@ figure{{margin:2em 0}}</style></head>
 <body><h1>{html.escape(title)}</h1>
 <p>T_{html.escape(str(document["base_frame"]))}_lidar per sensor
 (imucal {html.escape(str(document["imucal_version"]))}).</p>
-<table><tr>{head}</tr>{"".join(rows)}</table>{images}</body></html>
+<table><tr>{head}</tr>{"".join(rows)}</table>{notes}{images}</body></html>
 """
+
+
+def _sensor_notes(name: str, sensor: Mapping[str, Any]) -> str:
+    """A sensor's warnings and its checks with their figures (why it has its status)."""
+    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in sensor["warnings"])
+
+    def figures(check: Mapping[str, Any]) -> str:
+        return ", ".join(
+            f"{html.escape(k)} {v:.4g}" if isinstance(v, float) else f"{html.escape(k)} {v}"
+            for k, v in check.items()
+            if k != "pass" and isinstance(v, (int, float, str))
+        )
+
+    checks = "".join(
+        f"<tr><td>{html.escape(c)}</td><td>{'pass' if v.get('pass') else 'FAIL'}</td>"
+        f"<td>{figures(v)}</td></tr>"
+        for c, v in (sensor.get("checks") or {}).items()
+    )
+    return (
+        f"<h2>{html.escape(name)}: {html.escape(sensor['status'])}</h2>"
+        + (f"<ul>{warnings}</ul>" if warnings else "<p>No warnings.</p>")
+        + (
+            f"<table><tr><th>check</th><th>result</th><th>figures</th></tr>{checks}</table>"
+            if checks
+            else "<p>No checks: no window carried enough motion to make them.</p>"
+        )
+    )
 
 
 #: The figures :func:`write_report` draws into its folder, beside ``report.html``.

@@ -100,3 +100,37 @@ def test_no_legend_covers_a_plot(tmp_path, monkeypatch):
     result = CliRunner().invoke(app, argv)
     assert result.exit_code == 0, result.output
     assert {"biases.png", "windows.png", "residuals.png", "std.png", "vehicle.png"} <= set(checked)
+
+
+def test_the_page_says_why_each_sensor_has_its_status(tmp_path):
+    """An inconsistent sensor's warnings and failed checks, with their figures, are on the page;
+    an unobservable one gets 'not shown' for its clock and says it has no checks."""
+    import html
+
+    from imucal_cli.pipeline import calibrate_log
+    from imucal_cli.report import html_page
+
+    document = yaml.safe_load((SAMPLE_DATA / "aggressive.config.yaml").read_text())
+    first = next(iter(document["sensors"].values()))
+    first["prior_T_base_imu"]["translation"][0] += 0.5  # the box binds: not ok
+    config = tmp_path / "off.yaml"
+    config.write_text(yaml.safe_dump(document))
+    run = calibrate_log(SAMPLE_DATA / "aggressive.mcap", config)
+    page = html_page("t", run.document, [])
+    for name, sensor in run.document["sensors"].items():
+        assert f"<h2>{name}: {sensor['status']}</h2>" in page
+        for warning in sensor["warnings"]:
+            assert f"<li>{html.escape(warning)}</li>" in page
+        for check, figures in sensor["checks"].items():
+            verdict = "pass" if figures["pass"] else "FAIL"
+            assert f"<tr><td>{check}</td><td>{verdict}</td>" in page
+    assert any(
+        not c["pass"] for s in run.document["sensors"].values() for c in s["checks"].values()
+    )
+    unobservable = {**run.document}
+    name = next(iter(unobservable["sensors"]))
+    unobservable["sensors"] = {
+        name: {**run.document["sensors"][name], "status": "unobservable", "checks": {}}
+    }
+    page = html_page("t", unobservable, [])
+    assert "not shown" in page and "No checks" in page

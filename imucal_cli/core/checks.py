@@ -273,7 +273,13 @@ def residual_level(problem: Problem, fit: Fit) -> Check:
     accel = np.sqrt(max(fit.scale_a**2 - problem.eiv_variance(fit.point.t), 0.0))
     levels = np.array([fit.scale_g, accel]) / expected
     passed = bool(np.all(levels <= RESIDUAL_LEVEL_MAX))
-    figures = {"gyro": float(levels[0]), "accel": float(levels[1])}
+    figures = {
+        "gyro": float(levels[0]),
+        "accel": float(levels[1]),
+        # the level the residuals are held to (per grid sample, after the low-pass)
+        "expected_gyro_radps": float(expected[0]),
+        "expected_accel_mps2": float(expected[1]),
+    }
     return Check("residual_level", passed, figures, float(max(1.0, np.max(levels) ** 2)))
 
 
