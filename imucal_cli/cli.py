@@ -333,6 +333,7 @@ def init(
         typer.Option("--base", help="The base IMU's topic (default: found from /tf_static)."),
     ] = None,
     frame: Annotated[str, typer.Option("--frame", help="The base frame B.")] = "base_link",
+    urdf: UrdfOption = None,
 ) -> None:
     """Write a starting config from a log: its IMU topics, the base, the transforms in its
     /tf_static, a commented placeholder for each one it lacks."""
@@ -342,7 +343,7 @@ def init(
     if out is not None and out.suffix.lower() not in {".yaml", ".yml"}:
         raise InputError(f"{out}: the config is YAML: name it .yaml")
     _check_output(out, log)
-    found = find(log, base, frame)
+    found = find(log, base, frame, urdf)
     text = render(found, log, version())
     if out is None:
         typer.echo(text, nl=False)
@@ -368,18 +369,29 @@ def check_config(
             "--log", help="Take the transforms the config leaves out from this log's /tf_static."
         ),
     ] = None,
+    urdf: UrdfOption = None,
 ) -> None:
     """Validate a config and print it with every default filled in."""
     from imucal_cli.config import load_config
     from imucal_cli.documents import dumps
 
-    typer.echo(dumps(load_config(config, log).to_dict(), as_json=as_json), nl=False)
+    if urdf is not None and log is None:
+        raise InputError("--urdf goes with --log (the IMUs' frames are in the log)")
+    typer.echo(dumps(load_config(config, log, urdf).to_dict(), as_json=as_json), nl=False)
 
 
 # --------------------------------------------------------------------------- calibration commands
 
 PANEL_CAL = "Calibration"
 ConfigOption = Annotated[Path, typer.Option("-c", "--config", help="Calibration config (YAML).")]
+UrdfOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--urdf",
+        help="A URDF whose joints stand in for transforms the config leaves out (beside the "
+        "log's /tf_static; default: the log's /robot_description).",
+    ),
+]
 OutOption = Annotated[
     Path | None, typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).")
 ]
@@ -408,14 +420,14 @@ def _note_losses(log: Path, losses: list[Any]) -> None:
         _err(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read")
 
 
-def _stream_log(log: Path, config_path: Path) -> tuple[Any, Any]:
+def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple[Any, Any]:
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
     nothing solved yet); say on stderr what reading found. Returns the config and the
     :class:`~imucal_cli.api.StreamedLog`."""
     from imucal_cli.api import stream_log
     from imucal_cli.config import load_config
 
-    config = load_config(config_path, log)  # what the config leaves out, from /tf_static
+    config = load_config(config_path, log, urdf)  # what it leaves out, from /tf_static, URDF
     with _progress(f"reading {log}") as progress:
         # one log: its windows reduced beside the reading, on the second core (a batch runs
         # a process per core instead)
@@ -439,13 +451,14 @@ def biases(
     config: ConfigOption,
     out: OutOption = None,
     as_json: JsonOption = False,
+    urdf: UrdfOption = None,
 ) -> None:
     """Per IMU: rest periods, accelerometer bias and noise, gyro bias track summary."""
     from imucal_cli.api import stream_biases
     from imucal_cli.config import load_config
 
     _check_output(out, log, config)
-    cfg = load_config(config, log)
+    cfg = load_config(config, log, urdf)
     with _progress(f"reading {log}") as progress:
         document = stream_biases(log, cfg, progress)
     _note_losses(log, document["losses"])
@@ -494,11 +507,12 @@ def segments(
     config: ConfigOption,
     out: OutOption = None,
     as_json: JsonOption = False,
+    urdf: UrdfOption = None,
 ) -> None:
     """Per sensor: each window's Fisher-information min singular value, rotation std, selected
     or not."""
-    _check_output(out, log, config)
-    cfg, streamed = _stream_log(log, config)
+    _check_output(out, log, config, urdf)
+    cfg, streamed = _stream_log(log, config, urdf)
     from imucal_cli.outputs import segments_document
 
     calibrator, t0_ns = streamed.calibrator, streamed.t0_ns
@@ -592,9 +606,10 @@ def calibrate(
             help="With -o or --json: print no status lines on stderr.",
         ),
     ] = False,
+    urdf: UrdfOption = None,
 ) -> None:
     """The extrinsics of every sensor and every lidar pair."""
-    _check_output(out, log, config)
+    _check_output(out, log, config, urdf)
     if not follow and (until_converged or timeout is not None):
         raise InputError("--until-converged and --timeout go with --follow")
     if report is not None:
@@ -618,7 +633,7 @@ def calibrate(
     if follow:
         _follow(log, config, out, as_json, until_converged, timeout, report)
         return
-    _cfg, streamed = _stream_log(log, config)
+    _cfg, streamed = _stream_log(log, config, urdf)
     from imucal_cli.api import estimate
     from imucal_cli.outputs import calibration_document
 

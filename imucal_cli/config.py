@@ -335,9 +335,12 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     return Config(base=base, sensors=tuple(sensors), **sections, source=source)
 
 
-def load_config(path: str | Path, log: str | Path | None = None) -> Config:
+def load_config(
+    path: str | Path, log: str | Path | None = None, urdf: str | Path | None = None
+) -> Config:
     """Load and validate a YAML config file; with ``log``, the transforms it leaves out are
-    taken from the log's ``/tf_static`` (:func:`imucal_cli.frames.complete_from_log`).
+    taken from the log's ``/tf_static`` and a URDF (``urdf``, else the log's
+    ``/robot_description``: :func:`imucal_cli.frames.complete_from_log`).
 
     Raises
     ------
@@ -356,5 +359,5 @@ def load_config(path: str | Path, log: str | Path | None = None) -> Config:
         return parse_config(data, str(path))
     from imucal_cli.frames import complete_from_log
 
-    data, priors = complete_from_log(data, log, str(path))
+    data, priors = complete_from_log(data, log, str(path), urdf)
     return replace(parse_config(data, str(path)), priors=priors)

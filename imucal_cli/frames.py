@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from imucal_cli.errors import ConfigError
+from imucal_cli.errors import ConfigError, InputError
 from imucal_cli.types import Transform, rotation_type
 
 TF_TOPIC = "/tf_static"
@@ -35,28 +35,88 @@ SENSOR_KEYS, BASE_KEY = ("T_imu_lidar", "prior_T_base_imu"), "T_base_imu"
 
 
 class FrameTree:
-    """Static transforms between named frames; :meth:`lookup` composes any chain."""
+    """Static transforms between named frames, each edge with where it came from
+    (``tf_static``, ``urdf``); :meth:`lookup` composes any chain."""
 
     def __init__(self) -> None:
-        self.edges: dict[str, list[tuple[str, Transform]]] = {}
+        self.edges: dict[str, list[tuple[str, Transform, str]]] = {}
 
-    def add(self, parent: str, child: str, T_parent_child: Transform) -> None:
-        self.edges.setdefault(parent, []).append((child, T_parent_child))
-        self.edges.setdefault(child, []).append((parent, T_parent_child.inverse()))
+    def add(self, parent: str, child: str, T_parent_child: Transform, origin: str = "") -> None:
+        """An edge; one the tree already holds (from an earlier source) is kept."""
+        if any(n == child for n, _, _ in self.edges.get(parent, [])):
+            return
+        self.edges.setdefault(parent, []).append((child, T_parent_child, origin))
+        self.edges.setdefault(child, []).append((parent, T_parent_child.inverse(), origin))
 
     def lookup(self, target: str, source: str) -> Transform | None:
         """``T_target_source`` (a point in ``source`` to ``target``), or None: no chain."""
+        found = self.chain(target, source)
+        return None if found is None else found[0]
+
+    def chain(self, target: str, source: str) -> tuple[Transform, str] | None:
+        """``T_target_source`` and where its edges came from (``tf_static``, ``urdf``, or
+        both joined by ``+``), or None: no chain."""
         if target not in self.edges or source not in self.edges:
             return None
-        reached: dict[str, Transform] = {target: Transform.identity()}
+        reached: dict[str, tuple[Transform, frozenset[str]]] = {
+            target: (Transform.identity(), frozenset())
+        }
         queue = deque([target])
         while queue:
             frame = queue.popleft()
-            for neighbour, T in self.edges[frame]:
+            for neighbour, T, origin in self.edges[frame]:
                 if neighbour not in reached:
-                    reached[neighbour] = reached[frame] * T
+                    T_so_far, origins = reached[frame]
+                    reached[neighbour] = (T_so_far * T, origins | {origin})
                     queue.append(neighbour)
-        return reached.get(source)
+        if source not in reached:
+            return None
+        T, origins = reached[source]
+        return T, "+".join(sorted(o for o in origins if o)) or "tf_static"
+
+
+#: The topic a ROS log may carry its robot's URDF on, and the most of it read.
+DESCRIPTION_TOPIC, MAX_URDF_BYTES = "/robot_description", 16 << 20
+
+
+def read_urdf(text: str, tree: FrameTree, where: str) -> None:
+    """Every joint of a URDF (ROS's parser, ``urdf_parser_py``) into ``tree`` as an edge from
+    its parent link to its child link at its origin (a moving joint at its zero position).
+    Raises :class:`InputError` naming ``where`` for text that is not a URDF."""
+    from urdf_parser_py import xml_reflection
+    from urdf_parser_py.urdf import URDF
+
+    if len(text) > MAX_URDF_BYTES:
+        raise InputError(f"{where}: larger than {MAX_URDF_BYTES >> 20} MiB: not a URDF")
+    xml_reflection.core.on_error = lambda _message: None  # (it prints what it skips)
+    try:
+        robot = URDF.from_xml_string(text.encode())
+    except Exception as exc:  # lxml's and the parser's own errors alike
+        raise InputError(f"{where}: not a URDF: {str(exc).splitlines()[0][:200]}") from None
+    for joint in robot.joints or []:
+        origin = joint.origin
+        xyz = np.zeros(3) if origin is None or origin.xyz is None else np.array(origin.xyz)
+        rpy = np.zeros(3) if origin is None or origin.rpy is None else np.array(origin.rpy)
+        if np.all(np.isfinite(xyz)) and np.all(np.isfinite(rpy)):
+            tree.add(joint.parent, joint.child, Transform.from_rpy(rpy, xyz), "urdf")
+
+
+def _description(reader: Any) -> str | None:
+    """The log's robot description (a ``std_msgs/String``), its first message, or None."""
+    info = reader.topics().get(DESCRIPTION_TOPIC)
+    if info is None or info.msgtype not in ("std_msgs/msg/String", "std_msgs/String"):
+        return None
+    for batch in reader.batches([DESCRIPTION_TOPIC]):
+        ros1 = batch.encoding == "ros1"
+        store = tf_typestore(ros1)
+        start, length = int(batch.starts[0]), int(batch.lengths[0])
+        data = batch.buffer[start : start + min(length, MAX_URDF_BYTES + 64)].tobytes()
+        try:
+            read = store.deserialize_ros1 if ros1 else store.deserialize_cdr
+            return str(read(data, "std_msgs/msg/String").data)
+        except Exception:
+            return None
+    return None
 
 
 def tf_typestore(ros1: bool) -> Any:
@@ -121,7 +181,8 @@ def read_tf_static(reader: Any) -> FrameTree:
                     continue
                 rotation = rotation_type().from_quat(xyzw / np.linalg.norm(xyzw))
                 T = Transform(rotation, np.array([t.x, t.y, t.z]))
-                tree.add(stamped.header.frame_id.lstrip("/"), stamped.child_frame_id.lstrip("/"), T)
+                parent, child = stamped.header.frame_id, stamped.child_frame_id
+                tree.add(parent.lstrip("/"), child.lstrip("/"), T, "tf_static")
     return tree
 
 
@@ -154,13 +215,28 @@ def _missing(data: Mapping[str, Any]) -> tuple[list[tuple[str, str]], bool]:
     return missing, isinstance(base, Mapping) and base.get(BASE_KEY) is None
 
 
+def frame_tree(reader: Any, urdf: str | Path | None = None) -> FrameTree:
+    """The log's ``/tf_static``, then what a URDF adds: the file ``urdf``, else the log's
+    ``/robot_description`` (a transform /tf_static holds is kept)."""
+    tree = read_tf_static(reader)
+    if urdf is not None:
+        try:
+            text = Path(urdf).read_text(encoding="utf-8", errors="replace")
+        except OSError as exc:
+            raise InputError(f"{urdf}: cannot read: {exc.strerror}") from None
+        read_urdf(text, tree, str(urdf))
+    elif (description := _description(reader)) is not None:
+        read_urdf(description, tree, f"{reader.path} [{DESCRIPTION_TOPIC}]")
+    return tree
+
+
 def complete_from_log(
-    data: Any, log: str | Path, source: str
+    data: Any, log: str | Path, source: str, urdf: str | Path | None = None
 ) -> tuple[Any, dict[str, dict[str, str]]]:
     """The config document with the transforms it leaves out taken from ``log``'s
-    ``/tf_static``, and where each transform came from, per sensor (``config``: the config or
-    its default; ``tf_static``). Raises :class:`ConfigError` naming the key and the frames
-    where the tree cannot supply one."""
+    ``/tf_static`` and a URDF (:func:`frame_tree`), and where each transform came from, per
+    sensor (``config``: the config or its default; ``tf_static``, ``urdf`` or both). Raises
+    :class:`ConfigError` naming the key and the frames where the tree cannot supply one."""
     if not isinstance(data, Mapping) or not isinstance(data.get("sensors"), Mapping):
         return data, {}
     missing, base_missing = _missing(data)
@@ -172,7 +248,7 @@ def complete_from_log(
 
     document = {**data, "base": dict(data["base"]), "sensors": dict(data["sensors"])}
     with open_log(log) as reader:
-        tree = read_tf_static(reader)
+        tree = frame_tree(reader, urdf)
         if not tree.edges and not missing:  # (the base at the config's default)
             return data, sources
         wanted = [document["base"].get("topic")] + [
@@ -185,21 +261,20 @@ def complete_from_log(
     base_frame = str(base.get("frame", "base_link"))
     if base_missing:
         base_imu = frames.get(str(base.get("topic")))
-        T = tree.lookup(base_frame, base_imu) if base_imu else None
-        if T is not None and base_imu != base_frame:
-            base[BASE_KEY] = T.to_dict()
+        found = tree.chain(base_frame, base_imu) if base_imu else None
+        if found is not None and base_imu != base_frame:
+            base[BASE_KEY] = found[0].to_dict()
             for name in names:
-                sources[name][f"base.{BASE_KEY}"] = "tf_static"
+                sources[name][f"base.{BASE_KEY}"] = found[1]
     for name, key in missing:
         sensor = document["sensors"][name] = dict(document["sensors"][name])
         imu = frames.get(str(sensor.get("imu_topic")))
         lidar = str(sensor.get("lidar_frame") or f"{name}_lidar")
         ends = (imu, lidar) if key == "T_imu_lidar" else (base_frame, imu)
-        T = tree.lookup(*ends) if imu else None
-        if T is None:
+        found = tree.chain(*ends) if imu else None
+        if found is None:
             raise ConfigError(source, f"sensors.{name}.{key}", _why(log, tree, ends, imu, key))
-        sensor[key] = T.to_dict()
-        sources[name][key] = "tf_static"
+        sensor[key], sources[name][key] = found[0].to_dict(), found[1]
     return document, sources
 
 

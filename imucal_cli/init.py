@@ -16,7 +16,7 @@ import numpy as np
 
 from imucal_cli.config import SECTIONS, BaseConfig, SensorConfig
 from imucal_cli.errors import InputError
-from imucal_cli.frames import FrameTree, imu_frames, read_tf_static
+from imucal_cli.frames import FrameTree, frame_tree, imu_frames
 from imucal_cli.types import Transform
 
 #: Tokens of a topic name that say nothing of which sensor it is.
@@ -50,7 +50,8 @@ class Found:
     base_frame: str
     sensors: dict[str, str]  # name -> topic
     lidar_frames: dict[str, str] = field(default_factory=dict)
-    transforms: dict[tuple[str, str], Transform] = field(default_factory=dict)  # (who, key)
+    #: (who, key) -> the transform and where it came from (tf_static, urdf, both)
+    transforms: dict[tuple[str, str], tuple[Transform, str]] = field(default_factory=dict)
     missing: list[tuple[str, str]] = field(default_factory=list)
 
 
@@ -67,8 +68,8 @@ def sensor_name(topic: str, taken: set[str]) -> str:
 
 def _lidar_beside(tree: FrameTree, imu_frame: str) -> str | None:
     """A frame named like a lidar's next to the IMU's (its sibling or its child)."""
-    for neighbour, _ in tree.edges.get(imu_frame, []):
-        for frame in [neighbour, *(f for f, _ in tree.edges.get(neighbour, []))]:
+    for neighbour, _, _ in tree.edges.get(imu_frame, []):
+        for frame in [neighbour, *(f for f, _, _ in tree.edges.get(neighbour, []))]:
             if frame != imu_frame and frame.rsplit("/", 1)[-1].lower().endswith("lidar"):
                 return frame
     return None
@@ -92,16 +93,18 @@ def _base_topic(
     return placed[0] if len(placed) == 1 else None
 
 
-def find(log: str | Path, base: str | None, base_frame: str) -> Found:
-    """Read the log's IMU topics, their frames and ``/tf_static``; settle the base and every
-    transform the tree gives."""
+def find(
+    log: str | Path, base: str | None, base_frame: str, urdf: str | Path | None = None
+) -> Found:
+    """Read the log's IMU topics, their frames, ``/tf_static`` and a URDF (``urdf``, else the
+    log's ``/robot_description``); settle the base and every transform the tree gives."""
     from imucal_cli.io.logs import open_log
 
     with open_log(log) as reader:
         topics = sorted(t for t, info in reader.topics().items() if info.is_imu)
         if len(topics) < 2:
             raise InputError(f"{log}: {len(topics)} IMU topics; a calibration needs two or more")
-        tree = read_tf_static(reader)
+        tree = frame_tree(reader, urdf)
         frames = imu_frames(reader, topics)
     if base is not None and base not in topics:
         raise InputError(f"--base {base}: not an IMU topic of {log}: {', '.join(topics)}")
@@ -125,20 +128,20 @@ def find(log: str | Path, base: str | None, base_frame: str) -> Found:
 def _transforms(found: Found, tree: FrameTree, frames: dict[str, str]) -> None:
     base_imu = frames.get(found.base_topic)
     if base_imu and base_imu != found.base_frame:
-        T = tree.lookup(found.base_frame, base_imu)
-        if T is not None:
-            found.transforms["base", "T_base_imu"] = T
+        chain = tree.chain(found.base_frame, base_imu)
+        if chain is not None:
+            found.transforms["base", "T_base_imu"] = chain
     for name, topic in found.sensors.items():
         imu = frames.get(topic)
         lidar = _lidar_beside(tree, imu) if imu else None
         found.lidar_frames[name] = lidar or f"{name}_lidar"
         pairs = {"T_imu_lidar": (imu, lidar), "prior_T_base_imu": (found.base_frame, imu)}
         for key, (a, b) in pairs.items():
-            T = tree.lookup(a, b) if a and b else None
-            if T is None:
+            chain = tree.chain(a, b) if a and b else None
+            if chain is None:
                 found.missing.append((name, key))
             else:
-                found.transforms[name, key] = T
+                found.transforms[name, key] = chain
 
 
 def _flow(T: Transform) -> str:
@@ -164,7 +167,7 @@ def render(found: Found, log: str | Path, version: str) -> str:
     """The config text: found transforms written out, placeholders commented."""
     lines = [
         f"# imucal config from `imucal init {log}` (imucal {version}).",
-        "# Transforms marked 'from /tf_static' were read from the log; a commented placeholder",
+        "# Transforms marked 'from tf_static' or 'from urdf' were read; a commented placeholder",
         "# marks one the log does not hold: fill it in (`imucal check-config` names what is",
         "# missing). Every other key is at its default.",
         "base:",
@@ -172,8 +175,8 @@ def render(found: Found, log: str | Path, version: str) -> str:
         f"  frame: {found.base_frame}",
     ]
     if ("base", "T_base_imu") in found.transforms:
-        T = found.transforms["base", "T_base_imu"]
-        lines.append(f"  T_base_imu: {_flow(T)}  # from /tf_static")
+        T, origin = found.transforms["base", "T_base_imu"]
+        lines.append(f"  T_base_imu: {_flow(T)}  # from {origin}")
     else:
         lines.append("  # T_base_imu: {translation: [0, 0, 0], rpy_deg: [0, 0, 0]}  # default")
     lines += _default_lines(BaseConfig, "base", "  ", {"topic", "frame", "T_base_imu"})
@@ -187,7 +190,8 @@ def render(found: Found, log: str | Path, version: str) -> str:
         lines.append(f"    lidar_frame: {found.lidar_frames[name]}")
         for key in ("T_imu_lidar", "prior_T_base_imu"):
             if (name, key) in found.transforms:
-                lines.append(f"    {key}: {_flow(found.transforms[name, key])}  # from /tf_static")
+                T, origin = found.transforms[name, key]
+                lines.append(f"    {key}: {_flow(T)}  # from {origin}")
             else:
                 lines.append(
                     f"    # {key}: {{translation: [0, 0, 0], rpy_deg: [0, 0, 0]}}  # not in the "

@@ -369,7 +369,8 @@ def test_follow_talks_from_the_first_data_and_stops_when_the_recording_ends(aggr
     process = subprocess.Popen(
         [*argv, "--follow", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
     )
-    time.sleep(1.0)  # the recorder starts after imucal does
+    waiting = process.stderr.readline()  # imucal is up before the recorder starts
+    assert b"waiting for" in waiting and b"to be created" in waiting, waiting
     recorder = record(live, aggressive, factor=2.0)
     recorder.started_writing.wait(30)
     started = time.monotonic()
@@ -384,5 +385,4 @@ def test_follow_talks_from_the_first_data_and_stops_when_the_recording_ends(aggr
     _, stderr = process.communicate(timeout=60)
     assert time.monotonic() - ended < 2.0 + 1.0, stderr
     assert process.returncode == 0, stderr
-    assert b"waiting for" in stderr and b"to be created" in stderr
     assert b"the recording" in stderr and b"ended" in stderr

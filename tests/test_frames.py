@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 
 from imucal_cli.config import load_config
 from imucal_cli.documents import write_document
@@ -114,3 +115,50 @@ def test_the_tree_composes_any_chain_both_ways():
         tree.lookup("d", "a").as_matrix(), expected.inverse().as_matrix(), atol=1e-12
     )
     assert tree.lookup("a", "e") is None
+
+
+@pytest.mark.parametrize("where", ["file", "topic"])
+def test_a_urdf_gives_the_transforms_as_tf_static_does(drive, tmp_path, where):
+    """The same tree as a URDF, given with --urdf (a log with no /tf_static) or carried on the
+    log's /robot_description (a ROS 1 bag): the same result as the full config, and the output
+    says the transforms came from the URDF."""
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+
+    fmt, suffix = ("mcap", ".mcap") if where == "file" else ("rosbag1", ".bag")
+    description = drive.urdf() if where == "topic" else None
+    log = write_imu_log(tmp_path / f"d{suffix}", fmt, drive.topics(), robot_description=description)
+    (tmp_path / "robot.urdf").write_text(drive.urdf())
+    full = drive.config_document()
+    write_document(tmp_path / "full.yaml", full)
+    write_document(tmp_path / "min.yaml", _minimal(full))
+    urdf = ["--urdf", str(tmp_path / "robot.urdf")] if where == "file" else []
+    runs = {}
+    for name in ("full", "min"):
+        out = tmp_path / f"{name}.out.yaml"
+        result = CliRunner().invoke(
+            app,
+            ["calibrate", str(log), "-c", str(tmp_path / f"{name}.yaml"), "-o", str(out), *urdf],
+        )
+        assert result.exit_code == 0, result.output
+        runs[name] = yaml.safe_load(out.read_text())
+    for sensor, estimate in runs["min"]["sensors"].items():
+        np.testing.assert_allclose(
+            Transform.from_dict(estimate["T_base_lidar"]).as_matrix(),
+            Transform.from_dict(runs["full"]["sensors"][sensor]["T_base_lidar"]).as_matrix(),
+            atol=1e-9,
+        )
+        assert estimate["priors"] == dict.fromkeys(
+            ("T_imu_lidar", "prior_T_base_imu", "base.T_base_imu"), "urdf"
+        )
+
+
+def test_text_that_is_not_a_urdf_is_an_error_naming_the_file(drive, tmp_path):
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics())
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    (tmp_path / "bad.urdf").write_text("<robot><joint name='j'>")
+    from imucal_cli.errors import InputError
+
+    with pytest.raises(InputError, match=r"bad\.urdf: not a URDF"):
+        load_config(tmp_path / "min.yaml", log, tmp_path / "bad.urdf")

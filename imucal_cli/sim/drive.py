@@ -197,6 +197,25 @@ class SimulatedDrive:
             ]
         return out
 
+    def urdf(self) -> str:
+        """The tree of :meth:`static_transforms` as a URDF (fixed joints, ROS RPY)."""
+        from xml.sax.saxutils import quoteattr
+
+        transforms = self.static_transforms()
+        links = dict.fromkeys(f for parent, child, _ in transforms for f in (parent, child))
+        lines = ['<robot name="simulated_vehicle">']
+        lines += [f"  <link name={quoteattr(link)}/>" for link in links]
+        for k, (parent, child, T) in enumerate(transforms):
+            xyz = " ".join(f"{v:.17g}" for v in T.translation)
+            rpy = " ".join(f"{v:.17g}" for v in T.rpy_rad)
+            lines += [
+                f'  <joint name="joint_{k}" type="fixed">',
+                f"    <parent link={quoteattr(parent)}/><child link={quoteattr(child)}/>",
+                f'    <origin xyz="{xyz}" rpy="{rpy}"/>',
+                "  </joint>",
+            ]
+        return "\n".join([*lines, "</robot>", ""])
+
     def truth_document(self) -> dict[str, Any]:
         """The SPEC truth file, plus ``T_base_imu``, time offsets and the true biases."""
 

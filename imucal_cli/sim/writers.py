@@ -39,15 +39,33 @@ def _first_ns(topics: Mapping[str, TopicData]) -> int:
     )
 
 
-def _tf_blob(tf_static: StaticTransforms, topics: Mapping[str, TopicData], ros1: bool) -> bytes:
-    """``tf_static`` as one serialised ``TFMessage``, stamped at the log's first message."""
-    from imucal_cli.frames import TF_MSGTYPES, tf_message, tf_typestore
+#: A message written once at the log's start: (topic, msgtype, serialised).
+Static = tuple[str, str, bytes]
 
+
+def _statics(
+    tf_static: StaticTransforms,
+    description: str | None,
+    topics: Mapping[str, TopicData],
+    ros1: bool,
+) -> list[Static]:
+    """``tf_static`` as one ``TFMessage`` on /tf_static and ``description`` as a
+    ``std_msgs/String`` on /robot_description (where given), stamped at the first message."""
+    from imucal_cli.frames import DESCRIPTION_TOPIC, TF_MSGTYPES, TF_TOPIC, tf_message, tf_typestore
+
+    if not tf_static and description is None:
+        return []
     store = tf_typestore(ros1)
-    stamp = _first_ns(topics)
-    message = tf_message(store, list(tf_static), stamp)
     serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
-    return bytes(serialize(message, TF_MSGTYPES[0]))
+    out = []
+    if tf_static:
+        message = tf_message(store, list(tf_static), _first_ns(topics))
+        out.append((TF_TOPIC, TF_MSGTYPES[0], bytes(serialize(message, TF_MSGTYPES[0]))))
+    if description is not None:
+        kind = "std_msgs/msg/String"
+        text = bytes(serialize(store.types[kind](data=description), kind))
+        out.append((DESCRIPTION_TOPIC, kind, text))
+    return out
 
 
 @dataclass(frozen=True)
@@ -109,7 +127,7 @@ def _write_mcap(
     compression: str = "zstd",
     chunk_size: int = 1024 * 1024,
     progress: Progress | None = None,
-    tf_static: StaticTransforms = (),
+    statics: Sequence[Static] = (),
 ) -> None:
     from mcap.writer import CompressionType, Writer
 
@@ -131,8 +149,8 @@ def _write_mcap(
             )
             for topic in topics
         }
-        if tf_static:
-            _mcap_tf(writer, tf_static, topics, ros1)
+        for static in statics:
+            _mcap_static(writer, static, _first_ns(topics), ros1)
         sequence = dict.fromkeys(topics, 0)
         for log_ns, topic, i in _messages(topics, progress):
             writer.add_message(
@@ -146,24 +164,21 @@ def _write_mcap(
         writer.finish()
 
 
-def _mcap_tf(
-    writer: Any, tf_static: StaticTransforms, topics: Mapping[str, TopicData], ros1: bool
-) -> None:
-    """``/tf_static`` into an MCAP writer: its schema, channel and one message."""
-    from imucal_cli.frames import TF_MSGTYPES, TF_TOPIC, tf_typestore
+def _mcap_static(writer: Any, static: Static, stamp: int, ros1: bool) -> None:
+    """One message written once into an MCAP writer: its schema, channel and message."""
+    from imucal_cli.frames import tf_typestore
 
-    text, _ = tf_typestore(ros1).generate_msgdef(TF_MSGTYPES[0], ros_version=1 if ros1 else 2)
+    topic, msgtype, data = static
+    text, _ = tf_typestore(ros1).generate_msgdef(msgtype, ros_version=1 if ros1 else 2)
     schema = writer.register_schema(
-        name=TF_MSGTYPES[1] if ros1 else TF_MSGTYPES[0],
+        name=msgtype.replace("/msg/", "/") if ros1 else msgtype,
         encoding="ros1msg" if ros1 else "ros2msg",
         data=text.encode(),
     )
     channel = writer.register_channel(
-        topic=TF_TOPIC, message_encoding="ros1" if ros1 else "cdr", schema_id=schema
+        topic=topic, message_encoding="ros1" if ros1 else "cdr", schema_id=schema
     )
-    blob = _tf_blob(tf_static, topics, ros1)
-    stamp = _first_ns(topics)
-    writer.add_message(channel_id=channel, log_time=stamp, data=blob, publish_time=stamp)
+    writer.add_message(channel_id=channel, log_time=stamp, data=data, publish_time=stamp)
 
 
 def _fill_rosbags_writer(
@@ -171,19 +186,18 @@ def _fill_rosbags_writer(
     topics: Mapping[str, TopicData],
     ros1: bool,
     progress: Progress | None = None,
-    tf_static: StaticTransforms = (),
+    statics: Sequence[Static] = (),
 ) -> None:
     """Open a rosbags writer, add one connection per topic, write every message, close."""
     _, typestore = _msgdef(ros1)
     blobs = _serialized(topics, ros1)
     writer.open()
     try:
-        if tf_static:
-            from imucal_cli.frames import TF_MSGTYPES, TF_TOPIC, tf_typestore
+        from imucal_cli.frames import tf_typestore
 
-            tf = writer.add_connection(TF_TOPIC, TF_MSGTYPES[0], typestore=tf_typestore(ros1))
-            stamp = _first_ns(topics)
-            writer.write(tf, stamp, _tf_blob(tf_static, topics, ros1))
+        for topic, msgtype, data in statics:
+            connection = writer.add_connection(topic, msgtype, typestore=tf_typestore(ros1))
+            writer.write(connection, _first_ns(topics), data)
         connections = {
             topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore)
             for topic in topics
@@ -199,26 +213,26 @@ def _write_rosbag2(
     topics: Mapping[str, TopicData],
     storage: str,
     progress: Progress | None = None,
-    tf_static: StaticTransforms = (),
+    statics: Sequence[Static] = (),
 ) -> None:
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     writer = Writer(path, version=9, storage_plugin=plugin)
-    _fill_rosbags_writer(writer, topics, False, progress, tf_static)
+    _fill_rosbags_writer(writer, topics, False, progress, statics)
 
 
 def _write_rosbag1(
     path: Path,
     topics: Mapping[str, TopicData],
     progress: Progress | None = None,
-    tf_static: StaticTransforms = (),
+    statics: Sequence[Static] = (),
 ) -> None:
     from rosbags.rosbag1 import Writer
 
     writer = Writer(path)
     writer.set_compression(Writer.CompressionFormat.LZ4)
-    _fill_rosbags_writer(writer, topics, True, progress, tf_static)
+    _fill_rosbags_writer(writer, topics, True, progress, statics)
 
 
 def write_imu_log(
@@ -228,9 +242,11 @@ def write_imu_log(
     progress: Progress | None = None,
     replace: bool = False,
     tf_static: StaticTransforms = (),
+    robot_description: str | None = None,
 ) -> Path:
-    """Write IMU topics to ``out`` in format ``fmt`` (one of :data:`FORMATS`), and
-    ``tf_static`` (where given) as one ``/tf_static`` message at the log's start.
+    """Write IMU topics to ``out`` in format ``fmt`` (one of :data:`FORMATS`), and (where
+    given) ``tf_static`` as one ``/tf_static`` message and ``robot_description`` (a URDF) as
+    one ``/robot_description`` message at the log's start.
 
     The log is built in a new temporary folder beside ``out`` and renamed into place once
     complete, so an interrupted write leaves no partial log. An existing ``out`` is an error;
@@ -248,13 +264,14 @@ def write_imu_log(
     )  # ours alone
     tmp = work / out.name
     try:
+        ros1 = fmt in ("mcap-ros1", "rosbag1")
+        statics = _statics(tf_static, robot_description, topics, ros1)
         if fmt in ("mcap", "mcap-ros1"):
-            ros1 = fmt == "mcap-ros1"
-            _write_mcap(tmp, topics, ros1, progress=progress, tf_static=tf_static)
+            _write_mcap(tmp, topics, ros1, progress=progress, statics=statics)
         elif fmt == "rosbag1":
-            _write_rosbag1(tmp, topics, progress, tf_static)
+            _write_rosbag1(tmp, topics, progress, statics)
         else:
-            _write_rosbag2(tmp, topics, fmt.removeprefix("rosbag2-"), progress, tf_static)
+            _write_rosbag2(tmp, topics, fmt.removeprefix("rosbag2-"), progress, statics)
         if out.exists() or out.is_symlink():
             refuse_existing(out, replace)  # (again: it may have appeared meanwhile)
             shutil.rmtree(out) if out.is_dir() else out.unlink()
