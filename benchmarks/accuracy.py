@@ -50,6 +50,8 @@ CASES = [
     ("urban", "consumer"),
     ("aggressive", "consumer"),
     ("urban", "industrial"),
+    ("urban", "tactical"),
+    ("urban", "navigation"),
     ("aggressive", "mems-base"),
     ("aggressive", "gyros-low"),
 ]

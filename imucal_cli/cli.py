@@ -1337,8 +1337,8 @@ def simulate(
             "triads "
             "apart), tilting-mount, clock-offsets (+-40 ms), prior-off (0.5 m), accel-g, gyro-dps, "
             "ins-away (the base IMU turned and 1.6 m away, declared), clock-jitter (+-40 ms, "
-            "0.5 ms jitter, 1% drops, 200 Hz); consumer, industrial, mems-base (errors drawn "
-            "from those grades), gyros-low (both gyros 10% low).",
+            "0.5 ms jitter, 1% drops, 200 Hz); consumer, industrial, tactical, navigation, "
+            "mems-base (errors drawn from those grades), gyros-low (both gyros 10% low).",
         ),
     ] = "none",
     lidar_grade: Annotated[

@@ -97,6 +97,8 @@ ERROR_CLASSES: dict[str, dict[str, Any]] = {
     # each IMU's errors drawn from the grade the config declares (SPEC "IMU grades")
     "consumer": {"drive": {"lidar_grade": "consumer", "base_grade": "tactical"}},
     "industrial": {"drive": {"lidar_grade": "industrial", "base_grade": "tactical"}},
+    "tactical": {"drive": {"lidar_grade": "tactical", "base_grade": "tactical"}},
+    "navigation": {"drive": {"lidar_grade": "navigation", "base_grade": "navigation"}},
     "mems-base": {
         "drive": {"lidar_grade": "consumer", "base_grade": "consumer", "base_model": MEMS_LIDAR}
     },
