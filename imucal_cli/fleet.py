@@ -71,7 +71,9 @@ class Task:
 
     log: str  # absolute
     name: str  # the log as the summary names it: its full path
-    config: Config
+    #: The config, or the path of one that leaves transforms out (read against the log's
+    #: /tf_static by the worker: a log that lacks them is that log's failed row)
+    config: Config | str
     out: str  # absolute: where the calibrate document goes
     against: dict[str, Transform] | None = None  # truth or reference T_base_lidar per sensor
     against_source: str = ""  # the file they came from (for messages)
@@ -435,6 +437,21 @@ def run_dask(
     return [r or [] for r in results]
 
 
+def _shared_config(path: str) -> Config | None:
+    """The config every log of the run shares, or None where it leaves transforms out: each
+    log's own ``/tf_static`` (or ``/robot_description``) then gives them (SPEC)."""
+    from imucal_cli.config import load_config
+    from imucal_cli.errors import ConfigError
+    from imucal_cli.frames import SENSOR_KEYS
+
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        if exc.problem == "missing required key" and exc.key.endswith(SENSOR_KEYS):
+            return None
+        raise
+
+
 def plan_tasks(
     entries: Sequence[dict[str, str]],
     config: str | Path | None,
@@ -450,7 +467,6 @@ def plan_tasks(
     (:func:`_output_names`). Every path is resolved and
     every file read here: a worker started anywhere runs the task."""
     from imucal_cli.api import load_transforms
-    from imucal_cli.config import load_config
 
     if truth_dir is not None and reference is not None:
         raise InputError("--truth-dir and --reference: give one of them")
@@ -460,7 +476,7 @@ def plan_tasks(
         raise InputError(f"{truth_dir}: folder does not exist")
     paths = [log_folder(Path(e["log"]).resolve()) for e in entries]  # a rosbag2 log is its folder
     root = Path(os.path.commonpath([p.parent for p in paths]))
-    configs: dict[str, Config] = {}
+    configs: dict[str, Config | None] = {}
     loaded: dict[
         str, tuple[dict[str, Transform], dict[str, tuple[float | None, float | None]]]
     ] = {}  # truth or reference files
@@ -477,7 +493,9 @@ def plan_tasks(
         if cfg is None:
             raise InputError(f"{log}: no config: give -c CFG or a config column in the manifest")
         if cfg not in configs:
-            configs[cfg] = load_config(cfg)
+            configs[cfg] = _shared_config(cfg)
+        # (a config that leaves transforms out is read by the worker against its log)
+        job_config = configs[cfg] or str(Path(cfg).resolve())
         optional = False  # a truth file the folder may not have (then: nothing to compare with)
         if entry.get("reference") or entry.get("truth"):
             source, is_reference = (
@@ -499,7 +517,7 @@ def plan_tasks(
             Task(
                 str(log),
                 str(log),
-                configs[cfg],
+                job_config,
                 str((out_dir / f"{output}.yaml").resolve()),
                 against,
                 source,
@@ -549,7 +567,7 @@ def check_batch_outputs(
     every_input = [
         *inputs,
         *(Path(task.log) for task in tasks),
-        *{Path(task.config.source) for task in tasks},
+        *{Path(t.config if isinstance(t.config, str) else t.config.source) for t in tasks},
         *{Path(task.against_source) for task in tasks if task.against_source},
     ]
     check_outputs(outputs, every_input)

@@ -721,3 +721,51 @@ def test_absolute_manifest_paths_give_flat_outputs_and_full_paths(six, tmp_path)
     ]
     assert not [p for p in out.iterdir() if p.is_dir()]
     assert {r["log"] for r in _rows(out)} == {str(six / line.split(",")[0]) for line in lines[1:]}
+
+
+def test_a_batch_with_a_config_that_leaves_transforms_out_reads_each_logs_tf(tmp_path):
+    """A config naming only topics and frames: each log's /tf_static gives its transforms (a
+    vehicle per log); a log without them is that log's failed row, naming the key."""
+    import csv
+
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import write_imu_log
+
+    drive = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=60.0, seed=4, tf_static=True)
+    )
+    with_tf = write_imu_log(
+        tmp_path / "a.mcap", "mcap", drive.topics(), tf_static=drive.static_transforms()
+    )
+    without = write_imu_log(tmp_path / "b.mcap", "mcap", drive.topics())
+    full = drive.config_document()
+    minimal = {
+        "base": {k: full["base"][k] for k in ("topic", "frame", "grade")},
+        "sensors": {
+            n: {k: s[k] for k in ("imu_topic", "lidar_frame", "grade")}
+            for n, s in full["sensors"].items()
+        },
+    }
+    write_document(tmp_path / "min.yaml", minimal)
+    out = tmp_path / "out"
+    result = runner.invoke(
+        app,
+        [
+            "batch",
+            str(with_tf),
+            str(without),
+            "-c",
+            str(tmp_path / "min.yaml"),
+            "--out-dir",
+            str(out),
+        ],
+    )
+    assert result.exit_code == 1, result.output  # the log without transforms fails
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    by_log = {}
+    for row in rows:
+        by_log.setdefault(Path(row["log"]).name, []).append(row)
+    assert {r["status"] for r in by_log["a.mcap"]} == {"ok"}
+    (failed,) = by_log["b.mcap"]
+    assert failed["status"] == "failed" and "T_imu_lidar: missing required key" in failed["error"]
