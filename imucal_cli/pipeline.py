@@ -493,8 +493,8 @@ PROGRESS_S = 1.0
 def waiting(
     calibrator: StreamingCalibrator, config: Config, samples: Mapping[str, int]
 ) -> dict[str, Any]:
-    """Per sensor before its first estimate: samples seen, windows reduced and what it waits
-    for, in words that say what driving supplies it."""
+    """Per sensor before its first estimate: samples seen, windows reduced, what it waits for
+    and the axes it lacks (all of them), in words that say what driving supplies them."""
     booted = bool(calibrator.tau0)
     out: dict[str, Any] = {"base_samples": samples.get("base", 0), "sensors": {}}
     for sensor in config.sensors:
@@ -513,6 +513,8 @@ def waiting(
             "samples": samples.get(sensor.name, 0),
             "windows": windows,
             "waiting_for": what,
+            # nothing is determined yet: every axis, with the driving that supplies it
+            "missing": [f"{axis}: {manoeuvre}" for axis, manoeuvre in MANOEUVRES.items()],
         }
     return out
 

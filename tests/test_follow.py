@@ -386,3 +386,25 @@ def test_follow_talks_from_the_first_data_and_stops_when_the_recording_ends(aggr
     assert time.monotonic() - ended < 2.0 + 1.0, stderr
     assert process.returncode == 0, stderr
     assert b"the recording" in stderr and b"ended" in stderr
+
+
+def test_a_weak_drive_says_what_is_missing_while_it_records(tmp_path):
+    """A highway drive (little turning) followed as it is recorded: before the recording ends,
+    the JSON lines name the missing axes and the driving that supplies them."""
+    import subprocess
+    import sys
+
+    drive = simulate_drive(DriveOptions(scenario="highway", duration_s=120.0, seed=32))
+    config = _config(drive, tmp_path / "c.yaml")
+    live = tmp_path / "live.mcap"
+    recorder = record(live, drive, factor=4.0)
+    argv = [sys.executable, "-m", "imucal_cli.cli", "calibrate", str(live), "-c", str(config)]
+    process = subprocess.Popen(
+        [*argv, "--follow", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    line = json.loads(process.stdout.readline())
+    assert not recorder.finished.is_set()  # still recording
+    for sensor in line["sensors"].values():
+        assert sensor["missing"] and any("turns" in m for m in sensor["missing"])
+    process.communicate(timeout=120)
+    recorder.join(60)
