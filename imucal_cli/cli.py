@@ -756,13 +756,12 @@ def _follow(
     import time
 
     from imucal_cli.api import follow_log
-    from imucal_cli.config import load_config
     from imucal_cli.documents import to_plain
     from imucal_cli.pipeline import missing_axes
 
-    cfg = load_config(config_path)
     deadline = None if timeout is None else time.monotonic() + timeout
     _wait_for(log, deadline)
+    cfg = _follow_config(config_path, log, deadline)
     live = None
     if not as_json and sys.stderr.isatty():  # a table on the terminal, redrawn each window
         from rich.console import Console
@@ -867,6 +866,31 @@ def _wait_for(log: Path, deadline: float | None) -> None:
         if time.monotonic() > limit:
             raise InputError(f"{log}: no such file or directory (waited for it to be created)")
         time.sleep(0.1)
+
+
+def _follow_config(config_path: Path, log: Path, deadline: float | None) -> Any:
+    """Follow mode's config; one that leaves sensor transforms out is read against the
+    recording's /tf_static (or /robot_description) as soon as it holds them and the IMUs'
+    first messages (within --timeout, else :data:`WAIT_FOR_LOG_S`)."""
+    import time
+
+    from imucal_cli.config import load_config
+    from imucal_cli.errors import ConfigError, ImucalError
+    from imucal_cli.frames import SENSOR_KEYS
+
+    try:
+        return load_config(config_path)
+    except ConfigError as exc:
+        if exc.problem != "missing required key" or not exc.key.endswith(SENSOR_KEYS):
+            raise
+    limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
+    while True:
+        try:
+            return load_config(config_path, log)
+        except ImucalError:
+            if time.monotonic() > limit:
+                raise
+            time.sleep(0.5)
 
 
 def _waiting_table(log: Path, state: dict[str, Any]) -> Any:

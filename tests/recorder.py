@@ -9,7 +9,14 @@ import threading
 import time
 from pathlib import Path
 
-from imucal_cli.sim.writers import _messages, _msgdef, _serialized
+from imucal_cli.sim.writers import (
+    _first_ns,
+    _mcap_static,
+    _messages,
+    _msgdef,
+    _serialized,
+    _statics,
+)
 
 IMU_SCHEMA = "sensor_msgs/msg/Imu"
 
@@ -22,6 +29,7 @@ class Recorder(threading.Thread):
         factor: float,
         die_after_s: float | None = None,
         chunk_size: int = 64 << 10,
+        tf_static=(),
     ) -> None:
         super().__init__(daemon=True)
         self.path, self.topics, self.factor, self.die_after_s, self.chunk_size = (
@@ -31,6 +39,7 @@ class Recorder(threading.Thread):
             die_after_s,
             chunk_size,
         )
+        self.tf_static = tf_static  # written first, as a recorder gets the latched /tf_static
         self.finished = threading.Event()  # the summary written
         self.started_writing = threading.Event()
 
@@ -49,6 +58,8 @@ class Recorder(threading.Thread):
                 t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema)
                 for t in self.topics
             }
+            for static in _statics(self.tf_static, None, self.topics, False):
+                _mcap_static(writer, static, _first_ns(self.topics), False)
             handle.flush()
             self.started_writing.set()
             start_wall, start_log = time.monotonic(), None

@@ -162,3 +162,27 @@ def test_text_that_is_not_a_urdf_is_an_error_naming_the_file(drive, tmp_path):
 
     with pytest.raises(InputError, match=r"bad\.urdf: not a URDF"):
         load_config(tmp_path / "min.yaml", log, tmp_path / "bad.urdf")
+
+
+def test_follow_mode_takes_the_transforms_from_the_recordings_tf_static(drive, tmp_path):
+    """A config naming only topics and frames, followed as the log is recorded (the recorder
+    writes the latched /tf_static first): the recording's tree gives the transforms."""
+    from recorder import record
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    live, out = tmp_path / "live.mcap", tmp_path / "f.yaml"
+    recorder = record(live, drive, factor=20.0, tf_static=drive.static_transforms())
+    result = CliRunner().invoke(
+        app,
+        ["calibrate", str(live), "-c", str(tmp_path / "min.yaml"), "--follow", "-o", str(out)],
+    )
+    recorder.join(60)
+    assert result.exit_code == 0, result.output
+    document = yaml.safe_load(out.read_text())
+    for sensor in document["sensors"].values():
+        assert (
+            sensor["priors"]["T_imu_lidar"] == sensor["priors"]["prior_T_base_imu"] == "tf_static"
+        )
