@@ -67,3 +67,30 @@ def test_init_on_a_log_without_transforms_writes_placeholders_and_says_which(tmp
     assert text.count("# T_imu_lidar: {translation: [0, 0, 0]") == 2
     with pytest.raises(ConfigError, match="T_imu_lidar: missing required key"):
         load_config(tmp_path / "c.yaml")
+
+
+def test_init_on_a_drive_whose_ins_sits_away_finds_it_in_the_tree(tmp_path):
+    """The INS upside down, turned and 1.6 m from B's origin, its frame in /tf_static: init
+    names it the base and writes its pose; the config checks and calibrates."""
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+    from imucal_cli.sim.drive import INS_AWAY
+
+    drive = simulate_drive(
+        DriveOptions(
+            scenario="aggressive", duration_s=60.0, seed=3, base_T_base_imu=INS_AWAY, tf_static=True
+        )
+    )
+    log = write_imu_log(
+        tmp_path / "d.bag", "rosbag1", drive.topics(), tf_static=drive.static_transforms()
+    )
+    runner = CliRunner()
+    made = runner.invoke(app, ["init", str(log), "-o", str(tmp_path / "c.yaml")])
+    assert made.exit_code == 0, made.output
+    assert runner.invoke(app, ["check-config", str(tmp_path / "c.yaml")]).exit_code == 0
+    config = load_config(tmp_path / "c.yaml")
+    assert config.base.topic == drive.config_document()["base"]["topic"]
+    np.testing.assert_allclose(config.base.T_base_imu.as_matrix(), INS_AWAY.as_matrix(), atol=1e-8)
+    run = calibrate_log(log, config)
+    assert all(s["status"] == "ok" for s in run.document["sensors"].values())
