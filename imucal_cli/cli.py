@@ -876,12 +876,12 @@ def _follow_config(config_path: Path, log: Path, deadline: float | None) -> Any:
 
     from imucal_cli.config import load_config
     from imucal_cli.errors import ConfigError, ImucalError
-    from imucal_cli.frames import SENSOR_KEYS
+    from imucal_cli.frames import leaves_out_transforms
 
     try:
         return load_config(config_path)
     except ConfigError as exc:
-        if exc.problem != "missing required key" or not exc.key.endswith(SENSOR_KEYS):
+        if not leaves_out_transforms(exc):
             raise
     limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
     while True:

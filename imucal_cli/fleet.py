@@ -442,12 +442,12 @@ def _shared_config(path: str) -> Config | None:
     log's own ``/tf_static`` (or ``/robot_description``) then gives them (SPEC)."""
     from imucal_cli.config import load_config
     from imucal_cli.errors import ConfigError
-    from imucal_cli.frames import SENSOR_KEYS
+    from imucal_cli.frames import leaves_out_transforms
 
     try:
         return load_config(path)
     except ConfigError as exc:
-        if exc.problem == "missing required key" and exc.key.endswith(SENSOR_KEYS):
+        if leaves_out_transforms(exc):
             return None
         raise
 

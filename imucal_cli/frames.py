@@ -28,10 +28,23 @@ from imucal_cli.types import Transform, rotation_type
 
 TF_TOPIC = "/tf_static"
 TF_MSGTYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage")
+STRING_MSGTYPE = "std_msgs/msg/String"
 #: Most /tf_static messages and transforms read: a static tree holds tens.
 MAX_TF_MESSAGES, MAX_TRANSFORMS = 1000, 10_000
 #: Sensor keys a tree may supply, and the base's.
 SENSOR_KEYS, BASE_KEY = ("T_imu_lidar", "prior_T_base_imu"), "T_base_imu"
+
+
+def config_sources() -> dict[str, str]:
+    """Where a sensor's transforms come from when the config gives them all (SPEC
+    ``priors``): the config, or its default."""
+    return dict.fromkeys((*SENSOR_KEYS, f"base.{BASE_KEY}"), "config")
+
+
+def leaves_out_transforms(error: ConfigError) -> bool:
+    """Whether a config's error is a sensor transform it leaves out (that a log's tree may
+    supply), rather than a mistake."""
+    return error.problem == "missing required key" and error.key.endswith(SENSOR_KEYS)
 
 
 class FrameTree:
@@ -103,8 +116,7 @@ def read_urdf(text: str, tree: FrameTree, where: str) -> None:
 
 def _description(reader: Any) -> str | None:
     """The log's robot description (a ``std_msgs/String``), its first message, or None."""
-    info = reader.topics().get(DESCRIPTION_TOPIC)
-    if info is None or info.msgtype not in ("std_msgs/msg/String", "std_msgs/String"):
+    if not _has(reader, DESCRIPTION_TOPIC, STRING_MSGTYPE):
         return None
     for batch in reader.batches([DESCRIPTION_TOPIC]):
         ros1 = batch.encoding == "ros1"
@@ -113,7 +125,7 @@ def _description(reader: Any) -> str | None:
         data = batch.buffer[start : start + min(length, MAX_URDF_BYTES + 64)].tobytes()
         try:
             read = store.deserialize_ros1 if ros1 else store.deserialize_cdr
-            return str(read(data, "std_msgs/msg/String").data)
+            return str(read(data, STRING_MSGTYPE).data)
         except Exception:
             return None
     return None
@@ -151,11 +163,18 @@ def tf_message(store: Any, transforms: list[tuple[str, str, Transform]], stamp_n
     return types[TF_MSGTYPES[0]](transforms=stamped)
 
 
+def _has(reader: Any, topic: str, msgtype: str) -> bool:
+    """Whether the log holds ``topic`` with messages of ``msgtype`` (ROS 1 or ROS 2 name)."""
+    from imucal_cli.io.imu_msg import normalize_msgtype
+
+    info = reader.topics().get(topic)
+    return info is not None and normalize_msgtype(info.msgtype) == msgtype
+
+
 def read_tf_static(reader: Any) -> FrameTree:
     """The log's ``/tf_static`` (ROS 2 or ROS 1 encoding) as a tree; empty without one."""
     tree = FrameTree()
-    info = reader.topics().get(TF_TOPIC)
-    if info is None or info.msgtype not in TF_MSGTYPES:
+    if not _has(reader, TF_TOPIC, TF_MSGTYPES[0]):
         return tree
     messages = transforms = 0
     for batch in reader.batches([TF_TOPIC]):
@@ -241,7 +260,7 @@ def complete_from_log(
         return data, {}
     missing, base_missing = _missing(data)
     names = [n for n, s in data["sensors"].items() if isinstance(s, Mapping)]
-    sources = {name: dict.fromkeys((*SENSOR_KEYS, f"base.{BASE_KEY}"), "config") for name in names}
+    sources = {name: config_sources() for name in names}
     if not missing and not base_missing:
         return data, sources
     from imucal_cli.io.logs import open_log

@@ -11,6 +11,7 @@ import numpy as np
 
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.documents import to_plain
+from imucal_cli.frames import config_sources
 from imucal_cli.version import version
 
 if TYPE_CHECKING:
@@ -235,10 +236,7 @@ def calibration_document(
             "imu_topic": sensor.imu_topic,
             "lidar_frame": sensor.lidar_frame,
             # where each transform came from (SPEC): config (or its default), tf_static
-            "priors": dict(
-                config.priors.get(sensor.name)
-                or dict.fromkeys(("T_imu_lidar", "prior_T_base_imu", "base.T_base_imu"), "config")
-            ),
+            "priors": dict(config.priors.get(sensor.name) or config_sources()),
             "imu_rate_hz": _rate(result, sensor.name),
             "imu_noise": imu_noise(result, sensor.name),
             "T_base_imu": est.T_base_imu.to_dict(),

@@ -105,11 +105,16 @@ MANOEUVRES = {
 }
 
 
+def every_axis_missing() -> list[str]:
+    """Nothing determined yet: every axis, with the driving that supplies it."""
+    return [f"{axis}: {what}" for axis, what in MANOEUVRES.items()]
+
+
 def missing_axes(estimate: SensorEstimate, stop: Any) -> list[str]:
     """The axes whose std is not yet within the ``stop:`` targets, each with the driving that
     supplies it: from the estimate's statistical std (what more driving shrinks)."""
     if estimate.statistical_covariance is None:
-        return [f"{axis}: {what}" for axis, what in MANOEUVRES.items()]
+        return every_axis_missing()
     # the statistical std: what more driving shrinks (the total adds what it cannot)
     rotation = estimate.statistical_rotation_std_deg
     translation = estimate.statistical_translation_std_m
@@ -513,8 +518,7 @@ def waiting(
             "samples": samples.get(sensor.name, 0),
             "windows": windows,
             "waiting_for": what,
-            # nothing is determined yet: every axis, with the driving that supplies it
-            "missing": [f"{axis}: {manoeuvre}" for axis, manoeuvre in MANOEUVRES.items()],
+            "missing": every_axis_missing(),
         }
     return out
 

@@ -293,10 +293,10 @@ class ImuBatches:
                 if self.follow is None:
                     available = check_topics(log, self.topics)
                     self.expected = {t: available[t].count for t in self.topics}
-                    pairs = log.decoded_batches(self.topics, lambda b: _decode(log, b))
+                    pairs = log.decoded_batches(self.topics, lambda b: decode(log, b))
                 else:  # topics appear as they are recorded
                     follow = log.follow(self.topics, self.follow)
-                    pairs = ((b, _decode(log, b)) for b in follow)
+                    pairs = ((b, decode(log, b)) for b in follow)
                 for batch, decoded in pairs:
                     st = self.stats[batch.topic]
                     st.messages += len(batch.starts)
@@ -319,7 +319,8 @@ class ImuBatches:
                 self.losses = list(log.losses)
 
 
-def _decode(log: LogReader, batch: RawBatch) -> DecodedBatch:
+def decode(log: LogReader, batch: RawBatch) -> DecodedBatch:
+    """A batch of IMU messages decoded; damaged data is the log's error naming the topic."""
     try:
         return decode_imu(batch)
     except ValueError as exc:
