@@ -342,7 +342,7 @@ def init(
 
     if out is not None and out.suffix.lower() not in {".yaml", ".yml"}:
         raise InputError(f"{out}: the config is YAML: name it .yaml")
-    _check_output(out, log)
+    _check_output(out, log, urdf)
     found = find(log, base, frame, urdf)
     text = render(found, log, version())
     if out is None:
@@ -457,7 +457,7 @@ def biases(
     from imucal_cli.api import stream_biases
     from imucal_cli.config import load_config
 
-    _check_output(out, log, config)
+    _check_output(out, log, config, urdf)
     cfg = load_config(config, log, urdf)
     with _progress(f"reading {log}") as progress:
         document = stream_biases(log, cfg, progress)
@@ -760,8 +760,10 @@ def _follow(
     from imucal_cli.pipeline import missing_axes
 
     deadline = None if timeout is None else time.monotonic() + timeout
-    _wait_for(log, deadline)
-    cfg = _follow_config(config_path, log, deadline)
+    # the log, and the tree of a config that leaves transforms out: waited for within --timeout
+    limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
+    _wait_for(log, limit)
+    cfg = _follow_config(config_path, log, limit)
     live = None
     if not as_json and sys.stderr.isatty():  # a table on the terminal, redrawn each window
         from rich.console import Console
@@ -820,6 +822,7 @@ def _follow(
     finally:
         if live is not None:
             live.stop()
+    out_of_time = timed_out()  # why it stopped (the report below takes time of its own)
     if report is not None:
         from imucal_cli.report import write_report
 
@@ -836,11 +839,10 @@ def _follow(
     if interrupted:
         _err("imucal: interrupted")
         raise typer.Exit(EXIT_INTERRUPTED)
-    ended = "--timeout reached" if timed_out() else f"the recording {log} ended"
     if not (until_converged and good):
-        _err(f"imucal: {ended}")
+        _err("imucal: --timeout reached" if out_of_time else f"imucal: the recording {log} ended")
     if until_converged and not good:
-        _err("imucal: not converged" + (" before --timeout" if timed_out() else ""))
+        _err("imucal: not converged" + (" before --timeout" if out_of_time else ""))
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
@@ -848,9 +850,9 @@ def _follow(
 WAIT_FOR_LOG_S = 30.0
 
 
-def _wait_for(log: Path, deadline: float | None) -> None:
-    """Follow mode started beside a recorder: wait (within --timeout, else
-    :data:`WAIT_FOR_LOG_S`) for the log to appear, a rosbag2 folder for its storage file."""
+def _wait_for(log: Path, limit: float) -> None:
+    """Follow mode started beside a recorder: wait until ``limit`` (monotonic s) for the log to
+    appear, a rosbag2 folder for its storage file."""
     import time
 
     def present() -> bool:
@@ -860,7 +862,6 @@ def _wait_for(log: Path, deadline: float | None) -> None:
 
     if present():
         return
-    limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
     _err(f"imucal: waiting for {log} to be created")
     while not present():
         if time.monotonic() > limit:
@@ -868,10 +869,10 @@ def _wait_for(log: Path, deadline: float | None) -> None:
         time.sleep(0.1)
 
 
-def _follow_config(config_path: Path, log: Path, deadline: float | None) -> Any:
+def _follow_config(config_path: Path, log: Path, limit: float) -> Any:
     """Follow mode's config; one that leaves sensor transforms out is read against the
     recording's /tf_static (or /robot_description) as soon as it holds them and the IMUs'
-    first messages (within --timeout, else :data:`WAIT_FOR_LOG_S`)."""
+    first messages (until ``limit``, monotonic s)."""
     import time
 
     from imucal_cli.config import load_config
@@ -883,7 +884,6 @@ def _follow_config(config_path: Path, log: Path, deadline: float | None) -> Any:
     except ConfigError as exc:
         if not leaves_out_transforms(exc):
             raise
-    limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
     while True:
         try:
             return load_config(config_path, log)

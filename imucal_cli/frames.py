@@ -207,12 +207,12 @@ def read_tf_static(reader: Any) -> FrameTree:
 
 def imu_frames(reader: Any, topics: list[str]) -> dict[str, str]:
     """Each IMU topic's frame (the ``header.frame_id`` of its first message)."""
-    from imucal_cli.io.imu_msg import decode_imu
+    from imucal_cli.reading import decode
 
     frames: dict[str, str] = {}
     for batch in reader.batches(topics):
         if batch.topic not in frames:
-            decoded = decode_imu(batch)
+            decoded = decode(reader, batch)  # (damaged data: the log's error, naming the topic)
             if decoded.frame_ids:
                 frames[batch.topic] = decoded.frame_ids[0].lstrip("/")
         if len(frames) == len(topics):

@@ -94,3 +94,42 @@ def test_init_on_a_drive_whose_ins_sits_away_finds_it_in_the_tree(tmp_path):
     np.testing.assert_allclose(config.base.T_base_imu.as_matrix(), INS_AWAY.as_matrix(), atol=1e-8)
     run = calibrate_log(log, config)
     assert all(s["status"] == "ok" for s in run.document["sensors"].values())
+
+
+def test_init_refuses_an_output_that_is_its_urdf_and_damaged_imu_data_is_one_line(tmp_path):
+    """-o never overwrites an input (the URDF too); a log whose IMU messages do not decode is
+    one line naming it, exit 2, no traceback."""
+    from mcap.writer import Writer
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+    from imucal_cli.sim.writers import _msgdef
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=30.0, seed=1))
+    urdf = tmp_path / "robot.yaml"  # (a URDF under a name -o would take)
+    text = '<robot name="r"><link name="base_link"/></robot>'
+    urdf.write_text(text)
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics())
+    runner = CliRunner()
+    made = runner.invoke(app, ["init", str(log), "--urdf", str(urdf), "-o", str(urdf)])
+    assert made.exit_code == 2 and "an input of this run" in made.stderr
+    assert urdf.read_text() == text
+    bad = tmp_path / "bad.mcap"
+    with bad.open("wb") as handle:  # IMU channels whose messages are a few garbage bytes
+        writer = Writer(handle)
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema(
+            name="sensor_msgs/msg/Imu", encoding="ros2msg", data=_msgdef(False)[0].encode()
+        )
+        for topic in ("/gnss/imu", "/lidar/a/imu"):
+            channel = writer.register_channel(topic=topic, message_encoding="cdr", schema_id=schema)
+            for i in range(50):
+                stamp = 10**9 + i * 10**7
+                data = b"\x00\x01\x00\x00" + b"\x07" * (20 + i % 7)
+                writer.add_message(
+                    channel_id=channel, log_time=stamp, data=data, publish_time=stamp
+                )
+        writer.finish()
+    result = runner.invoke(app, ["init", str(bad)])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert len(result.stderr.strip().splitlines()) == 1 and str(bad) in result.stderr
