@@ -76,10 +76,30 @@ def test_the_quadrotor_plate_is_ok_only_inside_its_std():
     assert np.all(np.degrees(np.abs(error)) < 4 * np.array(sensor["rotation_std_deg"]))
 
 
-def test_parts_of_the_array_boards_run_agree_within_their_statistical_std():
-    """The array board's 600 s in three parts of 200 s, each calibrated alone: every two parts
-    differ by at most 3 combined statistical std on at least 95% of the axes (what two drives
-    of one rig differ by is what the statistical std says more driving shrinks)."""
+def test_the_array_board_comes_back_within_its_design_and_inside_its_total_std():
+    """The array board is turned by hand fast enough to saturate both gyros (2000 deg/s):
+    the windows that hold a saturated reading are not used, and the fit's call for a base gyro
+    scale no gyro has (-48%) is a failed check, not a scale. The chips sit on the board within
+    about 0.5 deg of its design: the estimate lies within 0.75 deg and 12 mm of it, and inside
+    the total std. (It was 1.68 deg off with every window used.)"""
+    run, verdict = _run("mimu_exp1_imu8")
+    truth = load_transforms(_folder("mimu_exp1_imu8") / "truth.yaml")["imu2"]
+    sensor = run.document["sensors"]["imu2"]
+    T = run.result.T_base_lidar("imu2")
+    rotation = np.abs((truth.rotation * T.rotation.inv()).as_rotvec())
+    translation = np.abs(T.translation - truth.translation)
+    assert verdict["sensors"]["imu2"]["rotation_error_deg"] < 0.75
+    assert np.linalg.norm(translation) < 0.012
+    assert np.all(np.degrees(rotation) < np.array(sensor["rotation_std_deg"]))
+    assert np.all(translation < np.array(sensor["translation_std_m"]))
+    assert sensor["status"] == "inconsistent"
+    assert sum("saturates at 34.87 rad/s" in w for w in sensor["warnings"]) == 2
+    assert sensor["checks"]["base_gyro_scale"]["pass"] is False
+
+
+def _parts_agree(rig: str, parts: int) -> np.ndarray:
+    """Per axis of every two parts compared, their difference over the combined statistical
+    std (rigs cut into ``parts`` of equal length, each calibrated alone)."""
     import sys
     from itertools import combinations
     from pathlib import Path
@@ -87,13 +107,38 @@ def test_parts_of_the_array_boards_run_agree_within_their_statistical_std():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from real_rigs import agreement, read_streams, split
 
+    from imucal_cli.errors import ImucalError
     from imucal_cli.pipeline import run_calibrate
 
-    folder = _folder("mimu_exp1_imu8")
+    folder = _folder(rig)
     config = _config(folder)
-    parts = split(read_streams(folder / "log.mcap", config), 3)
-    results = [run_calibrate(part, config) for part in parts]
+    results = []
+    for part in split(read_streams(folder / "log.mcap", config), parts):
+        try:
+            results.append(run_calibrate(part, config))
+        except ImucalError:  # a part that lies in a gap of the recording
+            continue
     ratios = [agreement(a, b, "imu2") for a, b in combinations(results, 2)]
-    assert all(r is not None for r in ratios)
-    every = np.abs(np.concatenate(ratios))
+    assert ratios and all(r is not None for r in ratios)
+    return np.abs(np.concatenate(ratios))
+
+
+@pytest.mark.parametrize(
+    ("rig", "parts"),
+    [
+        ("mimu_exp1_imu8", 3),
+        ("mimu_exp1_imu8", 2),
+        ("quad_flight1_dot1_dot7", 3),
+        ("quad_flight1_dot1_dot7", 2),
+        ("erle_31-3-2015_83", 3),
+        ("erle_31-3-2015_83", 2),
+    ],
+)
+def test_parts_of_a_rigs_run_agree_within_their_statistical_std(rig, parts):
+    """Each run cut into parts, each calibrated alone: every two parts differ by at most 3
+    combined statistical std on at least 95% of the axes (what two drives of one rig differ by
+    is what the statistical std says more driving shrinks). The plate's halves hold two
+    windows each: their std is the Fisher information's inflated to the two windows' spread
+    (it was the Fisher information's alone: 6.2 std apart on one axis)."""
+    every = _parts_agree(rig, parts)
     assert (every <= 3).mean() >= 0.95, every

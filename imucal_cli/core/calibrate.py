@@ -261,6 +261,7 @@ def solve(
     fit = _first_fit(problem, options, clock)
     prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
     fit, own = _own_errors(problem, fit, options, prior_std)
+    scale = checks.base_scale(own[checks.BASE_SCALE[0]], fit)
     rigid, tilted = checks.rigid_mount(problem, fit, alpha)
     if not rigid.passed and _keeps_lever_arm(fit, tilted, options):
         fit = tilted  # (else the tilt and the lever arm share what the drive shows: kept out)
@@ -268,8 +269,9 @@ def solve(
     later = [
         checks.rotation_agreement(problem, fit, alpha, prior_std[ACCEL_ROTATION]),
         checks.residual_level(problem, fit),
+        *given,
+        *([] if scale is None else [scale]),
     ]
-    later += given
     found = [rigid, *later]
     failed = [c for c in found if not c.passed]
     floors = (np.radians(options.rotation_floor_deg), options.translation_floor_m)

@@ -63,6 +63,10 @@ MISALIGNMENT = ("misalignment", ACCEL_ROTATION, INTRINSICS_MAX_STD)
 #: the test finds it, it scales every lever arm by as much: it is taken in wherever the drive
 #: determines it to 5% (a rear lidar 1 m from the base IMU determines it to 1-1.5%).
 BASE_SCALE = ("base gyro scale", BASE_GYRO_SCALE, 0.05)
+#: The largest scale error a gyro has (relative): uncalibrated MEMS parts read up to 10-15%
+#: off. A fit that asks for more is not finding a scale but a model that fails (aliased
+#: motion, saturation, a mount that moves): the lever arm's terms do not scale as one.
+BASE_SCALE_PLAUSIBLE = 0.25
 BASE_SCALE_FREE = np.zeros(N_PARAMETERS, dtype=bool)
 BASE_SCALE_FREE[BASE_GYRO_SCALE] = True
 
@@ -128,7 +132,32 @@ def own_errors(
     chi2 = _chi2(value, joint.covariance[which, which])
     present = chi2 > chi2_limit(1, alpha)
     found[name] = {"estimated": present, "chi2": chi2, "dof": 1, "value": value, "std": std}
+    if present and abs(value[0]) > BASE_SCALE_PLAUSIBLE:  # kept out, and a failed check
+        found[name] |= {"estimated": False, "implausible": True, "joint": joint}
+        return fit, found
     return (joint if present else fit), found
+
+
+def base_scale(found: dict[str, Any], fit: Fit) -> Check | None:
+    """The base gyro's scale as :func:`own_errors` found it, where the fit asked for one no
+    gyro has (:data:`BASE_SCALE_PLAUSIBLE`): a failed check that covers the estimate's move
+    between ``fit`` (the scale held) and the fit that took it. None where it did not."""
+    if not found.get("implausible"):
+        return None
+    joint: Fit = found["joint"]
+    delta = rotation_difference(joint.point.R, fit.point.R)
+    dt = joint.point.t - fit.point.t
+    cover = np.zeros((6, 6))
+    cover[ROTATION, ROTATION] = np.outer(delta, delta)
+    cover[TRANSLATION, TRANSLATION] = np.outer(dt, dt)
+    figures = {
+        "scale": float(found["value"][0]),
+        "std": float(found["std"][0]),
+        "chi2": float(found["chi2"]),
+        "dof": 1,
+        "plausible": BASE_SCALE_PLAUSIBLE,
+    }
+    return Check("base_gyro_scale", False, figures, 1.0, cover)
 
 
 def sensor_errors(

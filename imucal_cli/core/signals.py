@@ -12,7 +12,7 @@ bias even on noise-free data.)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
@@ -219,3 +219,64 @@ def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """The runs of True in ``mask``: ``(start, stop)`` index pairs, stop exclusive."""
     edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
     return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
+
+
+#: Below these a triad's largest reading is no full scale (rad/s, m/s^2): 90% of the narrowest
+#: ranges MEMS parts are sold with, 125 deg/s and 2 g.
+MIN_FULL_SCALE = (0.9 * np.radians(125.0), 0.9 * 2.0 * 9.80665)
+#: Readings this close to a triad's largest (relative) are at it: an int16 register's range is
+#: asymmetric (-32768 to +32767 counts, 3e-5 apart).
+FULL_SCALE_TOLERANCE = 1e-4
+#: A triad saturates where this many readings sit at its largest: a clipped axis repeats its
+#: full scale, where a signal's peak is reached once.
+FULL_SCALE_HITS = 3
+
+
+@dataclass
+class FullScale:
+    """Where one IMU triad saturates: the largest magnitude it has read on any axis, in the
+    units it sends, and the stamps (ns) of the readings at that magnitude.
+
+    A saturated reading is not the motion: a window that holds one, in any IMU, does not hold
+    the rigid-body equations. Fed in the order the samples come, before anything turns the
+    axes (a turn mixes a clipped axis into the others)."""
+
+    level: float = 0.0
+    stamps: list[np.ndarray] = field(default_factory=list)
+    readings: int = 0
+
+    def add(self, t_ns: np.ndarray, values: np.ndarray) -> None:
+        if len(values) == 0:
+            return
+        top = max(float(values.max()), -float(values.min()))  # two reductions, most batches
+        if top < self.level * (1.0 - FULL_SCALE_TOLERANCE):  # none at the largest
+            return
+        if top > self.level * (1.0 + FULL_SCALE_TOLERANCE):  # a new largest: earlier peaks fall
+            self.level, self.stamps, self.readings = top, [], 0
+        at = np.abs(values).max(axis=1) >= self.level * (1.0 - FULL_SCALE_TOLERANCE)
+        if self.level > 0.0 and at.any():
+            self.stamps.append(np.asarray(t_ns)[at])
+            self.readings += int(np.count_nonzero(at))
+
+    def saturated(self, si_scale: float, minimum: float) -> bool:
+        """Whether the triad saturates: its largest reading repeats, and is a full scale once
+        made SI (times ``si_scale``) at least ``minimum``."""
+        return self.readings >= FULL_SCALE_HITS and self.level * si_scale >= minimum
+
+    def after(self, t_min_ns: int) -> np.ndarray:
+        """The saturated readings' stamps (ns, sorted) from ``t_min_ns`` on; earlier ones are
+        forgotten (the memory stays that of the samples still needed)."""
+        stamps = np.sort(np.concatenate(self.stamps)) if self.stamps else np.zeros(0, np.int64)
+        stamps = stamps[stamps >= t_min_ns]
+        self.stamps = [stamps]
+        return stamps
+
+
+def near(query: np.ndarray, stamps: np.ndarray, margin: float) -> np.ndarray:
+    """Per query time, whether a stamp (sorted, same units) lies within ``margin`` of it."""
+    if len(stamps) == 0:
+        return np.zeros(len(query), dtype=bool)
+    j = np.clip(np.searchsorted(stamps, query), 1, len(stamps))
+    below = np.abs(query - stamps[j - 1])
+    above = np.abs(stamps[np.minimum(j, len(stamps) - 1)] - query)
+    return np.minimum(below, above) <= margin

@@ -104,6 +104,13 @@ def check_sentences(checks: Sequence[Check]) -> list[str]:
                 "IMU is not posed as the config says (base.T_base_imu), and every estimate is "
                 "turned with it"
             )
+        elif check.name == "base_gyro_scale":
+            out.append(
+                f"the lever arms' terms ask for a base gyro scale error of {f['scale']:+.0%} "
+                f"(chi2 {f['chi2']:.0f}, 1 dof), more than any gyro has: the model does not "
+                "hold (aliased or saturated motion, a moving mount); the estimate is given "
+                "without it, its std covering the difference"
+            )
         elif check.name == "residual_level":
             out.append(
                 f"residuals {f['gyro']:.1f}x (gyro) and {f['accel']:.1f}x (accelerometer) the "

@@ -33,9 +33,12 @@ from imucal_cli.core.model import ACCEL_BASE, GYRO_BASE, GYRO_DATA, GYRO_OWN, La
 from imucal_cli.core.moments import WindowMoments, assemble_moments, base_moments
 from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
 from imucal_cli.core.signals import (
+    MIN_FULL_SCALE,
+    FullScale,
     Lowpass,
     TooLittleData,
     derivative_noise_variance,
+    near,
     true_runs,
     white_noise_density,
 )
@@ -408,13 +411,16 @@ def _reduce_block(
     n_block: int,
     n_after: int,
     base_name: str,
-    samples: dict[str, tuple[float, np.ndarray, np.ndarray]],
+    samples: dict[str, tuple[float, np.ndarray, np.ndarray, np.ndarray]],
 ) -> dict[str, list[WindowMoments]]:
-    """Condition a block of consecutive windows once (per IMU its clock offset, stamps in s and
-    ``[gyro, accel]`` in ``samples``) and reduce each window, for every sensor, to its moments."""
+    """Condition a block of consecutive windows once (per IMU its clock offset, stamps in s,
+    ``[gyro, accel]`` and the stamps of saturated readings in ``samples``) and reduce each
+    window, for every sensor, to its moments. A window within the low-pass's length of a
+    saturated reading is not valid."""
+    reach = 1.0 / lp.cutoff_hz
     block_start = spans[0][1]
     grid = block_start + np.arange(-n_pad, n_block + n_after) / rate
-    _, t_b, both_b = samples[base_name]
+    _, t_b, both_b, saturated_b = samples[base_name]
     base = _Spline(t_b, both_b, rate)
     # one zero-phase low-pass for every term of every equation (linear filters commute);
     # the symmetric 3x3 terms are filtered by their upper triangles
@@ -436,14 +442,15 @@ def _reduce_block(
     for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
         X[i0 : i0 + n_win, u_g] = (t_rows[i0 : i0 + n_win] - start) / window_s
     X[:, u_a] = X[:, u_g]
-    covered = {"": base.covered(t_rows)}  # where each stream has data (no gap)
+    # where each stream has data (no gap) and reads the motion (no saturated reading)
+    covered = {"": base.covered(t_rows) & ~near(t_rows, saturated_b, reach)}
     for k, name in enumerate(names):
-        tau, t_s, both_s = samples[name]
+        tau, t_s, both_s, saturated_s = samples[name]
         # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
         sensor = _Spline(t_s, both_s, rate, smooth=lp)
         own = n_base + GYRO_OWN * k  # the sensor's [w_I, f_I], as x_g starts
         X[:, own : own + GYRO_OWN] = sensor(t_rows + tau)[0]
-        covered[name] = sensor.covered(t_rows + tau)
+        covered[name] = sensor.covered(t_rows + tau) & ~near(t_rows + tau, saturated_s, reach)
     return _window_moments(X, spans, at, names, covered)
 
 
@@ -553,6 +560,8 @@ class StreamingCalibrator:
         #: Per IMU that stopped sending while the others went on: [from, to] seconds from the
         #: origin of each silence (``to`` None while it lasts).
         self.silences: dict[str, list[list[float | None]]] = {}
+        #: Per IMU, where its gyro and its accelerometer saturate (their readings as sent).
+        self.full_scale = {name: (FullScale(), FullScale()) for name in self.buffers}
 
     def _place_base(
         self, sensors: Sequence[SensorSetup], base_pose: Transform | None
@@ -591,12 +600,11 @@ class StreamingCalibrator:
         buffer.last_ns = (
             int(t_ns.max()) if buffer.last_ns is None else max(buffer.last_ns, int(t_ns.max()))
         )
-        both = np.hstack(
-            [
-                np.asarray(gyro, dtype=np.float64).reshape(-1, 3),
-                np.asarray(accel, dtype=np.float64).reshape(-1, 3),
-            ]
-        )
+        gyro = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
+        accel = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
+        for triad, values in zip(self.full_scale[imu], (gyro, accel), strict=True):
+            triad.add(t_ns, values)  # as sent: before units and turns
+        both = np.hstack([gyro, accel])
         if imu in self.scales:  # after boot: in SI, as the boot found the units
             both[:, :3] *= self.scales[imu][0]
             both[:, 3:] *= self.scales[imu][1]
@@ -943,7 +951,8 @@ class StreamingCalibrator:
                 int(np.searchsorted(t, last_s + tau, side="right")),
             )
             if b - a >= MIN_SPAN_SAMPLES:  # an IMU that stopped has none: its windows are not used
-                samples[name] = (tau, t[a:b], both[a:b])
+                saturated = self._saturated(name, first_s + tau - 1.0 / self.lowpass.cutoff_hz)
+                samples[name] = (tau, t[a:b], both[a:b], saturated)
         args = (spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after)
         future: Future[dict[str, list[WindowMoments]]]
         if self.base_name in samples and self.threaded:
@@ -954,6 +963,20 @@ class StreamingCalibrator:
             future.set_result(_reduce_block(*args, self.base_name, samples) if has_base else {})
         self._pending.append((spans, future))
         self._collect(wait=len(self._pending) > PENDING_BLOCKS)
+
+    def _saturated(self, name: str, from_s: float) -> np.ndarray:
+        """The stamps (s) from ``from_s`` on where IMU ``name`` read its full scale (either
+        triad, where it saturates)."""
+        assert self.t_ref_ns is not None
+        from_ns = self.t_ref_ns + int(from_s * 1e9)
+        scales = self.scales.get(name, (1.0, 1.0))
+        stamps = [
+            triad.after(from_ns) if triad.saturated(scale, minimum) else triad.after(from_ns)[:0]
+            for triad, scale, minimum in zip(
+                self.full_scale[name], scales, MIN_FULL_SCALE, strict=True
+            )
+        ]
+        return self._seconds(np.sort(np.concatenate(stamps)))
 
     def _executor(self) -> ThreadPoolExecutor:
         if self._worker is None:
@@ -1051,6 +1074,7 @@ class StreamingCalibrator:
             f"base: {w}" for w in self.unit_warnings.get(self.base_name, [])
         ] + self.unit_warnings.get(name, [])
         for imu in (self.base_name, name):
+            notes += self._saturation_notes(imu)
             for start, end in self.silences.get(imu, []):
                 topic = self.labels[imu][0] or imu
                 notes.append(
@@ -1060,6 +1084,23 @@ class StreamingCalibrator:
                     + ("any sensor" if imu == self.base_name else "this sensor")
                 )
         return notes
+
+    def _saturation_notes(self, imu: str) -> list[str]:
+        scales = self.scales.get(imu, (1.0, 1.0))
+        topic = self.labels[imu][0] or imu
+        return [
+            f"{topic}: the {triad_name} saturates at {triad.level * scale:.4g} {unit} "
+            f"({triad.readings} readings there): the windows that hold one are not used"
+            for triad, triad_name, unit, scale, minimum in zip(
+                self.full_scale[imu],
+                ("gyro", "accelerometer"),
+                ("rad/s", "m/s^2"),
+                scales,
+                MIN_FULL_SCALE,
+                strict=True,
+            )
+            if triad.saturated(scale, minimum)
+        ]
 
     def window_infos(self, name: str) -> list[WindowInfo]:
         return [w.info for w in self._ensure_infos(name) if w.info is not None]

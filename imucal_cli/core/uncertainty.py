@@ -22,33 +22,39 @@ from imucal_cli.core.solver import Fit, Problem
 
 #: Delete-a-group jackknife: at most this many groups of consecutive windows.
 JACKKNIFE_GROUPS = 10
+#: Fewest windows whose jackknife checks the std (the status needs it). Two windows still give
+#: a spread (each window alone, one degree of freedom): the std is inflated to it, never
+#: shrunk, but it checks nothing.
+JACKKNIFE_MIN_WINDOWS = 3
 #: Gauss-Newton steps of a replicate, from the full fit (the one-step jackknife): a tenth of
 #: the windows left out moves the optimum little, and one step from the full fit lands within
 #: second order of it. Replicates converged to 1e-10 rad took 10 steps each and three
 #: quarters of the solve's time.
 JACKKNIFE_ITERATIONS = 1
+#: Gauss-Newton steps of a replicate that leaves half the windows out.
+MAX_REPLICATE_ITERATIONS = 10
 
 
 def jackknife(problem: Problem, fit: Fit) -> np.ndarray | None:
     """Delete-a-group jackknife covariance (7x7: rotation about the base axes, t, tau) of the
-    fit's free globals over groups of consecutive windows, or None with fewer than 3 windows.
+    fit's free globals over groups of consecutive windows, or None with fewer than 2 windows.
     It sees what the Fisher information cannot: residuals correlated over seconds, and errors
-    that differ from window to window."""
+    that differ from window to window. With two windows a replicate is the other window alone,
+    far from the full fit: it is iterated to convergence."""
     K = len(problem.used)
-    if K < 3:
+    if K < 2:
         return None
+    steps = JACKKNIFE_ITERATIONS if K >= JACKKNIFE_MIN_WINDOWS else MAX_REPLICATE_ITERATIONS
     replicates = []
     for group in np.array_split(np.arange(K), min(K, JACKKNIFE_GROUPS)):
         weights = np.ones(K)
         weights[group] = 0.0
         try:
-            rep = problem.fit(
-                fit, fit.free, window_weights=weights, max_iterations=JACKKNIFE_ITERATIONS
-            )
+            rep = problem.fit(fit, fit.free, window_weights=weights, max_iterations=steps)
         except np.linalg.LinAlgError:  # the group held all a sensor's error was known from:
             held = fit.free.copy()  # the replicate keeps the errors at the fit's values
             held[SENSOR_ERRORS] = False
-            rep = problem.fit(fit, held, window_weights=weights, max_iterations=1)
+            rep = problem.fit(fit, held, window_weights=weights, max_iterations=steps)
         replicates.append(
             np.concatenate(
                 [
@@ -163,4 +169,5 @@ def uncertainty(
     cov6[ROTATION, ROTATION] += floors[0] ** 2 * np.eye(3)
     cov6[TRANSLATION, TRANSLATION] += floors[1] ** 2 * np.eye(3)
     tau_std = float(np.sqrt(cov7[TIME_OFFSET, TIME_OFFSET])) if fit.free[TIME_OFFSET] else None
-    return Uncertainty(cov6, statistical, tau_std, spread is not None, on_box, pulls)
+    checked = spread is not None and len(problem.used) >= JACKKNIFE_MIN_WINDOWS
+    return Uncertainty(cov6, statistical, tau_std, checked, on_box, pulls)

@@ -138,3 +138,41 @@ def test_clock_offsets_bias_nothing_on_a_noise_free_drive():
         assert abs(estimate.time_offset_s - drive.time_offsets_s[mount.name]) < 1e-6
         error = estimate.T_base_imu.translation - mount.T_base_imu.translation
         assert np.abs(error).max() < 1e-5, (mount.name, error)
+
+
+def test_a_base_gyro_scale_no_gyro_has_is_a_failed_check_that_covers_the_error():
+    """Both gyros 40% low: the fit asks for a base gyro scale of -40%, beyond any gyro's
+    (``BASE_SCALE_PLAUSIBLE``). It is not taken as a scale: the check fails, the sensor is
+    `inconsistent`, and the std covers the error."""
+    from dataclasses import replace
+
+    from imucal_cli.config import parse_config
+    from imucal_cli.core.checks import BASE_SCALE_PLAUSIBLE
+    from imucal_cli.core.so3 import rotation_angle_deg
+    from imucal_cli.pipeline import DriveStreams, run_calibrate
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.drive import with_errors
+
+    options = with_errors(
+        DriveOptions(scenario="aggressive", duration_s=300.0, seed=1), "gyros-low"
+    )
+    options = replace(
+        options,
+        base_model=replace(options.base_model, gyro_scale=-0.4),
+        lidar_model=replace(options.lidar_model, gyro_scale=-0.4),
+    )
+    drive = simulate_drive(options)
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    streams = {m.name: drive.sensors[m.name].stream for m in drive.mounts}
+    result = run_calibrate(DriveStreams(drive.base.stream, streams, 0), config)
+    for mount in drive.mounts:
+        estimate = result.estimates[mount.name]
+        check = estimate.checks["base_gyro_scale"]
+        assert estimate.status == "inconsistent"
+        assert not check["pass"] and abs(check["scale"]) > BASE_SCALE_PLAUSIBLE
+        assert any("more than any gyro has" in w for w in estimate.warnings)
+        std = np.sqrt(np.diag(estimate.covariance))
+        angle = rotation_angle_deg(estimate.T_base_imu.rotation, mount.T_base_imu.rotation)
+        assert np.radians(angle) < 3 * std[:3].min()
+        error = np.abs(estimate.T_base_imu.translation - mount.T_base_imu.translation)
+        assert np.all(error < 3 * std[3:])

@@ -67,3 +67,42 @@ def test_no_decimation_where_the_response_would_alias():
 
     assert _decimation(Lowpass(20.0, 200.0, 4, 40.0), 100.0) == 1
     assert _decimation(Lowpass(5.0, 150.0, 4, 40.0), 100.0) == 1
+
+
+def test_a_triad_saturates_where_its_largest_reading_repeats_at_a_full_scale():
+    """An int16 gyro at 2000 deg/s clips at -32768 and +32767 counts (3e-5 apart): readings at
+    either end count as at its full scale; a peak reached once, or readings repeating below the
+    narrowest full scale sold (125 deg/s), do not saturate."""
+    from imucal_cli.core.signals import MIN_FULL_SCALE, FullScale
+
+    count = np.radians(2000.0) / 32768
+    rng = np.random.default_rng(0)
+    values = rng.normal(0.0, 5.0, (1000, 3))
+    values[[10, 500, 900], [0, 1, 2]] = [-32768 * count, 32767 * count, 32767 * count]
+    triad = FullScale()
+    for part in np.array_split(np.arange(1000), 7):  # in batches, as messages come
+        triad.add(part * 1000, values[part])
+    assert triad.saturated(1.0, MIN_FULL_SCALE[0])
+    assert triad.readings == 3
+    assert triad.after(0).tolist() == [10_000, 500_000, 900_000]
+    assert triad.after(600_000).tolist() == [900_000]  # and the earlier ones are forgotten
+    assert triad.after(0).tolist() == [900_000]
+
+    peak = FullScale()
+    peak.add(
+        np.arange(1000), values[:, :1] * 0.1 + np.where(np.arange(1000) == 7, 30.0, 0.0)[:, None]
+    )
+    assert not peak.saturated(1.0, MIN_FULL_SCALE[0])
+
+    slow = FullScale()  # a steady turn at 1 rad/s, quantised: its top repeats, but is no range
+    slow.add(np.arange(1000), np.round(np.full((1000, 3), 1.0) + rng.normal(0, 1e-3, (1000, 3)), 2))
+    assert slow.readings >= 3 and not slow.saturated(1.0, MIN_FULL_SCALE[0])
+
+
+def test_near_tells_the_query_times_within_a_margin_of_a_stamp():
+    from imucal_cli.core.signals import near
+
+    stamps = np.array([1.0, 5.0])
+    query = np.array([0.0, 0.49, 0.5, 1.2, 3.0, 4.6, 5.5, 6.0])
+    assert near(query, stamps, 0.5).tolist() == [False, False, True, True, False, True, True, False]
+    assert not near(query, np.zeros(0), 1.0).any()

@@ -154,3 +154,52 @@ def test_windows_reduced_in_the_worker_thread_give_the_same_estimate_to_the_bit(
         assert other.status == plain.status and other.warnings == plain.warnings
         assert np.array_equal(other.T_base_imu.as_matrix(), plain.T_base_imu.as_matrix())
         assert np.array_equal(other.covariance, plain.covariance)
+
+
+def test_windows_that_hold_a_saturated_reading_are_not_used(monkeypatch):
+    """A sensor gyro clipped at its full scale (here a tenth of a percent of the readings, at a
+    full scale the test lowers to the drive's peaks): every window within the low-pass's
+    length of a clipped reading is not valid, the others are as before, the warning names the
+    topic and the level, and the estimate lies within its std of the truth."""
+    from imucal_cli.core import streaming
+    from imucal_cli.pipeline import make_calibrator
+
+    monkeypatch.setattr(streaming, "MIN_FULL_SCALE", (0.1, 1.0))
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=150.0, seed=4))
+    config = parse_config(drive.config_document(), "sim.config.yaml")
+    name = drive.mounts[0].name
+    clean = drive.sensors[name].stream
+    level = float(np.quantile(np.abs(clean.gyro).max(axis=1), 0.999))
+    clipped = type(clean)(clean.t_ns, np.clip(clean.gyro, -level, level), clean.accel)
+    calibrators = []
+    for sensor in (clean, clipped):
+        calibrator = make_calibrator(config)
+        streams = {
+            "base": drive.base.stream,
+            **{m.name: drive.sensors[m.name].stream for m in drive.mounts},
+        }
+        streams[name] = sensor
+        for imu, s in streams.items():
+            calibrator.add(imu, s.t_ns, s.gyro, s.accel)
+        calibrator.finish()
+        calibrators.append(calibrator)
+    before, after = (c.windows[name] for c in calibrators)
+    stamps = calibrators[1]._seconds(clean.t_ns[np.abs(clean.gyro).max(axis=1) >= level])
+    reach = 1.0 / calibrators[1].lowpass.cutoff_hz
+    tau = calibrators[1].tau0[name]
+    hit = [
+        bool(np.any((stamps >= w.start_s + tau - reach) & (stamps <= w.end_s + tau + reach)))
+        for w in after
+    ]
+    assert 0 < sum(hit) < len(after)
+    assert [w.valid for w in after] == [b.valid and not h for b, h in zip(before, hit, strict=True)]
+    estimate = calibrators[1].estimates()[name]
+    topic = config.sensors[0].imu_topic
+    assert any(
+        w.startswith(f"{topic}: the gyro saturates at {level:.4g} rad/s") for w in estimate.warnings
+    )
+    truth = next(m for m in drive.mounts if m.name == name).T_base_imu
+    std = np.sqrt(np.diag(estimate.covariance))
+    angle = np.radians(rotation_angle_deg(estimate.T_base_imu.rotation, truth.rotation))
+    assert angle < 4 * std[:3].max()
+    assert np.all(np.abs(estimate.T_base_imu.translation - truth.translation) < 4 * std[3:])
