@@ -270,11 +270,13 @@ def read_log(
     clocks: bool = True,
     progress: Callable[[int, int], None] | None = None,
     after: Callable[[], None] | None = None,
+    clipped: Callable[[str, np.ndarray], None] | None = None,
 ) -> int | None:
     """The one read loop: every IMU batch of ``reader`` to ``sink(name, stamps, gyro,
     accel)`` (``name``: "base" or the sensor's), the clocks compared (``clocks``),
-    ``progress(messages read, messages in the log)`` and ``after()`` after each batch. Returns
-    the first stamp (ns), None where no message was read."""
+    ``progress(messages read, messages in the log)`` and ``after()`` after each batch, and
+    before it the stamps of the clipped samples reading dropped to ``clipped(name, stamps)``.
+    Returns the first stamp (ns), None where no message was read."""
     names = imu_names(config)
     check = _ClockCheck(reader.path, config.base.topic, config.calibration.max_time_offset_s)
     topics, t0_ns, count = list(names), None, 0
@@ -284,6 +286,8 @@ def read_log(
         if len(stamps):
             first = int(stamps.min())
             t0_ns = first if t0_ns is None else min(t0_ns, first)
+        if clipped is not None:
+            clipped(names[topic], reader.take_clipped(topic))
         sink(names[topic], stamps, gyro, accel)
         count += len(stamps)
         if progress is not None:
@@ -340,7 +344,9 @@ def stream_log(
     log's length: windows reduced (in a worker thread where ``threaded``), nothing solved yet."""
     reader = ImuBatches(Path(log), imu_names(config))
     calibrator = make_calibrator(config, threaded=threaded)
-    t0_ns = read_log(reader, config, calibrator.add, progress=progress)
+    t0_ns = read_log(
+        reader, config, calibrator.add, progress=progress, clipped=calibrator.add_clipped
+    )
     return _finish(reader, calibrator, t0_ns, config)
 
 
@@ -464,7 +470,7 @@ def follow_log(
 
     t0_ns, interrupted = None, False
     try:
-        t0_ns = read_log(reader, config, sink, after=after)
+        t0_ns = read_log(reader, config, sink, after=after, clipped=calibrator.add_clipped)
     except KeyboardInterrupt:
         interrupted = True
         t0_ns = _first_stamp(calibrator)

@@ -157,6 +157,8 @@ class ImuBatches:
         self.follow = follow
         self.topics = list(dict.fromkeys(topics))
         self.stats: dict[str, ReadStats] = {t: ReadStats() for t in self.topics}
+        #: Per topic, the stamps (ns) of the clipped samples dropped since :meth:`take_clipped`.
+        self.clipped: dict[str, list[np.ndarray]] = {t: [] for t in self.topics}
         self.losses: list[Loss] = []
         self.format_name = ""
         #: Per topic, the number of messages the container says it has (once iterating).
@@ -256,11 +258,18 @@ class ImuBatches:
                 accel[finite], SATURATION_ACCEL_MPS2
             )
         st.saturated += int(np.count_nonzero(clipped))
+        if clipped.any():
+            self.clipped[topic].append(stamps[clipped])
         bad |= clipped
         if bad.any():
             keep = ~bad
             return stamps[keep], log_times[keep], gyro[keep], accel[keep]
         return stamps, log_times, gyro, accel
+
+    def take_clipped(self, topic: str) -> np.ndarray:
+        """The stamps (ns) of ``topic``'s clipped samples dropped since the last call."""
+        found, self.clipped[topic] = self.clipped[topic], []
+        return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
 
     def _count(
         self, topic: str, stamps: np.ndarray, log_times: np.ndarray, frame_ids: list[str]

@@ -765,3 +765,39 @@ def test_follow_runs_the_clock_check_calibrate_runs(tmp_path, short_drive):
         assert all(line.startswith("imucal: following ") for line in talk)  # (follow mode)
         lines.append(error)
     assert lines[0] == lines[1] and name in lines[0] and "max_time_offset_s" in lines[0]
+
+
+def test_windows_that_held_a_clipped_run_the_reader_dropped_are_not_used(tmp_path):
+    """A lidar gyro at the end of a 250 deg/s range for three samples: reading drops the run
+    (a clipped value is not the motion), and the window that held it is not used, where the
+    spline would otherwise interpolate across the hole as if nothing had happened."""
+    from imucal_cli.api import calibrate_log
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import TopicData
+
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=90.0, seed=5))
+    write_document(tmp_path / "c.yaml", drive.config_document())
+    clean = calibrate_log(
+        write_imu_log(tmp_path / "a.mcap", "mcap", drive.topics()), tmp_path / "c.yaml"
+    )
+    topics = drive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    gyro = data.stream.gyro.copy()
+    at = int(np.searchsorted(data.stream.t_ns, data.stream.t_ns[0] + 45 * 10**9))
+    gyro[at : at + 3, 1] = 4.3633
+    topics[name] = TopicData(_with(data.stream, gyro), data.log_time_ns)
+    run = calibrate_log(write_imu_log(tmp_path / "b.mcap", "mcap", topics), tmp_path / "c.yaml")
+    assert run.streamed.stats[name].saturated == 3
+    sensor = next(
+        s
+        for s in drive.config_document()["sensors"]
+        if drive.config_document()["sensors"][s]["imu_topic"] == name
+    )
+    before = clean.result.estimates[sensor].windows
+    after = run.result.estimates[sensor].windows
+    changed = [i for i, (b, a) in enumerate(zip(before, after, strict=True)) if b.valid != a.valid]
+    assert len(changed) >= 1 and all(before[i].valid and not after[i].valid for i in changed)
+    t_clip = (data.stream.t_ns[at] - data.stream.t_ns[0]) * 1e-9
+    assert all(after[i].start_s - 2.0 < t_clip < after[i].end_s + 2.0 for i in changed)

@@ -562,6 +562,8 @@ class StreamingCalibrator:
         self.silences: dict[str, list[list[float | None]]] = {}
         #: Per IMU, where its gyro and its accelerometer saturate (their readings as sent).
         self.full_scale = {name: (FullScale(), FullScale()) for name in self.buffers}
+        #: Per IMU, the stamps (ns) of clipped samples the reader dropped (a run at the range).
+        self.clipped: dict[str, list[np.ndarray]] = {name: [] for name in self.buffers}
 
     def _place_base(
         self, sensors: Sequence[SensorSetup], base_pose: Transform | None
@@ -615,6 +617,12 @@ class StreamingCalibrator:
         if self.t_ref_ns is None and all(b.first_ns is not None for b in self.buffers.values()):
             self.t_ref_ns = max(int(b.first_ns) for b in self.buffers.values())  # type: ignore[arg-type]
         return self.process()
+
+    def add_clipped(self, imu: str, t_ns: np.ndarray) -> None:
+        """Stamps (ns) of samples of one IMU that were clipped at its range and dropped before
+        :meth:`add`: the windows that hold one are not used, as for a saturated reading."""
+        if len(t_ns):
+            self.clipped[imu].append(np.asarray(t_ns, dtype=np.int64))
 
     def _seconds(self, t_ns: np.ndarray) -> np.ndarray:
         assert self.t_ref_ns is not None
@@ -966,7 +974,7 @@ class StreamingCalibrator:
 
     def _saturated(self, name: str, from_s: float) -> np.ndarray:
         """The stamps (s) from ``from_s`` on where IMU ``name`` read its full scale (either
-        triad, where it saturates)."""
+        triad, where it saturates, and the clipped samples reading dropped)."""
         assert self.t_ref_ns is not None
         from_ns = self.t_ref_ns + int(from_s * 1e9)
         scales = self.scales.get(name, (1.0, 1.0))
@@ -976,6 +984,9 @@ class StreamingCalibrator:
                 self.full_scale[name], scales, MIN_FULL_SCALE, strict=True
             )
         ]
+        dropped = np.concatenate([np.zeros(0, np.int64), *self.clipped[name]])
+        self.clipped[name] = [dropped[dropped >= from_ns]]
+        stamps.append(self.clipped[name][0])
         return self._seconds(np.sort(np.concatenate(stamps)))
 
     def _executor(self) -> ThreadPoolExecutor:
