@@ -272,6 +272,39 @@ class FullScale:
         return stamps
 
 
+@dataclass
+class Saturation:
+    """Where one IMU read values that are not the motion: each triad's full scale
+    (:class:`FullScale`, gyro then accelerometer) and the stamps (ns) of clipped samples
+    reading dropped before they came (a run at the range)."""
+
+    triads: tuple[FullScale, FullScale] = field(default_factory=lambda: (FullScale(), FullScale()))
+    dropped: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        for triad, values in zip(self.triads, (gyro, accel), strict=True):
+            triad.add(t_ns, values)
+
+    def saturated(self, scales: tuple[float, float]) -> list[bool]:
+        """Per triad whether it saturates, its readings made SI by ``scales``."""
+        return [
+            triad.saturated(scale, minimum)
+            for triad, scale, minimum in zip(self.triads, scales, MIN_FULL_SCALE, strict=True)
+        ]
+
+    def after(self, t_min_ns: int, scales: tuple[float, float]) -> np.ndarray:
+        """The stamps (ns, sorted) from ``t_min_ns`` on of readings not the motion: at the full
+        scale of a triad that saturates, or dropped clipped. Earlier ones are forgotten."""
+        dropped = np.concatenate([np.zeros(0, np.int64), *self.dropped])
+        self.dropped = [dropped[dropped >= t_min_ns]]
+        stamps = [self.dropped[0]]
+        for triad, saturates in zip(self.triads, self.saturated(scales), strict=True):
+            kept = triad.after(t_min_ns)
+            if saturates:
+                stamps.append(kept)
+        return np.sort(np.concatenate(stamps))
+
+
 def near(query: np.ndarray, stamps: np.ndarray, margin: float) -> np.ndarray:
     """Per query time, whether a stamp (sorted, same units) lies within ``margin`` of it."""
     if len(stamps) == 0:

@@ -33,9 +33,8 @@ from imucal_cli.core.model import ACCEL_BASE, GYRO_BASE, GYRO_DATA, GYRO_OWN, La
 from imucal_cli.core.moments import WindowMoments, assemble_moments, base_moments
 from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
 from imucal_cli.core.signals import (
-    MIN_FULL_SCALE,
-    FullScale,
     Lowpass,
+    Saturation,
     TooLittleData,
     derivative_noise_variance,
     near,
@@ -560,10 +559,8 @@ class StreamingCalibrator:
         #: Per IMU that stopped sending while the others went on: [from, to] seconds from the
         #: origin of each silence (``to`` None while it lasts).
         self.silences: dict[str, list[list[float | None]]] = {}
-        #: Per IMU, where its gyro and its accelerometer saturate (their readings as sent).
-        self.full_scale = {name: (FullScale(), FullScale()) for name in self.buffers}
-        #: Per IMU, the stamps (ns) of clipped samples the reader dropped (a run at the range).
-        self.clipped: dict[str, list[np.ndarray]] = {name: [] for name in self.buffers}
+        #: Per IMU, where it read values that are not the motion (its readings as sent).
+        self.saturation = {name: Saturation() for name in self.buffers}
 
     def _place_base(
         self, sensors: Sequence[SensorSetup], base_pose: Transform | None
@@ -604,8 +601,7 @@ class StreamingCalibrator:
         )
         gyro = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
         accel = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
-        for triad, values in zip(self.full_scale[imu], (gyro, accel), strict=True):
-            triad.add(t_ns, values)  # as sent: before units and turns
+        self.saturation[imu].add(t_ns, gyro, accel)  # as sent: before units and turns
         both = np.hstack([gyro, accel])
         if imu in self.scales:  # after boot: in SI, as the boot found the units
             both[:, :3] *= self.scales[imu][0]
@@ -622,7 +618,7 @@ class StreamingCalibrator:
         """Stamps (ns) of samples of one IMU that were clipped at its range and dropped before
         :meth:`add`: the windows that hold one are not used, as for a saturated reading."""
         if len(t_ns):
-            self.clipped[imu].append(np.asarray(t_ns, dtype=np.int64))
+            self.saturation[imu].dropped.append(np.asarray(t_ns, dtype=np.int64))
 
     def _seconds(self, t_ns: np.ndarray) -> np.ndarray:
         assert self.t_ref_ns is not None
@@ -977,17 +973,8 @@ class StreamingCalibrator:
         triad, where it saturates, and the clipped samples reading dropped)."""
         assert self.t_ref_ns is not None
         from_ns = self.t_ref_ns + int(from_s * 1e9)
-        scales = self.scales.get(name, (1.0, 1.0))
-        stamps = [
-            triad.after(from_ns) if triad.saturated(scale, minimum) else triad.after(from_ns)[:0]
-            for triad, scale, minimum in zip(
-                self.full_scale[name], scales, MIN_FULL_SCALE, strict=True
-            )
-        ]
-        dropped = np.concatenate([np.zeros(0, np.int64), *self.clipped[name]])
-        self.clipped[name] = [dropped[dropped >= from_ns]]
-        stamps.append(self.clipped[name][0])
-        return self._seconds(np.sort(np.concatenate(stamps)))
+        stamps = self.saturation[name].after(from_ns, self.scales.get(name, (1.0, 1.0)))
+        return self._seconds(stamps)
 
     def _executor(self) -> ThreadPoolExecutor:
         if self._worker is None:
@@ -1099,18 +1086,19 @@ class StreamingCalibrator:
     def _saturation_notes(self, imu: str) -> list[str]:
         scales = self.scales.get(imu, (1.0, 1.0))
         topic = self.labels[imu][0] or imu
+        saturation = self.saturation[imu]
         return [
             f"{topic}: the {triad_name} saturates at {triad.level * scale:.4g} {unit} "
             f"({triad.readings} readings there): the windows that hold one are not used"
-            for triad, triad_name, unit, scale, minimum in zip(
-                self.full_scale[imu],
+            for triad, triad_name, unit, scale, saturates in zip(
+                saturation.triads,
                 ("gyro", "accelerometer"),
                 ("rad/s", "m/s^2"),
                 scales,
-                MIN_FULL_SCALE,
+                saturation.saturated(scales),
                 strict=True,
             )
-            if triad.saturated(scale, minimum)
+            if saturates
         ]
 
     def window_infos(self, name: str) -> list[WindowInfo]:

@@ -161,10 +161,10 @@ def test_windows_that_hold_a_saturated_reading_are_not_used(monkeypatch):
     full scale the test lowers to the drive's peaks): every window within the low-pass's
     length of a clipped reading is not valid, the others are as before, the warning names the
     topic and the level, and the estimate lies within its std of the truth."""
-    from imucal_cli.core import streaming
+    from imucal_cli.core import signals
     from imucal_cli.pipeline import make_calibrator
 
-    monkeypatch.setattr(streaming, "MIN_FULL_SCALE", (0.1, 1.0))
+    monkeypatch.setattr(signals, "MIN_FULL_SCALE", (0.1, 1.0))
     drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=150.0, seed=4))
     config = parse_config(drive.config_document(), "sim.config.yaml")
     name = drive.mounts[0].name
