@@ -22,7 +22,7 @@ from imucal_cli.core.grades import GRADES
 from imucal_cli.core.streaming import BOOT_S, SensorSetup, StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.base import Loss
-from imucal_cli.reading import ImuBatches, ReadStats
+from imucal_cli.reading import ForkedBatches, ImuBatches, ReadStats, read_beside
 from imucal_cli.result import CalibrationResult
 from imucal_cli.types import ImuStream
 
@@ -264,7 +264,7 @@ Sink = Callable[[str, np.ndarray, np.ndarray, np.ndarray], object]
 
 
 def read_log(
-    reader: ImuBatches,
+    reader: ImuBatches | ForkedBatches,
     config: Config,
     sink: Sink,
     clocks: bool = True,
@@ -298,7 +298,10 @@ def read_log(
 
 
 def _finish(
-    reader: ImuBatches, calibrator: StreamingCalibrator, t0_ns: int | None, config: Config
+    reader: ImuBatches | ForkedBatches,
+    calibrator: StreamingCalibrator,
+    t0_ns: int | None,
+    config: Config,
 ) -> StreamedLog:
     """What is left reduced, once the reading has ended; the topics that gave too little
     data named."""
@@ -318,7 +321,10 @@ def _finish(
 
 
 def _streamed(
-    reader: ImuBatches, calibrator: StreamingCalibrator, t0_ns: int | None, config: Config
+    reader: ImuBatches | ForkedBatches,
+    calibrator: StreamingCalibrator,
+    t0_ns: int | None,
+    config: Config,
 ) -> StreamedLog:
     """What the reader and the calibrator found, as one :class:`StreamedLog`."""
     duplicates = {topic: calibrator.duplicates(name) for topic, name in imu_names(config).items()}
@@ -341,8 +347,11 @@ def stream_log(
     threaded: bool = False,
 ) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
-    log's length: windows reduced (in a worker thread where ``threaded``), nothing solved yet."""
-    reader = ImuBatches(Path(log), imu_names(config))
+    log's length: windows reduced, nothing solved yet. With ``threaded`` (one log on the
+    machine) the log is read in a child process and the windows reduced in a worker thread."""
+    batches = ImuBatches(Path(log), imu_names(config))
+    # threaded: the reading in a second process, the reduction in a second thread
+    reader = read_beside(batches) if threaded else batches
     calibrator = make_calibrator(config, threaded=threaded)
     t0_ns = read_log(
         reader, config, calibrator.add, progress=progress, clipped=calibrator.add_clipped

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from imucal_cli.errors import LogError
 from imucal_cli.io.base import LogReader, Loss
 from imucal_cli.io.imu_msg import DecodedBatch, RawBatch, decode_imu
 from imucal_cli.io.logs import check_topics, open_log, open_recording
@@ -376,3 +377,85 @@ def read_imu(
             stamps.astype(np.int64), log_times.astype(np.int64), gyro, accel, reader.stats[topic]
         )
     return out
+
+
+#: Batches a reading process sends at a time (fewer, larger messages through the pipe).
+FORKED_GROUP = 16
+
+
+class ForkedBatches:
+    """An :class:`ImuBatches` read in a child process: opening, decompressing, decoding and
+    screening the log run on a second core, beside the calibration that takes the batches
+    (in Python one process runs one thread at a time, so a reading thread would take turns
+    with it instead). The batches come in the reader's order through a pipe; what the reader
+    counted (:attr:`stats`, :attr:`losses`) arrives when it ends, and an error it raised is
+    raised here. Forks, so Linux only: elsewhere :func:`read_beside` reads in-process."""
+
+    def __init__(self, reader: ImuBatches) -> None:
+        self.reader = reader
+        self.path = reader.path
+        self.stats = reader.stats
+        self.losses: list[Loss] = []
+        self.format_name = ""
+        self.expected: dict[str, int] = {}
+        self.clipped: dict[str, list[np.ndarray]] = {t: [] for t in reader.topics}
+
+    def take_clipped(self, topic: str) -> np.ndarray:
+        """As :meth:`ImuBatches.take_clipped`."""
+        found, self.clipped[topic] = self.clipped[topic], []
+        return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
+
+    def _produce(self, send: Any) -> None:
+        """The child: every batch, in groups, then what the reader counted (or its error)."""
+        reader = self.reader
+        try:
+            group: list[tuple[Any, ...]] = []
+            for item in reader:
+                group.append((*item, reader.take_clipped(item[0])))
+                if len(group) >= FORKED_GROUP:
+                    send.send(("batches", group, reader.expected))
+                    group = []
+            send.send(("batches", group, reader.expected))
+            send.send(("end", reader.stats, reader.losses, reader.format_name))
+        except BaseException as exc:  # the parent raises it: this is its reading
+            try:
+                send.send(("error", exc))
+            except Exception:  # an error that does not pickle: its message
+                send.send(("error", LogError(str(self.path), str(exc))))
+
+    def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        import multiprocessing
+
+        context = multiprocessing.get_context("fork")
+        receive, send = context.Pipe(duplex=False)
+        child = context.Process(target=self._produce, args=(send,), daemon=True)
+        child.start()
+        send.close()
+        try:
+            while True:
+                try:
+                    message = receive.recv()
+                except EOFError:  # killed (out of memory?) before it said why
+                    raise LogError(str(self.path), "the reading process ended early") from None
+                if message[0] == "error":
+                    raise message[1]
+                if message[0] == "end":
+                    _, self.stats, self.losses, self.format_name = message
+                    return
+                _, group, self.expected = message
+                for *item, clipped in group:
+                    if len(clipped):
+                        self.clipped[item[0]].append(clipped)
+                    yield tuple(item)  # type: ignore[misc]
+        finally:
+            receive.close()
+            if child.is_alive():
+                child.terminate()
+            child.join()
+
+
+def read_beside(reader: ImuBatches) -> ImuBatches | ForkedBatches:
+    """``reader`` read in a child process where the system forks (:class:`ForkedBatches`)."""
+    import sys
+
+    return ForkedBatches(reader) if sys.platform == "linux" else reader

@@ -801,3 +801,49 @@ def test_windows_that_held_a_clipped_run_the_reader_dropped_are_not_used(tmp_pat
     assert len(changed) >= 1 and all(before[i].valid and not after[i].valid for i in changed)
     t_clip = (data.stream.t_ns[at] - data.stream.t_ns[0]) * 1e-9
     assert all(after[i].start_s - 2.0 < t_clip < after[i].end_s + 2.0 for i in changed)
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag1"])
+def test_a_log_read_in_a_child_process_gives_what_reading_in_process_gives(logs, fmt):
+    """``calibrate`` reads one log in a child process (:class:`ForkedBatches`): on a log with
+    a corrupt chunk, the batches, the counts, the losses and the clipped stamps are the
+    in-process reader's, to the bit."""
+    from imucal_cli.reading import ForkedBatches, ImuBatches
+
+    log, topics, _ = logs[fmt]
+    bad = _copy(log, "corrupt-forked")
+    data = bytearray(bad.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(64)
+    bad.write_bytes(bytes(data))
+    here, there = ImuBatches(bad, topics), ForkedBatches(ImuBatches(bad, topics))
+    got = []
+    for reader in (here, there):
+        batches = [
+            (topic, *(a.tobytes() for a in arrays), reader.take_clipped(topic).tobytes())
+            for topic, *arrays in reader
+        ]
+        got.append((batches, {t: s.to_dict() for t, s in reader.stats.items()}, reader.losses))
+    assert got[1] == got[0]
+    assert len(got[0][2]) >= 1 and there.format_name == here.format_name
+    assert there.expected == here.expected
+
+
+def test_an_error_in_the_reading_process_is_raised_in_the_calibrating_one(tmp_path, short_drive):
+    """A topic the log lacks: the child's error, raised here with its message; and a reader
+    left before the end leaves no process behind."""
+    import multiprocessing
+
+    from imucal_cli.errors import LogError
+    from imucal_cli.reading import ForkedBatches, ImuBatches
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    with pytest.raises(LogError) as forked:
+        list(ForkedBatches(ImuBatches(log, ["/no/such/imu"])))
+    with pytest.raises(LogError) as here:
+        list(ImuBatches(log, ["/no/such/imu"]))
+    assert str(forked.value) == str(here.value)
+    batches = iter(ForkedBatches(ImuBatches(log, list(short_drive.topics()))))
+    next(batches)
+    batches.close()  # type: ignore[attr-defined]
+    assert not multiprocessing.active_children()

@@ -15,9 +15,16 @@ from imucal_cli.cli import app
 def test_report_for_the_sample_drive(tmp_path, monkeypatch):
     from imucal_cli import reading
 
-    opened = []
+    # counted in a file: the log is read in a child process (ForkedBatches)
+    opens = tmp_path / "opened"
     real_open = reading.open_log
-    monkeypatch.setattr(reading, "open_log", lambda path: opened.append(path) or real_open(path))
+
+    def counted_open(path):
+        with opens.open("a") as f:
+            f.write(f"{path}\n")
+        return real_open(path)
+
+    monkeypatch.setattr(reading, "open_log", counted_open)
     out, report = tmp_path / "e.yaml", tmp_path / "report"
     result = CliRunner().invoke(
         app,
@@ -35,6 +42,7 @@ def test_report_for_the_sample_drive(tmp_path, monkeypatch):
     assert result.exit_code == 0, result.output
     document = yaml.safe_load(out.read_text())
     names = list(document["sensors"])
+    opened = opens.read_text().splitlines()
     assert len(opened) == 1  # the report draws from the calibration: no second read of the log
     expected = {
         "biases.png",
