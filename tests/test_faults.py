@@ -446,16 +446,19 @@ def test_ctrl_c_leaves_no_partial_file_and_keeps_the_old_one(tmp_path):
         start_new_session=True,
     )
 
-    # interrupted once it has the log open: seconds of work remain, however fast the machine
-    # (a fixed delay raced the end of the work)
-    def reading() -> bool:
+    # interrupted once it has the log open (the command, or the child process it reads in):
+    # seconds of work remain, however fast the machine (a fixed delay raced the end of the work)
+    def opened(pid: str) -> bool:
         try:
-            return any(
-                os.readlink(f"/proc/{process.pid}/fd/{fd}") == str(log)
-                for fd in os.listdir(f"/proc/{process.pid}/fd")
+            return os.getpgid(int(pid)) == process.pid and any(
+                os.readlink(f"/proc/{pid}/fd/{fd}") == str(log)
+                for fd in os.listdir(f"/proc/{pid}/fd")
             )
         except OSError:
             return False
+
+    def reading() -> bool:
+        return any(opened(pid) for pid in os.listdir("/proc") if pid.isdigit())
 
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and process.poll() is None and not reading():
