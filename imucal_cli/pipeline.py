@@ -286,8 +286,9 @@ def read_log(
         if len(stamps):
             first = int(stamps.min())
             t0_ns = first if t0_ns is None else min(t0_ns, first)
+        dropped = reader.take_clipped(topic)  # taken always: kept, they would pile up
         if clipped is not None:
-            clipped(names[topic], reader.take_clipped(topic))
+            clipped(names[topic], dropped)
         sink(names[topic], stamps, gyro, accel)
         count += len(stamps)
         if progress is not None:

@@ -850,3 +850,25 @@ def test_an_error_in_the_reading_process_is_raised_in_the_calibrating_one(tmp_pa
     next(batches)
     batches.close()  # type: ignore[attr-defined]
     assert not multiprocessing.active_children()
+
+
+def test_the_read_loop_keeps_no_clipped_stamps_nobody_asked_for(tmp_path, short_drive):
+    """``biases`` reads with no use for the stamps of dropped clipped samples: the read loop
+    takes them all the same, so a log that clips throughout does not pile them up."""
+    from imucal_cli.config import parse_config
+    from imucal_cli.pipeline import read_log
+    from imucal_cli.reading import ImuBatches
+    from imucal_cli.sim.writers import TopicData
+
+    topics = short_drive.topics()
+    name = next(t for t in topics if t != "/gnss/imu")
+    data = topics[name]
+    gyro = data.stream.gyro.copy()
+    gyro[100:103, 1] = 4.3633  # a run at the end of a 250 deg/s range
+    topics[name] = TopicData(_with(data.stream, gyro), data.log_time_ns)
+    log = write_imu_log(tmp_path / "clipped.mcap", "mcap", topics)
+    config = parse_config(short_drive.config_document(), "sim.config.yaml")
+    reader = ImuBatches(log, list(topics))
+    read_log(reader, config, lambda *_: None, clocks=False)
+    assert reader.stats[name].saturated == 3
+    assert all(not stamps for stamps in reader.clipped.values())
