@@ -398,12 +398,11 @@ class ForkedBatches:
         self.losses: list[Loss] = []
         self.format_name = ""
         self.expected: dict[str, int] = {}
-        self.clipped: dict[str, list[np.ndarray]] = {t: [] for t in reader.topics}
 
     def take_clipped(self, topic: str) -> np.ndarray:
-        """As :meth:`ImuBatches.take_clipped`."""
-        found, self.clipped[topic] = self.clipped[topic], []
-        return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
+        """As :meth:`ImuBatches.take_clipped`: the child's stamps are kept in the parent's
+        copy of the reader."""
+        return self.reader.take_clipped(topic)
 
     def _produce(self, send: Any) -> None:
         """The child: every batch, in groups, then what the reader counted (or its error)."""
@@ -445,7 +444,7 @@ class ForkedBatches:
                 _, group, self.expected = message
                 for *item, clipped in group:
                     if len(clipped):
-                        self.clipped[item[0]].append(clipped)
+                        self.reader.clipped[item[0]].append(clipped)
                     yield tuple(item)  # type: ignore[misc]
         finally:
             receive.close()

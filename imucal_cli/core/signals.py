@@ -73,6 +73,11 @@ class Lowpass:
             np.ceil(3.0 * self.rate_hz / min(self.cutoff_hz, self.second_cutoff_hz or np.inf))
         )
 
+    @property
+    def reach_s(self) -> float:
+        """How far (s) a sample moves the filtered signal: its effective length, 1 / cutoff."""
+        return 1.0 / self.cutoff_hz
+
     def __call__(self, x: np.ndarray, step: int = 1) -> np.ndarray:
         """Filter along axis 0 (any trailing shape); the result has each column contiguous
         (Fortran order), as the splines and the FFT take them fastest. With ``step`` > 1, only

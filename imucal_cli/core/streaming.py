@@ -416,7 +416,7 @@ def _reduce_block(
     ``[gyro, accel]`` and the stamps of saturated readings in ``samples``) and reduce each
     window, for every sensor, to its moments. A window within the low-pass's length of a
     saturated reading is not valid."""
-    reach = 1.0 / lp.cutoff_hz
+    reach = lp.reach_s
     block_start = spans[0][1]
     grid = block_start + np.arange(-n_pad, n_block + n_after) / rate
     _, t_b, both_b, saturated_b = samples[base_name]
@@ -955,7 +955,7 @@ class StreamingCalibrator:
                 int(np.searchsorted(t, last_s + tau, side="right")),
             )
             if b - a >= MIN_SPAN_SAMPLES:  # an IMU that stopped has none: its windows are not used
-                saturated = self._saturated(name, first_s + tau - 1.0 / self.lowpass.cutoff_hz)
+                saturated = self._saturated(name, first_s + tau - self.lowpass.reach_s)
                 samples[name] = (tau, t[a:b], both[a:b], saturated)
         args = (spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after)
         future: Future[dict[str, list[WindowMoments]]]
@@ -1066,8 +1066,8 @@ class StreamingCalibrator:
         return out
 
     def _unit_notes(self, name: str) -> list[str]:
-        """The units converted on the way and the IMUs that stopped while others went on, the
-        base's first."""
+        """The units converted on the way, the IMUs that saturate and those that stopped while
+        others went on, the base's first."""
         notes = [
             f"base: {w}" for w in self.unit_warnings.get(self.base_name, [])
         ] + self.unit_warnings.get(name, [])
