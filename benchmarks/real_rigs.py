@@ -90,6 +90,12 @@ def agreement(result_a, result_b, name: str) -> np.ndarray | None:
     return (delta / np.sqrt(combined))[keep]
 
 
+def header(*columns: str) -> None:
+    """A markdown table's header and its separator, one cell per column."""
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "---|" * len(columns))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--parts", type=int, default=3)
@@ -98,11 +104,15 @@ def main() -> None:
     if not rigs:
         raise SystemExit(f"no rig recordings under {RIGS}")
     print("## The whole run against the truth (both IMUs declared consumer)\n")
-    print(
-        "| rig | status | dR deg (x, y, z) | total rotation std deg | dt mm | "
-        "total translation std mm | statistical rotation std deg |"
+    header(
+        "rig",
+        "status",
+        "dR deg (x, y, z)",
+        "total rotation std deg",
+        "dt mm",
+        "total translation std mm",
+        "statistical rotation std deg",
     )
-    print("|---|---|---|---|---|---|---|")
     for folder in rigs:
         config = rig_config(folder)
         run = calibrate_log(folder / "log.mcap", config)
@@ -129,11 +139,13 @@ def main() -> None:
             f"{fmt(stat, 3)} |"
         )
     print(f"\n## Parts of each run against each other ({args.parts} parts of equal length)\n")
-    print(
-        "| rig | part statuses | pairs compared | axes within 3 combined statistical std "
-        "| largest |"
+    header(
+        "rig",
+        "part statuses",
+        "pairs compared",
+        "axes within 3 combined statistical std",
+        "largest",
     )
-    print("|---|---|---|---|---|")
     for folder in rigs:
         config = rig_config(folder)
         streams = read_streams(folder / "log.mcap", config)
