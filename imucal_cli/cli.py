@@ -638,7 +638,7 @@ def calibrate(
     from imucal_cli.outputs import calibration_document
 
     with _progress("calibrating"):
-        result = estimate(streamed)
+        result = estimate(streamed, apart=True)
     document = calibration_document(result, str(log), streamed.losses, streamed.counts())
 
     def render(doc: dict[str, Any]) -> None:

@@ -556,11 +556,16 @@ def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> Calibratio
     return CalibrationResult(estimates, config, dict(calibrator.rates_hz), dict(calibrator.noise))
 
 
-def estimate(streamed: StreamedLog) -> CalibrationResult:
-    """Solve for every sensor from a streamed log."""
+def estimate(streamed: StreamedLog, apart: bool = False) -> CalibrationResult:
+    """Solve for every sensor from a streamed log. With ``apart`` (one log on the machine),
+    half of the sensors are solved in a child process, on the second core."""
     try:
         with np.errstate(all="ignore"):
-            estimates = streamed.calibrator.estimates()
+            estimates = (
+                _estimates_apart(streamed.calibrator)
+                if apart
+                else streamed.calibrator.estimates()
+            )
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         # only data no IMU produces get here (the reader drops what it can recognise)
         raise InputError(
@@ -573,3 +578,45 @@ def estimate(streamed: StreamedLog) -> CalibrationResult:
         dict(streamed.calibrator.rates_hz),
         dict(streamed.calibrator.noise),
     )
+
+
+def _estimates_apart(calibrator: StreamingCalibrator) -> dict[str, SensorEstimate]:
+    """:meth:`StreamingCalibrator.estimates`, every other sensor solved in a forked child
+    process (the sensors' solves are independent): the same figures, on two cores. Where the
+    child fails, its sensors are solved here again, so that an error is the one the solve
+    raises in this process. Forks, so Linux only: elsewhere all are solved here."""
+    import sys
+
+    names = list(calibrator.sensors)
+    if len(names) < 2 or sys.platform != "linux":
+        return calibrator.estimates()
+    calibrator.settle()
+    import multiprocessing
+
+    theirs = names[1::2]
+    context = multiprocessing.get_context("fork")
+    receive, send = context.Pipe(duplex=False)
+
+    def answer() -> None:
+        try:
+            send.send({name: calibrator.estimate(name) for name in theirs})
+        except BaseException:  # solved again in the parent, which raises it itself
+            send.send(None)
+
+    child = context.Process(target=answer, daemon=True)
+    child.start()
+    send.close()
+    try:
+        ours = {name: calibrator.estimate(name) for name in names[0::2]}
+        try:
+            solved = receive.recv()
+        except EOFError:  # the child was killed
+            solved = None
+    finally:
+        receive.close()
+        if child.is_alive():
+            child.terminate()
+        child.join()
+    if solved is None:
+        solved = {name: calibrator.estimate(name) for name in theirs}
+    return {name: (ours | solved)[name] for name in names}

@@ -1034,36 +1034,42 @@ class StreamingCalibrator:
 
     def estimates(self) -> dict[str, SensorEstimate]:
         """The estimate from the windows reduced so far (every sensor)."""
-        out = {}
-        for name, setup in self.sensors.items():
-            windows = self._ensure_infos(name)
-            tau0 = self.tau0.get(name, 0.0)
-            offset = self.time_offsets.get(name)
-            if not any(w.info is not None and w.info.selected for w in windows):
-                estimate = unobservable(
-                    setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0
-                )
-            else:
-                clock = ClockEvidence(
-                    tau0,
-                    offset is None or offset.shown,
-                    offset.reason if offset is not None else "",
-                )
-                estimate = solve(
-                    windows,
-                    setup.prior_T_base_imu,
-                    setup.options,
-                    clock,
-                    self.sigma[name],
-                    self.lowpass,
-                    dw_noise_var=self.dw_noise_var,
-                    given=self.given_checks,
-                )
-            T = estimate.T_base_imu  # from the base IMU's position back to B's origin
-            T = Transform(T.rotation, T.translation + self.t_base_baseimu)
-            notes = self._unit_notes(name) + estimate.warnings
-            out[name] = replace(estimate, T_base_imu=T, warnings=notes)
-        return out
+        self.settle()
+        return {name: self.estimate(name) for name in self.sensors}
+
+    def settle(self) -> None:
+        """Take in every block the worker thread is reducing (before a fork: the child has no
+        worker thread)."""
+        self._collect(wait=True)
+
+    def estimate(self, name: str) -> SensorEstimate:
+        """One sensor's estimate from the windows reduced so far (each sensor's is independent
+        of the others': they may be solved apart, in any order)."""
+        setup = self.sensors[name]
+        windows = self._ensure_infos(name)
+        tau0 = self.tau0.get(name, 0.0)
+        offset = self.time_offsets.get(name)
+        if not any(w.info is not None and w.info.selected for w in windows):
+            estimate = unobservable(
+                setup.prior_T_base_imu, [w.info for w in windows if w.info], tau0
+            )
+        else:
+            clock = ClockEvidence(
+                tau0, offset is None or offset.shown, offset.reason if offset is not None else ""
+            )
+            estimate = solve(
+                windows,
+                setup.prior_T_base_imu,
+                setup.options,
+                clock,
+                self.sigma[name],
+                self.lowpass,
+                dw_noise_var=self.dw_noise_var,
+                given=self.given_checks,
+            )
+        T = estimate.T_base_imu  # from the base IMU's position back to B's origin
+        T = Transform(T.rotation, T.translation + self.t_base_baseimu)
+        return replace(estimate, T_base_imu=T, warnings=self._unit_notes(name) + estimate.warnings)
 
     def _unit_notes(self, name: str) -> list[str]:
         """The units converted on the way, the IMUs that saturate and those that stopped while
