@@ -118,11 +118,12 @@ class Lowpass:
         import scipy.fft  # (imported when first used: 0.2 s)
 
         spectrum = scipy.fft.rfft(extended, axis=1, overwrite_x=True)
-        spectrum *= _response(self, size)
         kept = size // step
-        filtered = scipy.fft.irfft(spectrum[:, : kept // 2 + 1], n=kept, axis=1, overwrite_x=True)
+        spectrum = spectrum[:, : kept // 2 + 1]  # what the decimated inverse transforms
+        spectrum *= _response(self, size, step)
+        filtered = scipy.fft.irfft(spectrum, n=kept, axis=1, overwrite_x=True)
         line = line[:, ::step]
-        line += filtered[:, pad // step : pad // step + len(line[0])] / step  # the line back
+        line += filtered[:, pad // step : pad // step + len(line[0])]  # the line back
         # time along axis 0 again: the transpose, a view (Fortran order: each column contiguous)
         return line.T.reshape((len(line[0]), *shape[1:]))
 
@@ -154,10 +155,13 @@ def _even_power(ratio: np.ndarray, order: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=64)
-def _response(lowpass: Lowpass, size: int) -> np.ndarray:
-    """``lowpass``'s response at the frequencies of a real FFT of ``size`` samples (kept: every
-    block of a calibration filters the same lengths)."""
-    gain = lowpass.gain(np.fft.rfftfreq(size, d=1.0 / lowpass.rate_hz))
+def _response(lowpass: Lowpass, size: int, step: int = 1) -> np.ndarray:
+    """``lowpass``'s response at the frequencies of a real FFT of ``size`` samples up to the
+    Nyquist frequency of every ``step``-th sample, divided by ``step`` (the inverse transform of
+    ``size / step`` samples scales by that much less; exact for a power of two). Kept: every
+    block of a calibration filters the same lengths."""
+    kept = size // step
+    gain = lowpass.gain(np.fft.rfftfreq(size, d=1.0 / lowpass.rate_hz)[: kept // 2 + 1]) / step
     gain.flags.writeable = False
     return gain
 
