@@ -562,9 +562,7 @@ def estimate(streamed: StreamedLog, apart: bool = False) -> CalibrationResult:
     try:
         with np.errstate(all="ignore"):
             estimates = (
-                _estimates_apart(streamed.calibrator)
-                if apart
-                else streamed.calibrator.estimates()
+                _estimates_apart(streamed.calibrator) if apart else streamed.calibrator.estimates()
             )
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         # only data no IMU produces get here (the reader drops what it can recognise)

@@ -381,6 +381,35 @@ def read_imu(
 
 #: Batches a reading process sends at a time (fewer, larger messages through the pipe).
 FORKED_GROUP = 16
+#: Longest log-time span (ns) of one topic's batches a reading process sends as one: under the
+#: 30 s after which the calibrator takes a topic that lags the others for one that stopped.
+MERGED_SPAN_NS = 20_000_000_000
+
+
+def _merged(group: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
+    """``group``'s batches of each topic joined while they span at most :data:`MERGED_SPAN_NS`
+    of log time, in the order of their first batches: per topic the same samples in the same
+    order, in fewer batches (the calibrator's cost per batch is what it saves)."""
+    runs: list[list[tuple[Any, ...]]] = []
+    open_runs: dict[str, list[tuple[Any, ...]]] = {}
+    for item in group:
+        run, log_times = open_runs.get(item[0]), item[2]
+        if (
+            run
+            and len(log_times)
+            and len(run[0][2])
+            and log_times[-1] - run[0][2][0] <= MERGED_SPAN_NS
+        ):
+            run.append(item)
+        else:
+            open_runs[item[0]] = [item]
+            runs.append(open_runs[item[0]])
+    return [
+        run[0]
+        if len(run) == 1
+        else (run[0][0], *map(np.concatenate, list(zip(*run, strict=True))[1:]))
+        for run in runs
+    ]
 
 
 class ForkedBatches:
@@ -412,9 +441,9 @@ class ForkedBatches:
             for item in reader:
                 group.append((*item, reader.take_clipped(item[0])))
                 if len(group) >= FORKED_GROUP:
-                    send.send(("batches", group, reader.expected))
+                    send.send(("batches", _merged(group), reader.expected))
                     group = []
-            send.send(("batches", group, reader.expected))
+            send.send(("batches", _merged(group), reader.expected))
             send.send(("end", reader.stats, reader.losses, reader.format_name))
         except BaseException as exc:  # the parent raises it: this is its reading
             try:

@@ -809,9 +809,10 @@ def test_windows_that_held_a_clipped_run_the_reader_dropped_are_not_used(tmp_pat
 @pytest.mark.parametrize("fmt", ["mcap", "rosbag1"])
 def test_a_log_read_in_a_child_process_gives_what_reading_in_process_gives(logs, fmt):
     """``calibrate`` reads one log in a child process (:class:`ForkedBatches`): on a log with
-    a corrupt chunk, the batches, the counts, the losses and the clipped stamps are the
-    in-process reader's, to the bit."""
-    from imucal_cli.reading import ForkedBatches, ImuBatches
+    a corrupt chunk, per topic the samples in order, the counts, the losses and the clipped
+    stamps are the in-process reader's, to the bit; the child joins a topic's consecutive
+    batches, each join within :data:`MERGED_SPAN_NS` of log time."""
+    from imucal_cli.reading import MERGED_SPAN_NS, ForkedBatches, ImuBatches
 
     log, topics, _ = logs[fmt]
     bad = _copy(log, "corrupt-forked")
@@ -820,14 +821,22 @@ def test_a_log_read_in_a_child_process_gives_what_reading_in_process_gives(logs,
     data[middle : middle + 64] = bytes(64)
     bad.write_bytes(bytes(data))
     here, there = ImuBatches(bad, topics), ForkedBatches(ImuBatches(bad, topics))
-    got = []
+    got, counts = [], []
     for reader in (here, there):
-        batches = [
-            (topic, *(a.tobytes() for a in arrays), reader.take_clipped(topic).tobytes())
-            for topic, *arrays in reader
-        ]
-        got.append((batches, {t: s.to_dict() for t, s in reader.stats.items()}, reader.losses))
+        per_topic: dict[str, list[list[bytes]]] = {}
+        batches = 0
+        for topic, *arrays in reader:
+            batches += 1
+            parts = per_topic.setdefault(topic, [[] for _ in range(len(arrays) + 1)])
+            for part, a in zip(parts, [*arrays, reader.take_clipped(topic)], strict=True):
+                part.append(a.tobytes())
+            log_times = arrays[1]
+            assert not len(log_times) or log_times[-1] - log_times[0] <= MERGED_SPAN_NS
+        joined = {t: [b"".join(part) for part in parts] for t, parts in per_topic.items()}
+        got.append((joined, {t: s.to_dict() for t, s in reader.stats.items()}, reader.losses))
+        counts.append(batches)
     assert got[1] == got[0]
+    assert counts[1] < counts[0]  # joined
     assert len(got[0][2]) >= 1 and there.format_name == here.format_name
     assert there.expected == here.expected
 
