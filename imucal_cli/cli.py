@@ -424,14 +424,30 @@ def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
     nothing solved yet); say on stderr what reading found. Returns the config and the
     :class:`~imucal_cli.api.StreamedLog`."""
-    from imucal_cli.api import stream_log
-    from imucal_cli.config import load_config
+    import sys
 
-    config = load_config(config_path, log, urdf)  # what it leaves out, from /tf_static, URDF
-    with _progress(f"reading {log}") as progress:
-        # one log: its windows reduced beside the reading, on the second core (a batch runs
-        # a process per core instead)
-        streamed = stream_log(log, config, progress=progress, threaded=True)
+    from imucal_cli.reading import ForkedBatches, ImuBatches
+
+    def open_reader() -> ImuBatches:  # in the reading child: the config's topics
+        from imucal_cli.config import imu_names_in
+
+        return ImuBatches(log, imu_names_in(config_path))
+
+    # one log: it is read in a child process from now, on the second core, while this one
+    # loads the config (an invalid one's error is this process's) and imports the
+    # calibration; its windows are reduced beside the reading (a batch runs a process per
+    # core instead)
+    reading = ForkedBatches.opening(log, open_reader) if sys.platform == "linux" else None
+    try:
+        from imucal_cli.api import stream_log
+        from imucal_cli.config import load_config
+
+        config = load_config(config_path, log, urdf)  # what it leaves out, from /tf_static, URDF
+        with _progress(f"reading {log}") as progress:
+            streamed = stream_log(log, config, progress=progress, threaded=True, reading=reading)
+    finally:
+        if reading is not None:
+            reading.close()
     _note_losses(log, streamed.losses)
     for topic, stats in streamed.stats.items():
         _note_read(log, topic, stats.to_dict() | {"duplicates": streamed.duplicates[topic]})

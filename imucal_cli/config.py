@@ -109,6 +109,11 @@ class Config:
     #: (:func:`imucal_cli.frames.complete_from_log`); empty where no log was asked.
     priors: Mapping[str, Mapping[str, str]] = field(default_factory=dict)
 
+    def imu_names(self) -> dict[str, str]:
+        """Every configured IMU topic and the name the calibrator knows it by ("base",
+        the sensors')."""
+        return {self.base.topic: "base"} | {s.imu_topic: s.name for s in self.sensors}
+
     def sensor(self, name: str) -> SensorConfig:
         for sensor in self.sensors:
             if sensor.name == name:
@@ -333,6 +338,19 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         )
     top.reject_unknown()
     return Config(base=base, sensors=tuple(sensors), **sections, source=source)
+
+
+def imu_names_in(path: str | Path) -> dict[str, str]:
+    """The IMU topics a config file names, as :meth:`Config.imu_names` gives them, from its
+    two keys alone: what a process that reads the log needs, before the config is loaded
+    (no transform is made, so scipy is not imported). Where the file is not a valid config,
+    this may fail, or give topics that :func:`load_config` then rejects with its message."""
+    from imucal_cli.documents import load_document
+
+    data = load_document(path)
+    return {data["base"]["topic"]: "base"} | {
+        sensor["imu_topic"]: name for name, sensor in data["sensors"].items()
+    }
 
 
 def load_config(

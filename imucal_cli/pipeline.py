@@ -194,7 +194,7 @@ CLOCK_COMPARE_SAMPLES = 200
 
 def imu_names(config: Config) -> dict[str, str]:
     """Every configured IMU topic and the name the calibrator knows it by ("base", sensors')."""
-    return {config.base.topic: "base"} | {s.imu_topic: s.name for s in config.sensors}
+    return config.imu_names()
 
 
 def lost_summary(losses: Sequence[Loss]) -> str:
@@ -346,13 +346,15 @@ def stream_log(
     config: Config,
     progress: Callable[[int, int], None] | None = None,
     threaded: bool = False,
+    reading: ForkedBatches | None = None,
 ) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
     log's length: windows reduced, nothing solved yet. With ``threaded`` (one log on the
-    machine) the log is read in a child process and the windows reduced in a worker thread."""
+    machine) the log is read in a child process and the windows reduced in a worker thread;
+    ``reading``: that child, started already (:meth:`ForkedBatches.opening`)."""
     batches = ImuBatches(Path(log), imu_names(config))
     # threaded: the reading in a second process, the reduction in a second thread
-    reader = read_beside(batches) if threaded else batches
+    reader = reading or (read_beside(batches) if threaded else batches)
     calibrator = make_calibrator(config, threaded=threaded)
     t0_ns = read_log(
         reader, config, calibrator.add, progress=progress, clipped=calibrator.add_clipped

@@ -381,6 +381,9 @@ def read_imu(
 
 #: Batches a reading process sends at a time (fewer, larger messages through the pipe).
 FORKED_GROUP = 16
+#: Groups a reading process holds for the calibrating one at most (about 1 MB each an hour's
+#: five IMUs): it reads on while the other starts up, and its memory stays bounded.
+FORKED_AHEAD = 64
 #: Longest log-time span (ns) of one topic's batches a reading process sends as one: under the
 #: 30 s after which the calibrator takes a topic that lags the others for one that stopped.
 MERGED_SPAN_NS = 20_000_000_000
@@ -416,53 +419,107 @@ class ForkedBatches:
     """An :class:`ImuBatches` read in a child process: opening, decompressing, decoding and
     screening the log run on a second core, beside the calibration that takes the batches
     (in Python one process runs one thread at a time, so a reading thread would take turns
-    with it instead). The batches come in the reader's order through a pipe; what the reader
-    counted (:attr:`stats`, :attr:`losses`) arrives when it ends, and an error it raised is
-    raised here. Forks, so Linux only: elsewhere :func:`read_beside` reads in-process."""
+    with it instead). The batches come in the reader's order through a pipe (a topic's
+    consecutive ones joined, :func:`_merged`); what the reader counted (:attr:`stats`,
+    :attr:`losses`) arrives when it ends, and an error it raised is raised here. The child
+    reads up to :data:`FORKED_AHEAD` groups ahead of the process taking them. Forks, so Linux
+    only: elsewhere :func:`read_beside` reads in-process.
+
+    :meth:`opening` starts the child at once, with a reader it makes itself, so that it reads
+    while this process loads the config and imports the calibration: the second core, idle at
+    start-up otherwise, reads the log's first part."""
 
     def __init__(self, reader: ImuBatches) -> None:
-        self.reader = reader
+        self._open: Callable[[], ImuBatches] = lambda: reader
         self.path = reader.path
         self.stats = reader.stats
         self.losses: list[Loss] = []
         self.format_name = ""
         self.expected: dict[str, int] = {}
+        self._clipped: dict[str, list[np.ndarray]] = {}
+        self._child: Any = None
+        self._receive: Any = None
+
+    @classmethod
+    def opening(cls, path: Path, open_reader: Callable[[], ImuBatches]) -> ForkedBatches:
+        """The child started now: ``open_reader()`` (run there) makes its reader of ``path``.
+        An error it raises is raised here when the batches are taken; :meth:`close` ends the
+        child of a run that never takes them."""
+        forked = cls(ImuBatches(path, []))
+        forked._open = open_reader
+        forked.start()
+        return forked
 
     def take_clipped(self, topic: str) -> np.ndarray:
-        """As :meth:`ImuBatches.take_clipped`: the child's stamps are kept in the parent's
-        copy of the reader."""
-        return self.reader.take_clipped(topic)
+        """As :meth:`ImuBatches.take_clipped`, of the stamps the child sent."""
+        found, self._clipped[topic] = self._clipped.get(topic, []), []
+        return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
 
     def _produce(self, send: Any) -> None:
-        """The child: every batch, in groups, then what the reader counted (or its error)."""
-        reader = self.reader
+        """The child: every batch, in groups, then what the reader counted (or its error),
+        handed to a thread that sends them, so that reading goes on while the pipe is full."""
+        import os
+        import pickle
+        import queue
+        import threading
+
+        outbox: queue.Queue[tuple[Any, ...] | None] = queue.Queue(FORKED_AHEAD)
+
+        def sender() -> None:
+            try:
+                while (message := outbox.get()) is not None:
+                    send.send(message)
+            except BaseException:  # the calibrating process is gone: nobody to read for
+                os._exit(0)
+
+        thread = threading.Thread(target=sender, name="imucal-send", daemon=True)
+        thread.start()
         try:
+            reader = self._open()
             group: list[tuple[Any, ...]] = []
             for item in reader:
                 group.append((*item, reader.take_clipped(item[0])))
                 if len(group) >= FORKED_GROUP:
-                    send.send(("batches", _merged(group), reader.expected))
+                    outbox.put(("batches", _merged(group), reader.expected))
                     group = []
-            send.send(("batches", _merged(group), reader.expected))
-            send.send(("end", reader.stats, reader.losses, reader.format_name))
+            outbox.put(("batches", _merged(group), reader.expected))
+            outbox.put(("end", reader.stats, reader.losses, reader.format_name))
         except BaseException as exc:  # the parent raises it: this is its reading
             try:
-                send.send(("error", exc))
+                pickle.dumps(exc)
             except Exception:  # an error that does not pickle: its message
-                send.send(("error", LogError(str(self.path), str(exc))))
+                exc = LogError(str(self.path), str(exc))
+            outbox.put(("error", exc))
+        outbox.put(None)
+        thread.join()
 
-    def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    def start(self) -> None:
+        """Fork the reading child (once)."""
+        if self._child is not None:
+            return
         import multiprocessing
 
         context = multiprocessing.get_context("fork")
-        receive, send = context.Pipe(duplex=False)
-        child = context.Process(target=self._produce, args=(send,), daemon=True)
-        child.start()
+        self._receive, send = context.Pipe(duplex=False)
+        self._child = context.Process(target=self._produce, args=(send,), daemon=True)
+        self._child.start()
         send.close()
+
+    def close(self) -> None:
+        """End the child, if it still reads, and its pipe."""
+        if self._child is None:
+            return
+        self._receive.close()
+        if self._child.is_alive():
+            self._child.terminate()
+        self._child.join()
+
+    def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        self.start()
         try:
             while True:
                 try:
-                    message = receive.recv()
+                    message = self._receive.recv()
                 except EOFError:  # killed (out of memory?) before it said why
                     raise LogError(str(self.path), "the reading process ended early") from None
                 if message[0] == "error":
@@ -473,13 +530,10 @@ class ForkedBatches:
                 _, group, self.expected = message
                 for *item, clipped in group:
                     if len(clipped):
-                        self.reader.clipped[item[0]].append(clipped)
+                        self._clipped.setdefault(item[0], []).append(clipped)
                     yield tuple(item)  # type: ignore[misc]
         finally:
-            receive.close()
-            if child.is_alive():
-                child.terminate()
-            child.join()
+            self.close()
 
 
 def read_beside(reader: ImuBatches) -> ImuBatches | ForkedBatches:

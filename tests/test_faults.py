@@ -861,6 +861,38 @@ def test_an_error_in_the_reading_process_is_raised_in_the_calibrating_one(tmp_pa
     assert not multiprocessing.active_children()
 
 
+def test_a_reading_child_started_before_the_config_reads_what_one_started_after_reads(
+    tmp_path, short_drive
+):
+    """A lone calibrate starts its reading child first (:meth:`ForkedBatches.opening`), the
+    child making its reader itself: the same batches as a child started with a reader made
+    here; an error the child's reader raises (a config it cannot read) is raised when the
+    batches are taken; a child whose batches are never taken is ended by ``close``."""
+    import multiprocessing
+
+    from imucal_cli.errors import LogError
+    from imucal_cli.reading import ForkedBatches, ImuBatches
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    topics = list(short_drive.topics())
+
+    def batches(reader):
+        return [(topic, *(a.tobytes() for a in arrays)) for topic, *arrays in reader]
+
+    early = ForkedBatches.opening(log, lambda: ImuBatches(log, topics))
+    assert batches(early) == batches(ForkedBatches(ImuBatches(log, topics)))
+    assert early.stats.keys() == set(topics) and early.format_name
+
+    def unreadable():
+        raise LogError(str(tmp_path / "c.yaml"), "not valid YAML")
+
+    with pytest.raises(LogError, match=r"c\.yaml: not valid YAML"):
+        list(ForkedBatches.opening(log, unreadable))
+    never = ForkedBatches.opening(log, lambda: ImuBatches(log, topics))
+    never.close()
+    assert not multiprocessing.active_children()
+
+
 def test_the_read_loop_keeps_no_clipped_stamps_nobody_asked_for(tmp_path, short_drive):
     """``biases`` reads with no use for the stamps of dropped clipped samples: the read loop
     takes them all the same, so a log that clips throughout does not pile them up."""
