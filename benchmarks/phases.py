@@ -69,8 +69,14 @@ print(json.dumps({"end": time.perf_counter() - start, "cpu": own.ru_utime + own.
 
 
 def run(code: str, *args: str) -> dict[str, float]:
+    # from the cache folder: from a checkout, `python -c` would import the checkout's code
+    # whatever PYTHONPATH names (to time another tree: PYTHONPATH=TREE python phases.py)
     out = subprocess.run(
-        [sys.executable, "-c", code, *args], capture_output=True, text=True, check=True
+        [sys.executable, "-c", code, *args],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=HERE / ".cache",
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 

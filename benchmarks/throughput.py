@@ -191,7 +191,7 @@ def main() -> None:
         + " | ".join(f"{c} s" for c in COMMANDS)
         + " | calibrate / floor | peak RSS MB (calibrate) | max dR deg | max abs dt m |"
     )
-    print("|---" * (9 + len(COMMANDS) + 1) + "|")
+    print("|---" * (10 + len(COMMANDS) + 1) + "|")  # one per column of the header
     for (length, fmt), (size, best, (dr, dt)) in rows.items():
         t_floor, t_read, count = best["floor"][0], best["read"][0], best["read"][1]
         print(
