@@ -36,13 +36,13 @@ import os, sys, time
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as imucal's entry point sets it
 start = time.perf_counter()
 import imucal_cli.cli
-from imucal_cli.pipeline import estimate, imu_names, stream_log
+from imucal_cli.pipeline import estimate, stream_log
 from imucal_cli.config import load_config
 from imucal_cli.reading import ImuBatches
 imported = time.perf_counter()
 config = load_config(sys.argv[2])
 if sys.argv[3] == "read":
-    for _ in ImuBatches(sys.argv[1], imu_names(config)):
+    for _ in ImuBatches(sys.argv[1], config.imu_names()):
         pass
     print(imported - start, time.perf_counter() - imported, 0.0)
     raise SystemExit

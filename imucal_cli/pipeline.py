@@ -192,11 +192,6 @@ CLOCK_COMPARE_SLACK_S = 0.05
 CLOCK_COMPARE_SAMPLES = 200
 
 
-def imu_names(config: Config) -> dict[str, str]:
-    """Every configured IMU topic and the name the calibrator knows it by ("base", sensors')."""
-    return config.imu_names()
-
-
 def lost_summary(losses: Sequence[Loss]) -> str:
     """For an error message: what of the log could not be read, if anything."""
     real = [x for x in losses if x.lost]
@@ -277,7 +272,7 @@ def read_log(
     ``progress(messages read, messages in the log)`` and ``after()`` after each batch, and
     before it the stamps of the clipped samples reading dropped to ``clipped(name, stamps)``.
     Returns the first stamp (ns), None where no message was read."""
-    names = imu_names(config)
+    names = config.imu_names()
     check = _ClockCheck(reader.path, config.base.topic, config.calibration.max_time_offset_s)
     topics, t0_ns, count = list(names), None, 0
     for topic, stamps, log_times, gyro, accel in reader:
@@ -328,7 +323,7 @@ def _streamed(
     config: Config,
 ) -> StreamedLog:
     """What the reader and the calibrator found, as one :class:`StreamedLog`."""
-    duplicates = {topic: calibrator.duplicates(name) for topic, name in imu_names(config).items()}
+    duplicates = {topic: calibrator.duplicates(name) for topic, name in config.imu_names().items()}
     return StreamedLog(
         reader.path,
         config,
@@ -352,7 +347,7 @@ def stream_log(
     log's length: windows reduced, nothing solved yet. With ``threaded`` (one log on the
     machine) the log is read in a child process and the windows reduced in a worker thread;
     ``reading``: that child, started already (:meth:`ForkedBatches.opening`)."""
-    batches = ImuBatches(Path(log), imu_names(config))
+    batches = ImuBatches(Path(log), config.imu_names())
     # threaded: the reading in a second process, the reduction in a second thread
     reader = reading or (read_beside(batches) if threaded else batches)
     calibrator = make_calibrator(config, threaded=threaded)
@@ -375,7 +370,7 @@ def stream_biases(
         read_warnings,
     )
 
-    names = imu_names(config)
+    names = config.imu_names()
     trackers = bias_trackers(config)
     reader = ImuBatches(Path(log), names)
     read_log(
@@ -449,7 +444,7 @@ def follow_log(
     (:func:`waiting`)."""
     calibrator = make_calibrator(config, block_windows=1, reorder_s=FOLLOW_REORDER_S)
     done = [False]
-    reader = ImuBatches(Path(log), imu_names(config), follow=lambda: done[0] or stop())
+    reader = ImuBatches(Path(log), config.imu_names(), follow=lambda: done[0] or stop())
     state: dict[str, Any] = {"windows": 0, "result": None, "told": -np.inf}
     samples = dict.fromkeys(["base", *(s.name for s in config.sensors)], 0)
 
