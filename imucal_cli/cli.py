@@ -424,9 +424,7 @@ def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
     nothing solved yet); say on stderr what reading found. Returns the config and the
     :class:`~imucal_cli.api.StreamedLog`."""
-    import sys
-
-    from imucal_cli.reading import ForkedBatches, ImuBatches
+    from imucal_cli.reading import FORKS, ForkedBatches, ImuBatches
 
     def open_reader() -> ImuBatches:  # in the reading child: the config's topics
         from imucal_cli.config import imu_names_in
@@ -437,7 +435,7 @@ def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple
     # loads the config (an invalid one's error is this process's) and imports the
     # calibration; its windows are reduced beside the reading (a batch runs a process per
     # core instead)
-    reading = ForkedBatches.opening(log, open_reader) if sys.platform == "linux" else None
+    reading = ForkedBatches.opening(log, open_reader) if FORKS else None
     try:
         from imucal_cli.api import stream_log
         from imucal_cli.config import load_config

@@ -22,7 +22,15 @@ from imucal_cli.core.grades import GRADES
 from imucal_cli.core.streaming import BOOT_S, SensorSetup, StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.base import Loss
-from imucal_cli.reading import ForkedBatches, ImuBatches, ReadStats, read_beside
+from imucal_cli.reading import (
+    FORKS,
+    ForkedBatches,
+    ImuBatches,
+    ReadStats,
+    end_child,
+    fork_child,
+    read_beside,
+)
 from imucal_cli.result import CalibrationResult
 from imucal_cli.types import ImuStream
 
@@ -347,9 +355,13 @@ def stream_log(
     log's length: windows reduced, nothing solved yet. With ``threaded`` (one log on the
     machine) the log is read in a child process and the windows reduced in a worker thread;
     ``reading``: that child, started already (:meth:`ForkedBatches.opening`)."""
-    batches = ImuBatches(Path(log), config.imu_names())
     # threaded: the reading in a second process, the reduction in a second thread
-    reader = reading or (read_beside(batches) if threaded else batches)
+    reader: ImuBatches | ForkedBatches
+    if reading is not None:
+        reader = reading
+    else:
+        batches = ImuBatches(Path(log), config.imu_names())
+        reader = read_beside(batches) if threaded else batches
     calibrator = make_calibrator(config, threaded=threaded)
     t0_ns = read_log(
         reader, config, calibrator.add, progress=progress, clipped=calibrator.add_clipped
@@ -580,27 +592,19 @@ def _estimates_apart(calibrator: StreamingCalibrator) -> dict[str, SensorEstimat
     process (the sensors' solves are independent): the same figures, on two cores. Where the
     child fails, its sensors are solved here again, so that an error is the one the solve
     raises in this process. Forks, so Linux only: elsewhere all are solved here."""
-    import sys
-
     names = list(calibrator.sensors)
-    if len(names) < 2 or sys.platform != "linux":
+    if len(names) < 2 or not FORKS:
         return calibrator.estimates()
     calibrator.settle()
-    import multiprocessing
-
     theirs = names[1::2]
-    context = multiprocessing.get_context("fork")
-    receive, send = context.Pipe(duplex=False)
 
-    def answer() -> None:
+    def answer(send: Any) -> None:
         try:
             send.send({name: calibrator.estimate(name) for name in theirs})
         except BaseException:  # solved again in the parent, which raises it itself
             send.send(None)
 
-    child = context.Process(target=answer, daemon=True)
-    child.start()
-    send.close()
+    child, receive = fork_child(answer)
     try:
         ours = {name: calibrator.estimate(name) for name in names[0::2]}
         try:
@@ -608,10 +612,7 @@ def _estimates_apart(calibrator: StreamingCalibrator) -> dict[str, SensorEstimat
         except EOFError:  # the child was killed
             solved = None
     finally:
-        receive.close()
-        if child.is_alive():
-            child.terminate()
-        child.join()
+        end_child(child, receive)
     if solved is None:
         solved = {name: calibrator.estimate(name) for name in theirs}
     return {name: (ours | solved)[name] for name in names}

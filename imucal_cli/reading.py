@@ -10,6 +10,7 @@ Nothing here knows a file format.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -379,6 +380,31 @@ def read_imu(
     return out
 
 
+#: Whether this system forks (Linux): a lone calibrate's children need it; elsewhere their work
+#: is done in-process.
+FORKS = sys.platform == "linux"
+
+
+def fork_child(target: Callable[[Any], None]) -> tuple[Any, Any]:
+    """A forked child process running ``target(send)``, and the receiving end of its pipe."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("fork")
+    receive, send = context.Pipe(duplex=False)
+    child = context.Process(target=target, args=(send,), daemon=True)
+    child.start()
+    send.close()
+    return child, receive
+
+
+def end_child(child: Any, receive: Any) -> None:
+    """Close a :func:`fork_child` pipe; end the child if it still runs, and reap it."""
+    receive.close()
+    if child.is_alive():
+        child.terminate()
+    child.join()
+
+
 #: Batches a reading process sends at a time (fewer, larger messages through the pipe).
 FORKED_GROUP = 16
 #: Groups a reading process holds for the calibrating one at most (about 1 MB each an hour's
@@ -495,24 +521,13 @@ class ForkedBatches:
 
     def start(self) -> None:
         """Fork the reading child (once)."""
-        if self._child is not None:
-            return
-        import multiprocessing
-
-        context = multiprocessing.get_context("fork")
-        self._receive, send = context.Pipe(duplex=False)
-        self._child = context.Process(target=self._produce, args=(send,), daemon=True)
-        self._child.start()
-        send.close()
+        if self._child is None:
+            self._child, self._receive = fork_child(self._produce)
 
     def close(self) -> None:
         """End the child, if it still reads, and its pipe."""
-        if self._child is None:
-            return
-        self._receive.close()
-        if self._child.is_alive():
-            self._child.terminate()
-        self._child.join()
+        if self._child is not None:
+            end_child(self._child, self._receive)
 
     def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         self.start()
@@ -538,6 +553,4 @@ class ForkedBatches:
 
 def read_beside(reader: ImuBatches) -> ImuBatches | ForkedBatches:
     """``reader`` read in a child process where the system forks (:class:`ForkedBatches`)."""
-    import sys
-
-    return ForkedBatches(reader) if sys.platform == "linux" else reader
+    return ForkedBatches(reader) if FORKS else reader

@@ -1034,12 +1034,11 @@ class StreamingCalibrator:
 
     def estimates(self) -> dict[str, SensorEstimate]:
         """The estimate from the windows reduced so far (every sensor)."""
-        self.settle()
         return {name: self.estimate(name) for name in self.sensors}
 
     def settle(self) -> None:
         """Take in every block the worker thread is reducing (before a fork: the child has no
-        worker thread)."""
+        worker thread, and :meth:`estimate` waits for them)."""
         self._collect(wait=True)
 
     def estimate(self, name: str) -> SensorEstimate:
