@@ -405,20 +405,26 @@ def end_child(child: Any, receive: Any) -> None:
     child.join()
 
 
-#: Batches a reading process sends at a time (fewer, larger messages through the pipe).
-FORKED_GROUP = 16
-#: Groups a reading process holds for the calibrating one at most (about 1 MB each an hour's
-#: five IMUs): it reads on while the other starts up, and its memory stays bounded.
-FORKED_AHEAD = 64
+#: The memory a reading process hands its batches over in, shared with the calibrating one:
+#: :data:`FORKED_SLOTS` slots of :data:`SLOT_BYTES`, each a group of batches written by the one
+#: and copied out by the other, so that only a few hundred bytes per group cross the pipe
+#: (pickling the arrays through it cost both processes 0.9 CPU-s an hour of five IMUs). The
+#: reader holds at most this much for the other: it reads on while the other starts up, and
+#: its memory stays bounded.
+FORKED_SLOTS = 16
+SLOT_BYTES = 4 << 20
 #: Longest log-time span (ns) of one topic's batches a reading process sends as one: under the
 #: 30 s after which the calibrator takes a topic that lags the others for one that stopped.
 MERGED_SPAN_NS = 20_000_000_000
+#: A batch's arrays in the order a slot holds them, and the 8-byte words per sample of each
+#: (the clipped stamps have a count of their own).
+_FIELDS = ((np.int64, 1), (np.int64, 1), (np.float64, 3), (np.float64, 3), (np.int64, 0))
 
 
-def _merged(group: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
-    """``group``'s batches of each topic joined while they span at most :data:`MERGED_SPAN_NS`
-    of log time, in the order of their first batches: per topic the same samples in the same
-    order, in fewer batches (the calibrator's cost per batch is what it saves)."""
+def _runs(group: list[tuple[Any, ...]]) -> list[list[tuple[Any, ...]]]:
+    """``group``'s batches of each topic in runs that span at most :data:`MERGED_SPAN_NS` of
+    log time, in the order of their first batches: joined, per topic the same samples in the
+    same order, in fewer batches (the calibrator's cost per batch is what it saves)."""
     runs: list[list[tuple[Any, ...]]] = []
     open_runs: dict[str, list[tuple[Any, ...]]] = {}
     for item in group:
@@ -433,23 +439,62 @@ def _merged(group: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
         else:
             open_runs[item[0]] = [item]
             runs.append(open_runs[item[0]])
-    return [
-        run[0]
-        if len(run) == 1
-        else (run[0][0], *map(np.concatenate, list(zip(*run, strict=True))[1:]))
-        for run in runs
-    ]
+    return runs
+
+
+def _words(item: tuple[Any, ...]) -> int:
+    """8-byte words a batch ``(topic, stamps, log_times, gyro, accel, clipped)`` takes."""
+    return 8 * len(item[1]) + len(item[5])
+
+
+def _write(
+    words: np.ndarray, at: int, runs: list[list[tuple[Any, ...]]]
+) -> list[tuple[str, int, int]]:
+    """Each run joined into ``words`` (the shared memory as 8-byte words) from word ``at``, field
+    after field (:data:`_FIELDS`); returns per run its topic, samples and clipped stamps."""
+    layout = []
+    for run in runs:
+        for k, (dtype, width) in enumerate(_FIELDS):
+            view = words.view(dtype)
+            for item in run:
+                size = len(item[k + 1]) * width if width else len(item[k + 1])
+                view[at : at + size] = np.asarray(item[k + 1], dtype=dtype).reshape(-1)
+                at += size
+        layout.append((run[0][0], sum(len(i[1]) for i in run), sum(len(i[5]) for i in run)))
+    return layout
+
+
+def _read(words: np.ndarray, at: int, layout: list[tuple[str, int, int]]) -> list[tuple[Any, ...]]:
+    """The batches :func:`_write` wrote from word ``at``, copied out (the slot is then free)."""
+    out = []
+    for topic, n, clipped in layout:
+        arrays = []
+        for dtype, width in _FIELDS:
+            size = n * width if width else clipped
+            array = words[at : at + size].view(dtype).copy()
+            arrays.append(array.reshape(n, 3) if width == 3 else array)
+            at += size
+        out.append((topic, *arrays))
+    return out
+
+
+def _joined(run: list[tuple[Any, ...]]) -> tuple[Any, ...]:
+    """A run as one batch (arrays concatenated)."""
+    if len(run) == 1:
+        return run[0]
+    return (run[0][0], *map(np.concatenate, list(zip(*run, strict=True))[1:]))
 
 
 class ForkedBatches:
     """An :class:`ImuBatches` read in a child process: opening, decompressing, decoding and
     screening the log run on a second core, beside the calibration that takes the batches
     (in Python one process runs one thread at a time, so a reading thread would take turns
-    with it instead). The batches come in the reader's order through a pipe (a topic's
-    consecutive ones joined, :func:`_merged`); what the reader counted (:attr:`stats`,
-    :attr:`losses`) arrives when it ends, and an error it raised is raised here. The child
-    reads up to :data:`FORKED_AHEAD` groups ahead of the process taking them. Forks, so Linux
-    only: elsewhere :func:`read_beside` reads in-process.
+    with it instead). The batches come in the reader's order through shared memory (a
+    topic's consecutive ones joined, :func:`_runs`), a slot per group, the pipe saying which;
+    what the reader counted (:attr:`stats`, :attr:`losses`) arrives when it ends, and an error
+    it raised is raised here. The child holds up to :data:`FORKED_SLOTS` groups that this
+    process has not taken. Forks, so Linux only: elsewhere :func:`read_beside` reads
+    in-process.
 
     :meth:`opening` starts the child at once, with a reader it makes itself, so that it reads
     while this process loads the config and imports the calibration: the second core, idle at
@@ -465,6 +510,8 @@ class ForkedBatches:
         self._clipped: dict[str, list[np.ndarray]] = {}
         self._child: Any = None
         self._receive: Any = None
+        self._shared: Any = None  # the slots' memory
+        self._free: Any = None  # a semaphore: the slots free
 
     @classmethod
     def opening(cls, path: Path, open_reader: Callable[[], ImuBatches]) -> ForkedBatches:
@@ -482,52 +529,69 @@ class ForkedBatches:
         return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
 
     def _produce(self, send: Any) -> None:
-        """The child: every batch, in groups, then what the reader counted (or its error),
-        handed to a thread that sends them, so that reading goes on while the pipe is full."""
+        """The child: every batch, in groups of a slot's size, then what the reader counted (or
+        its error). A group larger than a slot goes through the pipe itself."""
         import os
         import pickle
-        import queue
-        import threading
 
-        outbox: queue.Queue[tuple[Any, ...] | None] = queue.Queue(FORKED_AHEAD)
+        parent = os.getppid()
+        words = np.frombuffer(self._shared, dtype=np.int64)
+        slot = 0
 
-        def sender() -> None:
+        def put(message: tuple[Any, ...]) -> None:
             try:
-                while (message := outbox.get()) is not None:
-                    send.send(message)
+                send.send(message)
             except BaseException:  # the calibrating process is gone: nobody to read for
                 os._exit(0)
 
-        thread = threading.Thread(target=sender, name="imucal-send", daemon=True)
-        thread.start()
+        def hand(group: list[tuple[Any, ...]], expected: dict[str, int]) -> None:
+            nonlocal slot
+            runs = _runs(group)
+            if sum(map(_words, group)) * 8 > SLOT_BYTES:
+                put(("batches", [_joined(run) for run in runs], expected))
+                return
+            while not self._free.acquire(timeout=1.0):
+                if os.getppid() != parent:  # the calibrating process is gone
+                    os._exit(0)
+            at = slot * (SLOT_BYTES // 8)
+            put(("slot", at, _write(words, at, runs), expected))
+            slot = (slot + 1) % FORKED_SLOTS
+
         try:
             reader = self._open()
             group: list[tuple[Any, ...]] = []
-            for item in reader:
-                group.append((*item, reader.take_clipped(item[0])))
-                if len(group) >= FORKED_GROUP:
-                    outbox.put(("batches", _merged(group), reader.expected))
-                    group = []
-            outbox.put(("batches", _merged(group), reader.expected))
-            outbox.put(("end", reader.stats, reader.losses, reader.format_name))
+            size = 0
+            for batch in reader:
+                item = (*batch, reader.take_clipped(batch[0]))
+                if group and (size + _words(item)) * 8 > SLOT_BYTES:
+                    hand(group, reader.expected)
+                    group, size = [], 0
+                group.append(item)
+                size += _words(item)
+            hand(group, reader.expected)
+            put(("end", reader.stats, reader.losses, reader.format_name))
         except BaseException as exc:  # the parent raises it: this is its reading
             try:
                 pickle.dumps(exc)
             except Exception:  # an error that does not pickle: its message
                 exc = LogError(str(self.path), str(exc))
-            outbox.put(("error", exc))
-        outbox.put(None)
-        thread.join()
+            put(("error", exc))
 
     def start(self) -> None:
-        """Fork the reading child (once)."""
+        """Fork the reading child (once), with the slots' memory shared."""
         if self._child is None:
+            import mmap
+            import multiprocessing
+
+            self._shared = mmap.mmap(-1, FORKED_SLOTS * SLOT_BYTES)  # shared by the fork
+            self._free = multiprocessing.get_context("fork").Semaphore(FORKED_SLOTS)
             self._child, self._receive = fork_child(self._produce)
 
     def close(self) -> None:
         """End the child, if it still reads, and its pipe."""
         if self._child is not None:
             end_child(self._child, self._receive)
+            self._shared = None  # unmapped once nothing views it
 
     def __iter__(self) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         self.start()
@@ -542,7 +606,12 @@ class ForkedBatches:
                 if message[0] == "end":
                     _, self.stats, self.losses, self.format_name = message
                     return
-                _, group, self.expected = message
+                if message[0] == "slot":
+                    _, at, layout, self.expected = message
+                    group = _read(np.frombuffer(self._shared, dtype=np.int64), at, layout)
+                    self._free.release()
+                else:
+                    _, group, self.expected = message
                 for *item, clipped in group:
                     if len(clipped):
                         self._clipped.setdefault(item[0], []).append(clipped)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import struct
+import time
 import tracemalloc
 
 import numpy as np
@@ -839,6 +840,37 @@ def test_a_log_read_in_a_child_process_gives_what_reading_in_process_gives(logs,
     assert counts[1] < counts[0]  # joined
     assert len(got[0][2]) >= 1 and there.format_name == here.format_name
     assert there.expected == here.expected
+
+
+def test_batches_larger_than_a_slot_and_a_full_ring_arrive_in_order(
+    tmp_path, short_drive, monkeypatch
+):
+    """The child hands its batches over in shared slots and waits while every slot is taken;
+    a group larger than a slot goes through the pipe. On a log of 16 kB chunks read by a
+    consumer slower than the child, with two slots of 1000 bytes (most batches fit, the largest
+    batches do not), the batches are the in-process reader's, per topic to the bit."""
+    from imucal_cli import reading
+    from imucal_cli.io import mcap_log
+    from imucal_cli.sim.writers import _write_mcap
+
+    log = tmp_path / "small-chunks.mcap"
+    _write_mcap(log, short_drive.topics(), ros1=False, chunk_size=16 << 10)
+    topics = list(short_drive.topics())
+    monkeypatch.setattr(mcap_log, "GROUP_BYTES", 16 << 10)  # a batch per chunk and topic
+    monkeypatch.setattr(reading, "SLOT_BYTES", 1000)
+    monkeypatch.setattr(reading, "FORKED_SLOTS", 2)
+    sizes = [8 * reading._words((*item, [])) for item in reading.ImuBatches(log, topics)]
+    assert len(sizes) > 50 and min(sizes) < reading.SLOT_BYTES < max(sizes)
+
+    def per_topic(reader, pause=0.0):
+        out: dict[str, list[bytes]] = {}
+        for topic, *arrays in reader:
+            time.sleep(pause)  # slower than the child: it fills the slots and waits
+            out.setdefault(topic, []).append(b"".join(a.tobytes() for a in arrays))
+        return {t: b"".join(parts) for t, parts in out.items()}
+
+    forked = reading.ForkedBatches(reading.ImuBatches(log, topics))
+    assert per_topic(forked, 0.002) == per_topic(reading.ImuBatches(log, topics))
 
 
 def test_an_error_in_the_reading_process_is_raised_in_the_calibrating_one(tmp_path, short_drive):
