@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -115,13 +116,12 @@ class Lowpass:
             2.0 * ends[1], extended[:, pad + n - 2 : n - 2 : -1], out=extended[:, pad + n : m]
         )
         extended[:, m:] = 0.0
-        import scipy.fft  # (imported when first used: 0.2 s)
-
-        spectrum = scipy.fft.rfft(extended, axis=1, overwrite_x=True)
+        fft = _fft()
+        spectrum = fft.rfft(extended, axis=1, overwrite_x=True)
         kept = size // step
         spectrum = spectrum[:, : kept // 2 + 1]  # what the decimated inverse transforms
         spectrum *= _response(self, size, step)
-        filtered = scipy.fft.irfft(spectrum, n=kept, axis=1, overwrite_x=True)
+        filtered = fft.irfft(spectrum, n=kept, axis=1, overwrite_x=True)
         line = line[:, ::step]
         line += filtered[:, pad // step : pad // step + len(line[0])]  # the line back
         # time along axis 0 again: the transpose, a view (Fortran order: each column contiguous)
@@ -142,6 +142,14 @@ class Lowpass:
         impulse = np.zeros(n)
         impulse[n // 2] = 1.0
         return float(np.sum(self(impulse) ** 2))
+
+
+@lru_cache(maxsize=1)
+def _fft() -> Any:
+    """``scipy.fft``, imported when first used (0.2 s), then at the cost of a call."""
+    import scipy.fft
+
+    return scipy.fft
 
 
 def _even_power(ratio: np.ndarray, order: int) -> np.ndarray:

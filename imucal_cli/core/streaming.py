@@ -604,8 +604,11 @@ class StreamingCalibrator:
         self.saturation[imu].add(t_ns, gyro, accel)  # as sent: before units and turns
         both = np.hstack([gyro, accel])
         if imu in self.scales:  # after boot: in SI, as the boot found the units
-            both[:, :3] *= self.scales[imu][0]
-            both[:, 3:] *= self.scales[imu][1]
+            gyro_scale, accel_scale = self.scales[imu]
+            if gyro_scale != 1.0:
+                both[:, :3] *= gyro_scale
+            if accel_scale != 1.0:
+                both[:, 3:] *= accel_scale
         if imu == self.base_name and self.R_base_baseimu is not None:  # into B's axes
             both[:, :3] = both[:, :3] @ self.R_base_baseimu.T
             both[:, 3:] = both[:, 3:] @ self.R_base_baseimu.T

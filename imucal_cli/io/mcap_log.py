@@ -26,7 +26,6 @@ import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, ChunkIndex, Schema
-from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 
 from imucal_cli.io.base import (
@@ -311,15 +310,21 @@ class McapLog(LogReader):
             pos = end
         return np.asarray(offsets, dtype=np.int64)
 
-    def _message_indexes(self, index: ChunkIndex, channel_ids: set[int]) -> dict[int, np.ndarray]:
-        """The message index entries (log time, offset in the chunk) of some channels of a chunk."""
+    def _message_indexes(
+        self, index: ChunkIndex, channel_ids: set[int], read: bytes | None = None
+    ) -> dict[int, np.ndarray]:
+        """The message index entries (log time, offset in the chunk) of some channels of a
+        chunk; ``read``: the bytes from the chunk's start to its indexes' end, read already."""
         offsets = {c: o for c, o in index.message_index_offsets.items() if c in channel_ids}
         if not offsets:
             return {}
         begin = min(offsets.values())
         end = index.chunk_start_offset + index.chunk_length + index.message_index_length
-        self._file.seek(begin)
-        region = self._file.read(end - begin)
+        if read is not None and begin >= index.chunk_start_offset:
+            region, begin = read, index.chunk_start_offset
+        else:
+            self._file.seek(begin)
+            region = self._file.read(end - begin)
         out = {}
         for channel_id, offset in offsets.items():
             at = offset - begin
@@ -346,8 +351,11 @@ class McapLog(LogReader):
         kept, size = [], 0
         for index in group:
             try:
-                found = self._message_indexes(index, channel_ids)
-                chunk = self._chunk(index, found)
+                # the chunk and its message indexes after it, in one read
+                self._file.seek(index.chunk_start_offset)
+                read = self._file.read(index.chunk_length + index.message_index_length)
+                found = self._message_indexes(index, channel_ids, read)
+                chunk = self._chunk(index, found, read)
                 out = buffer[size : size + chunk.uncompressed_size]
                 decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=out)
             except Exception as exc:
@@ -359,13 +367,10 @@ class McapLog(LogReader):
             size += chunk.uncompressed_size
         return kept, buffer[:size], {c: np.concatenate(e) for c, e in entries.items()}
 
-    def _chunk(self, index: ChunkIndex, found: dict[int, np.ndarray]) -> Chunk:
-        """The chunk an index points at, its sizes and message index entries checked."""
-        self._file.seek(index.chunk_start_offset)
-        data = BytesIO(self._file.read(index.chunk_length))
-        chunk = next(iter(StreamReader(data, skip_magic=True, emit_chunks=True).records))
-        if not isinstance(chunk, Chunk):
-            raise ValueError("the chunk index does not point at a chunk")
+    def _chunk(self, index: ChunkIndex, found: dict[int, np.ndarray], read: bytes) -> Chunk:
+        """The chunk an index points at (at the start of ``read``), its sizes and message index
+        entries checked."""
+        chunk = _chunk_record(memoryview(read)[: index.chunk_length])
         size, packed = chunk.uncompressed_size, len(chunk.data)
         check_chunk_size(size, packed, chunk.compression)
         if (size, packed) != (index.uncompressed_size, index.compressed_size):
@@ -427,6 +432,36 @@ class McapLog(LogReader):
                 RawBatch(*ids[channel_id], data, at + _MESSAGE_HEADER, length - 22, times)
             )
         return batches
+
+
+#: A Chunk record's fixed fields: opcode, length, message start and end time, uncompressed
+#: size and CRC, and the length of the compression's name.
+_CHUNK_HEAD = struct.Struct("<BQQQQII")
+
+
+def _chunk_record(data: memoryview) -> Chunk:
+    """The Chunk record at the start of ``data``, its records a view of ``data`` (not a copy:
+    a chunk is read once, to be decompressed)."""
+    if len(data) < _CHUNK_HEAD.size:
+        raise ValueError("the chunk is cut off")
+    opcode, length, start, end, size, crc, name = _CHUNK_HEAD.unpack_from(data, 0)
+    if opcode != _CHUNK_OP:
+        raise ValueError("the chunk index does not point at a chunk")
+    at = _CHUNK_HEAD.size + name
+    if 9 + length > len(data) or at + 8 > 9 + length:
+        raise ValueError("the chunk is cut off")
+    (records,) = struct.unpack_from("<Q", data, at)
+    if at + 8 + records > 9 + length:
+        raise ValueError("the chunk's records run past its end")
+    compression = bytes(data[_CHUNK_HEAD.size : at]).decode("utf-8")
+    return Chunk(
+        compression=compression,
+        data=data[at + 8 : at + 8 + records],  # type: ignore[arg-type]
+        message_end_time=end,
+        message_start_time=start,
+        uncompressed_crc=crc,
+        uncompressed_size=size,
+    )
 
 
 def _channel_batches(
