@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any, ParamSpec, TypeVar
+from typing import Annotated, Any, NoReturn, ParamSpec, TypeVar
 
 import typer
 
@@ -1526,11 +1526,23 @@ def main() -> None:
     try:
         app()
     except SystemExit as exc:
-        if exc.code == EXIT_INTERRUPTED:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(EXIT_INTERRUPTED)
-        raise
+        leave(exc.code)
+    leave(0)
+
+
+def leave(code: int | str | None) -> NoReturn:
+    """End the process with ``code`` once the standard streams are flushed, without the
+    interpreter's teardown: every file of the command's is closed by then, and the teardown
+    (freeing numpy's and scipy's modules) took 80-90 ms after a calibration, 3% of an hour's."""
+    if isinstance(code, str):  # as SystemExit prints it
+        print(code, file=sys.stderr)
+        code = 1
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a reader that went away, a stream closed
+            pass
+    os._exit(code or 0)
 
 
 if __name__ == "__main__":
