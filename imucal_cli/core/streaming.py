@@ -154,7 +154,8 @@ def _clean(t: np.ndarray, both: np.ndarray) -> tuple[np.ndarray, np.ndarray, int
 
 class _Spline:
     """A cubic interpolating spline of one IMU segment, gyro and accelerometer together
-    (columns 0-2 and 3-5), with an anti-alias filter where the IMU runs well above the grid.
+    (columns 0-2 and 3-5, or the gyro alone), with an anti-alias filter where the IMU runs
+    well above the grid.
 
     With ``smooth`` (the calibration's low-pass), the samples are low-passed by it first, at
     the IMU's own rate and in the same pass as the anti-alias filter: what the spline then gives
@@ -681,8 +682,9 @@ class StreamingCalibrator:
         upto = {name: int(np.searchsorted(t, limit, side="right")) for name, (t, _) in full.items()}
         samples = {name: (t[: upto[name]], both[: upto[name]]) for name, (t, both) in full.items()}
         unit_warnings: dict[str, list[str]] = {}
-        splines = {
-            name: _Spline(self._seconds(t), both, self.rate) for name, (t, both) in samples.items()
+        splines = {  # of the gyros: the boot reads only |w| (half the work of both triads)
+            name: _Spline(self._seconds(t), both[:, :3], self.rate)
+            for name, (t, both) in samples.items()
         }
         grid = _longest_covered(
             grid, [spline.covered(grid) for spline in splines.values()], self.lowpass.pad
