@@ -682,9 +682,8 @@ class StreamingCalibrator:
         upto = {name: int(np.searchsorted(t, limit, side="right")) for name, (t, _) in full.items()}
         samples = {name: (t[: upto[name]], both[: upto[name]]) for name, (t, both) in full.items()}
         unit_warnings: dict[str, list[str]] = {}
-        splines = {  # of the gyros: the boot reads only |w| (half the work of both triads)
-            name: _Spline(self._seconds(t), both[:, :3], self.rate)
-            for name, (t, both) in samples.items()
+        splines = {  # the gyros': the boot reads only |w| (half the work of both triads)
+            n: _Spline(self._seconds(t), b[:, :3], self.rate) for n, (t, b) in samples.items()
         }
         grid = _longest_covered(
             grid, [spline.covered(grid) for spline in splines.values()], self.lowpass.pad

@@ -2,14 +2,13 @@
 
 A file whose summary lists its channels and chunk indexes, each chunk with message indexes (what
 the official writers produce by default), is read chunk by chunk: only the chunks that hold a
-wanted channel are read and decompressed, and the messages are found
-through the message indexes, whose entries this module reads as numpy arrays: the library
-builds a Python tuple per message, 1.2 s for the 3.2 M messages of an hour of five IMUs
-(docs/performance.md). Every other valid file (no summary, no indexes, channels only inside
-the chunks, no chunks at all) is walked record by record, the library parsing each chunk,
-channel and schema record. A file cut off mid-write has no summary: it is read up to the cut, and
-the cut is a
-:class:`Loss`; a chunk that does not decompress is one too.
+wanted channel are read and decompressed, and the messages are found through the message
+indexes, whose entries this module reads as numpy arrays: the library builds a Python tuple per
+message, 1.2 s for the 3.2 M messages of an hour of five IMUs (docs/performance.md). Every other
+valid file (no summary, no indexes, channels only inside the chunks, no chunks at all) is walked
+record by record, the library parsing each chunk, channel and schema record. A file cut off
+mid-write has no summary: it is read up to the cut, and the cut is a :class:`Loss`; a chunk
+that does not decompress is one too.
 """
 
 from __future__ import annotations
@@ -50,15 +49,13 @@ GROUP_BYTES = 2 << 20
 _RECORD = struct.Struct("<BQ")  # opcode, length
 _FOOTER_OP, _SCHEMA_OP, _CHANNEL_OP = 0x02, 0x03, 0x04
 _MESSAGE_OP, _CHUNK_OP, _DATA_END_OP = 0x05, 0x06, 0x0F
-_MESSAGE_RECORD = np.dtype(
-    [
-        ("opcode", "u1"),
-        ("length", "<u8"),
-        ("channel", "<u2"),
-        ("sequence", "<u4"),
-        ("log_time", "<u8"),
-        ("publish_time", "<u8"),
-    ]
+#: A Chunk record up to its compression's name: opcode, length, start and end time, size, CRC.
+_CHUNK_HEAD = struct.Struct("<BQQQQII")
+_MESSAGE_RECORD = np.dtype(  # a Message record up to its data
+    {
+        "names": ["opcode", "length", "channel", "sequence", "log_time", "publish_time"],
+        "formats": ["u1", "<u8", "<u2", "<u4", "<u8", "<u8"],
+    }
 )
 _MESSAGE_HEADER = _MESSAGE_RECORD.itemsize  # 31 bytes before a message's data
 REPAIR = "`mcap recover FILE -o FIXED.mcap` rewrites what is readable"
@@ -310,21 +307,15 @@ class McapLog(LogReader):
             pos = end
         return np.asarray(offsets, dtype=np.int64)
 
-    def _message_indexes(
-        self, index: ChunkIndex, channel_ids: set[int], read: bytes | None = None
-    ) -> dict[int, np.ndarray]:
-        """The message index entries (log time, offset in the chunk) of some channels of a
-        chunk; ``read``: the bytes from the chunk's start to its indexes' end, read already."""
+    def _message_indexes(self, index: ChunkIndex, channel_ids: set[int]) -> dict[int, np.ndarray]:
+        """The message index entries (log time, offset in the chunk) of some channels of a chunk."""
         offsets = {c: o for c, o in index.message_index_offsets.items() if c in channel_ids}
         if not offsets:
             return {}
         begin = min(offsets.values())
         end = index.chunk_start_offset + index.chunk_length + index.message_index_length
-        if read is not None and begin >= index.chunk_start_offset:
-            region, begin = read, index.chunk_start_offset
-        else:
-            self._file.seek(begin)
-            region = self._file.read(end - begin)
+        self._file.seek(begin)
+        region = self._file.read(end - begin)
         out = {}
         for channel_id, offset in offsets.items():
             at = offset - begin
@@ -351,11 +342,8 @@ class McapLog(LogReader):
         kept, size = [], 0
         for index in group:
             try:
-                # the chunk and its message indexes after it, in one read
-                self._file.seek(index.chunk_start_offset)
-                read = self._file.read(index.chunk_length + index.message_index_length)
-                found = self._message_indexes(index, channel_ids, read)
-                chunk = self._chunk(index, found, read)
+                found = self._message_indexes(index, channel_ids)
+                chunk = self._chunk(index, found)
                 out = buffer[size : size + chunk.uncompressed_size]
                 decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=out)
             except Exception as exc:
@@ -367,17 +355,24 @@ class McapLog(LogReader):
             size += chunk.uncompressed_size
         return kept, buffer[:size], {c: np.concatenate(e) for c, e in entries.items()}
 
-    def _chunk(self, index: ChunkIndex, found: dict[int, np.ndarray], read: bytes) -> Chunk:
-        """The chunk an index points at (at the start of ``read``), its sizes and message index
-        entries checked."""
-        chunk = _chunk_record(memoryview(read)[: index.chunk_length])
-        size, packed = chunk.uncompressed_size, len(chunk.data)
-        check_chunk_size(size, packed, chunk.compression)
+    def _chunk(self, index: ChunkIndex, found: dict[int, np.ndarray]) -> Chunk:
+        """The chunk an index points at, its sizes and message index entries checked; its
+        records a view of what was read (mcap's record reader copies them out)."""
+        self._file.seek(index.chunk_start_offset)
+        data = memoryview(self._file.read(index.chunk_length))
+        opcode, length, start, end, size, crc, name = _CHUNK_HEAD.unpack_from(data, 0)
+        at = _CHUNK_HEAD.size + name  # the records' length, then the records
+        (packed,) = struct.unpack_from("<Q", data, at)  # (struct.error where cut off)
+        if opcode != _CHUNK_OP or at + 8 + packed > min(9 + length, len(data)):
+            raise ValueError("the chunk index does not point at a whole chunk")
+        kind = bytes(data[_CHUNK_HEAD.size : at]).decode()
+        check_chunk_size(size, packed, kind)
         if (size, packed) != (index.uncompressed_size, index.compressed_size):
             raise ValueError(f"the chunk's sizes {size}/{packed} are not its index's")
         if any(len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > size for e in found.values()):
             raise ValueError("a message index points past the chunk's end")
-        return chunk
+        records = data[at + 8 : at + 8 + packed]
+        return Chunk(kind, records, end, start, crc, size)  # type: ignore[arg-type]  # (A-Z order)
 
     def _lose_chunk(self, index: ChunkIndex, exc: Exception) -> None:
         """A chunk that does not read: a :class:`Loss`, its messages counted from its index."""
@@ -432,36 +427,6 @@ class McapLog(LogReader):
                 RawBatch(*ids[channel_id], data, at + _MESSAGE_HEADER, length - 22, times)
             )
         return batches
-
-
-#: A Chunk record's fixed fields: opcode, length, message start and end time, uncompressed
-#: size and CRC, and the length of the compression's name.
-_CHUNK_HEAD = struct.Struct("<BQQQQII")
-
-
-def _chunk_record(data: memoryview) -> Chunk:
-    """The Chunk record at the start of ``data``, its records a view of ``data`` (not a copy:
-    a chunk is read once, to be decompressed)."""
-    if len(data) < _CHUNK_HEAD.size:
-        raise ValueError("the chunk is cut off")
-    opcode, length, start, end, size, crc, name = _CHUNK_HEAD.unpack_from(data, 0)
-    if opcode != _CHUNK_OP:
-        raise ValueError("the chunk index does not point at a chunk")
-    at = _CHUNK_HEAD.size + name
-    if 9 + length > len(data) or at + 8 > 9 + length:
-        raise ValueError("the chunk is cut off")
-    (records,) = struct.unpack_from("<Q", data, at)
-    if at + 8 + records > 9 + length:
-        raise ValueError("the chunk's records run past its end")
-    compression = bytes(data[_CHUNK_HEAD.size : at]).decode("utf-8")
-    return Chunk(
-        compression=compression,
-        data=data[at + 8 : at + 8 + records],  # type: ignore[arg-type]
-        message_end_time=end,
-        message_start_time=start,
-        uncompressed_crc=crc,
-        uncompressed_size=size,
-    )
 
 
 def _channel_batches(
