@@ -11,6 +11,10 @@ Each round runs, in fresh processes and in turn:
 - the same calibration in one process, as the Python API runs it (``calibrate_log``): its CPU
   seconds are the work itself, which no use of the second core can go below.
 
+and then one more run of the command as a user runs it, with the machine's busy cores sampled
+every 0.1 s from ``/proc/stat`` (Linux; on an otherwise idle machine): where the second core
+idles.
+
 The log is ``throughput.py``'s (built once, cached). Run: ``python benchmarks/phases.py
 [--repeat 5]``.
 """
@@ -84,6 +88,31 @@ def run(code: str, *args: str) -> dict[str, float]:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def busy_jiffies() -> tuple[int, int]:
+    """The machine's CPU time so far, busy and in all (``/proc/stat``'s first line)."""
+    with open("/proc/stat") as stat:
+        fields = [int(x) for x in stat.readline().split()[1:]]
+    return sum(fields) - fields[3] - fields[4], sum(fields)  # less idle and iowait
+
+
+def cores_busy(args: list[str], step_s: float = 0.1) -> list[tuple[float, float]]:
+    """``imucal calibrate ARGS`` in a fresh process, and per ``step_s`` from its start the
+    cores busy (all of the machine's, ``os.cpu_count()`` at most)."""
+    import os
+    import time
+
+    command = [sys.executable, "-m", "imucal_cli.cli", "calibrate", *args, "-q"]
+    process = subprocess.Popen(command, cwd=HERE / ".cache")
+    start, last, samples = time.perf_counter(), busy_jiffies(), []
+    while process.poll() is None:
+        time.sleep(step_s)
+        now = busy_jiffies()
+        share = (now[0] - last[0]) / max(now[1] - last[1], 1)
+        samples.append((time.perf_counter() - start, share * (os.cpu_count() or 1)))
+        last = now
+    return samples
+
+
 def main() -> None:
     from throughput import build
 
@@ -127,6 +156,13 @@ def main() -> None:
         f"wall time. On two cores no schedule of that work takes less than half its CPU: "
         f"{work / 2:.2f} s."
     )
+    samples = cores_busy([str(log), "-c", str(config), "-o", str(out)])
+    print("\nOne more run of the command, the cores busy every 0.1 s:\n")
+    print("| s | cores busy |\n|---|---|")
+    previous = 0.0
+    for end_s, busy in samples:
+        print(f"| {previous:.2f}-{end_s:.2f} | {busy:.1f} |")
+        previous = end_s
 
 
 if __name__ == "__main__":
