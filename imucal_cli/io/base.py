@@ -21,6 +21,7 @@ READ_AHEAD_GROUPS = 2
 
 T = TypeVar("T")
 D = TypeVar("D")
+Bytes = bytes | memoryview  # a chunk's stored data: as read, or a view of it
 
 #: The largest decompressed chunk believed. Recorders write chunks of 768 KiB (rosbag) to a few
 #: MiB (MCAP); a chunk claiming more than this is damaged or hostile, and is lost alone.
@@ -45,7 +46,7 @@ def check_chunk_size(claimed: int, stored: int, compression: str) -> None:
 
 
 def decompress(
-    compression: str, data: bytes, claimed: int, prefix: bool = False, out: np.ndarray | None = None
+    compression: str, data: Bytes, claimed: int, prefix: bool = False, out: np.ndarray | None = None
 ) -> Any:
     """A chunk's data decompressed: exactly ``claimed`` bytes, checked before anything is
     decompressed (:func:`check_chunk_size`) and never decompressed past it. With ``prefix``

@@ -343,24 +343,24 @@ class McapLog(LogReader):
         for index in group:
             try:
                 found = self._message_indexes(index, channel_ids)
-                chunk = self._chunk(index, found)
-                out = buffer[size : size + chunk.uncompressed_size]
-                decompress(chunk.compression, chunk.data, chunk.uncompressed_size, out=out)
+                kind, records = self._chunk(index, found)  # (its size is its index's)
+                out = buffer[size : size + index.uncompressed_size]
+                decompress(kind, records, index.uncompressed_size, out=out)
             except Exception as exc:
                 self._lose_chunk(index, exc)
                 continue
             for channel_id, e in found.items():
                 entries.setdefault(channel_id, []).append(e[:, 1].astype(np.int64) + size)
             kept.append(index)
-            size += chunk.uncompressed_size
+            size += index.uncompressed_size
         return kept, buffer[:size], {c: np.concatenate(e) for c, e in entries.items()}
 
-    def _chunk(self, index: ChunkIndex, found: dict[int, np.ndarray]) -> Chunk:
-        """The chunk an index points at, its sizes and message index entries checked; its
-        records a view of what was read (mcap's record reader copies them out)."""
+    def _chunk(self, index: ChunkIndex, found: dict[int, np.ndarray]) -> tuple[str, memoryview]:
+        """The compression and records (a view of the read: mcap's reader copies them) of the
+        chunk an index points at, its sizes and message index entries checked."""
         self._file.seek(index.chunk_start_offset)
         data = memoryview(self._file.read(index.chunk_length))
-        opcode, length, start, end, size, crc, name = _CHUNK_HEAD.unpack_from(data, 0)
+        opcode, length, _, _, size, _, name = _CHUNK_HEAD.unpack_from(data, 0)
         at = _CHUNK_HEAD.size + name  # the records' length, then the records
         (packed,) = struct.unpack_from("<Q", data, at)  # (struct.error where cut off)
         if opcode != _CHUNK_OP or at + 8 + packed > min(9 + length, len(data)):
@@ -371,8 +371,7 @@ class McapLog(LogReader):
             raise ValueError(f"the chunk's sizes {size}/{packed} are not its index's")
         if any(len(e) and int(e[:, 1].max()) + _MESSAGE_HEADER > size for e in found.values()):
             raise ValueError("a message index points past the chunk's end")
-        records = data[at + 8 : at + 8 + packed]
-        return Chunk(kind, records, end, start, crc, size)  # type: ignore[arg-type]  # (A-Z order)
+        return kind, data[at + 8 : at + 8 + packed]
 
     def _lose_chunk(self, index: ChunkIndex, exc: Exception) -> None:
         """A chunk that does not read: a :class:`Loss`, its messages counted from its index."""
