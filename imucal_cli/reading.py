@@ -454,12 +454,12 @@ def _write(
     after field (:data:`_FIELDS`); returns per run its topic, samples and clipped stamps."""
     layout = []
     for run in runs:
-        for k, (dtype, width) in enumerate(_FIELDS):
+        for k, (dtype, _) in enumerate(_FIELDS):
             view = words.view(dtype)
             for item in run:
-                size = len(item[k + 1]) * width if width else len(item[k + 1])
-                view[at : at + size] = np.asarray(item[k + 1], dtype=dtype).reshape(-1)
-                at += size
+                values = np.asarray(item[k + 1], dtype=dtype).reshape(-1)
+                view[at : at + values.size] = values
+                at += values.size
         layout.append((run[0][0], sum(len(i[1]) for i in run), sum(len(i[5]) for i in run)))
     return layout
 
@@ -544,10 +544,10 @@ class ForkedBatches:
             except BaseException:  # the calibrating process is gone: nobody to read for
                 os._exit(0)
 
-        def hand(group: list[tuple[Any, ...]], expected: dict[str, int]) -> None:
+        def hand(group: list[tuple[Any, ...]], size: int, expected: dict[str, int]) -> None:
             nonlocal slot
             runs = _runs(group)
-            if sum(map(_words, group)) * 8 > SLOT_BYTES:
+            if size * 8 > SLOT_BYTES:  # (size: the group's 8-byte words)
                 put(("batches", [_joined(run) for run in runs], expected))
                 return
             while not self._free.acquire(timeout=1.0):
@@ -564,11 +564,11 @@ class ForkedBatches:
             for batch in reader:
                 item = (*batch, reader.take_clipped(batch[0]))
                 if group and (size + _words(item)) * 8 > SLOT_BYTES:
-                    hand(group, reader.expected)
+                    hand(group, size, reader.expected)
                     group, size = [], 0
                 group.append(item)
                 size += _words(item)
-            hand(group, reader.expected)
+            hand(group, size, reader.expected)
             put(("end", reader.stats, reader.losses, reader.format_name))
         except BaseException as exc:  # the parent raises it: this is its reading
             try:

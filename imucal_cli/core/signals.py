@@ -166,8 +166,9 @@ def _even_power(ratio: np.ndarray, order: int) -> np.ndarray:
 def _response(lowpass: Lowpass, size: int, step: int = 1) -> np.ndarray:
     """``lowpass``'s response at the frequencies of a real FFT of ``size`` samples up to the
     Nyquist frequency of every ``step``-th sample, divided by ``step`` (the inverse transform of
-    ``size / step`` samples scales by that much less; exact for a power of two). Kept: every
-    block of a calibration filters the same lengths."""
+    ``size / step`` samples scales by that much less; exact for a power of two). Kept: the
+    grid's filter takes the same lengths every block (a sensor's, at the rate measured in each
+    block, mostly misses: 249 of 362 calls an hour of five IMUs)."""
     kept = size // step
     gain = lowpass.gain(np.fft.rfftfreq(size, d=1.0 / lowpass.rate_hz)[: kept // 2 + 1]) / step
     gain.flags.writeable = False
