@@ -114,12 +114,13 @@ def cores_busy(args: list[str], step_s: float = 0.1) -> list[tuple[float, float]
 
 
 def main() -> None:
-    from throughput import build
+    from throughput import build, compile_package
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
     log, config = build("1h", "mcap")
+    compile_package()
     out = HERE / ".cache" / "out_phases.yaml"
     cli_runs, api_runs = [], []
     for _ in range(args.repeat):
