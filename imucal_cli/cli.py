@@ -420,10 +420,14 @@ def _note_losses(log: Path, losses: list[Any]) -> None:
         _err(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read")
 
 
-def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple[Any, Any]:
-    """Load the config and stream the log's IMU messages through a calibrator (windows reduced,
-    nothing solved yet); say on stderr what reading found. Returns the config and the
-    :class:`~imucal_cli.api.StreamedLog`."""
+@contextmanager
+def _reading(log: Path, config_path: Path) -> Iterator[Any]:
+    """The log's reading child (:class:`~imucal_cli.reading.ForkedBatches`) of the config's
+    IMU topics, started now and ended on leaving, or None where the system does not fork.
+
+    One log: it is read in a child process from now, on the second core, while this one loads
+    the config (an invalid one's error is this process's) and imports what takes the batches
+    (a batch runs a process per core instead)."""
     from imucal_cli.reading import FORKS, ForkedBatches, ImuBatches
 
     def open_reader() -> ImuBatches:  # in the reading child: the config's topics
@@ -431,21 +435,25 @@ def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple
 
         return ImuBatches(log, imu_names_in(config_path))
 
-    # one log: it is read in a child process from now, on the second core, while this one
-    # loads the config (an invalid one's error is this process's) and imports the
-    # calibration; its windows are reduced beside the reading (a batch runs a process per
-    # core instead)
     reading = ForkedBatches.opening(log, open_reader) if FORKS else None
     try:
+        yield reading
+    finally:
+        if reading is not None:
+            reading.close()
+
+
+def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple[Any, Any]:
+    """Load the config and stream the log's IMU messages through a calibrator (windows reduced
+    beside the reading, nothing solved yet); say on stderr what reading found. Returns the
+    config and the :class:`~imucal_cli.api.StreamedLog`."""
+    with _reading(log, config_path) as reading:
         from imucal_cli.api import stream_log
         from imucal_cli.config import load_config
 
         config = load_config(config_path, log, urdf)  # what it leaves out, from /tf_static, URDF
         with _progress(f"reading {log}") as progress:
             streamed = stream_log(log, config, progress=progress, threaded=True, reading=reading)
-    finally:
-        if reading is not None:
-            reading.close()
     _note_losses(log, streamed.losses)
     for topic, stats in streamed.stats.items():
         _note_read(log, topic, stats.to_dict() | {"duplicates": streamed.duplicates[topic]})
@@ -468,13 +476,14 @@ def biases(
     urdf: UrdfOption = None,
 ) -> None:
     """Per IMU: rest periods, accelerometer bias and noise, gyro bias track summary."""
-    from imucal_cli.api import stream_biases
-    from imucal_cli.config import load_config
-
     _check_output(out, log, config, urdf)
-    cfg = load_config(config, log, urdf)
-    with _progress(f"reading {log}") as progress:
-        document = stream_biases(log, cfg, progress)
+    with _reading(log, config) as reading:
+        from imucal_cli.api import stream_biases
+        from imucal_cli.config import load_config
+
+        cfg = load_config(config, log, urdf)
+        with _progress(f"reading {log}") as progress:
+            document = stream_biases(log, cfg, progress, reading=reading)
     _note_losses(log, document["losses"])
 
     def render(doc: dict[str, Any]) -> None:

@@ -370,10 +370,14 @@ def stream_log(
 
 
 def stream_biases(
-    log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None
+    log: str | Path,
+    config: Config,
+    progress: Callable[[int, int], None] | None = None,
+    reading: ForkedBatches | None = None,
 ) -> dict[str, Any]:
     """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
-    :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length."""
+    :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length;
+    ``reading``: the log's reading child, started already (:meth:`ForkedBatches.opening`)."""
     from imucal_cli.outputs import (
         biases_document,
         dropped_document,
@@ -384,7 +388,7 @@ def stream_biases(
 
     names = config.imu_names()
     trackers = bias_trackers(config)
-    reader = ImuBatches(Path(log), names)
+    reader = reading if reading is not None else ImuBatches(Path(log), names)
     read_log(
         reader,
         config,
