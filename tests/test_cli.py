@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import ctypes
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -236,3 +240,50 @@ def test_no_help_page_shows_a_bool_metavar():
         result = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "200"})
         assert result.exit_code == 0, (command, result.output)
         assert "--help" in result.stdout and "<bool>" not in result.stdout, command
+
+
+KEPT_MEMORY_PROBE = """
+import ctypes, sys
+import numpy as np
+from imucal_cli.cli import keep_freed_memory
+
+class Mallinfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in (
+        "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+        "fordblks", "keepcost")]
+
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = Mallinfo2
+if sys.argv[1] == "keep":
+    keep_freed_memory()
+before = libc.mallinfo2().hblks
+block = np.ones(8 << 20)  # 64 MB: a mapping of its own by glibc's default
+print(libc.mallinfo2().hblks - before)
+"""
+
+
+@pytest.mark.skipif(
+    not sys.platform.startswith("linux") or not hasattr(ctypes.CDLL(None), "mallinfo2"),
+    reason="glibc's malloc",
+)
+@pytest.mark.parametrize(
+    ("how", "environ", "mapped"),
+    [
+        ("keep", {}, 0),  # from the heap, which keeps what was freed
+        ("default", {}, 1),
+        ("keep", {"MALLOC_MMAP_THRESHOLD_": "131072"}, 1),  # the user's setting stands
+        ("keep", {"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=131072"}, 1),
+    ],
+)
+def test_the_command_keeps_freed_memory_unless_the_user_set_malloc(how, environ, mapped):
+    """The command line has a large block come from the heap, not a mapping of its own (which
+    the kernel would map and zero anew after each free); a threshold the user set is kept."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_TUN"))}
+    found = subprocess.run(
+        [sys.executable, "-c", KEPT_MEMORY_PROBE, how],
+        env=env | environ,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert int(found.stdout) == mapped
