@@ -7,6 +7,7 @@ partial output file. Heavy imports happen inside the commands so ``imucal --help
 from __future__ import annotations
 
 import functools
+import gc
 import os
 import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -105,11 +106,43 @@ def _err(text: str) -> None:
     typer.echo(printable(text), err=True)
 
 
+class _Process:
+    """What :func:`main` made of this process."""
+
+    #: The command line's own (:func:`main` ran): only then are process-wide settings (the
+    #: garbage collector, malloc's) the command's to change.
+    own = False
+
+
+def _collect_from_here() -> None:
+    """The cyclic garbage collector on again, what exists now frozen out of its passes
+    (``gc.freeze``): modules, functions and classes, which are never garbage. In the command
+    line's own process, where :func:`main` and :func:`_loading` turn it off while modules
+    load: each of its passes went over every object loaded so far (1 h log: 0.07 s of the
+    calibrating process's start-up, docs/performance.md)."""
+    if _Process.own and not gc.isenabled():
+        gc.freeze()
+        gc.enable()
+
+
+@contextmanager
+def _loading() -> Iterator[None]:
+    """The collector off while a command imports what it runs and loads its config
+    (:func:`_collect_from_here` after)."""
+    if _Process.own:
+        gc.disable()
+    try:
+        yield
+    finally:
+        _collect_from_here()
+
+
 def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
     """Turn :class:`ImucalError` into one line on stderr and exit 2 (no traceback)."""
 
     @functools.wraps(command)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        _collect_from_here()  # the command line's modules are loaded
         try:
             return command(*args, **kwargs)
         except ImucalError as exc:
@@ -448,10 +481,11 @@ def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple
     beside the reading, nothing solved yet); say on stderr what reading found. Returns the
     config and the :class:`~imucal_cli.api.StreamedLog`."""
     with _reading(log, config_path) as reading:
-        from imucal_cli.api import stream_log
-        from imucal_cli.config import load_config
+        with _loading():
+            from imucal_cli.api import stream_log
+            from imucal_cli.config import load_config
 
-        config = load_config(config_path, log, urdf)  # what it leaves out, from /tf_static, URDF
+            config = load_config(config_path, log, urdf)  # what it leaves out: /tf_static, URDF
         with _progress(f"reading {log}") as progress:
             streamed = stream_log(log, config, progress=progress, threaded=True, reading=reading)
     _note_losses(log, streamed.losses)
@@ -478,10 +512,11 @@ def biases(
     """Per IMU: rest periods, accelerometer bias and noise, gyro bias track summary."""
     _check_output(out, log, config, urdf)
     with _reading(log, config) as reading:
-        from imucal_cli.api import stream_biases
-        from imucal_cli.config import load_config
+        with _loading():
+            from imucal_cli.api import stream_biases
+            from imucal_cli.config import load_config
 
-        cfg = load_config(config, log, urdf)
+            cfg = load_config(config, log, urdf)
         with _progress(f"reading {log}") as progress:
             document = stream_biases(log, cfg, progress, reading=reading)
     _note_losses(log, document["losses"])
@@ -1562,6 +1597,8 @@ def main() -> None:
     BLAS runs on one thread: its matrices here are small, and its spinning threads took a
     third of the CPU time of a calibration and made it 10% slower (docs/performance.md);
     ``batch --jobs`` runs a process per core. The user's own setting is kept."""
+    _Process.own = True
+    gc.disable()  # while the modules load (_collect_from_here)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy is imported
     # three threads share the GIL (reading, decoding, the windows' math, which mostly releases
     # it): a thread that waits for it waits less (1 h log: stream 3.2-3.3 s against 3.7)

@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from conftest import SAMPLE_DATA
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
@@ -287,3 +288,38 @@ def test_the_command_keeps_freed_memory_unless_the_user_set_malloc(how, environ,
         check=True,
     )
     assert int(found.stdout) == mapped
+
+
+COLLECTOR_PROBE = """
+import gc, sys
+import imucal_cli.cli as cli
+
+def leave(code):  # what the collector was left as when the command ended
+    print(code, gc.isenabled(), gc.get_freeze_count())
+    sys.stdout.flush()
+    cli.os._exit(0)
+
+cli.leave = leave
+sys.argv = ["imucal", *sys.argv[1:]]
+cli.main()
+"""
+
+
+@pytest.mark.parametrize("command", ["biases", "calibrate", "inspect"])
+def test_the_command_collects_garbage_again_once_its_modules_are_loaded(command, tmp_path):
+    """The command line loads its modules with the collector off; it is on again, with what
+    was loaded frozen out of its passes, when the command runs (``biases`` and ``calibrate``
+    load theirs with the config, ``inspect`` before it runs)."""
+    args = [str(SAMPLE_DATA / "urban.mcap")]
+    if command != "inspect":
+        args += ["-c", str(SAMPLE_DATA / "urban.config.yaml"), "-o", str(tmp_path / "out.yaml")]
+    found = subprocess.run(
+        [sys.executable, "-c", COLLECTOR_PROBE, command, *args],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=tmp_path,
+    )
+    code, enabled, frozen = found.stdout.splitlines()[-1].split()  # (inspect prints a table)
+    assert (code, enabled) == ("0", "True"), found.stderr
+    assert int(frozen) > 10_000  # the modules' objects
