@@ -1596,7 +1596,11 @@ def main() -> None:
 
     BLAS runs on one thread: its matrices here are small, and its spinning threads took a
     third of the CPU time of a calibration and made it 10% slower (docs/performance.md);
-    ``batch --jobs`` runs a process per core. The user's own setting is kept."""
+    ``batch --jobs`` runs a process per core. The user's own setting is kept.
+
+    The garbage collector is off until the command's modules are loaded
+    (:func:`_collect_from_here`), and glibc's malloc keeps what it frees
+    (:func:`keep_freed_memory`)."""
     _Process.own = True
     gc.disable()  # while the modules load (_collect_from_here)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy is imported
