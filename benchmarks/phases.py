@@ -31,8 +31,22 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+#: ``imucal calibrate ARGS`` (``sys.argv[1:]``) run in this process, as its entry point runs
+#: it, with ``cli`` imported: the end of a script that times it from inside.
+CALIBRATE_IN_PROCESS = """
+def stay(code):  # the command ends the process at once (cli.leave): here it returns instead
+    raise SystemExit(code)
+cli.leave = stay
+sys.argv = ["imucal", "calibrate", *sys.argv[1:], "-q"]
+try:
+    cli.main()
+except SystemExit:
+    pass
+"""
+
 #: The command line's run, its phases marked by wrapping the pipeline's steps.
-TIMED_CLI = """
+TIMED_CLI = (
+    """
 import json, os, resource, sys, time
 start = time.perf_counter()
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as imucal's entry point, before numpy
@@ -48,20 +62,15 @@ def wrap(module, name, label):
     setattr(module, name, timed)
 wrap(pipeline, "read_log", "stream")
 wrap(api, "estimate", "solve")
-def stay(code):  # the command ends the process at once (cli.leave): here it returns instead
-    raise SystemExit(code)
-cli.leave = stay
-sys.argv = ["imucal", "calibrate", *sys.argv[1:], "-q"]
-try:
-    cli.main()
-except SystemExit:
-    pass
-marks["end"] = time.perf_counter() - start
+"""
+    + CALIBRATE_IN_PROCESS
+    + """marks["end"] = time.perf_counter() - start
 own, children = (resource.getrusage(w) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
 marks["cpu calibrating"] = own.ru_utime + own.ru_stime
 marks["cpu children"] = children.ru_utime + children.ru_stime
 print(json.dumps(marks))
 """
+)
 
 #: The Python API's run, in one process.
 ONE_PROCESS = """

@@ -23,14 +23,13 @@ Run: ``python benchmarks/slack.py [--repeat 5] [--burn 0.3]``.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
-import subprocess
 import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+from phases import CALIBRATE_IN_PROCESS, run  # noqa: E402
 
 #: The command line's run with busy work added at one place (argv[1]: the place, argv[2]:
 #: the CPU seconds), its wall time printed.
@@ -40,7 +39,7 @@ start = time.perf_counter()
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as imucal's entry point, before numpy
 from imucal_cli import api, cli, config, reading
 from imucal_cli.core import streaming
-place, seconds = sys.argv[1], float(sys.argv[2])
+place, seconds = sys.argv.pop(1), float(sys.argv.pop(1))  # the rest: calibrate's
 def burn():
     end = time.thread_time() + seconds
     while time.thread_time() < end:
@@ -64,16 +63,13 @@ elif place == "reduction":
     before(streaming, "_reduce_block", once=True)
 elif place == "before solve":
     before(api, "estimate")
-def stay(code):  # the command ends the process at once (cli.leave): here it returns instead
-    raise SystemExit(code)
-cli.leave = stay
-sys.argv = ["imucal", "calibrate", *sys.argv[3:], "-q"]
-try:
-    cli.main()
-except SystemExit:
-    pass
+"""
+BURNING_CLI += (
+    CALIBRATE_IN_PROCESS
+    + """
 print(json.dumps({"wall": time.perf_counter() - start}))
 """
+)
 
 PLACES = {
     "none": "nothing added",
@@ -85,16 +81,8 @@ PLACES = {
 
 
 def wall(place: str, burn_s: float, log: Path, config: Path, out: Path) -> float:
-    # from the cache folder: from a checkout, `python -c` would import the checkout's code
-    command = [sys.executable, "-c", BURNING_CLI, place, str(burn_s), str(log), "-c"]
-    result = subprocess.run(
-        [*command, str(config), "-o", str(out)],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=HERE / ".cache",
-    )
-    return float(json.loads(result.stdout.strip().splitlines()[-1])["wall"])
+    args = [str(log), "-c", str(config), "-o", str(out)]
+    return float(run(BURNING_CLI, place, str(burn_s), *args)["wall"])
 
 
 def main() -> None:
