@@ -98,6 +98,11 @@ def bias_prior(n_knots: int, biases: BiasModel) -> np.ndarray:
     return band
 
 
+def _weighted_sum(w: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``sum_k w_k S_k`` of (K, d, e) matrices, as one matrix-vector product."""
+    return (w @ S.reshape(len(S), -1)).reshape(S.shape[1:])
+
+
 def band_times(band: np.ndarray, x: np.ndarray) -> np.ndarray:
     """The symmetric matrix held in upper banded storage times ``x``."""
     u = len(band) - 1
@@ -130,14 +135,17 @@ def window_equations(
         (GYRO_DATA.index("one"), GYRO_DATA.index("u")),
         (ACCEL_DATA.index("one"), ACCEL_DATA.index("u")),
     )
-    DS_a = np.einsum("pmd,kd->kpm", D, S[:, :, a])
-    DS_b = np.einsum("pmd,kd->kpm", D, S[:, :, b])
+    # the contractions as matrix products (BLAS), several times faster than np.einsum's loops
+    D_rows = D.reshape(P * 3, dim)
+    DS_a = (S[:, :, a] @ D_rows.T).reshape(K, P, 3)
+    DS_b = (S[:, :, b] @ D_rows.T).reshape(K, P, 3)
     coupling = np.empty((K, P, 6))
     coupling[:, :, 0:3] = DS_b - DS_a  # b_j: -e_a + e_b on row m
     coupling[:, :, 3:6] = -DS_b  # b_k: -e_b on row m
     CS = C @ S
     g = np.empty((K, P + 6))
-    g[:, :P] = np.einsum("pmd,kmd->kp", D, CS)  # S symmetric: tr(D_p S C^T) = sum D_p * (C S)
+    # S symmetric: tr(D_p S C^T) = sum D_p * (C S)
+    g[:, :P] = CS.reshape(K, 3 * dim) @ D.reshape(P, 3 * dim).T
     g[:, P : P + 3] = CS[:, :, b] - CS[:, :, a]
     g[:, P + 3 :] = -CS[:, :, b]
     cost = np.sum(CS * C, axis=(1, 2))
@@ -404,9 +412,9 @@ class Problem:
 
     def weighted_moments(self, w_g: np.ndarray, w_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The windows' moments summed with weights, each equation's."""
-        S_g = np.einsum("k,kde->de", w_g, self.S_g)
+        S_g = _weighted_sum(w_g, self.S_g)
         S_a = sum(
-            np.einsum("k,kde->de", w_a[a : a + SOLVE_CHUNK], S)
+            _weighted_sum(w_a[a : a + SOLVE_CHUNK], S)
             for a, S in zip(self.starts, self.accel_moments(), strict=True)
         )
         return S_g, np.asarray(S_a)
