@@ -56,6 +56,18 @@ def cho_solve_banded(factor: tuple[np.ndarray, bool], b: np.ndarray) -> np.ndarr
     return solve(factor, b)
 
 
+def half_solve_banded(factor: tuple[np.ndarray, bool], b: np.ndarray) -> np.ndarray:
+    """``U^-T b`` for the upper banded Cholesky factor ``U`` of ``H = U^T U``: half of a solve
+    with ``H`` (``b^T H^-1 c = (U^-T b)^T (U^-T c)``). LAPACK's ``tbtrs``."""
+    from scipy.linalg.lapack import dtbtrs
+
+    assert not factor[1], "an upper factor"
+    x, info = dtbtrs(factor[0], b, uplo="U", trans="T")
+    if info != 0:
+        raise np.linalg.LinAlgError(f"banded triangular solve failed (info {info})")
+    return np.asarray(x)
+
+
 #: Upper bandwidth of the biases' block of the normal equations: a window couples the biases
 #: of its two knots, at most ``2 KNOT.size - 1`` apart.
 BAND = 2 * KNOT.size - 1
@@ -264,7 +276,7 @@ class _Reduced(NamedTuple):
     factor: tuple[np.ndarray, bool]  # the biases' banded Cholesky factor
     H_gb: np.ndarray  # the free globals' coupling to the biases
     grad_b: np.ndarray
-    X: np.ndarray  # H_bb^-1 H_gb^T
+    Z: np.ndarray  # U^-T H_gb^T, with H_bb = U^T U
 
 
 @dataclass(frozen=True)
@@ -538,13 +550,14 @@ class Problem:
         H_gg_all, H_gb_all, H_bb, grad_g, grad_b = self._assemble(lin, wg, wa, knots)
         H_gg, H_gb = H_gg_all[np.ix_(free_idx, free_idx)], H_gb_all[free_idx]
         factor = (cholesky_banded(H_bb, lower=False), False)
-        X = cho_solve_banded(factor, H_gb.T)
-        S = H_gg - H_gb @ X
-        s = grad_g[free_idx] - X.T @ grad_b
+        # H_gb H_bb^-1 H_gb^T as Z^T Z: one triangular solve, not two, and S symmetric
+        Z = half_solve_banded(factor, H_gb.T)
+        S = H_gg - Z.T @ Z
+        s = grad_g[free_idx] - Z.T @ half_solve_banded(factor, grad_b[:, None])[:, 0]
         if rotation_prior_std is not None:
             rotation = free_idx < ROTATION.stop
             S[rotation, rotation] += 1.0 / rotation_prior_std**2
-        return _Reduced(S, s, factor, H_gb, grad_b, X)
+        return _Reduced(S, s, factor, H_gb, grad_b, Z)
 
     def _assemble(
         self, lin: Linearisation, wg: np.ndarray, wa: np.ndarray, knots: np.ndarray
@@ -607,7 +620,7 @@ class Problem:
         last = [width * (self.n_knots - 1) + a for a in range(width)]
         E = np.zeros((self.n_bias, width))
         E[last, np.arange(width)] = 1.0
-        Y = cho_solve_banded(reduced.factor, E)
-        XtE = reduced.X.T @ E
-        block = Y[last] + XtE.T @ S_inv @ XtE
+        W = half_solve_banded(reduced.factor, E)  # E^T H_bb^-1 E = W^T W
+        XtE = reduced.Z.T @ W  # H_gb H_bb^-1 E
+        block = W.T @ W + XtE.T @ S_inv @ XtE
         return np.sqrt(np.clip(np.diag(block), 0.0, None))
