@@ -16,6 +16,7 @@ from imucal_cli.core.solver import (
     bias_prior,
     bounded_step,
     globals_block,
+    half_solve_banded,
     kabsch_rotation,
     window_equations,
 )
@@ -85,6 +86,31 @@ def test_the_bias_prior_in_banded_storage_is_the_random_walk_information():
     np.testing.assert_allclose(
         cho_solve_banded((cholesky_banded(band), False), x), np.linalg.solve(dense, x), rtol=1e-10
     )
+
+
+def test_the_half_solve_gives_the_schur_complement_of_the_biases():
+    """With ``H_bb = U^T U`` banded, ``Z = U^-T H_gb^T`` makes ``Z^T Z`` the dense
+    ``H_gb H_bb^-1 H_gb^T`` that eliminating the biases subtracts, and ``Z^T U^-T g`` the
+    gradient's ``H_gb H_bb^-1 g``."""
+    from scipy.linalg import cholesky_banded
+
+    rng = np.random.default_rng(5)
+    n_knots = 9
+    band = bias_prior(n_knots, BiasModel(10.0, (0.002, 0.01), (0.005, 1.0)))
+    n = KNOT.size * n_knots
+    for d in range(1, BAND + 1):  # a window's coupling between knots, on top of the prior
+        band[BAND - d, d:] += 0.1 * rng.normal(size=n - d) / (1 + d)
+    band[BAND] += 50.0
+    dense = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i, min(n, i + BAND + 1)):
+            dense[i, j] = dense[j, i] = band[BAND + i - j, j]
+    H_gb, grad = rng.normal(size=(7, n)), rng.normal(size=n)
+    factor = (cholesky_banded(band, lower=False), False)
+    Z = half_solve_banded(factor, H_gb.T)
+    np.testing.assert_allclose(Z.T @ Z, H_gb @ np.linalg.solve(dense, H_gb.T), rtol=1e-10)
+    half = half_solve_banded(factor, grad[:, None])[:, 0]
+    np.testing.assert_allclose(Z.T @ half, H_gb @ np.linalg.solve(dense, grad), rtol=1e-10)
 
 
 @pytest.mark.parametrize("dim", [14, 33])
