@@ -33,6 +33,7 @@ from itertools import combinations
 from pathlib import Path
 
 import numpy as np
+from real_rigs import RIGS, header
 
 from imucal_cli.config import parse_config
 from imucal_cli.documents import load_document
@@ -40,13 +41,7 @@ from imucal_cli.pipeline import calibrate_log
 from imucal_cli.sim.writers import TopicData, write_imu_log
 from imucal_cli.types import ImuStream
 
-RIG = (
-    Path(__file__).resolve().parents[2]
-    / "shared"
-    / "realdata"
-    / "multi_imu"
-    / "quad_flight1_dot1_dot7"
-)
+RIG = RIGS / "quad_flight1_dot1_dot7"
 DOTS = ("DOT1", "DOT2", "DOT4", "DOT7")
 EPOCH_NS = 1_700_000_000_000_000_000  # the rig log's origin
 
@@ -97,11 +92,6 @@ def config_for(base: str):
             sensor["grade"] = "consumer"
             document["sensors"][dot] = sensor
     return parse_config(document, str(RIG / "config.yaml"))
-
-
-def header(*columns: str) -> None:
-    print("| " + " | ".join(columns) + " |")
-    print("|" + "---|" * len(columns))
 
 
 def fmt(values, scale: float = 1.0, digits: int = 1) -> str:
