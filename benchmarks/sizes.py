@@ -106,7 +106,10 @@ def checkout(rev: str, into: Path) -> Path:
         ["git", "-C", str(REPO), "archive", rev, "imucal_cli"], capture_output=True, check=True
     ).stdout
     with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
-        tar.extractall(into, filter="data")
+        if hasattr(tarfile, "data_filter"):  # Python 3.11.4 and later
+            tar.extractall(into, filter="data")
+        else:  # git's own archive of this repository: paths inside `into` by construction
+            tar.extractall(into)
     return into / "imucal_cli"
 
 
