@@ -1,9 +1,12 @@
-"""Documents are written by libyaml's emitter where PyYAML has it: the same text as PyYAML's."""
+"""Documents are written by libyaml's emitter where PyYAML has it, from nodes made without
+PyYAML's representer: the same text as PyYAML's."""
 
 from __future__ import annotations
 
 import yaml
 from conftest import SAMPLE_DATA
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from imucal_cli.documents import dumps, to_plain
 from imucal_cli.pipeline import calibrate_log, stream_log
@@ -20,3 +23,30 @@ def test_the_written_yaml_is_pure_pythons_text():
             to_plain(document), sort_keys=False, default_flow_style=None, width=100
         )
         assert dumps(document, as_json=False) == expected
+
+
+_SCALARS = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0.0, -0.0, 1e16, 1e17, 1e-5, 123456789.0]),
+    st.text(),
+    st.sampled_from(["", "yes", "null", "~", "1e3", "0x1F", "- a", "a: b", " x", "#", "*a"]),
+)
+_DOCUMENTS = st.recursive(
+    _SCALARS,
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(), inner, max_size=4),
+    max_leaves=30,
+)
+
+
+@given(st.dictionaries(st.text(), _DOCUMENTS, max_size=6))  # a document is a mapping
+@settings(max_examples=300, deadline=None)
+def test_any_plain_document_is_written_as_pyyamls_representer_writes_it(document):
+    # the same emitter (libyaml's writes some keys pure Python's does not: `{'': null}`)
+    dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+    expected = yaml.dump(
+        to_plain(document), Dumper=dumper, sort_keys=False, default_flow_style=None, width=100
+    )
+    assert dumps(document, as_json=False) == expected
