@@ -3,6 +3,7 @@ PyYAML's representer: the same text as PyYAML's."""
 
 from __future__ import annotations
 
+import numpy as np
 import yaml
 from conftest import SAMPLE_DATA
 from hypothesis import given, settings
@@ -33,10 +34,19 @@ _SCALARS = st.one_of(
     st.sampled_from([0.0, -0.0, 1e16, 1e17, 1e-5, 123456789.0]),
     st.text(),
     st.sampled_from(["", "yes", "null", "~", "1e3", "0x1F", "- a", "a: b", " x", "#", "*a"]),
+    # what to_plain turns into those
+    st.floats().map(np.float64),
+    st.integers(-(2**63), 2**63 - 1).map(np.int64),
+    st.booleans().map(np.bool_),
+    st.lists(st.floats(), max_size=3).map(np.array),
 )
 _DOCUMENTS = st.recursive(
     _SCALARS,
-    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(), inner, max_size=4),
+    lambda inner: (
+        st.lists(inner, max_size=4)
+        | st.lists(inner, max_size=3).map(tuple)
+        | st.dictionaries(st.text() | st.integers(), inner, max_size=4)
+    ),
     max_leaves=30,
 )
 
