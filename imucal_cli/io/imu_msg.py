@@ -26,7 +26,7 @@ IMU_MSGTYPE = "sensor_msgs/msg/Imu"
 #: covariance (9), linear acceleration (3), covariance (9).
 _TAIL = 8 * (4 + 9 + 3 + 9 + 3 + 9)
 _GYRO_AFTER_FRAME = 8 * (4 + 9)
-_ACCEL_AFTER_GYRO = 8 * (3 + 9)
+_ACCEL_AFTER_GYRO = 8 * (3 + 9)  # each triad is gathered on its own: 48 bytes, not 120
 _CDR_HEAD = np.dtype(
     [
         ("encapsulation", "<u2"),
@@ -130,7 +130,6 @@ def decode_imu(batch: RawBatch) -> DecodedBatch:
     floats_abs = starts[index] + floats_at[index]
     used = head[index]
     stamp = used["sec"].astype(np.int64) * 1_000_000_000 + used["nsec"]
-    # each triad gathered on its own: 48 bytes a message, not the 120 from one to the other
     gyro = gather(buf, floats_abs + _GYRO_AFTER_FRAME, 24, "<f8")
     accel = gather(buf, floats_abs + (_GYRO_AFTER_FRAME + _ACCEL_AFTER_GYRO), 24, "<f8")
     frame_ids = _frame_ids(buf, starts[index] + 16, frame_chars[index]) if len(stamp) else []
