@@ -144,7 +144,8 @@ def _scalar(tag: str, text: str) -> yaml.ScalarNode:
 def _node(value: Any) -> yaml.Node:
     """The node PyYAML's safe representer makes of ``to_plain(value)`` with ``dumps``'
     settings (keys in their order, a collection of scalars only in flow style), in one pass and
-    without the representer's per-value dispatch: a third of the time. ``to_plain`` makes every
+    without the representer's per-value dispatch (the 1 h log's segments document: 0.11 s
+    against 0.20 s, emitter included). ``to_plain`` makes every
     list and dict anew, so nothing is anchored. A value neither of them knows raises
     :class:`_NotPlain`."""
     kind = type(value)
@@ -153,11 +154,11 @@ def _node(value: Any) -> yaml.Node:
         return _scalar("float", _float_text(f)) if math.isfinite(f) else _scalar("null", "null")
     if kind is str:
         return _scalar("str", value)
-    if kind is dict or (kind is not list and isinstance(value, dict)):
+    if isinstance(value, dict):
         pairs = [(_scalar("str", str(k)), _node(v)) for k, v in value.items()]
         flow = all(type(v) is yaml.ScalarNode for _, v in pairs)
         return yaml.MappingNode(_TAG + "map", pairs, flow_style=flow)
-    if kind is list or isinstance(value, (list, tuple)):
+    if isinstance(value, (list, tuple)):
         items = [_node(item) for item in value]
         flow = all(type(item) is yaml.ScalarNode for item in items)
         return yaml.SequenceNode(_TAG + "seq", items, flow_style=flow)
