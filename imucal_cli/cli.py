@@ -258,40 +258,6 @@ def _check_output(out: Path | None, *inputs: Path | None, junit: Path | None = N
 # --------------------------------------------------------------------------- inspect
 
 
-def _inspect_document(summary: Any) -> dict[str, Any]:
-    document = {
-        "log": summary.path,
-        "format": summary.format_name,
-        "t0_ns": summary.t0_ns,
-        "topics": {
-            t.topic: {
-                "type": t.msgtype,
-                "count": t.count,
-                "rate_hz": round(t.rate_hz, 6),
-                "duration_s": round(t.duration_s, 6),
-                "gaps": [[round(a, 6), round(b, 6)] for a, b in t.gaps],
-                "backwards": t.backwards,
-                "duplicates": t.duplicates,
-                "time_source": t.time_source,
-            }
-            for t in summary.topics
-        },
-    }
-    if summary.losses:  # parts of a damaged log that could not be read
-        document["losses"] = [
-            {
-                "reason": x.reason,
-                "offset": x.offset,
-                "bytes": x.nbytes,
-                "start_ns": x.start_ns,
-                "end_ns": x.end_ns,
-                "messages": x.messages,
-            }
-            for x in summary.losses
-        ]
-    return document
-
-
 def _render_inspect(document: dict[str, Any]) -> None:
     def gaps(info: dict[str, Any]) -> str:
         return (
@@ -343,12 +309,13 @@ def inspect(
 ) -> None:
     """Topics, message types, counts, rates, duration, gaps and time jumps of a log."""
     from imucal_cli.inspection import summarize_log
+    from imucal_cli.outputs import inspect_document
 
     _check_output(out, log)
     with _progress(f"reading {log}") as progress:
         summary = summarize_log(log, progress)
     _note_losses(log, summary.losses)
-    _emit(_inspect_document(summary), out, as_json, _render_inspect)
+    _emit(inspect_document(summary), out, as_json, _render_inspect)
 
 
 # --------------------------------------------------------------------------- config

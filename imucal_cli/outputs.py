@@ -1,5 +1,6 @@
-"""The SPEC's output documents (``biases``, ``segments``, ``calibrate``, ``evaluate``), built
-from a run's results as plain dicts; :mod:`imucal_cli.documents` writes them."""
+"""The SPEC's output documents (``inspect``, ``biases``, ``segments``, ``calibrate``,
+``evaluate``), built from a run's results as plain dicts; :mod:`imucal_cli.documents` writes
+them."""
 
 from __future__ import annotations
 
@@ -18,9 +19,36 @@ if TYPE_CHECKING:
     from imucal_cli.config import Config
     from imucal_cli.core.biases import BiasReport
     from imucal_cli.core.streaming import StreamingCalibrator
+    from imucal_cli.inspection import LogSummary
     from imucal_cli.io.base import Loss
     from imucal_cli.result import CalibrationResult
     from imucal_cli.types import Transform
+
+
+def inspect_document(summary: LogSummary) -> dict[str, Any]:
+    """``losses`` as calibrate's: only what was lost (a note on how the log was read, such as
+    a summary-less MCAP read record by record, is said on stderr, not listed as a loss)."""
+    document: dict[str, Any] = {
+        "log": summary.path,
+        "format": summary.format_name,
+        "t0_ns": summary.t0_ns,
+        "topics": {
+            t.topic: {
+                "type": t.msgtype,
+                "count": t.count,
+                "rate_hz": round(t.rate_hz, 6),
+                "duration_s": round(t.duration_s, 6),
+                "gaps": [[round(a, 6), round(b, 6)] for a, b in t.gaps],
+                "backwards": t.backwards,
+                "duplicates": t.duplicates,
+                "time_source": t.time_source,
+            }
+            for t in summary.topics
+        },
+    }
+    if losses := losses_document(summary.losses):
+        document["losses"] = losses
+    return document
 
 
 def biases_document(
