@@ -71,7 +71,8 @@ ISSUE_OF = {
     "29: ruff format, 100 characters, 60-line functions": "76d7717",
     "29: speed (the 4x bound)": "fbe8711 556b8c0 6218a1c 6da139b 4ab53f3 0f1c8e1 b4962e4 9d9d4a3 "
     "25174a9 d8ad0b6 7b2940a b40481f 067fe99 b4df93b 170fe69 3e03f70 d2c6200 4c46855 e2d5565 "
-    "793eafc 3d17cd0 50d5397 9165146 75ea4a2 a3856a1 c8bc4f5 85d59aa c35827a 3b95fe1 2a7b530",
+    "793eafc 3d17cd0 50d5397 9165146 75ea4a2 a3856a1 c8bc4f5 85d59aa c35827a 3b95fe1 2a7b530 "
+    "1fa25ff 9f06584",
 }
 
 
