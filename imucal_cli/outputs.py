@@ -52,8 +52,15 @@ def inspect_document(summary: LogSummary) -> dict[str, Any]:
 
 
 def biases_document(
-    t0_ns: int, config: Config, reports: Mapping[str, BiasReport]
+    config: Config,
+    reports: Mapping[str, BiasReport],
+    losses: Sequence[Loss] = (),
+    counts: Mapping[str, Mapping[str, int]] | None = None,
 ) -> dict[str, Any]:
+    """The SPEC's biases document; ``losses`` and ``counts`` (per topic, what reading counted)
+    as calibrate's take them, each IMU's reading warnings among its own."""
+    counts = counts or {}
+    t0_ns = min(r.first_ns for r in reports.values())
     topics = {"base": config.base.topic} | {s.name: s.imu_topic for s in config.sensors}
     imus: dict[str, Any] = {}
     for name, report in reports.items():
@@ -77,9 +84,21 @@ def biases_document(
                 "track_std": report.gyro_bias_track_std,
                 "final_std": report.gyro_bias_final_std,
             },
-            "warnings": report.warnings,
+            "warnings": [
+                *report.warnings,
+                *read_warnings(topics[name], counts.get(topics[name], {})),
+            ],
         }
-    return to_plain({"imucal_version": version(), "t0_ns": t0_ns, "imus": imus})
+    return to_plain(
+        {
+            "imucal_version": version(),
+            "t0_ns": t0_ns,
+            "imus": imus,
+            "lost_s": lost_seconds(losses),
+            "losses": losses_document(losses),
+            "dropped": dropped_document(counts),
+        }
+    )
 
 
 def segments_document(

@@ -378,13 +378,7 @@ def stream_biases(
     """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
     :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length;
     ``reading``: the log's reading child, started already (:meth:`ForkedBatches.opening`)."""
-    from imucal_cli.outputs import (
-        biases_document,
-        dropped_document,
-        losses_document,
-        lost_seconds,
-        read_warnings,
-    )
+    from imucal_cli.outputs import biases_document
 
     names = config.imu_names()
     trackers = bias_trackers(config)
@@ -402,15 +396,8 @@ def stream_biases(
             f"{log} [{empty[0]}]: too little data: no usable message{lost_summary(reader.losses)}"
         )
     reports = {name: tracker.report() for name, tracker in trackers.items()}
-    document = biases_document(min(r.first_ns for r in reports.values()), config, reports)
     counts = {topic: stats.to_dict() for topic, stats in reader.stats.items()}
-    for topic, name in names.items():  # what reading lost and dropped, said where it happened
-        document["imus"][name]["warnings"] += read_warnings(topic, counts[topic])
-    return document | {
-        "lost_s": lost_seconds(reader.losses),
-        "losses": losses_document(reader.losses),
-        "dropped": dropped_document(counts),
-    }
+    return biases_document(config, reports, reader.losses, counts)
 
 
 @dataclass

@@ -117,6 +117,13 @@ def test_inspect_lists_as_losses_only_what_was_lost(tmp_path, short_drive):
     assert "cut off" in loss["reason"] and loss["offset"] + loss["bytes"] == summary_start // 2
     counts = json.loads(result.stdout)["topics"]["/gnss/imu"]["count"]
     assert 0 < counts < len(short_drive.base.stream)
+    config = tmp_path / "config.yaml"
+    config.write_text(yaml.safe_dump(short_drive.config_document()))
+    result = runner.invoke(app, ["biases", str(cut), "-c", str(config), "--json"])
+    assert result.exit_code == 0, result.output
+    biases = json.loads(result.stdout)
+    assert biases["losses"] == [loss] and biases["lost_s"] is None  # (where the cut ends: unknown)
+    assert biases["dropped"] == {}  # a cut drops no sample of what it reads
 
 
 def test_inspect_bad_inputs(tmp_path, short_drive):
