@@ -48,3 +48,16 @@ def lidar_error(drive, result, name):
     error = np.concatenate([rotation, T.translation - mount.T_base_lidar.translation])
     covariance = result.estimates[name].lidar_covariance(mount.T_imu_lidar)
     return error, None if covariance is None else np.sqrt(np.diag(covariance))
+
+
+def without_summary(path: Path, out: Path) -> Path:
+    """The MCAP file ``path`` with its summary section dropped (as a recorder stopped hard
+    leaves it: the footer says there is none), written to ``out``."""
+    import struct
+
+    data = path.read_bytes()
+    footer = len(data) - 8 - (1 + 8 + 8 + 8 + 4)  # opcode, length, three offsets and a CRC
+    (summary_start,) = struct.unpack_from("<Q", data, footer + 9)
+    record = struct.pack("<BQQQI", 0x02, 20, 0, 0, 0)
+    out.write_bytes(data[:summary_start] + record + data[-8:])
+    return out

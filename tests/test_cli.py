@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 import yaml
-from conftest import SAMPLE_DATA
+from conftest import SAMPLE_DATA, without_summary
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
@@ -95,26 +95,21 @@ def test_inspect_writes_yaml_and_json(tmp_path, short_drive):
 def test_inspect_lists_as_losses_only_what_was_lost(tmp_path, short_drive):
     """A summary-less MCAP (a recorder that was stopped hard) is read whole: a note on stderr,
     no loss. A cut-off one lists the lost part as calibrate's document does, from its byte."""
-    import struct
-
     from imucal_cli.sim.writers import write_imu_log
 
     log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
-    data = log.read_bytes()
-    (summary_start,) = struct.unpack_from("<Q", data, len(data) - 8 - 29 + 9)
-    no_summary = tmp_path / "nosummary.mcap"  # the footer says there is no summary
-    no_summary.write_bytes(data[:summary_start] + struct.pack("<BQQQI", 2, 20, 0, 0, 0) + data[-8:])
+    no_summary = without_summary(log, tmp_path / "nosummary.mcap")
     result = runner.invoke(app, ["inspect", str(no_summary), "--json"])
     assert result.exit_code == 0, result.output
     assert "losses" not in json.loads(result.stdout)
     assert "note" in result.stderr and "record by record" in result.stderr
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: summary_start // 2])
+    cut.write_bytes(log.read_bytes()[: len(no_summary.read_bytes()) // 2])  # in the data
     result = runner.invoke(app, ["inspect", str(cut), "--json"])
     assert result.exit_code == 0, result.output
     (loss,) = json.loads(result.stdout)["losses"]
     assert loss["reason"].startswith(f"not read from byte {loss['offset']} ")
-    assert "cut off" in loss["reason"] and loss["offset"] + loss["bytes"] == summary_start // 2
+    assert "cut off" in loss["reason"] and loss["offset"] + loss["bytes"] == cut.stat().st_size
     counts = json.loads(result.stdout)["topics"]["/gnss/imu"]["count"]
     assert 0 < counts < len(short_drive.base.stream)
     config = tmp_path / "config.yaml"

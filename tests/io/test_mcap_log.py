@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import json
-import struct
 from pathlib import Path
 
 import pytest
+from conftest import without_summary
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
@@ -72,17 +72,6 @@ def _write(path: Path, topics, **options) -> Path:
     return path
 
 
-def _without_summary(path: Path) -> Path:
-    """The file with its summary section dropped: the footer says there is none."""
-    data = path.read_bytes()
-    footer = len(data) - 8 - (1 + 8 + 8 + 8 + 4)
-    (summary_start,) = struct.unpack_from("<Q", data, footer + 9)
-    out = path.with_name(path.stem + "-nosummary.mcap")
-    record = struct.pack("<BQQQI", 0x02, 20, 0, 0, 0)
-    out.write_bytes(data[:summary_start] + record + data[-8:])
-    return out
-
-
 @pytest.fixture(scope="module")
 def layouts(tmp_path_factory, short_drive):
     from mcap.writer import IndexType
@@ -99,7 +88,7 @@ def layouts(tmp_path_factory, short_drive):
         "unchunked": _write(root / "unchunked.mcap", topics, use_chunking=False),
         "no statistics": _write(root / "nostats.mcap", topics, use_statistics=False),
     }
-    made["no summary"] = _without_summary(made["default"])
+    made["no summary"] = without_summary(made["default"], root / "default-nosummary.mcap")
     return made, list(topics)
 
 
