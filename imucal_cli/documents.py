@@ -145,9 +145,8 @@ def _node(value: Any) -> yaml.Node:
     """The node PyYAML's safe representer makes of ``to_plain(value)`` with ``dumps``'
     settings (keys in their order, a collection of scalars only in flow style), in one pass and
     without the representer's per-value dispatch (the 1 h log's segments document: 0.11 s
-    against 0.20 s, emitter included). ``to_plain`` makes every
-    list and dict anew, so nothing is anchored. A value neither of them knows raises
-    :class:`_NotPlain`."""
+    against 0.20 s, emitter included). ``to_plain`` makes every list and dict anew, so nothing
+    is anchored. A value neither of them knows raises :class:`_NotPlain`."""
     kind = type(value)
     if kind is float:
         f = value + 0.0  # (-0.0 is written 0.0)
