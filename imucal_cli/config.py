@@ -48,6 +48,8 @@ class SensorConfig:
     prior_T_base_imu: Transform
     lidar_frame: str = ""
     translation_bound_m: float = 0.3
+    #: How far the estimate's rotation may lie from the prior's: a check, not a constraint.
+    rotation_bound_deg: float = 20.0
     accel_units: str = "auto"  # auto | mps2 | g
     gyro_units: str = "auto"  # auto | radps | dps
     grade: str = "consumer"  # SPEC "IMU grades": the IMU inside a lidar
@@ -169,6 +171,7 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "resample_hz": (10.0, 1000.0, "Hz: the fit low-passes at 5 Hz; more only costs memory"),
     "max_time_offset_s": (0.0, 1.0, "s: clocks further apart are another clock, not an offset"),
     "translation_bound_m": (0.0, 10.0, "m"),
+    "rotation_bound_deg": (0.0, 180.0, "deg"),
     "rotation_floor_deg": (0.0, 90.0, "deg"),
     "translation_floor_m": (0.0, 10.0, "m"),
 }

@@ -27,6 +27,7 @@ COMMENTS = {
     "accel_units": "auto | mps2 | g",
     "gyro_units": "auto | radps | dps",
     "sensors.translation_bound_m": "search box |t - t_prior| <= bound per axis",
+    "sensors.rotation_bound_deg": "the estimate's rotation at most this far from the prior's",
     "sensors.grade": "consumer | industrial | tactical | navigation | ideal: the IMU's prior",
     "sensors.rotation_floor_deg": "systematic std the data cannot see, added to the std",
     "sensors.translation_floor_m": "",

@@ -54,6 +54,7 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
         window_s=config.segments.window_s,
         max_rotation_std_deg=config.segments.max_rotation_std_deg,
         translation_bound_m=sensor.translation_bound_m,
+        rotation_bound_deg=sensor.rotation_bound_deg,
         gyro_bias_walk=np.radians(config.gyro_bias.process_noise_dps),
         gyro_bias_prior_std=np.radians(config.gyro_bias.initial_std_dps),
         consistency_alpha=config.calibration.consistency_alpha,

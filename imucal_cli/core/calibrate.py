@@ -47,6 +47,7 @@ class CalibrationOptions:
     window_s: float = 10.0
     max_rotation_std_deg: float = 1.0
     translation_bound_m: float = 0.3
+    rotation_bound_deg: float = 20.0  # how far the estimate may turn from the prior (a check)
     gyro_bias_walk: float = np.radians(0.1)  # rad/s/sqrt(s), config gyro_bias.process_noise_dps
     gyro_bias_prior_std: float = np.radians(0.3)  # rad/s, config gyro_bias.initial_std_dps
     lowpass_hz: float = LOWPASS_HZ
@@ -269,6 +270,7 @@ def solve(
     later = [
         checks.rotation_agreement(problem, fit, alpha, prior_std[ACCEL_ROTATION]),
         checks.residual_level(problem, fit),
+        checks.prior_rotation(fit.point.R, prior.rotation, options.rotation_bound_deg),
         *given,
         *([] if scale is None else [scale]),
     ]

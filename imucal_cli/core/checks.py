@@ -322,6 +322,15 @@ def base_gravity(mean_f: np.ndarray) -> Check:
     return Check("base_gravity", angle <= BASE_GRAVITY_MAX_DEG, {"angle_deg": angle})
 
 
+def prior_rotation(R_base_imu: Any, prior_R_base_imu: Any, bound_deg: float) -> Check:
+    """The estimate's rotation against the prior's (SPEC ``rotation_bound_deg``): a CAD prior is
+    a few degrees off, an IMU frame turned 180 deg from what the config or the log's tree says
+    (an Ouster ``T_imu_lidar`` without its yaw, a driver whose IMU ``frame_id`` is the lidar's)
+    is not; the data then place the IMU right and the lidar wrong, by the same turn."""
+    angle = float(np.degrees(np.linalg.norm(rotation_difference(R_base_imu, prior_R_base_imu))))
+    return Check("prior_rotation", angle <= bound_deg, {"angle_deg": angle, "bound_deg": bound_deg})
+
+
 def axes_figures(found: dict[str, Any]) -> dict[str, Any]:
     """A triad's axis errors as the calibrate document gives them."""
     if "value" not in found:

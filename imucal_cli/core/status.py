@@ -111,6 +111,12 @@ def check_sentences(checks: Sequence[Check]) -> list[str]:
                 "hold (aliased or saturated motion, a moving mount); the estimate is given "
                 "without it, its std covering the difference"
             )
+        elif check.name == "prior_rotation":
+            out.append(
+                f"the data put the IMU {f['angle_deg']:.0f} deg from its prior (rotation_bound_deg "
+                f"{f['bound_deg']:g}): check T_imu_lidar and the IMU's frame_id; the lidar's pose "
+                "is as wrong as they are"
+            )
         elif check.name == "residual_level":
             out.append(
                 f"residuals {f['gyro']:.1f}x (gyro) and {f['accel']:.1f}x (accelerometer) the "

@@ -176,3 +176,45 @@ def test_a_base_gyro_scale_no_gyro_has_is_a_failed_check_that_covers_the_error()
         assert np.radians(angle) < 3 * std[:3].min()
         error = np.abs(estimate.T_base_imu.translation - mount.T_base_imu.translation)
         assert np.all(error < 3 * std[3:])
+
+
+def _turned_priors(yaw_deg):
+    """The config's priors turned ``yaw_deg`` about each IMU's z axis: 180 is an Ouster
+    ``T_imu_lidar`` without its yaw (the prior made from the CAD lidar pose through it)."""
+    from scipy.spatial.transform import Rotation
+
+    from imucal_cli.types import Transform
+
+    def change(document):
+        for sensor in document["sensors"].values():
+            T = Transform.from_dict(sensor["prior_T_base_imu"])
+            turn = Rotation.from_euler("z", yaw_deg, degrees=True)
+            sensor["prior_T_base_imu"] = Transform(T.rotation * turn, T.translation).to_dict()
+
+    return change
+
+
+@pytest.fixture(scope="module")
+def urban_minute():
+    return simulate_drive(DriveOptions(scenario="urban", duration_s=60.0, seed=3))
+
+
+def test_an_imu_180_deg_from_its_prior_is_inconsistent_and_says_why(urban_minute):
+    """The data place the IMU right, 180 deg from a prior whose T_imu_lidar lacks the Ouster's
+    yaw: never ``ok``; the check and the warning name the angle and what to look at."""
+    result = run_calibrate(urban_minute.streams(), urban_minute.config(_turned_priors(180.0)))
+    for estimate in result.estimates.values():
+        check = estimate.checks["prior_rotation"]
+        assert estimate.status == "inconsistent"
+        assert check["pass"] is False and 175.0 < check["angle_deg"] <= 180.0
+        assert check["bound_deg"] == 20.0
+        assert any("from its prior" in w and "T_imu_lidar" in w for w in estimate.warnings)
+
+
+def test_a_cad_prior_10_deg_off_stays_ok(urban_minute):
+    """CAD priors a few degrees off are ordinary: within rotation_bound_deg the check passes."""
+    result = run_calibrate(urban_minute.streams(), urban_minute.config(_turned_priors(10.0)))
+    for name, estimate in result.estimates.items():
+        check = estimate.checks["prior_rotation"]
+        assert check["pass"] is True and 5.0 < check["angle_deg"] < 15.0, name
+        assert estimate.status == "ok", (name, estimate.warnings)
