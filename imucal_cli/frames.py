@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.errors import ConfigError, InputError
+from imucal_cli.names import printable
 from imucal_cli.types import Transform, rotation_type
 
 TF_TOPIC = "/tf_static"
@@ -31,6 +32,8 @@ TF_MSGTYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage")
 STRING_MSGTYPE = "std_msgs/msg/String"
 #: Most /tf_static messages and transforms read: a static tree holds tens.
 MAX_TF_MESSAGES, MAX_TRANSFORMS = 1000, 10_000
+#: tf2's bound on a quaternion's squared norm (``QUATERNION_NORMALIZATION_TOLERANCE``).
+TF2_QUATERNION_TOLERANCE = 10e-3
 #: Sensor keys a tree may supply, and the base's.
 SENSOR_KEYS, BASE_KEY = ("T_imu_lidar", "prior_T_base_imu"), "T_base_imu"
 
@@ -110,8 +113,13 @@ def read_urdf(text: str, tree: FrameTree, where: str) -> None:
         origin = joint.origin
         xyz = np.zeros(3) if origin is None or origin.xyz is None else np.array(origin.xyz)
         rpy = np.zeros(3) if origin is None or origin.rpy is None else np.array(origin.rpy)
-        if np.all(np.isfinite(xyz)) and np.all(np.isfinite(rpy)):
-            tree.add(joint.parent, joint.child, Transform.from_rpy(rpy, xyz), "urdf")
+        if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(rpy))):
+            raise InputError(
+                f"{where}: joint {printable(str(joint.name))!r} ({printable(str(joint.parent))!r}"
+                f" -> {printable(str(joint.child))!r}) has an origin that is not finite (xyz "
+                f"{xyz.tolist()}, rpy {rpy.tolist()})"
+            )
+        tree.add(joint.parent, joint.child, Transform.from_rpy(rpy, xyz), "urdf")
 
 
 def _description(reader: Any) -> str | None:
@@ -194,15 +202,32 @@ def read_tf_static(reader: Any) -> FrameTree:
                 transforms += 1
                 if transforms > MAX_TRANSFORMS:
                     return tree
-                t, q = stamped.transform.translation, stamped.transform.rotation
-                xyzw = np.array([q.x, q.y, q.z, q.w])
-                if not np.all(np.isfinite(xyzw)) or np.linalg.norm(xyzw) < 1e-9:
-                    continue
-                rotation = rotation_type().from_quat(xyzw / np.linalg.norm(xyzw))
-                T = Transform(rotation, np.array([t.x, t.y, t.z]))
                 parent, child = stamped.header.frame_id, stamped.child_frame_id
+                T = _tf_transform(stamped.transform, f"{reader.path} [{TF_TOPIC}]", parent, child)
                 tree.add(parent.lstrip("/"), child.lstrip("/"), T, "tf_static")
     return tree
+
+
+def _tf_transform(transform: Any, where: str, parent: str, child: str) -> Transform:
+    """A ``geometry_msgs/Transform`` as tf2 takes it: finite, and a quaternion whose squared
+    norm is within :data:`TF2_QUATERNION_TOLERANCE` of 1 (tf2 refuses any other; normalising
+    ``(1e-8, 0, 0, 0)`` would make a 180 deg roll of it). Raises :class:`InputError` naming
+    the frames and the value."""
+    t, q = transform.translation, transform.rotation
+    xyz, xyzw = np.array([t.x, t.y, t.z], float), np.array([q.x, q.y, q.z, q.w], float)
+    edge = f"{where}: the transform {printable(parent)!r} -> {printable(child)!r}"
+    if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(xyzw))):
+        raise InputError(
+            f"{edge} is not finite (translation {xyz.tolist()}, rotation "
+            f"{xyzw.tolist()}): give the keys it would supply in the config"
+        )
+    if abs(float(xyzw @ xyzw) - 1.0) > TF2_QUATERNION_TOLERANCE:
+        raise InputError(
+            f"{edge} has a quaternion of norm {np.linalg.norm(xyzw):.6g} ({xyzw.tolist()}), not "
+            f"a rotation (tf2 refuses a squared norm beyond 1 +- {TF2_QUATERNION_TOLERANCE:g}): "
+            "give the keys it would supply in the config"
+        )
+    return Transform(rotation_type().from_quat(xyzw / np.linalg.norm(xyzw)), xyz)
 
 
 def imu_frames(reader: Any, topics: list[str]) -> dict[str, str]:

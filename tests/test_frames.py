@@ -186,3 +186,47 @@ def test_follow_mode_takes_the_transforms_from_the_recordings_tf_static(drive, t
         assert (
             sensor["priors"]["T_imu_lidar"] == sensor["priors"]["prior_T_base_imu"] == "tf_static"
         )
+
+
+class _RawTransform:
+    """What ``tf_message`` writes of a transform, with any quaternion (a log's author's)."""
+
+    def __init__(self, T, quaternion_xyzw):
+        self.translation, self.quaternion_xyzw = T.translation, np.asarray(quaternion_xyzw)
+
+
+@pytest.mark.parametrize(
+    ("quaternion", "says"),
+    [([1e-8, 0.0, 0.0, 0.0], "norm 1e-08"), ([np.nan, 0.0, 0.0, 1.0], "not finite")],
+)
+def test_a_tf_static_rotation_that_is_not_one_is_refused_naming_the_frames(
+    drive, tmp_path, quaternion, says
+):
+    """tf2 refuses a quaternion whose norm is not 1: normalising (1e-8, 0, 0, 0) made a 180 deg
+    roll, and the sensor ``ok`` 180 deg wrong. The error names the topic, the frames and the
+    value; a NaN is named likewise, not dropped to an error that the frame is missing."""
+    from imucal_cli.errors import InputError
+
+    transforms = drive.static_transforms()
+    parent, child, T = transforms[2]  # a sensor's IMU frame under its os_sensor
+    transforms[2] = (parent, child, _RawTransform(T, quaternion))
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics(), tf_static=transforms)
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    with pytest.raises(InputError) as caught:
+        load_config(tmp_path / "min.yaml", log)
+    message = str(caught.value)
+    assert "/tf_static" in message and str(log) in message and says in message
+    assert f"{parent!r} -> {child!r}" in message
+
+
+def test_a_urdf_joint_that_is_not_finite_is_refused_naming_the_joint(drive, tmp_path):
+    from imucal_cli.errors import InputError
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics())
+    urdf = drive.urdf()
+    first = urdf.split('<origin xyz="', 1)[1].split('"', 1)[0]
+    urdf = urdf.replace(f'xyz="{first}"', 'xyz="nan 0 0"', 1)
+    (tmp_path / "robot.urdf").write_text(urdf)
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    with pytest.raises(InputError, match=r"robot.urdf: joint 'joint_0' .* not finite"):
+        load_config(tmp_path / "min.yaml", log, tmp_path / "robot.urdf")
