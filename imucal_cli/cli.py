@@ -352,6 +352,8 @@ def init(
 
         write_text_atomic(out, text)
         _err(f"imucal: config: {out} (base {found.base_topic}, {len(found.sensors)} sensors)")
+    for line in found.skipped:
+        _err(f"imucal: {line}")
     for name, key in found.missing:
         _err(f"imucal: {name}: {key} is not in the log: fill its placeholder")
 

@@ -175,6 +175,8 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "rotation_floor_deg": (0.0, 90.0, "deg"),
     "translation_floor_m": (0.0, 10.0, "m"),
 }
+#: The name the base IMU goes by beside the sensors' (SPEC biases: ``imus: base:``).
+RESERVED_SENSOR_NAME = "base"
 #: A lidar's IMU lies inside its housing; a CAD prior inside the vehicle (m).
 MAX_IMU_IN_LIDAR_M, MAX_PRIOR_M = 1.0, 100.0
 #: Keys that hold a ROS name, and its kind (:func:`imucal_cli.names.name_problem`): they go into
@@ -289,6 +291,11 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     sensors = []
     for name in sensors_section.data:
         problem = name_problem(name, "sensor")
+        if name == RESERVED_SENSOR_NAME:
+            problem = (
+                f"{name!r} names the base IMU (the documents' base entry, biases' imus.base): "
+                "name this lidar otherwise"
+            )
         if problem:
             raise ConfigError(source, f"sensors.{printable(name)}", problem)
         section = sensors_section.section(name, required=True)

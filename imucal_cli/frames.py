@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.errors import ConfigError, InputError
-from imucal_cli.names import printable
+from imucal_cli.names import quoted
 from imucal_cli.types import Transform, rotation_type
 
 TF_TOPIC = "/tf_static"
@@ -115,8 +115,8 @@ def read_urdf(text: str, tree: FrameTree, where: str) -> None:
         rpy = np.zeros(3) if origin is None or origin.rpy is None else np.array(origin.rpy)
         if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(rpy))):
             raise InputError(
-                f"{where}: joint {printable(str(joint.name))!r} ({printable(str(joint.parent))!r}"
-                f" -> {printable(str(joint.child))!r}) has an origin that is not finite (xyz "
+                f"{where}: joint {quoted(str(joint.name))} ({quoted(str(joint.parent))}"
+                f" -> {quoted(str(joint.child))}) has an origin that is not finite (xyz "
                 f"{xyz.tolist()}, rpy {rpy.tolist()})"
             )
         tree.add(joint.parent, joint.child, Transform.from_rpy(rpy, xyz), "urdf")
@@ -215,7 +215,7 @@ def _tf_transform(transform: Any, where: str, parent: str, child: str) -> Transf
     the frames and the value."""
     t, q = transform.translation, transform.rotation
     xyz, xyzw = np.array([t.x, t.y, t.z], float), np.array([q.x, q.y, q.z, q.w], float)
-    edge = f"{where}: the transform {printable(parent)!r} -> {printable(child)!r}"
+    edge = f"{where}: the transform {quoted(parent)} -> {quoted(child)}"
     if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(xyzw))):
         raise InputError(
             f"{edge} is not finite (translation {xyz.tolist()}, rotation "

@@ -8,15 +8,19 @@ placeholder for each it does not, and every other key at its default with its co
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import yaml
 
-from imucal_cli.config import SECTIONS, BaseConfig, SensorConfig
+from imucal_cli.config import RESERVED_SENSOR_NAME, SECTIONS, BaseConfig, SensorConfig
 from imucal_cli.errors import InputError
 from imucal_cli.frames import FrameTree, frame_tree, imu_frames
+from imucal_cli.names import name_problem, printable, quoted
 from imucal_cli.types import Transform
 
 #: Tokens of a topic name that say nothing of which sensor it is.
@@ -54,6 +58,9 @@ class Found:
     #: (who, key) -> the transform and where it came from (tf_static, urdf, both)
     transforms: dict[tuple[str, str], tuple[Transform, str]] = field(default_factory=dict)
     missing: list[tuple[str, str]] = field(default_factory=list)
+    #: What of the log could not go into a config (a topic or frame outside ROS's naming
+    #: rules), one line each, made printable.
+    skipped: list[str] = field(default_factory=list)
 
 
 def sensor_name(topic: str, taken: set[str]) -> str:
@@ -101,12 +108,21 @@ def find(
     log's ``/robot_description``); settle the base and every transform the tree gives."""
     from imucal_cli.io.logs import open_log
 
+    problem = name_problem(base_frame, "frame")
+    if problem:
+        raise InputError(f"--frame: {problem}")
+    skipped: list[str] = []
     with open_log(log) as reader:
         topics = sorted(t for t, info in reader.topics().items() if info.is_imu)
+        skipped += [f"IMU topic {quoted(t)} skipped: {p}" for t, p in _invalid(topics, "topic")]
+        topics = [t for t in topics if name_problem(t, "topic") is None]
         if len(topics) < 2:
             raise InputError(f"{log}: {len(topics)} IMU topics; a calibration needs two or more")
         tree = frame_tree(reader, urdf)
         frames = imu_frames(reader, topics)
+    for topic, problem in _invalid(frames.values(), "frame"):
+        skipped.append(f"an IMU's frame_id {quoted(topic)} not used: {problem}")
+    frames = {t: f for t, f in frames.items() if name_problem(f, "frame") is None}
     if base is not None and base not in topics:
         raise InputError(f"--base {base}: not an IMU topic of {log}: {', '.join(topics)}")
     base = base or _base_topic(tree, frames, base_frame, topics)
@@ -115,15 +131,21 @@ def find(
             f"{log}: cannot tell which IMU is the base (its IMU topics: {', '.join(topics)}): "
             "give --base TOPIC"
         )
-    taken: set[str] = set()
+    taken = {RESERVED_SENSOR_NAME}
     sensors = {}
     for topic in topics:
         if topic != base:
             sensors[sensor_name(topic, taken)] = topic
             taken.add(list(sensors)[-1])
-    found = Found(base, base_frame, sensors)
+    found = Found(base, base_frame, sensors, skipped=skipped)
     _transforms(found, tree, frames)
     return found
+
+
+def _invalid(names: Any, kind: str) -> list[tuple[str, str]]:
+    """The names a config would refuse (:func:`~imucal_cli.names.name_problem`), with why: a
+    log's author must not write keys into the config through them."""
+    return [(n, p) for n in dict.fromkeys(names) if (p := name_problem(n, kind))]
 
 
 def _transforms(found: Found, tree: FrameTree, frames: dict[str, str]) -> None:
@@ -135,6 +157,9 @@ def _transforms(found: Found, tree: FrameTree, frames: dict[str, str]) -> None:
     for name, topic in found.sensors.items():
         imu = frames.get(topic)
         lidar = _lidar_beside(tree, imu) if imu else None
+        if lidar is not None and (problem := name_problem(lidar, "frame")):
+            found.skipped.append(f"{name}: the lidar frame {quoted(lidar)} not used: {problem}")
+            lidar = None
         found.lidar_frames[name] = lidar or f"{name}_lidar"
         pairs = {"T_imu_lidar": (imu, lidar), "prior_T_base_imu": (found.base_frame, imu)}
         for key, (a, b) in pairs.items():
@@ -143,6 +168,14 @@ def _transforms(found: Found, tree: FrameTree, frames: dict[str, str]) -> None:
                 found.missing.append((name, key))
             else:
                 found.transforms[name, key] = chain
+
+
+def _scalar(value: str) -> str:
+    """A string as a YAML scalar, by the emitter (quoted where YAML needs it): nothing a name
+    holds can end its line or open another key."""
+    text = yaml.safe_dump(value, default_flow_style=True, width=1 << 16)
+    text = text.removesuffix("\n").removesuffix("\n...").strip()
+    return json.dumps(value) if "\n" in text else text  # (a JSON string: YAML's double-quoted)
 
 
 def _flow(T: Transform) -> str:
@@ -167,13 +200,13 @@ def _default_lines(cls: type, section: str, indent: str, skip: set[str]) -> list
 def render(found: Found, log: str | Path, version: str) -> str:
     """The config text: found transforms written out, placeholders commented."""
     lines = [
-        f"# imucal config from `imucal init {log}` (imucal {version}).",
+        f"# imucal config from `imucal init {printable(str(log))}` (imucal {version}).",
         "# Transforms marked 'from tf_static' or 'from urdf' were read; a commented placeholder",
         "# marks one the log does not hold: fill it in (`imucal check-config` names what is",
         "# missing). Every other key is at its default.",
         "base:",
-        f"  topic: {found.base_topic}",
-        f"  frame: {found.base_frame}",
+        f"  topic: {_scalar(found.base_topic)}",
+        f"  frame: {_scalar(found.base_frame)}",
     ]
     if ("base", "T_base_imu") in found.transforms:
         T, origin = found.transforms["base", "T_base_imu"]
@@ -187,8 +220,8 @@ def render(found: Found, log: str | Path, version: str) -> str:
         "prior_T_base_imu": "the CAD pose of the lidar's IMU in the base frame",
     }
     for name, topic in found.sensors.items():
-        lines += [f"  {name}:", f"    imu_topic: {topic}"]
-        lines.append(f"    lidar_frame: {found.lidar_frames[name]}")
+        lines += [f"  {_scalar(name)}:", f"    imu_topic: {_scalar(topic)}"]
+        lines.append(f"    lidar_frame: {_scalar(found.lidar_frames[name])}")
         for key in ("T_imu_lidar", "prior_T_base_imu"):
             if (name, key) in found.transforms:
                 T, origin = found.transforms[name, key]

@@ -45,8 +45,14 @@ def name_problem(value: object, kind: str) -> str | None:
     if len(value) > 256:
         return f"a {kind} name of {len(value)} characters (at most 256)"
     if not pattern.fullmatch(value):
-        return f"{printable(value)!r} is not a valid {kind} name: {rule}"
+        return f"{quoted(value)} is not a valid {kind} name: {rule}"
     return None
+
+
+def quoted(text: str) -> str:
+    """``text`` made :func:`printable`, in single quotes (``repr`` would double every
+    backslash of the escapes)."""
+    return f"'{printable(text)}'"
 
 
 _UNSAFE = re.compile(r"[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")

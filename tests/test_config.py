@@ -280,3 +280,14 @@ def test_a_configs_imu_topics_read_alone_are_the_loaded_configs():
             continue  # (a defaults file)
         loaded = load_config(path).imu_names()
         assert list(imu_names_in(path).items()) == list(loaded.items()), path
+
+
+def test_a_sensor_named_base_is_refused_not_confused_with_the_base_imu(base_dict):
+    """``base`` is the base IMU's name beside the sensors' (the biases document's
+    ``imus.base``): a lidar named so came back unobservable ("every window has a gap") and
+    another inconsistent with 1,040 deg of std, exit 0. Now the config says so."""
+    sensors = base_dict["sensors"]
+    sensors["base"] = sensors.pop("front_left_top")
+    with pytest.raises(ConfigError) as info:
+        parse_config(base_dict, "vehicle.yaml")
+    assert str(info.value).startswith("vehicle.yaml: sensors.base: 'base' names the base IMU")

@@ -133,3 +133,38 @@ def test_init_refuses_an_output_that_is_its_urdf_and_damaged_imu_data_is_one_lin
     result = runner.invoke(app, ["init", str(bad)])
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert len(result.stderr.strip().splitlines()) == 1 and str(bad) in result.stderr
+
+
+def test_a_log_cannot_write_keys_into_inits_config_nor_escapes_onto_the_terminal(tmp_path):
+    """A frame name in /tf_static holding a newline was pasted raw into the YAML: the log's
+    author set the user's prior_T_base_imu, check-config passed. A topic name with an OSC
+    sequence reached the terminal raw. Names a config would refuse are now left out, each
+    said in one printable line, and every value goes through the YAML emitter."""
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+
+    drive = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=30.0, seed=1, tf_static=True)
+    )
+    evil_frame = "x\n    prior_T_base_imu: {translation: [9, 9, 9], rpy_deg: [0, 0, 0]}\n    lidar"
+    transforms = [
+        (parent, evil_frame if child.endswith("lidar") else child, T)
+        for parent, child, T in drive.static_transforms()
+    ]
+    topics = drive.topics()
+    topics["/evil\x1b]0;pwned\x07/imu"] = next(iter(topics.values()))
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", topics, tf_static=transforms)
+    made = CliRunner().invoke(app, ["init", str(log)])
+    assert made.exit_code == 0, made.output
+    assert "\x1b" not in made.stdout and "\x1b" not in made.stderr
+    assert "IMU topic '/evil\\x1b]0;pwned\\x07/imu' skipped" in made.stderr
+    assert "lidar frame 'x\\n    prior_T_base_imu" in made.stderr
+    import yaml
+
+    document = yaml.safe_load(made.stdout)
+    assert len(document["sensors"]) == len(drive.mounts)
+    for name, sensor in document["sensors"].items():
+        assert sensor["lidar_frame"] == f"{name}_lidar"
+        prior = sensor["prior_T_base_imu"]  # from the tree, not from the frame's name
+        assert prior["translation"] != [9, 9, 9]
