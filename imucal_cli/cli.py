@@ -334,6 +334,9 @@ def init(
     ] = None,
     frame: Annotated[str, typer.Option("--frame", help="The base frame B.")] = "base_link",
     urdf: UrdfOption = None,
+    force: Annotated[
+        bool, typer.Option("--force", metavar="", help="Replace the config OUT if it exists.")
+    ] = False,
 ) -> None:
     """Write a starting config from a log: its IMU topics, the base, the transforms in its
     /tf_static, a commented placeholder for each one it lacks."""
@@ -343,6 +346,8 @@ def init(
     if out is not None and out.suffix.lower() not in {".yaml", ".yml"}:
         raise InputError(f"{out}: the config is YAML: name it .yaml")
     _check_output(out, log, urdf)
+    if out is not None and out.exists() and not force:
+        raise InputError(f"{out}: exists (a config of yours?): name a new one, or give --force")
     found = find(log, base, frame, urdf)
     text = render(found, log, version())
     if out is None:
@@ -1031,6 +1036,12 @@ def export(
         from imucal_cli.paths import check_outputs
 
         inputs = [extrinsics, Path(parent_transform) if parent_transform is not None else None]
+        launch = targets.get("launch")
+        if launch is not None and launch.exists() and not _written_by_export(launch):
+            raise InputError(
+                f"{launch}: exists, and imucal export did not write it: not replaced (the launch "
+                "file goes beside -o OUT as its stem's): move it, or name another OUT"
+            )
         check_outputs(
             {"-o" if key == "main" else "the launch file": path for key, path in targets.items()},
             inputs,
@@ -1055,6 +1066,17 @@ def export(
         if key == "main" and fmt.startswith("tf-static"):
             path.chmod(path.stat().st_mode | 0o111)  # the command lines: a script to run
         _err(f"imucal: wrote {path}")
+
+
+def _written_by_export(path: Path) -> bool:
+    """Whether ``path`` is a launch file an earlier ``export`` wrote (its mark in its head)."""
+    from imucal_cli.exports import LAUNCH_MARK
+
+    try:
+        with path.open("rb") as handle:
+            return LAUNCH_MARK.encode() in handle.read(4096)
+    except OSError:
+        return False
 
 
 PANEL_FLEET = "Fleet"
@@ -1207,44 +1229,47 @@ def batch(
                 if v is not None
             )
         )
-    check_batch_outputs(
-        tasks,
-        [out_dir / "summary.csv", out_dir / "summary.json", *([junit] if junit else [])],
-        [manifest, reference, config],
-        force,
-    )
-    for task in tasks:
-        try:
-            Path(task.out).parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise InputError(
-                f"{Path(task.out).parent}: cannot make the output folder: {exc.strerror}"
-            ) from None
+    from imucal_cli.paths import only_writer
 
-    def done(i: int, rows: list[Any]) -> None:
-        verdict = "ok" if all(r.passed for r in rows) else "FAIL"
-        _err(f"imucal: [{i + 1}/{len(tasks)}] {tasks[i].name}: {verdict}")
+    with only_writer(out_dir):  # (a second batch into it at once is refused)
+        check_batch_outputs(
+            tasks,
+            [out_dir / "summary.csv", out_dir / "summary.json", *([junit] if junit else [])],
+            [manifest, reference, config],
+            force,
+        )
+        for task in tasks:
+            try:
+                Path(task.out).parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise InputError(
+                    f"{Path(task.out).parent}: cannot make the output folder: {exc.strerror}"
+                ) from None
 
-    results = run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
-    rows = [row for result in results for row in result]
-    settings = {
-        "jobs": jobs,
-        "scheduler": scheduler,
-        "max_rotation_deg": max_rotation_deg,
-        "max_translation_m": max_translation_m,
-        "max_lost_s": max_lost_s,
-        "truth_dir": str(truth_dir) if truth_dir else None,
-        "reference": str(reference) if reference else None,
-    }
-    write_text_atomic(out_dir / "summary.csv", summary_csv(rows))
-    write_text_atomic(out_dir / "summary.json", summary_json(rows, settings))
-    if junit is not None:
-        write_text_atomic(junit, junit_xml(rows))
-    failed = sum(not r.passed for r in rows)
-    _err(
-        f"imucal: {len(tasks)} logs, {len(rows)} rows, {failed} failed; summary in "
-        f"{out_dir / 'summary.csv'}"
-    )
+        def done(i: int, rows: list[Any]) -> None:
+            verdict = "ok" if all(r.passed for r in rows) else "FAIL"
+            _err(f"imucal: [{i + 1}/{len(tasks)}] {tasks[i].name}: {verdict}")
+
+        results = run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
+        rows = [row for result in results for row in result]
+        settings = {
+            "jobs": jobs,
+            "scheduler": scheduler,
+            "max_rotation_deg": max_rotation_deg,
+            "max_translation_m": max_translation_m,
+            "max_lost_s": max_lost_s,
+            "truth_dir": str(truth_dir) if truth_dir else None,
+            "reference": str(reference) if reference else None,
+        }
+        write_text_atomic(out_dir / "summary.csv", summary_csv(rows))
+        write_text_atomic(out_dir / "summary.json", summary_json(rows, settings))
+        if junit is not None:
+            write_text_atomic(junit, junit_xml(rows))
+        failed = sum(not r.passed for r in rows)
+        _err(
+            f"imucal: {len(tasks)} logs, {len(rows)} rows, {failed} failed; summary in "
+            f"{out_dir / 'summary.csv'}"
+        )
     if failed:
         raise typer.Exit(EXIT_CHECK_FAILED)
 

@@ -207,8 +207,16 @@ def tf_static_ros2(ex: Extrinsics, parent: str) -> tuple[str, str]:
             '  <node pkg="tf2_ros" exec="static_transform_publisher" '
             f"name={quoteattr(f'imucal_{s.name}_tf')} args={quoteattr(args)}/>"
         )
-    launch = "\n".join(['<?xml version="1.0"?>', "<launch>", *nodes, "</launch>"]) + "\n"
-    return "\n".join([*commands, "wait"]) + "\n", launch
+    return "\n".join([*commands, "wait"]) + "\n", _launch_file(nodes)
+
+
+def _launch_file(nodes: list[str]) -> str:
+    return "\n".join(['<?xml version="1.0"?>', LAUNCH_MARK, "<launch>", *nodes, "</launch>", ""])
+
+
+#: The line that tells a launch file imucal wrote (beside ``-o``, a file nobody named) from one
+#: a person wrote: only the first is ever replaced.
+LAUNCH_MARK = "<!-- imucal export: the lidars' static transforms (imucal replaces this file) -->"
 
 
 def tf_static_ros1(ex: Extrinsics, parent: str) -> tuple[str, str]:
@@ -224,8 +232,7 @@ def tf_static_ros1(ex: Extrinsics, parent: str) -> tuple[str, str]:
             '  <node pkg="tf2_ros" type="static_transform_publisher" '
             f"name={quoteattr(f'imucal_{s.name}_tf')} args={quoteattr(args)}/>"
         )
-    launch = "\n".join(['<?xml version="1.0"?>', "<launch>", *nodes, "</launch>"]) + "\n"
-    return "\n".join([*commands, "wait"]) + "\n", launch
+    return "\n".join([*commands, "wait"]) + "\n", _launch_file(nodes)
 
 
 def _matrix_rows(M: np.ndarray, indent: str) -> list[str]:

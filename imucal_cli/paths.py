@@ -9,8 +9,10 @@ also when it is given as its ``metadata.yaml``), and a log is only ever replaced
 
 from __future__ import annotations
 
+import fcntl
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 
 from imucal_cli.errors import InputError
@@ -53,6 +55,12 @@ def check_outputs(outputs: Mapping[str, Path | None], inputs: Iterable[Path | No
         if real in seen:
             raise InputError(f"{out}: {option} and {seen[real]} name the same file")
         seen[real] = option
+        if real.is_file() and recognised_log(real):
+            raise InputError(f"{out}: {option} is a log: a log is never an output")
+        if (real.parent / "metadata.yaml").is_file():
+            raise InputError(
+                f"{out}: {option} lies inside the rosbag2 log {out.parent}: give another output"
+            )
         for root, given in roots.items():
             if real == root:
                 raise InputError(
@@ -101,3 +109,32 @@ def refuse_existing(path: Path, force: bool, what: str = "a log") -> None:
         )
     if not recognised_log(path):
         raise InputError(f"{path}: exists and is not a log imucal recognises: not replaced")
+
+
+@contextmanager
+def only_writer(folder: Path) -> Iterator[None]:
+    """Hold ``folder`` (made if missing) for this process alone while the block runs: a second
+    run into it at once is refused (an exclusive ``flock`` of the folder itself, let go when
+    the process ends however it ends), never left to replace the first's results."""
+    made = not folder.exists()
+    try:
+        folder.mkdir(exist_ok=True)
+        handle = os.open(folder, os.O_RDONLY)
+    except OSError as exc:
+        raise InputError(f"{folder}: cannot make or open the folder: {exc.strerror}") from None
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(
+                f"{folder}: another imucal run is writing into it: wait for it, or give another "
+                "folder"
+            ) from None
+        try:
+            yield
+        except BaseException:
+            if made and not any(folder.iterdir()):
+                folder.rmdir()  # (nothing written: leave no folder either)
+            raise
+    finally:
+        os.close(handle)

@@ -471,3 +471,79 @@ def test_a_full_disk_at_the_end_is_one_line_and_leaves_no_file(tmp_path, monkeyp
     )
     assert len(result.stderr.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------ 6 (issue 48). files nobody named this run
+
+
+def test_init_keeps_an_existing_config_without_force(tmp_path, short_drive):
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    mine = tmp_path / "vehicle.yaml"
+    mine.write_text("# my hand-written config\n")
+    result = runner.invoke(app, ["init", str(log), "-o", str(mine)])
+    assert result.exit_code == 2 and "--force" in result.stderr
+    assert mine.read_text() == "# my hand-written config\n"
+    assert runner.invoke(app, ["init", str(log), "-o", str(mine), "--force"]).exit_code == 0
+    assert mine.read_text().startswith("# imucal config from")
+
+
+@pytest.mark.parametrize("command", ["init", "calibrate"])
+def test_no_output_goes_into_a_bag_that_is_not_an_input(bags, command):
+    """``-o otherbag/metadata.yaml`` replaced the metadata of a bag the run never read (that
+    bag no longer opened); a log file is never an output either."""
+    root, config = bags
+    before = _snapshot(root)
+    mcap = next((root / "d2").glob("*.mcap"))
+    for target in (root / "d2" / "metadata.yaml", root / "d2" / "result.yaml", mcap):
+        args = [command, str(root / "d1"), "-o", str(target)]
+        args += ["--force"] if command == "init" else ["-c", str(config)]
+        result = runner.invoke(app, args)
+        assert result.exit_code == 2, (target, result.output)
+        assert str(target) in result.stderr
+    assert _snapshot(root) == before
+
+
+def test_export_never_replaces_a_launch_file_nobody_named(tmp_path, short_drive):
+    """``-f tf-static-ros2 -o robot.sh`` writes robot.launch.xml beside it: a hand-written
+    one there is kept (and the run refused); one an earlier export wrote is replaced."""
+    from imucal_cli.outputs import calibration_document
+    from imucal_cli.pipeline import run_calibrate
+
+    result = run_calibrate(short_drive.streams(), short_drive.config())
+    estimate = tmp_path / "estimate.yaml"
+    write_document(estimate, calibration_document(result, "sim.mcap"))
+    launch = tmp_path / "robot.launch.xml"
+    launch.write_text("<launch><!-- mine --></launch>\n")
+    args = ["export", str(estimate), "-f", "tf-static-ros2", "-o", str(tmp_path / "robot.sh")]
+    args += ["--allow-not-ok"]
+    refused = runner.invoke(app, args)
+    assert refused.exit_code == 2 and str(launch) in refused.stderr
+    assert launch.read_text() == "<launch><!-- mine --></launch>\n"
+    assert not (tmp_path / "robot.sh").exists()
+    launch.unlink()
+    assert runner.invoke(app, args).exit_code == 0
+    written = launch.read_text()
+    assert runner.invoke(app, args).exit_code == 0  # its own: replaced
+    assert launch.read_text() == written
+
+
+def test_a_batch_into_a_folder_another_batch_holds_is_refused(tmp_path, short_drive):
+    """Two batches into one --out-dir at once both passed the "exists" check, and the first's
+    results were gone: the folder is now held for one batch at a time."""
+    import fcntl
+
+    config = tmp_path / "config.yaml"
+    write_document(config, short_drive.config_document())
+    log = write_imu_log(tmp_path / "a.mcap", "mcap", short_drive.topics())
+    out = tmp_path / "out"
+    out.mkdir()
+    held = os.open(out, os.O_RDONLY)  # what a running batch holds
+    fcntl.flock(held, fcntl.LOCK_EX)
+    try:
+        result = runner.invoke(app, ["batch", str(log), "-c", str(config), "--out-dir", str(out)])
+    finally:
+        os.close(held)
+    assert result.exit_code == 2 and "another imucal run" in result.stderr
+    assert list(out.iterdir()) == []
+    done = runner.invoke(app, ["batch", str(log), "-c", str(config), "--out-dir", str(out)])
+    assert done.exit_code in (0, 1) and (out / "summary.csv").exists()
