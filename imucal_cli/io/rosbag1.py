@@ -318,8 +318,6 @@ class Ros1Log(LogReader):
         batcher = Batcher()
         for conn, time_ns, data in self._walk_records():
             if conn in wanted:
-                batch = batcher.add(self.connections[conn][0], "ros1", time_ns, data)
-                if batch is not None:
-                    yield batch
+                yield from batcher.add(self.connections[conn][0], "ros1", time_ns, data)
         yield from batcher.rest()
         self.losses = losses  # the walk for the counts noted them already

@@ -126,14 +126,12 @@ class Rosbag2Log(LogReader):
         batcher = Batcher()
         try:
             for conn, timestamp, data in self._reader.messages(connections=connections):
-                batch = batcher.add(
+                yield from batcher.add(
                     conn.topic,
                     getattr(conn.ext, "serialization_format", "cdr"),
                     int(timestamp),
                     bytes(data),
                 )
-                if batch is not None:
-                    yield batch
         except Exception as exc:
             raise self.error(
                 f"cannot read its messages: {exc}; `sqlite3 FILE.db3 .recover` salvages a damaged "
@@ -185,9 +183,7 @@ class SqliteRecording(LogReader):
                 batcher = Batcher()
                 for _, topic_id, stamp, data in rows:
                     if topic_id in ids:
-                        batch = batcher.add(*ids[topic_id], int(stamp), bytes(data))
-                        if batch is not None:
-                            yield batch
+                        yield from batcher.add(*ids[topic_id], int(stamp), bytes(data))
                 yield from batcher.rest()
             elif finished or stop():
                 return
