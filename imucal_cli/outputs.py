@@ -280,6 +280,7 @@ def calibration_document(
                 *base_warnings,
                 *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {})),
             ],
+            "notes": list(est.notes),
             "imu_topic": sensor.imu_topic,
             "lidar_frame": sensor.lidar_frame,
             # where each transform came from (SPEC): config (or its default), tf_static

@@ -355,6 +355,7 @@ figure{{margin:2em 0}}</style></head>
 def _sensor_notes(name: str, sensor: Mapping[str, Any]) -> str:
     """A sensor's warnings and its checks with their figures (why it has its status)."""
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in sensor["warnings"])
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in sensor.get("notes") or [])
 
     def figures(check: Mapping[str, Any]) -> str:
         return ", ".join(
@@ -371,6 +372,7 @@ def _sensor_notes(name: str, sensor: Mapping[str, Any]) -> str:
     return (
         f"<h2>{html.escape(name)}: {html.escape(sensor['status'])}</h2>"
         + (f"<ul>{warnings}</ul>" if warnings else "<p>No warnings.</p>")
+        + (f"<p>Notes (no action needed):</p><ul>{notes}</ul>" if notes else "")
         + (
             f"<table><tr><th>check</th><th>result</th><th>figures</th></tr>{checks}</table>"
             if checks

@@ -384,3 +384,38 @@ def test_calibrate_with_an_output_says_each_status_and_warning_on_stderr(tmp_pat
             assert f"imucal: {name}: {warning}" in lines
     quiet = runner.invoke(app, ["calibrate", str(LOG), "-c", str(config), "-o", str(out), "-q"])
     assert quiet.exit_code == 0 and quiet.stderr == ""
+
+
+def test_an_ok_drive_with_the_default_grades_has_no_warnings_and_says_its_notes_apart(tmp_path):
+    """Consumer lidar IMUs under a tactical INS (the default grades): the IMUs' own errors the
+    fit estimated are information (``notes``), not a warning; an ok drive has no warning in
+    the document, on stderr or in batch's summary."""
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import write_imu_log
+
+    drive = simulate_drive(
+        DriveOptions(
+            scenario="urban",
+            duration_s=120.0,
+            seed=2,
+            lidar_grade="consumer",
+            base_grade="tactical",
+        )
+    )
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics())
+    write_document(tmp_path / "c.yaml", drive.config_document())
+    out = tmp_path / "e.json"
+    run = runner.invoke(
+        app, ["calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)]
+    )
+    assert run.exit_code == 0, run.output
+    for name, sensor in json.loads(out.read_text())["sensors"].items():
+        assert sensor["status"] == "ok" and sensor["warnings"] == [], name
+        assert any("axis errors estimated with the extrinsics" in n for n in sensor["notes"])
+    assert "estimated with the extrinsics" not in run.stderr
+    batch = runner.invoke(
+        app, ["batch", str(log), "-c", str(tmp_path / "c.yaml"), "--out-dir", str(tmp_path / "b")]
+    )
+    assert batch.exit_code == 0, batch.output
+    assert "estimated with" not in (tmp_path / "b" / "summary.csv").read_text()

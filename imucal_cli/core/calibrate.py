@@ -82,6 +82,8 @@ class SensorEstimate:
     iterations: int = 0
     noise_std: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    #: Information that needs no action (SPEC ``notes``): the IMUs' own errors estimated.
+    notes: list[str] = field(default_factory=list)
     #: The model-consistency checks (SPEC ``checks``): name -> figures and ``pass``.
     checks: dict[str, dict[str, Any]] = field(default_factory=dict)
     time_offset_observable: bool = False
@@ -281,7 +283,6 @@ def solve(
     spread = uncertainty(problem, fit, failed, floors, prior_std, base_housing)
     observable = fit.free[TRANSLATION].copy()
     warnings = [
-        *status.own_error_sentences(own),
         *status.check_sentences([rigid]),
         *clock_notes,
         *status.check_sentences(later),
@@ -345,6 +346,7 @@ def _estimate(
         iterations=fit.iterations,
         noise_std={"gyro_radps": sigma[0], "accel_mps2": sigma[1]},
         warnings=warnings,
+        notes=status.own_error_sentences(own),
         checks={c.name: {**c.figures, "pass": c.passed} for c in found},
         time_offset_observable=clock_placed,
         tilt_rad_per_mps2=fit.point.tilt.copy(),
