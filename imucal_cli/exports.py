@@ -54,6 +54,9 @@ class Extrinsics:
     base_imu_rate_hz: float | None
     sensors: tuple[SensorExtrinsics, ...]
     base_imu_noise: dict[str, float | None] | None = None
+    #: The base IMU's pose in B (the document's ``base.T_base_imu``); None in a document made
+    #: before it carried one.
+    base_T_base_imu: Transform | None = None
 
     @staticmethod
     def from_document(document: Any, source: str) -> Extrinsics:
@@ -112,7 +115,20 @@ class Extrinsics:
             _number(document, "base_imu_rate_hz", f"{source}: base_imu_rate_hz"),
             tuple(sensors),
             document.get("base_imu_noise"),
+            _base_pose(document.get("base"), source),
         )
+
+
+def _base_pose(base: Any, source: str) -> Transform | None:
+    """The document's ``base.T_base_imu``, None where it has no ``base``."""
+    if base is None:
+        return None
+    if not isinstance(base, dict) or "T_base_imu" not in base:
+        raise InputError(f"{source}: base.T_base_imu: missing")
+    try:
+        return Transform.from_dict(base["T_base_imu"], source, "base.T_base_imu")
+    except ConfigError as exc:  # names file and key
+        raise InputError(str(exc)) from None
 
 
 def _check_name(value: Any, kind: str, where: str) -> None:
@@ -133,8 +149,11 @@ def _number(mapping: dict[str, Any], key: str, where: str) -> float | None:
 
 
 def _f(value: float) -> str:
-    """A float that parses back to the same double."""
-    return repr(float(value))
+    """A float that parses back to the same double, in YAML 1.1 too (PyYAML, Kalibr's reader,
+    takes ``1e-06`` for a string: its mantissa needs a dot, ``1.0e-06``)."""
+    text = repr(float(value))
+    mantissa, e, exponent = text.partition("e")
+    return f"{mantissa}.0e{exponent}" if e and "." not in mantissa else text
 
 
 def autoware(ex: Extrinsics, parent: str) -> str:
@@ -240,9 +259,15 @@ def _matrix_rows(M: np.ndarray, indent: str) -> list[str]:
 
 
 def kalibr(ex: Extrinsics) -> str:
-    """A Kalibr IMU chain (``imu_chain.yaml``): ``imu0`` is the base IMU (identity), then one
-    entry per sensor IMU with ``T_i_b``, the base expressed in that IMU: ``T_base_imu^-1``.
-    ``time_offset`` is added to the IMU's stamps to get the base's time (``-time_offset_s``)."""
+    """A Kalibr IMU chain (``imu_chain.yaml``): ``imu0`` is the base IMU, then one entry per
+    sensor IMU, each with ``T_i_b``, the base frame B expressed in that IMU: ``T_base_imu^-1``
+    (the base IMU's from the document's ``base.T_base_imu``). ``time_offset`` is added to the
+    IMU's stamps to get the base's time (``-time_offset_s``)."""
+    if ex.base_T_base_imu is None:
+        raise InputError(
+            f"{ex.source}: base.T_base_imu: missing (a document of an older imucal): calibrate "
+            "again; Kalibr's imu0 needs the base IMU's pose"
+        )
     # the YAML directive OpenCV's FileStorage (OpenVINS reads the chain with it) requires; a
     # directive PyYAML (Kalibr) reads too
     lines = [
@@ -251,11 +276,12 @@ def kalibr(ex: Extrinsics) -> str:
         "# imucal: IMU chain in Kalibr's layout; imu0 is the base IMU",
         "# noise densities: measured above the motion; random walks: from the joint fit's relative "
         "bias",
-        "# knots (sensor minus base), upper bounds; the base's, the smallest of its sensors'",
+        "# knots (sensor minus base), upper bounds; the base's, its grade's (ideal: the smallest",
+        "# of its sensors')",
         "imu0:",
         "  T_i_b:",
     ]
-    lines += _matrix_rows(np.eye(4), "    ")
+    lines += _matrix_rows(ex.base_T_base_imu.inverse().as_matrix(), "    ")
     lines += ["  model: calibrated", f"  rostopic: {ex.base_topic or ''}", "  time_offset: 0.0"]
     lines += _kalibr_imu(ex, "base_imu", ex.base_imu_rate_hz, ex.base_imu_noise)
     for k, s in enumerate(ex.sensors, start=1):
@@ -342,7 +368,8 @@ def relative_to(ex: Extrinsics, parent: str, T_base_parent: Transform | None = N
         for s in ex.sensors
         if s.lidar_frame != parent
     )
-    return replace(ex, base_frame=parent, sensors=sensors)
+    base = None if ex.base_T_base_imu is None else inverse * ex.base_T_base_imu
+    return replace(ex, base_frame=parent, sensors=sensors, base_T_base_imu=base)
 
 
 def export(

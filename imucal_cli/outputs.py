@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from imucal_cli.core.grades import GRADES
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.documents import to_plain
 from imucal_cli.frames import config_sources
@@ -179,11 +180,18 @@ def losses_document(losses: Sequence[Loss]) -> list[dict[str, Any]]:
 MIN_RANDOM_WALK = 1e-9
 
 
+def _base_source(config: Config) -> str:
+    """Where ``base.T_base_imu`` came from (SPEC ``priors``): config, tf_static, urdf."""
+    sources = {p.get("base.T_base_imu", "config") for p in config.priors.values()}
+    return sources.pop() if len(sources) == 1 else "config"
+
+
 def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
     """An IMU's noise in Kalibr's terms: white-noise densities measured above the motion, and
     the gyro and accelerometer bias random walks measured from the knots of the relative biases
-    the fit estimated (sensor minus base, one knot a window: for each IMU an upper bound); the
-    base's walks are the smallest of its sensors' (the tightest upper bound the log gives)."""
+    the fit estimated (sensor minus base, one knot a window: for each IMU an upper bound, and
+    the sensor's own); the base's walks are its grade's (:data:`GRADES`), or for ``ideal`` the
+    smallest of its sensors' (the tightest upper bound the log gives)."""
     gyro, accel = result.noise_density.get(name, (None, None))
     walks: dict[str, list[float]] = {"gyro": [], "accel": []}
     for sensor, est in result.estimates.items():
@@ -199,6 +207,9 @@ def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
                     )
                 )
     walk_g, walk_a = (min(w) if w else None for w in (walks["gyro"], walks["accel"]))
+    grade_walks = GRADES[result.config.base.grade].random_walks
+    if name == "base" and grade_walks is not None:  # (the drive measures the sensors' alone)
+        walk_g, walk_a = grade_walks
     return {
         "gyroscope_noise_density": gyro,
         "accelerometer_noise_density": accel,
@@ -337,6 +348,12 @@ def calibration_document(
             "base_topic": config.base.topic,
             "base_imu_rate_hz": _rate(result, "base"),
             "base_imu_noise": imu_noise(result, "base"),
+            "base": {
+                "topic": config.base.topic,
+                "T_base_imu": config.base.T_base_imu.to_dict(),
+                "grade": config.base.grade,
+                "source": _base_source(config),
+            },
             "sensors": sensors,
             "pairs": pairs,
             "lost_s": lost_s,

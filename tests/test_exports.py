@@ -50,7 +50,11 @@ def extrinsics(transforms: list[Transform]) -> Extrinsics:
         )
         for k, T in enumerate(transforms)
     )
-    return Extrinsics("test.yaml", "base_link", "/gnss/imu", 100.0, sensors, NOISE)
+    return Extrinsics("test.yaml", "base_link", "/gnss/imu", 100.0, sensors, NOISE, BASE_POSE)
+
+
+#: The base IMU's pose in B: an INS upside down, turned and away from B's origin.
+BASE_POSE = Transform.from_rpy(np.array([np.pi, 0.0, 0.3]), np.array([1.2, 0.1, 0.5]))
 
 
 def parse(fmt: str, files: dict[str, str], parent: str = "base_link") -> dict[str, Transform]:
@@ -98,10 +102,7 @@ def parse(fmt: str, files: dict[str, str], parent: str = "base_link") -> dict[st
             out[child] = Transform(Rotation.from_quat(q), np.array(t))
     elif fmt == "kalibr":
         doc = yaml.safe_load(files["main"])
-        assert np.array_equal(np.array(doc["imu0"]["T_i_b"]), np.eye(4))
         for key in sorted(doc):
-            if key == "imu0":
-                continue
             T_i_b = np.array(doc[key]["T_i_b"])
             assert (
                 doc[key]["model"] == "calibrated"
@@ -122,7 +123,7 @@ def check(fmt: str, ex: Extrinsics) -> None:
     tol_t, tol_r = (SIX_DECIMALS_M, SIX_DECIMALS_RAD) if fmt == "autoware" else (FULL, FULL)
     for k, s in enumerate(ex.sensors, start=1):
         if fmt == "kalibr":
-            pairs = [(got[f"imu{k}"], s.T_base_imu)]
+            pairs = [(got[f"imu{k}"], s.T_base_imu), (got["imu0"], ex.base_T_base_imu)]
         elif fmt == "json":
             pairs = [
                 (got[s.lidar_frame], s.T_base_lidar),
@@ -184,6 +185,7 @@ def test_kalibr_T_i_b_is_the_base_in_the_imu():
         ex.base_imu_rate_hz,
         (SensorExtrinsics("s", "l", "/imu", Transform.identity(), T_base_imu, 0.0, 200.0, NOISE),),
         NOISE,
+        Transform.identity(),
     )
     T_i_b = np.array(yaml.safe_load(export(ex, "kalibr")["main"])["imu1"]["T_i_b"])
     # The IMU sits 1 m along the base's x axis, yawed 90 deg: its y axis points along the base's
@@ -544,3 +546,48 @@ def test_tf_static_without_out_says_how_to_get_the_launch_file(tmp_path):
         and "is written" not in result.stderr
     )
     assert list(tmp_path.iterdir()) == [path]
+
+
+def test_kalibr_imu0_is_the_base_imu_where_it_sits_and_its_walks_are_its_grades(tmp_path):
+    """The INS turned and 1.6 m away (``base.T_base_imu``): imu0's ``T_i_b`` was the identity,
+    and imu1 in imu0, as OpenCV reads the chain (OpenVINS), came out 180 deg and 6.3 m wrong.
+    The calibrate document now carries ``base``, and imu0 is the base IMU where it sits; a
+    tactical INS's random walks are its grade's, not a lidar IMU's."""
+    from imucal_cli.core.grades import GRADES
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.drive import INS_AWAY
+    from imucal_cli.sim.writers import write_imu_log
+
+    drive = simulate_drive(
+        DriveOptions(
+            scenario="aggressive",
+            duration_s=60.0,
+            seed=3,
+            base_T_base_imu=INS_AWAY,
+            base_grade="tactical",
+        )
+    )
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics())
+    write_document(tmp_path / "c.yaml", drive.config_document())
+    out, chain = tmp_path / "e.yaml", tmp_path / "chain.yaml"
+    args = ["calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)]
+    assert runner.invoke(app, args).exit_code == 0
+    document = yaml.safe_load(out.read_text())
+    assert document["base"]["grade"] == "tactical" and document["base"]["source"] == "config"
+    np.testing.assert_allclose(
+        Transform.from_dict(document["base"]["T_base_imu"]).as_matrix(), INS_AWAY.as_matrix()
+    )
+    args = ["export", str(out), "-f", "kalibr", "-o", str(chain), "--allow-not-ok"]
+    assert runner.invoke(app, args).exit_code == 0
+    data = yaml.safe_load(chain.read_text())
+    T_i0_b, T_i1_b = (np.array(data[f"imu{k}"]["T_i_b"]) for k in (0, 1))
+    mount = drive.mounts[0]
+    truth = (INS_AWAY.inverse() * mount.T_base_imu).as_matrix()  # imu1 in imu0
+    imu1_in_imu0 = T_i0_b @ np.linalg.inv(T_i1_b)
+    np.testing.assert_allclose(imu1_in_imu0[:3, :3], truth[:3, :3], atol=np.radians(0.1))
+    np.testing.assert_allclose(imu1_in_imu0[:3, 3], truth[:3, 3], atol=0.01)
+    walks = GRADES["tactical"].random_walks
+    assert (data["imu0"]["gyroscope_random_walk"], data["imu0"]["accelerometer_random_walk"]) == (
+        walks
+    )

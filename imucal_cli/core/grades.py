@@ -39,6 +39,10 @@ class Grade:
     misalignment_rad: float  # the gyro triad against the accelerometer triad
     g_sensitivity: float  # the gyro's error per specific force (rad/s per m/s^2)
     housing_rad: float  # the triads against the housing the extrinsics refer to
+    #: The bias random walks in Kalibr's terms (gyro rad/s^2/sqrt(Hz), accelerometer
+    #: m/s^3/sqrt(Hz)), an order of magnitude for the class: what a base IMU's export says,
+    #: which no drive measures apart from its sensors' (None: the drive's figure is used).
+    random_walks: tuple[float, float] | None = None
 
 
 #: consumer: phone-class MEMS, the IMUs inside lidars (InvenSense ICM-20948 and ICM-42688,
@@ -50,11 +54,14 @@ class Grade:
 #: scale factors 100-500 ppm, misalignment about 0.01-0.03 deg, g-sensitivity negligible).
 #: navigation: ring-laser and high-end FOG units (scale factors of a few ppm). ideal: simulated
 #: IMUs only, no errors.
+#: The random walks: industrial as EuRoC's Kalibr file gives its ADIS16448 (1.94e-5, 3.0e-3),
+#: consumer parts a few times worse, a tactical INS (bias stability 0.25 deg/h, 25 ug) and a
+#: navigation unit one and two orders better.
 GRADES = {
-    "consumer": Grade(0.005, 0.4 * DEG, 0.1 * DEG, 0.1 * DPS_PER_G, 0.5 * DEG),
-    "industrial": Grade(0.001, 0.05 * DEG, 0.05 * DEG, 0.01 * DPS_PER_G, 0.1 * DEG),
-    "tactical": Grade(3e-4, 0.01 * DEG, 0.01 * DEG, 0.001 * DPS_PER_G, 0.05 * DEG),
-    "navigation": Grade(2e-5, 0.002 * DEG, 0.002 * DEG, 0.0, 0.01 * DEG),
+    "consumer": Grade(0.005, 0.4 * DEG, 0.1 * DEG, 0.1 * DPS_PER_G, 0.5 * DEG, (1e-4, 4e-3)),
+    "industrial": Grade(0.001, 0.05 * DEG, 0.05 * DEG, 0.01 * DPS_PER_G, 0.1 * DEG, (2e-5, 3e-3)),
+    "tactical": Grade(3e-4, 0.01 * DEG, 0.01 * DEG, 0.001 * DPS_PER_G, 0.05 * DEG, (1e-6, 1e-4)),
+    "navigation": Grade(2e-5, 0.002 * DEG, 0.002 * DEG, 0.0, 0.01 * DEG, (1e-7, 1e-5)),
     "ideal": Grade(0.0, 0.0, 0.0, 0.0, 0.0),
 }
 
