@@ -360,7 +360,8 @@ def init(
     for line in found.skipped:
         _err(f"imucal: {line}")
     for name, key in found.missing:
-        _err(f"imucal: {name}: {key} is not in the log: fill its placeholder")
+        looked = found.looked.get((name, key), "")
+        _err(f"imucal: {name}: {key} is not in the log ({looked}): fill its placeholder")
 
 
 @app.command("check-config", cls=_Command, rich_help_panel=PANEL_CONFIG)

@@ -47,6 +47,9 @@ class SensorConfig:
     T_imu_lidar: Transform
     prior_T_base_imu: Transform
     lidar_frame: str = ""
+    #: The IMU's frame in /tf_static or the URDF, where its messages' frame_id is not that
+    #: frame (empty: the frame_id).
+    imu_frame: str = ""
     translation_bound_m: float = 0.3
     #: How far the estimate's rotation may lie from the prior's: a check, not a constraint.
     rotation_bound_deg: float = 20.0
@@ -128,10 +131,10 @@ class Config:
         def plain(
             section: Any,
         ) -> dict[str, Any]:  # (not asdict: a Transform has its own YAML form)
-            values = {
+            values = {  # (an imu_frame not given is the messages' frame_id: left out)
                 f.name: getattr(section, f.name)
                 for f in dataclass_fields(section)
-                if f.name != "name"
+                if f.name != "name" and getattr(section, f.name) != ""
             }
             return {k: v.to_dict() if isinstance(v, Transform) else v for k, v in values.items()}
 
@@ -181,7 +184,13 @@ RESERVED_SENSOR_NAME = "base"
 MAX_IMU_IN_LIDAR_M, MAX_PRIOR_M = 1.0, 100.0
 #: Keys that hold a ROS name, and its kind (:func:`imucal_cli.names.name_problem`): they go into
 #: launch scripts, URDF and Kalibr files, so anything outside ROS's rules is refused here.
-NAME_KINDS = {"frame": "frame", "lidar_frame": "frame", "topic": "topic", "imu_topic": "topic"}
+NAME_KINDS = {
+    "frame": "frame",
+    "lidar_frame": "frame",
+    "imu_frame": "frame",
+    "topic": "topic",
+    "imu_topic": "topic",
+}
 
 
 class _Section:

@@ -312,7 +312,7 @@ def complete_from_log(
                 sources[name][f"base.{BASE_KEY}"] = found[1]
     for name, key in missing:
         sensor = document["sensors"][name] = dict(document["sensors"][name])
-        imu = frames.get(str(sensor.get("imu_topic")))
+        imu = sensor.get("imu_frame") or frames.get(str(sensor.get("imu_topic")))
         lidar = str(sensor.get("lidar_frame") or f"{name}_lidar")
         ends = (imu, lidar) if key == "T_imu_lidar" else (base_frame, imu)
         found = tree.chain(*ends) if imu else None
@@ -323,14 +323,21 @@ def complete_from_log(
 
 
 def _why(log: str | Path, tree: FrameTree, ends: tuple[Any, Any], imu: str | None, key: str) -> str:
-    """Why the tree cannot supply ``key``, and what settles it."""
+    """Why the tree cannot supply ``key``, and what settles it: the key itself, or the key
+    that names the missing frame's place in the tree (``imu_frame``, ``lidar_frame``)."""
     if not tree.edges:
         return f"missing required key, and {log} has no {TF_TOPIC} to take it from"
     if imu is None:
-        return f"missing required key, and the IMU topic's messages in {log} name no frame"
+        return (
+            f"missing required key, and the IMU topic's messages in {log} name no frame: give it "
+            "in the config, or imu_frame naming the IMU's frame in the tree"
+        )
     gap = [f for f in ends if f not in tree.edges]
-    settle = "give it in the config" + (
-        ", or lidar_frame naming the lidar's frame in the tree" if key == "T_imu_lidar" else ""
+    naming = {imu: "imu_frame naming the IMU's frame in the tree"}
+    if key == "T_imu_lidar":
+        naming[ends[1]] = "lidar_frame naming the lidar's frame in the tree"
+    settle = "give it in the config" + "".join(
+        f", or {words}" for frame, words in naming.items() if frame in gap or not gap
     )
     where = (
         f"frame {gap[0]!r} is not in {TF_TOPIC}"

@@ -19,7 +19,7 @@ import yaml
 
 from imucal_cli.config import RESERVED_SENSOR_NAME, SECTIONS, BaseConfig, SensorConfig
 from imucal_cli.errors import InputError
-from imucal_cli.frames import FrameTree, frame_tree, imu_frames
+from imucal_cli.frames import TF_TOPIC, FrameTree, frame_tree, imu_frames
 from imucal_cli.names import name_problem, printable, quoted
 from imucal_cli.types import Transform
 
@@ -58,6 +58,8 @@ class Found:
     #: (who, key) -> the transform and where it came from (tf_static, urdf, both)
     transforms: dict[tuple[str, str], tuple[Transform, str]] = field(default_factory=dict)
     missing: list[tuple[str, str]] = field(default_factory=list)
+    #: (who, key) -> what was looked for, for each missing one
+    looked: dict[tuple[str, str], str] = field(default_factory=dict)
     #: What of the log could not go into a config (a topic or frame outside ROS's naming
     #: rules), one line each, made printable.
     skipped: list[str] = field(default_factory=list)
@@ -166,8 +168,22 @@ def _transforms(found: Found, tree: FrameTree, frames: dict[str, str]) -> None:
             chain = tree.chain(a, b) if a and b else None
             if chain is None:
                 found.missing.append((name, key))
+                found.looked[name, key] = _looked_for(tree, a, b)
             else:
                 found.transforms[name, key] = chain
+
+
+def _looked_for(tree: FrameTree, a: str | None, b: str | None) -> str:
+    """What :func:`_transforms` looked for and did not find, in words (``b`` None: the lidar
+    frame beside the IMU's ``a``)."""
+    if a is None:
+        return "the IMU's messages name no frame"
+    if b is None:
+        return f"no frame named '...lidar' sits beside the IMU's frame {quoted(a)}"
+    gap = [quoted(f) for f in (a, b) if f not in tree.edges]
+    if gap:
+        return f"frame {gap[0]} is not in {TF_TOPIC} or the URDF"
+    return f"no chain joins {quoted(a)} and {quoted(b)}"
 
 
 def _scalar(value: str) -> str:

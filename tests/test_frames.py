@@ -230,3 +230,32 @@ def test_a_urdf_joint_that_is_not_finite_is_refused_naming_the_joint(drive, tmp_
     write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
     with pytest.raises(InputError, match=r"robot.urdf: joint 'joint_0' .* not finite"):
         load_config(tmp_path / "min.yaml", log, tmp_path / "robot.urdf")
+
+
+def test_an_imu_frame_id_not_in_the_tree_is_settled_by_imu_frame(drive, tmp_path):
+    """A driver whose IMU messages name a frame the tree does not hold (``imu_link`` against the
+    tree's ``os_imu``): the error names the frame and suggests ``imu_frame`` (not
+    ``lidar_frame``, which cannot help); ``imu_frame`` then gives the same transforms."""
+    from dataclasses import replace
+
+    from imucal_cli.sim.writers import TopicData
+
+    topics = drive.topics()
+    mount = drive.mounts[0]
+    data = topics[mount.imu_topic]
+    stream = replace(data.stream, frame_id="imu_link")
+    topics[mount.imu_topic] = TopicData(stream, data.log_time_ns)
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", topics, tf_static=drive.static_transforms())
+    document = _minimal(drive.config_document())
+    write_document(tmp_path / "min.yaml", document)
+    with pytest.raises(ConfigError) as caught:
+        load_config(tmp_path / "min.yaml", log)
+    message = str(caught.value)
+    assert "'imu_link' is not in /tf_static" in message and "imu_frame naming" in message
+    assert "lidar_frame" not in message.split("; ")[-1]
+    document["sensors"][mount.name]["imu_frame"] = mount.imu_frame
+    write_document(tmp_path / "fixed.yaml", document)
+    loaded = load_config(tmp_path / "fixed.yaml", log).sensor(mount.name)
+    np.testing.assert_allclose(
+        loaded.T_imu_lidar.as_matrix(), mount.T_imu_lidar.as_matrix(), atol=1e-12
+    )
