@@ -63,8 +63,12 @@ def test_init_on_a_log_without_transforms_writes_placeholders_and_says_which(tmp
     text = (tmp_path / "c.yaml").read_text()
     for name in plain.config_document()["sensors"]:
         for key in ("T_imu_lidar", "prior_T_base_imu"):
-            assert f"imucal: {name}: {key} is not in the log (frame '" in made.stderr
-    assert "is not in /tf_static or the URDF): fill its placeholder" in made.stderr
+            assert f"imucal: {name}: {key} is not in the log (" in made.stderr
+        assert (
+            f"{name}: prior_T_base_imu is not in the log (frame 'base_link' is not in /tf_static "
+            "or the URDF): fill its placeholder"
+        ) in made.stderr
+        assert f"{name}: T_imu_lidar is not in the log (no frame named '...lidar'" in made.stderr
     assert text.count("# T_imu_lidar: {translation: [0, 0, 0]") == 2
     with pytest.raises(ConfigError, match="T_imu_lidar: missing required key"):
         load_config(tmp_path / "c.yaml")
