@@ -283,7 +283,8 @@ def kalibr(ex: Extrinsics) -> str:
     ]
     lines += _matrix_rows(ex.base_T_base_imu.inverse().as_matrix(), "    ")
     lines += ["  model: calibrated", f"  rostopic: {ex.base_topic or ''}", "  time_offset: 0.0"]
-    lines += _kalibr_imu(ex, "base_imu", ex.base_imu_rate_hz, ex.base_imu_noise)
+    unused = all(s.status == "unobservable" for s in ex.sensors)  # (no sensor's knots either)
+    lines += _kalibr_imu(ex, "base_imu", ex.base_imu_rate_hz, ex.base_imu_noise, unused)
     for k, s in enumerate(ex.sensors, start=1):
         lines += [f"imu{k}:", f"  # {s.name}", "  T_i_b:"]
         lines += _matrix_rows(s.T_base_imu.inverse().as_matrix(), "    ")
@@ -293,7 +294,8 @@ def kalibr(ex: Extrinsics) -> str:
             else "0.0  # not observable from the drive: not estimated"
         )
         lines += ["  model: calibrated", f"  rostopic: {s.imu_topic}", f"  time_offset: {offset}"]
-        lines += _kalibr_imu(ex, f"sensors.{s.name}.imu", s.imu_rate_hz, s.imu_noise)
+        unused = s.status == "unobservable"
+        lines += _kalibr_imu(ex, f"sensors.{s.name}.imu", s.imu_rate_hz, s.imu_noise, unused)
     return "\n".join(lines) + "\n"
 
 
@@ -306,11 +308,16 @@ KALIBR_NOISE = (
 
 
 def _kalibr_imu(
-    ex: Extrinsics, key: str, rate: float | None, noise: dict[str, float | None] | None
+    ex: Extrinsics,
+    key: str,
+    rate: float | None,
+    noise: dict[str, float | None] | None,
+    unused: bool = False,
 ) -> list[str]:
     """The update rate and the four noise figures Kalibr's and OpenVINS's readers require
     (each positive); an error naming the calibrate output's key (``base_imu`` or
-    ``sensors.NAME.imu``: its ``_rate_hz`` and ``_noise``) where one is missing."""
+    ``sensors.NAME.imu``: its ``_rate_hz`` and ``_noise``) where one is missing, and why
+    (``unused``: the sensor is unobservable, no window measured its random walks)."""
     if rate is None or not rate > 0:
         raise InputError(f"{ex.source}: {key}_rate_hz: missing: Kalibr needs the IMU's update_rate")
     lines = [f"  update_rate: {_f(rate)}"]
@@ -322,10 +329,12 @@ def _kalibr_imu(
     for name in KALIBR_NOISE:
         value = (noise or {}).get(name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise InputError(
-                f"{ex.source}: {key}_noise.{name}: missing (calibrate with this imucal version): "
-                "Kalibr needs it"
+            why = (
+                "no window of the drive was used (status unobservable), so none measured it"
+                if unused and name.endswith("random_walk")
+                else "calibrate with this imucal version"
             )
+            raise InputError(f"{ex.source}: {key}_noise.{name}: missing ({why}): Kalibr needs it")
         lines.append(f"  {name}: {_f(value)}")
     return lines
 

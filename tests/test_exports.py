@@ -591,3 +591,29 @@ def test_kalibr_imu0_is_the_base_imu_where_it_sits_and_its_walks_are_its_grades(
     assert (data["imu0"]["gyroscope_random_walk"], data["imu0"]["accelerometer_random_walk"]) == (
         walks
     )
+
+
+def test_kalibr_export_of_an_unobservable_sensor_says_no_window_measured_its_walks(tmp_path):
+    """A drive without motion: the random walks are missing because no window was used, not
+    because the document is of another imucal version."""
+    from imucal_cli.documents import write_document
+    from imucal_cli.sim import DriveOptions, simulate_drive
+    from imucal_cli.sim.writers import write_imu_log
+
+    drive = simulate_drive(DriveOptions(scenario="stationary", duration_s=30.0, seed=1))
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics())
+    write_document(tmp_path / "c.yaml", drive.config_document())
+    out = tmp_path / "e.yaml"
+    assert (
+        runner.invoke(
+            app, ["calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)]
+        ).exit_code
+        == 0
+    )
+    assert all(
+        s["status"] == "unobservable" for s in yaml.safe_load(out.read_text())["sensors"].values()
+    )
+    result = runner.invoke(app, ["export", str(out), "-f", "kalibr", "--allow-not-ok"])
+    assert result.exit_code == 2
+    assert "random_walk: missing (no window of the drive was used" in result.stderr
+    assert "imucal version" not in result.stderr
