@@ -867,6 +867,8 @@ class StreamingCalibrator:
         """Reduce every window all IMUs now cover, ``block_windows`` at a time (one spline and
         one filter pass per IMU and block); returns how many."""
         if self.t_ref_ns is None or not self._boot(final):
+            if final:  # (the boot found no stretch to read: no window either)
+                raise TooLittleData(self._too_little(self._covered_until()))
             return 0
         count = 0
         covered = self._covered_until()
@@ -908,9 +910,12 @@ class StreamingCalibrator:
         return count
 
     def _too_little(self, covered: float) -> str:
+        """No window: the one threshold, as :meth:`process` applies it to a log's last window
+        (half a window after the grid's start, with the padding and the clock offset)."""
+        need = self._grid_start + self.window_s / 2 + self.max_offset + PAD_S
         return (
             f"too little data: the IMUs overlap for {max(covered, 0.0):.1f} s; calibration "
-            f"needs {self._grid_start + self.window_s / 2 + self.max_offset:.1f} s for one window"
+            f"needs {need:.1f} s for one window"
         )
 
     def _need(self, number: int, final: bool) -> float:

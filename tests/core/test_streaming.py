@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from imucal_cli.config import parse_config
 from imucal_cli.core.so3 import rotation_angle_deg
@@ -203,3 +204,33 @@ def test_windows_that_hold_a_saturated_reading_are_not_used(monkeypatch):
     angle = np.radians(rotation_angle_deg(estimate.T_base_imu.rotation, truth.rotation))
     assert angle < 4 * std[:3].max()
     assert np.all(np.abs(estimate.T_base_imu.translation - truth.translation) < 4 * std[3:])
+
+
+def test_a_short_log_has_one_threshold_stated_truly_and_never_passes_with_no_window():
+    """Exit codes went 2, 0 (unobservable, 0/0 windows), 2, then partial as a log grew from 4
+    to 10 s, and the message left out the padding. Now: below the one threshold the message
+    states, too little data; at or above it, a result with at least one window."""
+    import re
+
+    from imucal_cli.core.streaming import TooLittleData
+    from imucal_cli.pipeline import run_calibrate
+    from imucal_cli.sim import DriveOptions, simulate_drive
+
+    thresholds, outcomes = set(), []
+    for duration in (4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 9.5, 10.0):
+        drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=duration, seed=1))
+        try:
+            result = run_calibrate(drive.streams(), drive.config())
+        except TooLittleData as exc:
+            overlap, need = map(float, re.findall(r"([\d.]+) s", str(exc)))
+            assert overlap == pytest.approx(duration, abs=0.05) and overlap < need
+            thresholds.add(need)
+            outcomes.append(False)
+            continue
+        for estimate in result.estimates.values():
+            assert len(estimate.windows) >= 1
+        outcomes.append(True)
+    assert len(thresholds) == 1
+    assert outcomes == sorted(outcomes) and outcomes[0] is False and outcomes[-1] is True
+    (need,) = thresholds
+    assert 9.0 < need <= 9.5  # the last failing and first passing durations bracket it
