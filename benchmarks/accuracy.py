@@ -1,8 +1,9 @@
 """Accuracy and honesty of imucal on simulated drives with ground truth; prints markdown tables.
 
 Every case is a scenario (the motion) with an error class (what the sensors or the mount do
-beyond the estimator's model, ``imucal simulate --errors``). For every case and seed: simulate a
-drive with four lidars, calibrate it, and compare each lidar's ``T_base_lidar`` with the truth
+beyond the estimator's model, ``imucal simulate --errors``) or a mistake (:data:`MISTAKES`).
+For every case and seed: simulate a drive with four lidars (the wheel: its two IMUs),
+calibrate it, and compare each lidar's ``T_base_lidar`` with the truth
 (rotation error: paper eq. 21; translation: the norm of the difference; per axis: the error
 over the reported std, rotation about the base axes). Then:
 
@@ -13,23 +14,38 @@ over the reported std, rotation about the base axes). Then:
 - the clean scenarios against their accuracy targets, and their median std;
 - the paper's figures beside ours (the lidar pair ``T_GT = T_BL1^-1 T_BL2``, eq. 20 and eq. 21);
 - the tilting mount: the tilt estimated against the simulated one;
-- units: detected, and the accuracy against the same drive in SI.
+- units: detected, and the accuracy against the same drive in SI;
+- every case read from each log container (MCAP, ROS 1, rosbag2 sqlite3 and mcap): the same
+  windows and estimates from each (``--containers`` names fewer; ``memory``: no log at all);
+- the everyday mistakes (:data:`MISTAKES`): a config or a log that puts the IMU's frame wrong,
+  never ``ok``.
 
-Run: ``python benchmarks/accuracy.py [--seeds 5] [--jobs 2] [--cases urban/none ...]``.
+Run: ``python benchmarks/accuracy.py [--seeds 5] [--jobs 2] [--cases urban/none ...]
+[--containers mcap rosbag1 ...]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from imucal_cli.core.so3 import rotation_angle_deg
-from imucal_cli.pipeline import run_calibrate
+from imucal_cli.documents import write_document
+from imucal_cli.errors import ImucalError
+from imucal_cli.pipeline import calibrate_log, run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
+from imucal_cli.sim.drive import ERROR_CLASSES, SimulatedDrive
+from imucal_cli.sim.writers import TopicData, write_imu_log
+from imucal_cli.types import Transform
 
 #: (scenario, error class): the clean drives of the first round, then every new error class.
 CASES = [
@@ -54,7 +70,14 @@ CASES = [
     ("urban", "navigation"),
     ("aggressive", "mems-base"),
     ("aggressive", "gyros-low"),
+    ("urban", "yaw-missing"),
+    ("urban", "frame-is-lidar"),
+    ("urban", "tiny-quaternion"),
+    ("wheel", "none"),
 ]
+#: The log containers every case is read from (the first gives the accuracy rows); ``memory``
+#: calibrates the simulated streams without writing a log.
+CONTAINERS = ("mcap", "rosbag1", "rosbag2-sqlite3", "rosbag2-mcap")
 TARGETS = {  # clean scenario: (max median rotation error deg, max median |dt| m)
     "aggressive": (0.05, 0.02),
     "urban": (0.1, 0.02),
@@ -64,7 +87,74 @@ PAPER = {  # Das & Boberg, real drives, the lidar pair: eq. 21 (deg), eq. 20 (m)
     "aggressive": ("Seq-1 (aggressive, 81 s)", 0.4577, 0.3387),
     "urban": ("Seq-2 (urban, 283 s)", 4.7938, 0.4431),
 }
-STATUSES = ("ok", "partial", "inconsistent", "unobservable")
+STATUSES = ("ok", "partial", "inconsistent", "unobservable", "refused")
+
+
+# ------------------------------------------------------------------ everyday mistakes (issue 48)
+
+
+def _yaw_missing(drive: SimulatedDrive) -> tuple[dict[str, Any], dict[str, TopicData], list]:
+    """A config whose ``T_imu_lidar`` lacks the Ouster's 180 deg yaw, its prior made from the
+    CAD lidar pose through it: the prior 180 deg about the IMU's z from the truth, and the
+    lidar 180 deg from where the IMU's pose puts it."""
+    config = drive.config_document()
+    turn = Transform(Rotation.from_euler("z", 180.0, degrees=True), np.zeros(3))
+    for sensor in config["sensors"].values():
+        T_imu_lidar = Transform.from_dict(sensor["T_imu_lidar"])
+        cad_lidar = Transform.from_dict(sensor["prior_T_base_imu"]) * T_imu_lidar
+        wrong = T_imu_lidar * turn.inverse()
+        sensor["T_imu_lidar"] = wrong.to_dict()
+        sensor["prior_T_base_imu"] = (cad_lidar * wrong.inverse()).to_dict()
+    return config, drive.topics(), []
+
+
+def _minimal(drive: SimulatedDrive) -> dict[str, Any]:
+    """The config naming topics and frames only: the transforms come from /tf_static."""
+    full = drive.config_document()
+    return {
+        "base": {k: full["base"][k] for k in ("topic", "frame", "grade")},
+        "sensors": {
+            name: {k: s[k] for k in ("imu_topic", "lidar_frame", "grade")}
+            for name, s in full["sensors"].items()
+        },
+    }
+
+
+def _frame_is_lidar(drive: SimulatedDrive) -> tuple[dict[str, Any], dict[str, TopicData], list]:
+    """A Livox-style driver: the IMU's messages name the lidar's frame, so /tf_static gives
+    ``T_imu_lidar = I`` (the Ouster's is 180 deg about z) and the prior is the lidar's pose."""
+    topics = drive.topics()
+    for mount in drive.mounts:
+        data = topics[mount.imu_topic]
+        stream = replace(data.stream, frame_id=mount.lidar_frame)
+        topics[mount.imu_topic] = TopicData(stream, data.log_time_ns)
+    return _minimal(drive), topics, drive.static_transforms()
+
+
+class _RawTransform:
+    """A /tf_static transform with any quaternion (what a log's author may write)."""
+
+    def __init__(self, T: Transform, quaternion_xyzw: list[float]) -> None:
+        self.translation, self.quaternion_xyzw = T.translation, np.asarray(quaternion_xyzw)
+
+
+def _tiny_quaternion(drive: SimulatedDrive) -> tuple[dict[str, Any], dict[str, TopicData], list]:
+    """/tf_static holding each IMU frame's rotation as (1e-8, 0, 0, 0): normalised, a 180 deg
+    roll."""
+    tree = [
+        (parent, child, _RawTransform(T, [1e-8, 0.0, 0.0, 0.0]) if child.endswith("_imu") else T)
+        for parent, child, T in drive.static_transforms()
+    ]
+    return _minimal(drive), drive.topics(), tree
+
+
+#: Mistakes (the case's "errors"): the config, the topics and /tf_static a drive is read with.
+MISTAKES: dict[str, Callable[[SimulatedDrive], tuple[dict[str, Any], dict[str, TopicData], list]]]
+MISTAKES = {
+    "yaw-missing": _yaw_missing,
+    "frame-is-lidar": _frame_is_lidar,
+    "tiny-quaternion": _tiny_quaternion,
+}
 
 
 @dataclass
@@ -91,16 +181,73 @@ class DriveRun:
     pair_rotation_deg: float
     pair_eq20_m: float
     seconds: float
+    same_in_containers: bool = True  # the same windows and estimates from every container
 
 
-def run_one(scenario: str, errors: str, seed: int) -> DriveRun:
-    drive = simulate_drive(
-        with_errors(DriveOptions(scenario=scenario, seed=seed, sensors=4), errors)
+def _read(
+    drive: SimulatedDrive, errors: str, container: str, folder: Path
+) -> tuple[Any, float, str | None]:
+    """The drive calibrated as read from ``container`` (``memory``: its streams): the result,
+    the seconds the calibration took, and why it was refused (an input error), else None."""
+    config, topics, tree = (
+        MISTAKES[errors](drive)
+        if errors in MISTAKES
+        else (drive.config_document(), drive.topics(), [])
     )
-    streams, config = drive.streams(), drive.config()
     start = time.perf_counter()
-    result = run_calibrate(streams, config)
-    seconds = time.perf_counter() - start
+    if container == "memory" and not tree:
+        from imucal_cli.config import parse_config
+
+        result = run_calibrate(drive.streams(), parse_config(config, "sim.config.yaml"))
+        return result, time.perf_counter() - start, None
+    fmt = "mcap" if container == "memory" else container  # (a tree needs a log)
+    log = write_imu_log(folder / f"drive-{container}", fmt, topics, tf_static=tree)
+    write_document(folder / "config.yaml", config)
+    start = time.perf_counter()
+    try:
+        result = calibrate_log(log, folder / "config.yaml").result
+    except ImucalError as exc:
+        return None, time.perf_counter() - start, str(exc)
+    return result, time.perf_counter() - start, None
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Whether two results hold the same windows, statuses and estimates."""
+    if a is None or b is None:
+        return a is b
+    return all(
+        a.estimates[n].status == b.estimates[n].status
+        and [w.selected for w in a.estimates[n].windows]
+        == [w.selected for w in b.estimates[n].windows]
+        and np.allclose(a.T_base_lidar(n).as_matrix(), b.T_base_lidar(n).as_matrix(), atol=1e-9)
+        for n in a.estimates
+    )
+
+
+def run_one(
+    scenario: str, errors: str, seed: int, containers: tuple[str, ...] = CONTAINERS
+) -> DriveRun:
+    options = DriveOptions(scenario=scenario, seed=seed, sensors=2 if scenario == "wheel" else 4)
+    if errors in ERROR_CLASSES:
+        options = with_errors(options, errors)
+    elif errors in MISTAKES:
+        options = replace(options, tf_static=True)
+    drive = simulate_drive(options)
+    with tempfile.TemporaryDirectory() as folder:
+        reads = [_read(drive, errors, c, Path(folder)) for c in containers]
+    result, seconds, refused = reads[0]
+    same = all(_same(result, other) for other, _, _ in reads[1:])
+    if result is None:
+        return DriveRun(
+            scenario,
+            errors,
+            seed,
+            [_refused(refused)] * len(drive.mounts),
+            float("nan"),
+            float("nan"),
+            seconds,
+            same,
+        )
     sensors = []
     estimates = {}
     true_tilt = np.degrees(drive.options.mount_tilt_rad_per_mps2).tolist()
@@ -147,11 +294,22 @@ def run_one(scenario: str, errors: str, seed: int) -> DriveRun:
         rotation_angle_deg(pair_est.rotation, pair_true.rotation),
         float(np.linalg.norm(pair_est.translation - pair_true.translation)) / 3.0,
         seconds,
+        same,
     )
+
+
+def _refused(why: str | None) -> SensorRun:
+    """A sensor of a drive the tool refused to calibrate (exit 2): no estimate."""
+    return SensorRun("refused", float("nan"), float("nan"), None, None, None, [why or ""], None, [])
 
 
 def _job(args: tuple) -> DriveRun:
     return run_one(*args)
+
+
+def _ok_wrong(row: SensorRun) -> bool:
+    """An ``ok`` wrong by more than 4 std on any axis."""
+    return row.status == "ok" and np.any(np.abs(row.normalized) > 4)
 
 
 def _median(values: list[float | None]) -> str:
@@ -166,24 +324,31 @@ def main() -> None:
     parser.add_argument(
         "--cases", nargs="+", default=[f"{s}/{e}" for s, e in CASES], help="scenario/errors"
     )
+    parser.add_argument(
+        "--containers",
+        nargs="+",
+        default=list(CONTAINERS),
+        help="log containers to read each drive from (memory: none)",
+    )
     args = parser.parse_args()
     cases = [tuple(c.split("/")) for c in args.cases]
     seeds = list(range(1, args.seeds + 1))
-    jobs = [(s, e, seed) for s, e in cases for seed in seeds]
+    jobs = [(s, e, seed, tuple(args.containers)) for s, e in cases for seed in seeds]
     started = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         runs = list(pool.map(_job, jobs))
     by_case = {case: [r for r in runs if (r.scenario, r.errors) == case] for case in cases}
 
     print(f"## Accuracy and honesty: {len(seeds)} seeds x 4 lidars per case, T_base_lidar\n")
+    print(f"Each drive read from: {', '.join(args.containers)}.\n")
     print(
         "| scenario | errors | runs | "
         + "/".join(STATUSES)
         + " | median dR deg | max dR deg | median abs dt m | "
         "max abs dt m | ok beyond 4 std | axes inside 3 std | rms error/std | median std deg | "
-        "median std m |"
+        "median std m | same in every container |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     total_ok_wrong, all_norm = 0, []
     for case in cases:
         rows = [s for d in by_case[case] for s in d.sensors]
@@ -191,18 +356,27 @@ def main() -> None:
         rot = np.array([r.rotation_error_deg for r in rows])
         trans = np.array([r.translation_error_m for r in rows])
         norm = np.array([r.normalized for r in rows if r.normalized is not None]).reshape(-1, 6)
-        all_norm.append(norm)
-        ok_wrong = sum(1 for r in rows if r.status == "ok" and np.any(np.abs(r.normalized) > 4))
+        if case[1] not in MISTAKES:  # (wrong on purpose: their figure is never ok)
+            all_norm.append(norm)
+        ok_wrong = sum(map(_ok_wrong, rows))
+        if case[1] in MISTAKES:  # a frame put wrong: never ok, whatever its std
+            ok_wrong = statuses.count("ok")
         total_ok_wrong += ok_wrong
         inside = f"{(np.abs(norm) < 3).mean():.1%}" if norm.size else "-"
         rms = f"{np.sqrt(np.mean(norm**2)):.2f}" if norm.size else "-"
+        same = sum(d.same_in_containers for d in by_case[case])
+        figures = (
+            [f"{f(v):.4f}" for v in (rot, trans) for f in (np.nanmedian, np.nanmax)]
+            if np.isfinite(rot).any()
+            else ["-"] * 4
+        )
         print(
             f"| {case[0]} | {case[1]} | {len(rows)} | "
             f"{'/'.join(str(statuses.count(s)) for s in STATUSES)} | "
-            f"{np.median(rot):.4f} | {rot.max():.4f} | {np.median(trans):.4f} | {trans.max():.4f} "
-            f"| {ok_wrong} | {inside} | {rms} | "
+            f"{figures[0]} | {figures[1]} | {figures[2]} | {figures[3]} | {ok_wrong} | {inside} | "
+            f"{rms} | "
             f"{_median([r.rotation_std_deg for r in rows])} | "
-            f"{_median([r.translation_std_m for r in rows])} |"
+            f"{_median([r.translation_std_m for r in rows])} | {same}/{len(by_case[case])} |"
         )
     norm = np.concatenate(all_norm)
     n_runs = sum(len(d.sensors) for d in runs)

@@ -35,6 +35,9 @@ from imucal_cli.types import GRAVITY_MPS2, rotation_type
 SCALE, SKEW = AXIS_ERRORS["scale"], AXIS_ERRORS["nonorthogonality"]
 #: How far the base IMU's mean specific force may lean from B's z axis (deg).
 BASE_GRAVITY_MAX_DEG = 15.0
+#: The check holds where the mean is gravity's size: a base that turns over and over about a
+#: level axis (a wheel's hub) averages gravity away, and its mean has no direction to test.
+BASE_GRAVITY_MIN_FRACTION = 0.5
 #: Residual std over the noise the data imply, above which the model does not explain the data.
 RESIDUAL_LEVEL_MAX = 2.0
 #: What the grid's interpolation and filtering leave of a signal, relative to its RMS about each
@@ -67,6 +70,12 @@ BASE_SCALE = ("base gyro scale", BASE_GYRO_SCALE, 0.05)
 #: off. A fit that asks for more is not finding a scale but a model that fails (aliased
 #: motion, saturation, a mount that moves): the lever arm's terms do not scale as one.
 BASE_SCALE_PLAUSIBLE = 0.25
+#: The prior (rad) that keeps a rotation one equation alone leaves free defined.
+ROTATION_PRIOR = np.zeros(N_PARAMETERS)
+ROTATION_PRIOR[ROTATION] = 1.0
+#: The prior std on each own error while the drive is asked which it determines: a hundred
+#: times the std they are estimated to, it moves a determined one by a ten-thousandth.
+PROBE_PRIOR_STD = 1.0
 BASE_SCALE_FREE = np.zeros(N_PARAMETERS, dtype=bool)
 BASE_SCALE_FREE[BASE_GYRO_SCALE] = True
 
@@ -177,7 +186,9 @@ def sensor_errors(
     for _, which, _ in groups:
         estimable[which] = True
     free = fit.free | estimable
-    joint = problem.fit(fit, free)
+    # (a loose prior: an error the drive does not determine, the y scale of a gyro that only
+    # ever turns about x, leaves the equations singular without one; it shows as not determined)
+    joint = problem.fit(fit, free, prior_std=np.where(estimable, PROBE_PRIOR_STD, 0.0))
     std = joint.std()
     shown = np.zeros(N_PARAMETERS, dtype=bool)
     for _, which, max_std in groups:
@@ -244,7 +255,7 @@ def rotation_agreement(
     rotation_only = np.zeros(N_PARAMETERS, dtype=bool)
     rotation_only[ROTATION] = True
     by_gyro = problem.fit(
-        fit, rotation_only, use=(True, False), max_iterations=1, rotation_prior_std=1.0
+        fit, rotation_only, use=(True, False), max_iterations=1, prior_std=ROTATION_PRIOR
     )
     accel_only = np.zeros(
         N_PARAMETERS, dtype=bool
@@ -252,7 +263,7 @@ def rotation_agreement(
     accel_only[ACCEL_GLOBALS] = fit.free[ACCEL_GLOBALS]
     accel_only[TIME_OFFSET] = accel_only[ACCEL_ROTATION] = False
     by_accel = problem.fit(
-        fit, accel_only, use=(False, True), max_iterations=1, rotation_prior_std=1.0
+        fit, accel_only, use=(False, True), max_iterations=1, prior_std=ROTATION_PRIOR
     )
     delta = rotation_difference(by_accel.point.R, by_gyro.point.R)
     allowed = np.zeros((3, 3))
@@ -319,6 +330,8 @@ def base_gravity(mean_f: np.ndarray) -> Check:
     gravity does not)."""
     norm = float(np.linalg.norm(mean_f))
     angle = float(np.degrees(np.arccos(np.clip(mean_f[2] / norm, -1.0, 1.0)))) if norm else 180.0
+    if norm < BASE_GRAVITY_MIN_FRACTION * GRAVITY_MPS2:  # (turning over and over: no test)
+        return Check("base_gravity", True, {"angle_deg": None, "mean_mps2": norm})
     return Check("base_gravity", angle <= BASE_GRAVITY_MAX_DEG, {"angle_deg": angle})
 
 

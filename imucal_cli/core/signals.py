@@ -237,8 +237,15 @@ MIN_FULL_SCALE = (0.9 * np.radians(125.0), 0.9 * 2.0 * 9.80665)
 #: asymmetric (-32768 to +32767 counts, 3e-5 apart).
 FULL_SCALE_TOLERANCE = 1e-4
 #: A triad saturates where this many readings sit at its largest: a clipped axis repeats its
-#: full scale, where a signal's peak is reached once.
+#: full scale, where a signal's peak is reached once ...
 FULL_SCALE_HITS = 3
+#: ... and more of them than this times those in the band just below (as wide), as values
+#: that repeat: a clipped axis piles up at one value (two, a register's asymmetric ends), where
+#: a motion held at its top (a wheel at a steady speed) reads a new value each time and
+#: spreads alike over both bands.
+FULL_SCALE_SPIKE = 2.0
+#: The most distinct values at the largest kept count of.
+FULL_SCALE_VALUES = 64
 
 
 @dataclass
@@ -253,24 +260,46 @@ class FullScale:
     level: float = 0.0
     stamps: list[np.ndarray] = field(default_factory=list)
     readings: int = 0
+    #: Readings in the band just below the largest (:data:`FULL_SCALE_SPIKE`), and how often
+    #: each value at it was read (at most :data:`FULL_SCALE_VALUES` values).
+    below: int = 0
+    values: dict[float, int] = field(default_factory=dict)
 
     def add(self, t_ns: np.ndarray, values: np.ndarray) -> None:
         if len(values) == 0:
             return
         top = max(float(values.max()), -float(values.min()))  # two reductions, most batches
-        if top < self.level * (1.0 - FULL_SCALE_TOLERANCE):  # none at the largest
+        if top < self.level * (1.0 - 2 * FULL_SCALE_TOLERANCE):  # none at or near the largest
             return
         if top > self.level * (1.0 + FULL_SCALE_TOLERANCE):  # a new largest: earlier peaks fall
-            self.level, self.stamps, self.readings = top, [], 0
-        at = np.abs(values).max(axis=1) >= self.level * (1.0 - FULL_SCALE_TOLERANCE)
+            self.level, self.stamps, self.readings, self.below = top, [], 0, 0
+            self.values = {}
+        largest = np.abs(values).max(axis=1)
+        at = largest >= self.level * (1.0 - FULL_SCALE_TOLERANCE)
+        near = largest >= self.level * (1.0 - 2 * FULL_SCALE_TOLERANCE)
+        self.below += int(np.count_nonzero(near & ~at))
         if self.level > 0.0 and at.any():
             self.stamps.append(np.asarray(t_ns)[at])
             self.readings += int(np.count_nonzero(at))
+            for value in largest[at].tolist():
+                if value in self.values or len(self.values) < FULL_SCALE_VALUES:
+                    self.values[value] = self.values.get(value, 0) + 1
+
+    @property
+    def repeats(self) -> int:
+        """The readings at the two values read most often at the largest (a register's two
+        ends): a clipped axis's."""
+        return sum(sorted(self.values.values())[-2:])
 
     def saturated(self, si_scale: float, minimum: float) -> bool:
-        """Whether the triad saturates: its largest reading repeats, and is a full scale once
-        made SI (times ``si_scale``) at least ``minimum``."""
-        return self.readings >= FULL_SCALE_HITS and self.level * si_scale >= minimum
+        """Whether the triad saturates: its largest reading repeats (as one or two values), more
+        often than the band below it is read, and is a full scale once made SI (times
+        ``si_scale``) at least ``minimum``."""
+        return (
+            self.repeats >= FULL_SCALE_HITS
+            and self.repeats > FULL_SCALE_SPIKE * self.below
+            and self.level * si_scale >= minimum
+        )
 
     def after(self, t_min_ns: int) -> np.ndarray:
         """The saturated readings' stamps (ns, sorted) from ``t_min_ns`` on; earlier ones are

@@ -289,13 +289,38 @@ class Settings:
     max_iterations: int
 
 
+#: Diagonal loads tried, in turn, on information whose Cholesky fails, each relative to its
+#: own parameter's information (Jacobi scaling: a load relative to the largest entry would make
+#: up information in units the rotation's dwarf): round-off in a direction the drive leaves
+#: free (a gyro's y scale where it only turns about x, the lever arm along a wheel's axle)
+#: makes it indefinite, and the load gives that direction a variance of ``1 / load`` times its
+#: parameters' own, so it shows as not determined; the determined move by a part in ``1/load``.
+DIAGONAL_LOADS = (0.0, 1e-12, 1e-9, 1e-6)
+
+
+def spd_cholesky(S: np.ndarray) -> np.ndarray:
+    """The lower Cholesky factor of symmetric positive semi-definite information ``S``, with
+    the least diagonal load of :data:`DIAGONAL_LOADS` that makes it factor (``L L^T = S +
+    load diag(S)``)."""
+    diagonal = np.diag(S)
+    d = np.sqrt(np.where(diagonal > 0, diagonal, 1.0))
+    scaled = S / d[:, None] / d[None, :]
+    for load in DIAGONAL_LOADS:
+        try:
+            factor = np.linalg.cholesky(scaled + load * np.eye(len(S)) if load else scaled)
+        except np.linalg.LinAlgError:
+            continue
+        return d[:, None] * factor
+    raise np.linalg.LinAlgError("the information matrix is not positive semi-definite")
+
+
 def _spd_inverse(S: np.ndarray) -> np.ndarray:
     """The inverse of a symmetric positive-definite matrix through its Cholesky factor:
     ``L^-T L^-1``, whose diagonal is a sum of squares. ``np.linalg.inv`` of an ill-conditioned
     information matrix (a short drive, many globals free) gave variances below zero."""
     from scipy.linalg import solve_triangular
 
-    L_inv = solve_triangular(np.linalg.cholesky(S), np.eye(len(S)), lower=True)
+    L_inv = solve_triangular(spd_cholesky(S), np.eye(len(S)), lower=True)
     return L_inv.T @ L_inv
 
 
@@ -468,13 +493,14 @@ class Problem:
         window_weights: np.ndarray | None = None,
         estimate_scale: bool = False,
         max_iterations: int | None = None,
-        rotation_prior_std: float | None = None,
+        prior_std: np.ndarray | None = None,
     ) -> Fit:
         """Gauss-Newton from ``start`` over the ``free`` globals (and every bias knot), with the
         gyro and accelerometer equations as ``use`` says, each window weighted by
         ``window_weights`` (0 leaves it out). The residual scales are re-estimated from the
-        fit where ``estimate_scale``, else kept from ``start``. ``rotation_prior_std`` (rad)
-        keeps a rotation that one equation alone leaves free defined."""
+        fit where ``estimate_scale``, else kept from ``start``. ``prior_std`` (per global, 0:
+        none; rad for the rotation) keeps what the data leave free defined: a rotation one
+        equation alone leaves free, errors a drive does not determine."""
         point, knots = start.point, start.knots.copy()
         scales = (start.scale_g, start.scale_a)
         weights = np.ones(len(self.used)) if window_weights is None else window_weights
@@ -485,7 +511,7 @@ class Problem:
             lin = self.linearised(point, knots)
             if estimate_scale and iterations > 1:
                 scales = self._scales(lin, weights, point.t)
-            reduced = self._reduce(lin, scales, use, weights, knots, free_idx, rotation_prior_std)
+            reduced = self._reduce(lin, scales, use, weights, knots, free_idx, prior_std)
             step, unconstrained = self._step(reduced, point.t, free_idx)
             step_bias = cho_solve_banded(
                 reduced.factor, reduced.grad_b - reduced.H_gb.T @ step[free_idx]
@@ -542,7 +568,7 @@ class Problem:
         weights: np.ndarray,
         knots: np.ndarray,
         free_idx: np.ndarray,
-        rotation_prior_std: float | None,
+        prior_std: np.ndarray | None,
     ) -> _Reduced:
         """The weighted normal equations, the biases eliminated (Schur complement)."""
         wg = self.gain / scales[0] ** 2 * use[0] * weights
@@ -554,9 +580,9 @@ class Problem:
         Z = half_solve_banded(factor, H_gb.T)
         S = H_gg - Z.T @ Z
         s = grad_g[free_idx] - Z.T @ half_solve_banded(factor, grad_b[:, None])[:, 0]
-        if rotation_prior_std is not None:
-            rotation = free_idx < ROTATION.stop
-            S[rotation, rotation] += 1.0 / rotation_prior_std**2
+        if prior_std is not None:
+            held = np.flatnonzero(prior_std[free_idx] > 0)
+            S[held, held] += 1.0 / prior_std[free_idx][held] ** 2
         return _Reduced(S, s, factor, H_gb, grad_b, Z)
 
     def _assemble(
@@ -607,7 +633,7 @@ class Problem:
         axes = free_idx[translation] - TRANSLATION.start
         lower[translation] = prior[axes] - bound - t[axes]
         upper[translation] = prior[axes] + bound - t[axes]
-        step_free, unbounded = bounded_step(np.linalg.cholesky(reduced.S), reduced.s, lower, upper)
+        step_free, unbounded = bounded_step(spd_cholesky(reduced.S), reduced.s, lower, upper)
         step = np.zeros(N_PARAMETERS)
         step[free_idx] = step_free
         unconstrained = t.copy()

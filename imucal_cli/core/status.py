@@ -160,3 +160,11 @@ def uncertainty_sentences(
         missing = ", ".join("xyz"[a] for a in np.flatnonzero(~observable))
         out.append(f"translation {missing} not determined by the drive: kept at the prior")
     return out
+
+
+def unsolved_sentence(why: str) -> str:
+    """The solve failed on windows with motion (a factorisation the data leave singular)."""
+    return (
+        f"the drive's equations for this sensor could not be solved ({why}): the motion "
+        "does not determine its pose as the model states it; the prior is returned"
+    )

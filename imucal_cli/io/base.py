@@ -186,33 +186,25 @@ class LogReader:
 
 
 class Batcher:
-    """Gathers messages that arrive one at a time, in log-time order, into :class:`RawBatch` es
-    per topic: every topic's batch is given whenever :data:`BATCH_SPAN_NS` of log time has
-    passed (and a topic's alone at :data:`BATCH_MESSAGES`), so that no topic is handed on
-    more than that ahead of another (8,192 messages of one topic at a time put a 100 Hz topic
-    82 s ahead: to the calibrator, the others had stopped)."""
+    """Gathers messages, in log-time order, into :class:`RawBatch` es per topic: all topics' each
+    :data:`BATCH_SPAN_NS` (one 82 s ahead of the others made them look stopped)."""
 
-    def __init__(self, span_ns: int | None = None) -> None:
+    def __init__(self) -> None:
         self.encodings: dict[str, str] = {}
         self.data: dict[str, list[bytes]] = {}
         self.times: dict[str, list[int]] = {}
-        self.span_ns = BATCH_SPAN_NS if span_ns is None else span_ns
         self.slice_start: int | None = None
 
     def add(self, topic: str, encoding: str, log_time_ns: int, data: bytes) -> list[RawBatch]:
-        """The batches complete with this message (often none)."""
-        out: list[RawBatch] = []
-        if self.slice_start is None:
-            self.slice_start = log_time_ns
-        elif log_time_ns - self.slice_start >= self.span_ns:
+        out: list[RawBatch] = []  # the batches complete with this message
+        if self.slice_start is None or log_time_ns - self.slice_start >= BATCH_SPAN_NS:
             out, self.slice_start = list(self.rest()), log_time_ns
         if topic not in self.data:
             self.encodings[topic], self.data[topic], self.times[topic] = encoding, [], []
         self.data[topic].append(data)
         self.times[topic].append(log_time_ns)
-        if len(self.data[topic]) >= BATCH_MESSAGES:
-            out += [b for b in [self.flush(topic)] if b is not None]
-        return out
+        full = len(self.data[topic]) >= BATCH_MESSAGES  # (a topic's alone: its batch is full)
+        return out + [b for b in [self.flush(topic) if full else None] if b is not None]
 
     def flush(self, topic: str) -> RawBatch | None:
         if not self.data[topic]:

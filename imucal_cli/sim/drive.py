@@ -20,7 +20,7 @@ from imucal_cli.config import (
 from imucal_cli.core.grades import GRADES
 from imucal_cli.pipeline import DriveStreams
 from imucal_cli.sim.imu import MEMS_LIDAR, TACTICAL_BASE, ImuErrorModel, SimulatedImu, simulate_imu
-from imucal_cli.sim.rig import DEFAULT_MOUNTS, LidarMount, cad_prior
+from imucal_cli.sim.rig import DEFAULT_MOUNTS, WHEEL_MOUNTS, LidarMount, cad_prior
 from imucal_cli.sim.scenarios import SCENARIOS, VehicleDynamics, make_scenario
 from imucal_cli.sim.trajectory import Trajectory
 from imucal_cli.sim.writers import TopicData
@@ -275,6 +275,8 @@ class SimulatedDrive:
                 "prior_T_base_imu": self.priors[mount.name].to_dict(),
                 "translation_bound_m": 0.3,
                 "grade": self.options.lidar_grade,
+                # on a wheel a steady centripetal 20-80 m/s^2 defeats the unit detection
+                **({"accel_units": "mps2"} if self.options.scenario == "wheel" else {}),
             }
             for mount in self.mounts
         }
@@ -307,6 +309,8 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         raise ValueError(f"sensors must be between 1 and {len(o.mounts)}, got {o.sensors}")
     if o.noise_scale < 0:
         raise ValueError("noise_scale must be >= 0")
+    if o.scenario == "wheel" and o.mounts == DEFAULT_MOUNTS:
+        o = replace(o, mounts=WHEEL_MOUNTS)  # (a vehicle's lidars would spin off a wheel)
     mounts = o.mounts[: o.sensors]
     if o.time_offsets_s is not None and len(o.time_offsets_s) not in (1, len(mounts)):
         raise ValueError(f"give 1 or {len(mounts)} time offsets, got {len(o.time_offsets_s)}")

@@ -76,3 +76,14 @@ def cad_prior(
     return Transform(
         T_base_imu.rotation * rotation_error, T_base_imu.translation + translation_error
     )
+
+
+#: The ``wheel`` scenario's rig: IMUs on the wheel itself (the base at the hub), as the real
+#: recording had them (one 14 cm out); the IMU is the "lidar" (``T_imu_lidar`` the identity).
+WHEEL_MOUNTS: tuple[LidarMount, ...] = tuple(
+    LidarMount(name, Transform.from_rpy(np.radians(rpy_deg), np.array(xyz)), Transform.identity())
+    for name, xyz, rpy_deg in (
+        ("rim", [0.02, 0.14, 0.0], [0.0, 0.0, 0.0]),
+        ("spoke", [0.03, -0.06, 0.09], [90.0, 0.0, 30.0]),
+    )
+)

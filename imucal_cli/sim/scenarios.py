@@ -31,6 +31,7 @@ SCENARIOS: dict[str, float] = {
     "highway": 120.0,
     "parking": 120.0,
     "stationary": 60.0,
+    "wheel": 60.0,
 }
 #: Road roughness per scenario (scales the bump amplitudes): a test track, city streets, a
 #: smooth motorway, a depot yard.
@@ -40,7 +41,12 @@ ROAD_ROUGHNESS: dict[str, float] = {
     "highway": 0.3,
     "parking": 0.6,
     "stationary": 0.0,
+    "wheel": 0.0,
 }
+#: The ``wheel`` scenario: B is a car wheel's hub (x along its axle), rolling at up to 8 m/s on
+#: a tyre of this radius (m): up to 1,390 deg/s about one axis, as two IMUs on a real car's
+#: wheel recorded (1,184 deg/s, 82 m/s^2 at 14 cm).
+WHEEL_RADIUS_M = 0.33
 
 GRID_HZ = 50.0  # driver-program sampling before spline interpolation
 
@@ -233,6 +239,26 @@ def _suspension(t: np.ndarray, u: np.ndarray, dyn: VehicleDynamics) -> np.ndarra
     return np.asarray(y) + u[0]
 
 
+def _wheel(rng: np.random.Generator, duration: float) -> Trajectory:
+    """A wheel of a car driving straight on a level road at the speeds of an aggressive program
+    (:func:`_aggressive`, scaled to 2.4-7.8 m/s): B spins about its x axis (the axle, across
+    the car: roll) at ``v / r`` and about no other, as the real recording's wheel did."""
+    program = _aggressive(rng, duration)
+    st, sv, _, _ = program.arrays()
+    t = np.arange(-1.0, duration + 1.0 + 0.5 / GRID_HZ, 1.0 / GRID_HZ)
+    speed = 0.6 * smoothstep_profile(np.clip(t, 0.0, None), st, sv)  # (a smooth top)
+    speed *= 1.0 + 0.002 * _bumps(rng, t, (0.2, 1.0))  # the road and the engine: never held
+    heading = rng.uniform(-np.pi, np.pi)
+    spin = cumulative_trapezoid(speed / WHEEL_RADIUS_M, t, initial=0.0)
+    along = cumulative_trapezoid(speed, t, initial=0.0)
+    position = np.column_stack(
+        [-np.sin(heading) * along, np.cos(heading) * along, np.full(len(t), WHEEL_RADIUS_M)]
+    )
+    rpy = np.column_stack([spin, np.zeros(len(t)), np.full(len(t), heading)])
+    trajectory = Trajectory.from_samples(t, position, rpy)
+    return Trajectory(trajectory.position_world, trajectory.rpy, 0.0, duration)
+
+
 def make_scenario(
     name: str,
     duration_s: float | None = None,
@@ -240,13 +266,15 @@ def make_scenario(
     dynamics: VehicleDynamics | None = None,
 ) -> Trajectory:
     """Build the trajectory of scenario ``name`` (see :data:`SCENARIOS`)."""
-    if name not in _PROGRAMS:
+    if name not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r} (expected one of: {', '.join(SCENARIOS)})")
     duration = SCENARIOS[name] if duration_s is None else float(duration_s)
     if duration <= 0:
         raise ValueError("duration must be positive")
     dyn = dynamics or VehicleDynamics()
     rng = np.random.default_rng(seed)
+    if name == "wheel":
+        return _wheel(rng, duration)
     program = _PROGRAMS[name](rng, duration)
 
     # Start and end with a second of margin so the IMUs' sample times stay inside the splines.

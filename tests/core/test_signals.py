@@ -106,3 +106,20 @@ def test_near_tells_the_query_times_within_a_margin_of_a_stamp():
     query = np.array([0.0, 0.49, 0.5, 1.2, 3.0, 4.6, 5.5, 6.0])
     assert near(query, stamps, 0.5).tolist() == [False, False, True, True, False, True, True, False]
     assert not near(query, np.zeros(0), 1.0).any()
+
+
+def test_a_rate_held_at_its_top_is_no_saturation():
+    """A wheel rolling at a steady speed holds its largest rate for seconds: readings repeat at
+    the top to the noise (each a new value), spread alike into the band below. That is the
+    motion, not a clipped axis (its windows were dropped as saturated)."""
+    from imucal_cli.core.signals import MIN_FULL_SCALE, FullScale
+
+    rng = np.random.default_rng(1)
+    rate = 23.0 + 1e-4 * rng.normal(size=(2000, 1))  # a steady 1,318 deg/s, a tactical gyro
+    held = FullScale()
+    held.add(np.arange(2000), np.hstack([rate, np.zeros((2000, 2))]))
+    assert held.readings >= 3 and not held.saturated(1.0, MIN_FULL_SCALE[0])
+    mems = 23.0 + 0.005 * rng.normal(size=(2000, 1))  # a MEMS gyro's, its top clipped
+    clipped = FullScale()
+    clipped.add(np.arange(2000), np.hstack([np.minimum(mems, 23.001), np.zeros((2000, 2))]))
+    assert clipped.saturated(1.0, MIN_FULL_SCALE[0])
