@@ -146,8 +146,9 @@ def not_observable(ax: Any) -> None:
 
 
 def residual_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: Path) -> Path:
-    """Per sensor: the fit's residual RMS in every window used (per grid sample, after the
-    low-pass), against the level the residual check holds them to and its limit."""
+    """Per sensor: the reported fit's residual RMS in every window used (per grid sample, after
+    the low-pass), with their RMS over all windows (the residual check's figure), against the
+    level the check holds them to and its limit."""
     from imucal_cli.core.checks import RESIDUAL_LEVEL_MAX
 
     fig, axes = plt.subplots(
@@ -156,9 +157,9 @@ def residual_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, pat
     for row, (name, est) in zip(axes, estimates.items(), strict=True):
         r = est.window_residuals
         level = (getattr(est, "checks", None) or {}).get("residual_level", {})
-        for ax, col, unit, key in (
-            (row[0], 1, "rad/s", "expected_gyro_radps"),
-            (row[1], 2, "m/s^2", "expected_accel_mps2"),
+        for ax, col, unit, key, figure in (
+            (row[0], 1, "rad/s", "expected_gyro_radps", "gyro"),
+            (row[1], 2, "m/s^2", "expected_accel_mps2", "accel"),
         ):
             if est.status == "unobservable" or not len(r):
                 not_observable(ax)
@@ -168,6 +169,12 @@ def residual_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, pat
             )
             if key in level:
                 ax.axhline(level[key], color="tab:blue", ls="--", lw=1, label="the noise level")
+                ax.axhline(  # what the check tests: these windows' RMS, over the noise level
+                    level[figure] * level[key],
+                    color="black",
+                    lw=1,
+                    label=f"all windows: {level[figure]:.2f}x, the check's figure",
+                )
                 ax.axhline(
                     RESIDUAL_LEVEL_MAX * level[key],
                     color="tab:red",

@@ -307,11 +307,12 @@ def _cover(problem: Problem, fit: Fit, delta: np.ndarray) -> np.ndarray:
 
 
 def residual_level(problem: Problem, fit: Fit) -> Check:
-    """The residuals' std against the noise the data imply (and what the pipeline leaves)."""
+    """The residuals' std of the fit reported (``fit``, with the IMUs' own errors it took in)
+    against the noise the data imply (and what the pipeline leaves)."""
     noise = np.array(problem.sigma) * np.sqrt(problem.gain)
     expected = np.hypot(noise, PIPELINE_FLOOR * np.array(problem.signal_rms))
-    accel = np.sqrt(max(fit.scale_a**2 - problem.eiv_variance(fit.point.t), 0.0))
-    levels = np.array([fit.scale_g, accel]) / expected
+    n = 3 * problem.samples
+    levels = np.sqrt([max(fit.cost_g.sum(), 0.0) / n, max(fit.cost_a.sum(), 0.0) / n]) / expected
     passed = bool(np.all(levels <= RESIDUAL_LEVEL_MAX))
     figures = {
         "gyro": float(levels[0]),

@@ -392,3 +392,27 @@ def test_a_dropped_sample_does_not_lag_what_follows_it(wheel):
     for estimate in result.estimates.values():
         level = estimate.checks["residual_level"]
         assert level["pass"] and level["accel"] < 1.2 and level["gyro"] < 1.2, level
+
+
+def test_the_residual_check_tests_the_residuals_of_the_fit_it_reports():
+    """The check held the fit before the IMUs' own errors were taken in (5.4x the noise), the
+    figure the final fit's windows (all under its 2x line): the check now tests the fit that is
+    reported, the quantity the figure draws. Consumer lidar IMUs on an aggressive drive, whose
+    own errors the final fit takes in, are ok within their std."""
+    drive = simulate_drive(
+        with_errors(DriveOptions(scenario="aggressive", seed=1, sensors=2), "consumer")
+    )
+    result = run_calibrate(drive.streams(), drive.config())
+    for mount in drive.mounts:
+        estimate = result.estimates[mount.name]
+        level, r = estimate.checks["residual_level"], estimate.window_residuals
+        used = [w for w in estimate.windows if w.selected]  # the figure's windows, in order
+        assert [w.start_s for w in used] == pytest.approx(r[:, 0].tolist())
+        length = np.array([w.end_s - w.start_s for w in used])  # each window's samples
+        for column, key, expected in ((1, "gyro", "radps"), (2, "accel", "mps2")):
+            rms = np.sqrt(np.average(r[:, column] ** 2, weights=length))
+            # (a window's length weighs it to a grid sample: 1e-3 of its weight at most)
+            assert rms / level[f"expected_{key}_{expected}"] == pytest.approx(level[key], rel=1e-4)
+        assert estimate.status == "ok", estimate.warnings
+        error, std = lidar_error(drive, result, mount.name)
+        assert np.all(np.abs(error) < 4 * std)
