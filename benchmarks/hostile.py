@@ -68,6 +68,9 @@ class Case:
     expect: int | None = None  # the exit code this case must give (None: 0 or 2)
     check: Callable[[subprocess.CompletedProcess], str] | None = None  # "" or what is wrong
     signal_after_s: float | None = None  # send SIGINT to the group after this long
+    #: A folder (relative to ``folder``) held with an exclusive flock while the case runs: what
+    #: another run writing into it at once holds.
+    held: str | None = None
 
 
 def _snapshot(folder: Path) -> dict[str, str]:
@@ -99,6 +102,12 @@ def run_case(case: Case) -> dict:
         (os.POSIX_SPAWN_OPEN, 2, str(err_path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644),
     ]
     here = os.getcwd()
+    held = None
+    if case.held is not None:
+        import fcntl
+
+        held = os.open(case.folder / case.held, os.O_RDONLY)
+        fcntl.flock(held, fcntl.LOCK_EX)
     os.chdir(case.folder)
     try:
         pid = os.posix_spawn(argv[0], argv, os.environ, file_actions=actions, setsid=True)
@@ -117,6 +126,8 @@ def run_case(case: Case) -> dict:
             os.killpg(pid, signal.SIGKILL)
         time.sleep(0.01)
     wall = time.perf_counter() - start
+    if held is not None:
+        os.close(held)
     code = os.waitstatus_to_exitcode(status)
     out, err = out_path.read_bytes(), err_path.read_bytes()
     out_path.unlink()
@@ -654,6 +665,81 @@ def cases(work: Path) -> list[Case]:
         expect=130,
         signal_after_s=2.0,
         outputs={f"out/d{k}.yaml" for k in range(BATCH_LOGS)},
+    )
+    # issue 48, item 6: no file the user did not name in this run is replaced
+    f = folder("files nobody named")
+    log_in(f)
+    (f / "mine.yaml").write_text("# my hand-written config\n")
+    add("init -o an existing config", ["init", "d.mcap", "-o", "mine.yaml"], f, expect=2)
+    log_in(f, "other", "rosbag2-mcap")
+    for command in (["init", "d.mcap"], ["calibrate", "d.mcap", "-c", "config.yaml"]):
+        add(
+            f"{command[0]} -o the metadata of a bag not read",
+            [*command, "-o", "other/metadata.yaml"],
+            f,
+            expect=2,
+        )
+    from imucal_cli.outputs import calibration_document
+    from imucal_cli.pipeline import run_calibrate
+
+    write_document(
+        f / "est.yaml",
+        calibration_document(run_calibrate(drive.streams(), drive.config()), "d.mcap"),
+    )
+    (f / "robot.launch.xml").write_text("<launch><!-- mine --></launch>\n")
+    add(
+        "export tf-static-ros2 -o robot.sh beside a hand-written robot.launch.xml",
+        ["export", "est.yaml", "-f", "tf-static-ros2", "-o", "robot.sh", "--allow-not-ok"],
+        f,
+        expect=2,
+    )
+    (f / "out").mkdir()
+    add(
+        "batch into an --out-dir another batch holds",
+        ["batch", "d.mcap", "-c", "config.yaml", "--out-dir", "out"],
+        f,
+        expect=2,
+        held="out",
+    )
+    # issue 48, item 7: a log's names never write keys into init's config, nor reach a terminal
+    f = folder("names from a log")
+    tree = [
+        (parent, "x\n    prior_T_base_imu: {translation: [9, 9, 9]}\n    lidar", T)
+        if child.endswith("lidar")
+        else (parent, child, T)
+        for parent, child, T in simulate_drive(
+            DriveOptions(scenario="aggressive", duration_s=60.0, seed=7, tf_static=True)
+        ).static_transforms()
+    ]
+    topics = dict(drive.topics()) | {"/evil\x1b]0;pwned\x07/imu": drive.topics()[sensor_topic]}
+    write_imu_log(f / "d.mcap", "mcap", topics, tf_static=tree)
+
+    def no_injected_key(result: subprocess.CompletedProcess, f: Path = f) -> str:
+        if b"\x1b" in result.stdout or b"\x1b" in result.stderr:
+            return "an escape reached the terminal"
+        text = (f / "init.yaml").read_text() if (f / "init.yaml").exists() else result.stdout
+        document = yaml.safe_load(text)
+        priors = [s.get("prior_T_base_imu") for s in document["sensors"].values()]
+        return (
+            "a key written by the log"
+            if any(p and p.get("translation") == [9, 9, 9] for p in priors)
+            else ""
+        )
+
+    add(
+        "init on a log whose frame names hold YAML",
+        ["init", "d.mcap"],
+        f,
+        expect=0,
+        check=no_injected_key,
+    )
+    add(
+        "init -o on a log whose frame names hold YAML",
+        ["init", "d.mcap", "-o", "init.yaml"],
+        f,
+        expect=0,
+        outputs={"init.yaml"},
+        check=no_injected_key,
     )
     # 15 damage said
     f = folder("damage said")

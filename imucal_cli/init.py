@@ -32,6 +32,7 @@ COMMENTS = {
     "gyro_units": "auto | radps | dps",
     "sensors.translation_bound_m": "search box |t - t_prior| <= bound per axis",
     "sensors.rotation_bound_deg": "the estimate's rotation at most this far from the prior's",
+    "sensors.imu_frame": "the IMU messages' frame_id; else the IMU's frame in the tree",
     "sensors.grade": "consumer | industrial | tactical | navigation | ideal: the IMU's prior",
     "sensors.rotation_floor_deg": "systematic std the data cannot see, added to the std",
     "sensors.translation_floor_m": "",
@@ -209,6 +210,8 @@ def _default_lines(cls: type, section: str, indent: str, skip: set[str]) -> list
             continue
         comment = COMMENTS.get(f"{section}.{f.name}", COMMENTS.get(f.name, ""))
         line = f"{indent}{f.name}: {f.default}"
+        if f.default == "":  # (a name whose default is another's: commented, as a hint)
+            line = f"{indent}# {f.name}: NAME"
         out.append(f"{line:<44}# default{': ' + comment if comment else ''}")
     return out
 
