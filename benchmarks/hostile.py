@@ -704,7 +704,7 @@ def cases(work: Path) -> list[Case]:
     # issue 48, item 7: a log's names never write keys into init's config, nor reach a terminal
     f = folder("names from a log")
     tree = [
-        (parent, "x\n    prior_T_base_imu: {translation: [9, 9, 9]}\n    lidar", T)
+        (parent, f"{parent[:9]}\n    prior_T_base_imu: {{translation: [9, 9, 9]}}\n    lidar", T)
         if child.endswith("lidar")
         else (parent, child, T)
         for parent, child, T in simulate_drive(

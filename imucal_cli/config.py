@@ -270,7 +270,10 @@ def _parse(value: Any, name: str, kind: Any, source: str, key: str) -> Any:
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(source, key, f"expected a number, got {_describe(value)}")
-    number = float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # (an int of hundreds of digits)
+        number = math.inf
     if not math.isfinite(number):
         raise ConfigError(source, key, f"expected a finite number, got {value!r}")
     if number < 0 or (number == 0 and name not in MAY_BE_ZERO):

@@ -80,24 +80,39 @@ def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool
 _StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 
 
+def read_capped(path: Path, cap: int, what: str) -> bytes:
+    """The bytes of the regular file ``path``, at most ``cap`` of them read (a larger file is
+    refused as not ``what``; ``/dev/zero`` or a sparse file is never read whole); a FIFO or a
+    device, which could block forever, is refused without opening it."""
+    import stat
+
+    try:
+        if not stat.S_ISREG(path.stat().st_mode):
+            raise InputError(f"{path}: not a regular file (a FIFO, a device or a folder)")
+        with path.open("rb") as handle:
+            data = handle.read(cap + 1)
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc}") from None
+    if len(data) > cap:
+        raise InputError(f"{path}: larger than {cap >> 20} MiB: not {what}")
+    return data
+
+
 def load_document(path: str | Path) -> Any:
     """Load a YAML or JSON file (JSON is YAML). Raises :class:`InputError` naming the file."""
     path = Path(path)
+    data = read_capped(path, MAX_DOCUMENT_BYTES, "a config or calibration document")
     try:
-        with path.open("rb") as handle:
-            data = handle.read(MAX_DOCUMENT_BYTES + 1)
-        if len(data) > MAX_DOCUMENT_BYTES:
-            raise InputError(
-                f"{path}: larger than {MAX_DOCUMENT_BYTES >> 20} MiB: not a config or calibration "
-                "document"
-            )
         text = data.decode("utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
         raise InputError(f"{path}: cannot read: {exc}") from None
     try:
         return yaml.load(text, Loader=_StrictLoader)
+    except (ValueError, OverflowError) as exc:  # a scalar YAML builds and Python cannot hold
+        problem = str(exc).splitlines()[0][:200]  # (a 5,000-digit int, the date 2001-13-45)
+        raise InputError(f"{path}: a value that is no number or date: {problem}") from None
     except (yaml.YAMLError, RecursionError) as exc:
         problem = " ".join(str(exc).split())
         problem = (

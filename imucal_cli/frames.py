@@ -52,15 +52,44 @@ def leaves_out_transforms(error: ConfigError) -> bool:
 
 class FrameTree:
     """Static transforms between named frames, each edge with where it came from
-    (``tf_static``, ``urdf``); :meth:`lookup` composes any chain."""
+    (``tf_static``, ``urdf``); :meth:`lookup` composes any chain.
+
+    A tree, as tf2 and urdfdom hold one: a frame with a second parent, or an edge that closes
+    a loop, is not taken (the first is kept) but noted against the frame, and a chain through
+    it is an error naming both (:meth:`chain`): the shortest of two chains would win
+    silently. What reading left out (a cap reached, a message that does not decode) is kept
+    in :attr:`notes` for the error of a chain not found."""
 
     def __init__(self) -> None:
         self.edges: dict[str, list[tuple[str, Transform, str]]] = {}
+        self.parents: dict[str, tuple[str, str]] = {}  # child -> (parent, origin)
+        self.conflicts: dict[str, str] = {}  # frame -> why a chain through it is refused
+        self.notes: list[str] = []
+        self._roots: dict[str, str] = {}  # union-find: which frames one tree joins
+
+    def _root(self, frame: str) -> str:
+        while self._roots.get(frame, frame) != frame:
+            frame = self._roots[frame] = self._roots.get(self._roots[frame], self._roots[frame])
+        return frame
 
     def add(self, parent: str, child: str, T_parent_child: Transform, origin: str = "") -> None:
         """An edge; one the tree already holds (from an earlier source) is kept."""
-        if any(n == child for n, _, _ in self.edges.get(parent, [])):
+        known = self.parents.get(child)
+        if known is not None:
+            if known[0] != parent:
+                self.conflicts[child] = (
+                    f"frame {quoted(child)} has two parents, {quoted(known[0])} ({known[1]}) and "
+                    f"{quoted(parent)} ({origin}): tf2 and URDF take one"
+                )
             return
+        if self._root(parent) == self._root(child):
+            self.conflicts[child] = (
+                f"the edge {quoted(parent)} -> {quoted(child)} ({origin}) closes a loop: tf2 and "
+                "URDF take a tree"
+            )
+            return
+        self._roots[self._root(child)] = self._root(parent)
+        self.parents[child] = (parent, origin)
         self.edges.setdefault(parent, []).append((child, T_parent_child, origin))
         self.edges.setdefault(child, []).append((parent, T_parent_child.inverse(), origin))
 
@@ -71,23 +100,27 @@ class FrameTree:
 
     def chain(self, target: str, source: str) -> tuple[Transform, str] | None:
         """``T_target_source`` and where its edges came from (``tf_static``, ``urdf``, or
-        both joined by ``+``), or None: no chain."""
+        both joined by ``+``), or None: no chain. Raises :class:`InputError` where the chain
+        passes a frame with two parents or a loop."""
         if target not in self.edges or source not in self.edges:
             return None
-        reached: dict[str, tuple[Transform, frozenset[str]]] = {
-            target: (Transform.identity(), frozenset())
+        reached: dict[str, tuple[Transform, frozenset[str], tuple[str, ...]]] = {
+            target: (Transform.identity(), frozenset(), (target,))
         }
         queue = deque([target])
         while queue:
             frame = queue.popleft()
             for neighbour, T, origin in self.edges[frame]:
                 if neighbour not in reached:
-                    T_so_far, origins = reached[frame]
-                    reached[neighbour] = (T_so_far * T, origins | {origin})
+                    T_so_far, origins, path = reached[frame]
+                    reached[neighbour] = (T_so_far * T, origins | {origin}, (*path, neighbour))
                     queue.append(neighbour)
         if source not in reached:
             return None
-        T, origins = reached[source]
+        T, origins, path = reached[source]
+        refused = [self.conflicts[f] for f in path if f in self.conflicts]
+        if refused:
+            raise InputError(f"the chain {quoted(target)} -> {quoted(source)}: {refused[0]}")
         return T, "+".join(sorted(o for o in origins if o)) or "tf_static"
 
 
@@ -180,27 +213,40 @@ def _has(reader: Any, topic: str, msgtype: str) -> bool:
 
 
 def read_tf_static(reader: Any) -> FrameTree:
-    """The log's ``/tf_static`` (ROS 2 or ROS 1 encoding) as a tree; empty without one."""
+    """The log's ``/tf_static`` (ROS 2 or ROS 1 encoding) as a tree; empty without one. What
+    is left out (a cap reached, a message that does not decode, a topic of another type) is
+    noted in the tree's ``notes``."""
+    from imucal_cli.io.imu_msg import normalize_msgtype
+
     tree = FrameTree()
+    where = f"{reader.path} [{TF_TOPIC}]"
+    info = reader.topics().get(TF_TOPIC)
+    if info is not None and normalize_msgtype(info.msgtype) != TF_MSGTYPES[0]:
+        tree.notes.append(f"{TF_TOPIC} holds {info.msgtype}, not {TF_MSGTYPES[0]}: not read")
     if not _has(reader, TF_TOPIC, TF_MSGTYPES[0]):
         return tree
-    messages = transforms = 0
+    messages = transforms = undecoded = 0
     for batch in reader.batches([TF_TOPIC]):
         ros1 = batch.encoding == "ros1"
         store = tf_typestore(ros1)
         for start, length in zip(batch.starts.tolist(), batch.lengths.tolist(), strict=True):
             messages += 1
             if messages > MAX_TF_MESSAGES:
+                tree.notes.append(f"{TF_TOPIC} read to its first {MAX_TF_MESSAGES:,} messages")
                 return tree
             data = batch.buffer[start : start + length].tobytes()
             try:
                 read = store.deserialize_ros1 if ros1 else store.deserialize_cdr
                 message: Any = read(data, "tf2_msgs/msg/TFMessage")
             except Exception:  # (a damaged message: the tree is read from the others)
+                undecoded += 1
+                if undecoded == 1:
+                    tree.notes.append(f"{where}: messages that do not decode were left out")
                 continue
             for stamped in message.transforms:
                 transforms += 1
                 if transforms > MAX_TRANSFORMS:
+                    tree.notes.append(f"{TF_TOPIC} read to its first {MAX_TRANSFORMS:,} transforms")
                     return tree
                 parent, child = stamped.header.frame_id, stamped.child_frame_id
                 T = _tf_transform(stamped.transform, f"{reader.path} [{TF_TOPIC}]", parent, child)
@@ -264,10 +310,9 @@ def frame_tree(reader: Any, urdf: str | Path | None = None) -> FrameTree:
     ``/robot_description`` (a transform /tf_static holds is kept)."""
     tree = read_tf_static(reader)
     if urdf is not None:
-        try:
-            text = Path(urdf).read_text(encoding="utf-8", errors="replace")
-        except OSError as exc:
-            raise InputError(f"{urdf}: cannot read: {exc.strerror}") from None
+        from imucal_cli.documents import read_capped
+
+        text = read_capped(Path(urdf), MAX_URDF_BYTES, "a URDF").decode("utf-8", errors="replace")
         read_urdf(text, tree, str(urdf))
     elif (description := _description(reader)) is not None:
         read_urdf(description, tree, f"{reader.path} [{DESCRIPTION_TOPIC}]")
@@ -325,8 +370,9 @@ def complete_from_log(
 def _why(log: str | Path, tree: FrameTree, ends: tuple[Any, Any], imu: str | None, key: str) -> str:
     """Why the tree cannot supply ``key``, and what settles it: the key itself, or the key
     that names the missing frame's place in the tree (``imu_frame``, ``lidar_frame``)."""
+    left_out = "".join(f"; {note}" for note in tree.notes)  # (what reading left out)
     if not tree.edges:
-        return f"missing required key, and {log} has no {TF_TOPIC} to take it from"
+        return f"missing required key, and {log} has no {TF_TOPIC} to take it from{left_out}"
     if imu is None:
         return (
             f"missing required key, and the IMU topic's messages in {log} name no frame: give it "
@@ -345,4 +391,4 @@ def _why(log: str | Path, tree: FrameTree, ends: tuple[Any, Any], imu: str | Non
         else f"no chain joins {ends[0]!r} and {ends[1]!r} in {TF_TOPIC}"
     )
     known = ", ".join(sorted(tree.edges)[:12])
-    return f"missing required key: {where} of {log} (its frames: {known}); {settle}"
+    return f"missing required key: {where} of {log} (its frames: {known}){left_out}; {settle}"

@@ -120,7 +120,10 @@ def _vector3(value: Any, source: str, key: str) -> np.ndarray:
 def _finite_numbers(value: Any, source: str, key: str) -> np.ndarray:
     if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
         raise ConfigError(source, key, f"expected numbers, got {value!r}")
-    array = np.asarray(value, dtype=np.float64)
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except OverflowError:  # (an int of hundreds of digits)
+        array = np.full(len(value), np.inf)
     if not np.all(np.isfinite(array)):
         raise ConfigError(source, key, f"expected finite numbers, got {value!r}")
     return array

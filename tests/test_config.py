@@ -291,3 +291,21 @@ def test_a_sensor_named_base_is_refused_not_confused_with_the_base_imu(base_dict
     with pytest.raises(ConfigError) as info:
         parse_config(base_dict, "vehicle.yaml")
     assert str(info.value).startswith("vehicle.yaml: sensors.base: 'base' names the base IMU")
+
+
+@pytest.mark.parametrize(
+    "value", ["2001-13-45", "1" * 5000, "0x" + "f" * 300], ids=["date", "int", "hex"]
+)
+def test_yaml_scalars_python_cannot_hold_are_an_error_naming_the_file(base_dict, tmp_path, value):
+    """PyYAML builds a date of month 13, a 5,000-digit int or a 300-digit hex and Python
+    refuses it (or its float): a traceback escaped, in configs and truth files alike."""
+    path = tmp_path / "vehicle.yaml"
+    text = yaml.safe_dump(base_dict).replace("min_duration_s: 2.0", f"min_duration_s: {value}")
+    path.write_text(text)
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    assert str(caught.value).startswith(str(path))
+    assert "no number or date" in str(caught.value) or "rest.min_duration_s" in str(caught.value)
+    result = CliRunner().invoke(app, ["evaluate", str(path), str(path)])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert result.stderr.count("\n") == 1 and "vehicle.yaml" in result.stderr

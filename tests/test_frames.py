@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 import yaml
@@ -104,12 +107,12 @@ def test_the_tree_composes_any_chain_both_ways():
     def random() -> Transform:
         return Transform.from_rpy(rng.normal(size=3), rng.normal(size=3))
 
-    a_b, b_c, d_c = random(), random(), random()
+    a_b, b_c, c_d = random(), random(), random()
     tree = FrameTree()
     tree.add("a", "b", a_b)
     tree.add("b", "c", b_c)
-    tree.add("d", "c", d_c)
-    expected = a_b * b_c * d_c.inverse()
+    tree.add("c", "d", c_d)
+    expected = a_b * b_c * c_d
     np.testing.assert_allclose(tree.lookup("a", "d").as_matrix(), expected.as_matrix(), atol=1e-12)
     np.testing.assert_allclose(
         tree.lookup("d", "a").as_matrix(), expected.inverse().as_matrix(), atol=1e-12
@@ -259,3 +262,76 @@ def test_an_imu_frame_id_not_in_the_tree_is_settled_by_imu_frame(drive, tmp_path
     np.testing.assert_allclose(
         loaded.T_imu_lidar.as_matrix(), mount.T_imu_lidar.as_matrix(), atol=1e-12
     )
+
+
+@pytest.mark.parametrize(
+    ("edges", "lookups", "says"),
+    [
+        (
+            [("a", "b"), ("b", "c"), ("x", "c")],
+            (("a", "c"), ("a", "b")),
+            "frame 'c' has two parents, 'b' (tf_static) and 'x' (tf_static)",
+        ),
+        (
+            [("a", "b"), ("b", "c"), ("c", "a")],
+            (("a", "b"), ("b", "c")),
+            "the edge 'c' -> 'a' (tf_static) closes a loop",
+        ),
+    ],
+)
+def test_a_frame_with_two_parents_or_a_loop_is_refused_on_the_chain_through_it(
+    edges, lookups, says
+):
+    """urdfdom and tf2 refuse a second parent; the shortest chain won silently (both sensors
+    inconsistent, 14.7 deg and 173 mm from the bogus edge). A chain through such a frame is an
+    error naming it; a chain that does not pass it is unaffected."""
+    from imucal_cli.errors import InputError
+
+    tree = FrameTree()
+    tree.add("b", "elsewhere", Transform.identity(), "tf_static")
+    for parent, child in edges:
+        tree.add(parent, child, Transform.identity(), "tf_static")
+    through, elsewhere = lookups
+    with pytest.raises(InputError, match=re.escape(says)):
+        tree.lookup(*through)
+    assert tree.lookup(*elsewhere) is not None
+    assert tree.lookup("b", "elsewhere") is not None
+
+
+def test_a_tf_static_cap_reached_is_said_where_a_frame_is_then_missing(drive, tmp_path):
+    """10,001 junk transforms before the real tree: reading stops at its cap, and the error
+    said the frame was not in /tf_static, blaming the tree. It now says the cap was reached."""
+    from imucal_cli.frames import MAX_TRANSFORMS
+
+    junk = [(f"junk{k}", f"junk{k}_child", Transform.identity()) for k in range(MAX_TRANSFORMS)]
+    tree = junk + drive.static_transforms()
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics(), tf_static=tree)
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    with pytest.raises(ConfigError, match="/tf_static read to its first 10,000 transforms"):
+        load_config(tmp_path / "min.yaml", log)
+
+
+@pytest.mark.parametrize("kind", ["dev_zero", "fifo", "sparse"])
+def test_a_urdf_that_is_no_regular_file_or_too_large_is_refused_at_once(drive, tmp_path, kind):
+    """``--urdf /dev/zero`` (or a sparse file) was read whole until killed, a FIFO nobody
+    writes hung forever: a URDF is a regular file, read to its cap and no further."""
+    import os
+    import time
+
+    from imucal_cli.errors import InputError
+
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics())
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    urdf = tmp_path / "robot.urdf"
+    if kind == "dev_zero":
+        urdf = Path("/dev/zero")
+    elif kind == "fifo":
+        os.mkfifo(urdf)
+    else:
+        with urdf.open("wb") as handle:
+            handle.truncate(1 << 40)  # a terabyte, sparse
+    start = time.monotonic()
+    says = "larger than 16 MiB" if kind == "sparse" else "not a regular file"
+    with pytest.raises(InputError, match=says):
+        load_config(tmp_path / "min.yaml", log, urdf)
+    assert time.monotonic() - start < 5.0

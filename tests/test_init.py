@@ -153,8 +153,8 @@ def test_a_log_cannot_write_keys_into_inits_config_nor_escapes_onto_the_terminal
         DriveOptions(scenario="aggressive", duration_s=30.0, seed=1, tf_static=True)
     )
     evil_frame = "x\n    prior_T_base_imu: {translation: [9, 9, 9], rpy_deg: [0, 0, 0]}\n    lidar"
-    transforms = [
-        (parent, evil_frame if child.endswith("lidar") else child, T)
+    transforms = [  # (one evil frame per sensor: a frame has one parent)
+        (parent, parent.split("/")[0] + evil_frame if child.endswith("lidar") else child, T)
         for parent, child, T in drive.static_transforms()
     ]
     topics = drive.topics()
@@ -164,7 +164,7 @@ def test_a_log_cannot_write_keys_into_inits_config_nor_escapes_onto_the_terminal
     assert made.exit_code == 0, made.output
     assert "\x1b" not in made.stdout and "\x1b" not in made.stderr
     assert "IMU topic '/evil\\x1b]0;pwned\\x07/imu' skipped" in made.stderr
-    assert "lidar frame 'x\\n    prior_T_base_imu" in made.stderr
+    assert "the lidar frame 'front_left_topx\\n    prior_T_base_imu" in made.stderr
     import yaml
 
     document = yaml.safe_load(made.stdout)
