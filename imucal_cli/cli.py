@@ -321,6 +321,10 @@ def inspect(
 # --------------------------------------------------------------------------- config
 
 
+#: The most lines ``init`` says of each kind (names left out, placeholders) before a count.
+INIT_LINES = 20
+
+
 @app.command("init", cls=_Command, rich_help_panel=PANEL_CONFIG)
 @handles_errors
 def init(
@@ -357,11 +361,16 @@ def init(
 
         write_text_atomic(out, text)
         _err(f"imucal: config: {out} (base {found.base_topic}, {len(found.sensors)} sensors)")
-    for line in found.skipped:
-        _err(f"imucal: {line}")
-    for name, key in found.missing:
-        looked = found.looked.get((name, key), "")
-        _err(f"imucal: {name}: {key} is not in the log ({looked}): fill its placeholder")
+    missing = [
+        f"{name}: {key} is not in the log ({found.looked.get((name, key), '')}): fill its "
+        "placeholder"
+        for name, key in found.missing
+    ]
+    for lines, what in ((found.skipped, "names left out"), (missing, "placeholders")):
+        for line in lines[:INIT_LINES]:  # (a log of 60,000 IMU channels: a bounded say)
+            _err(f"imucal: {line}")
+        if len(lines) > INIT_LINES:
+            _err(f"imucal: ... and {len(lines) - INIT_LINES:,} more {what}")
 
 
 @app.command("check-config", cls=_Command, rich_help_panel=PANEL_CONFIG)
@@ -531,6 +540,10 @@ def biases(
                 console.print(printable(f"{name}: {warning}"), style="yellow")
 
     _emit(document, out, as_json, render)
+    if out is not None or as_json:  # (the summary says them otherwise: as calibrate does)
+        for name, imu in document["imus"].items():
+            for warning in imu["warnings"]:
+                _err(f"imucal: {name}: {warning}")
 
 
 @app.command(cls=_Command, rich_help_panel=PANEL_CAL)

@@ -286,10 +286,10 @@ def calibration_document(
         cov = est.covariance
         sensors[sensor.name] = {
             "status": est.status,
-            "warnings": [
-                *est.warnings,
+            "warnings": [  # what reading dropped first: it is the cause of what the fit says
                 *base_warnings,
                 *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {})),
+                *est.warnings,
             ],
             "notes": list(est.notes),
             "imu_topic": sensor.imu_topic,

@@ -945,3 +945,59 @@ def test_the_read_loop_keeps_no_clipped_stamps_nobody_asked_for(tmp_path, short_
     read_log(reader, config, lambda *_: None, clocks=False)
     assert reader.stats[name].saturated == 3
     assert all(not stamps for stamps in reader.clipped.values())
+
+
+def _with_nan(data, fraction, seed=0):
+    """A topic's samples with ``fraction`` of them NaN (a driver's glitch)."""
+    from dataclasses import replace as replaced
+
+    from imucal_cli.sim.writers import TopicData
+
+    rng = np.random.default_rng(seed)
+    gyro = data.stream.gyro.copy()
+    gyro[rng.uniform(size=len(gyro)) < fraction] = np.nan
+    return TopicData(replaced(data.stream, gyro=gyro), data.log_time_ns)
+
+
+def test_dropped_samples_are_said_first_and_biases_says_its_warnings_on_stderr(
+    tmp_path, short_drive
+):
+    """30% NaN on a sensor: its first warning blamed the model (residuals, units, a moving
+    mount), the dropped samples came third; biases put them in its document only. The cause
+    is said first, and biases -o says its warnings on stderr as calibrate does."""
+    import json
+
+    from imucal_cli.documents import write_document
+
+    topics = short_drive.topics()
+    sensor_topic = list(topics)[1]
+    topics[sensor_topic] = _with_nan(topics[sensor_topic], 0.3)
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", topics)
+    write_document(tmp_path / "c.yaml", short_drive.config_document())
+    out = tmp_path / "e.json"
+    done = runner.invoke(
+        app, ["calibrate", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(out)]
+    )
+    assert done.exit_code == 0, done.output
+    sensor = next(
+        s for s in json.loads(out.read_text())["sensors"].values() if s["imu_topic"] == sensor_topic
+    )
+    assert "not finite" in sensor["warnings"][0], sensor["warnings"]
+    biases = runner.invoke(
+        app, ["biases", str(log), "-c", str(tmp_path / "c.yaml"), "-o", str(tmp_path / "b.yaml")]
+    )
+    assert biases.exit_code == 0 and "not finite" in biases.stderr, biases.stderr
+
+
+def test_init_says_a_bounded_number_of_lines_whatever_the_log_declares(tmp_path, short_drive):
+    """A log declaring 60,000 IMU channels made init print two lines per missing transform
+    (119,998 lines on stderr): each kind is said for 20 sensors, then counted."""
+    topics = short_drive.topics()
+    data = next(iter(topics.values()))
+    for k in range(30):
+        topics[f"/lidar/extra_{k}/imu"] = data
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", topics)
+    made = runner.invoke(app, ["init", str(log), "--base", next(iter(topics))])
+    assert made.exit_code == 0, made.output
+    lines = made.stderr.splitlines()
+    assert len(lines) == 21 and lines[-1] == "imucal: ... and 44 more placeholders", lines[-3:]
