@@ -18,7 +18,7 @@ from typing import Annotated, Any, NoReturn, ParamSpec, TypeVar
 
 import typer
 
-from imucal_cli.errors import ImucalError, InputError
+from imucal_cli.errors import ImucalError, InputError, Terminated
 from imucal_cli.names import printable
 from imucal_cli.version import version
 
@@ -56,6 +56,7 @@ app = typer.Typer(
 
 EXIT_OK, EXIT_CHECK_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
 
 LOG_HELP = "Log: a .mcap file, a rosbag2 directory (sqlite3 or mcap storage) or a ROS 1 .bag."
 PANEL_LOGS = "Logs"
@@ -112,6 +113,8 @@ class _Process:
     #: The command line's own (:func:`main` ran): only then are process-wide settings (the
     #: garbage collector, malloc's) the command's to change.
     own = False
+    #: A SIGTERM came (:func:`_terminate`).
+    terminated = False
 
 
 def _collect_from_here() -> None:
@@ -148,11 +151,33 @@ def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
         except ImucalError as exc:
             _err(f"imucal: error: {exc}")
             raise typer.Exit(EXIT_BAD_INPUT) from None
-        except KeyboardInterrupt:
-            _err("imucal: interrupted")
-            raise typer.Exit(EXIT_INTERRUPTED) from None
+        except KeyboardInterrupt as exc:
+            raise _interrupted(exc) from None
 
     return wrapper
+
+
+def _interrupted(exc: BaseException | None = None) -> typer.Exit:
+    """The exit of a Ctrl-C (130) or a SIGTERM (143, :class:`Terminated`), said on stderr."""
+    if isinstance(exc, Terminated) or (exc is None and _Process.terminated):
+        _err("imucal: terminated")
+        return typer.Exit(EXIT_TERMINATED)
+    _err("imucal: interrupted")
+    return typer.Exit(EXIT_INTERRUPTED)
+
+
+def _terminate(number: int, frame: Any) -> None:
+    """SIGTERM's handler: raise :class:`Terminated` where the command runs."""
+    _Process.terminated = True
+    raise Terminated
+
+
+def _default_sigterm() -> None:
+    """In a forked child (a reading child, a batch worker): SIGTERM ends it at once, as before;
+    its parent ends it in turn when the command is ended."""
+    import signal
+
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _stdout_console() -> Any:
@@ -883,8 +908,7 @@ def _follow(
         for line in s["missing"]:
             _err(f"imucal: {name}: missing {line}")
     if interrupted:
-        _err("imucal: interrupted")
-        raise typer.Exit(EXIT_INTERRUPTED)
+        raise _interrupted()
     if not (until_converged and good):
         _err("imucal: --timeout reached" if out_of_time else f"imucal: the recording {log} ended")
     if until_converged and not good:
@@ -1172,19 +1196,15 @@ def batch(
 ) -> None:
     """Calibrate many logs (local processes or a Dask cluster); summary CSV/JSON, JUnit; exit 1
     if any fails."""
-    from imucal_cli.documents import write_text_atomic
     from imucal_cli.fleet import (
         MOVED_FALLBACK_DEG,
         MOVED_FALLBACK_M,
         MOVED_STD,
         check_batch_outputs,
-        junit_xml,
         plan_tasks,
         read_manifest,
         run_dask,
         run_local,
-        summary_csv,
-        summary_json,
     )
 
     if not out_dir.parent.is_dir():
@@ -1260,12 +1280,13 @@ def batch(
                     f"{Path(task.out).parent}: cannot make the output folder: {exc.strerror}"
                 ) from None
 
+        finished: dict[int, list[Any]] = {}
+
         def done(i: int, rows: list[Any]) -> None:
+            finished[i] = rows
             verdict = "ok" if all(r.passed for r in rows) else "FAIL"
             _err(f"imucal: [{i + 1}/{len(tasks)}] {tasks[i].name}: {verdict}")
 
-        results = run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
-        rows = [row for result in results for row in result]
         settings = {
             "jobs": jobs,
             "scheduler": scheduler,
@@ -1275,10 +1296,18 @@ def batch(
             "truth_dir": str(truth_dir) if truth_dir else None,
             "reference": str(reference) if reference else None,
         }
-        write_text_atomic(out_dir / "summary.csv", summary_csv(rows))
-        write_text_atomic(out_dir / "summary.json", summary_json(rows, settings))
-        if junit is not None:
-            write_text_atomic(junit, junit_xml(rows))
+        try:
+            results = (
+                run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
+            )
+        except KeyboardInterrupt as exc:  # the logs finished by then are summarised all the same
+            rows = [row for i in sorted(finished) for row in finished[i]]
+            settings["interrupted"] = f"after {len(finished)} of {len(tasks)} logs"
+            _summaries(rows, settings, out_dir, junit)
+            _err(f"imucal: {len(finished)} of {len(tasks)} logs summarised in {out_dir}")
+            raise _interrupted(exc) from None
+        rows = [row for result in results for row in result]
+        _summaries(rows, settings, out_dir, junit)
         failed = sum(not r.passed for r in rows)
         _err(
             f"imucal: {len(tasks)} logs, {len(rows)} rows, {failed} failed; summary in "
@@ -1286,6 +1315,20 @@ def batch(
         )
     if failed:
         raise typer.Exit(EXIT_CHECK_FAILED)
+
+
+def _summaries(
+    rows: list[Any], settings: dict[str, Any], out_dir: Path, junit: Path | None
+) -> None:
+    """batch's summaries: the JUnit first (what a CI reads: a full disk then costs the CSV and
+    JSON, said in the error), then the CSV and the JSON."""
+    from imucal_cli.documents import write_text_atomic
+    from imucal_cli.fleet import junit_xml, summary_csv, summary_json
+
+    if junit is not None:
+        write_text_atomic(junit, junit_xml(rows))
+    write_text_atomic(out_dir / "summary.csv", summary_csv(rows))
+    write_text_atomic(out_dir / "summary.json", summary_json(rows, settings))
 
 
 @app.command(cls=_Command, rich_help_panel=PANEL_CAL)
@@ -1616,6 +1659,10 @@ def main() -> None:
     # it): a thread that waits for it waits less (1 h log: stream 3.2-3.3 s against 3.7)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     keep_freed_memory()
+    import signal
+
+    signal.signal(signal.SIGTERM, _terminate)  # ended as a Ctrl-C is (exit 143)
+    os.register_at_fork(after_in_child=_default_sigterm)
     try:
         app()
     except SystemExit as exc:

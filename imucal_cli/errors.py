@@ -37,3 +37,8 @@ class LogError(ImucalError):
 
 class InputError(ImucalError):
     """Any other bad input (a truth file, an estimate file, an output path)."""
+
+
+class Terminated(KeyboardInterrupt):
+    """A SIGTERM (what a CI runner sends at its timeout), raised where the command runs so that
+    it ends as a Ctrl-C does (children ended, nothing partial left), with exit 143."""

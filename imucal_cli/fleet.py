@@ -26,7 +26,7 @@ from xml.sax import saxutils
 import numpy as np
 
 from imucal_cli.config import Config
-from imucal_cli.errors import ImucalError, InputError
+from imucal_cli.errors import ImucalError, InputError, Terminated
 from imucal_cli.names import printable
 from imucal_cli.paths import log_folder
 from imucal_cli.types import Transform
@@ -309,10 +309,11 @@ def run_local(
     main = (
         threading.current_thread() is threading.main_thread()
     )  # (only there can a handler be set)
+    signals = (signal.SIGINT, signal.SIGTERM)  # (a SIGTERM ends it as a Ctrl-C does)
     previous = (
-        signal.signal(signal.SIGINT, lambda number, frame: interrupted.append(number))
+        [signal.signal(n, lambda number, frame: interrupted.append(number)) for n in signals]
         if main
-        else None
+        else []
     )
     try:
         while waiting or running:
@@ -326,7 +327,7 @@ def run_local(
                 send.close()
                 running[receive] = (i, process)
             if interrupted:
-                raise KeyboardInterrupt
+                raise Terminated if signal.SIGTERM in interrupted else KeyboardInterrupt
             ready: list[Any] = wait(list(running), timeout=0.2)
             for receive in ready:
                 i, process = running.pop(receive)
@@ -343,8 +344,8 @@ def run_local(
                 if on_done:
                     on_done(i, results[i])
     finally:
-        if main:
-            signal.signal(signal.SIGINT, previous)
+        for number, handler in zip(signals, previous, strict=False):
+            signal.signal(number, handler)
         for _, process in running.values():  # interrupted: stop what runs, start nothing more
             process.kill()
             process.join()

@@ -496,7 +496,59 @@ def test_ctrl_c_during_a_batch_stops_it_and_starts_no_other_log(fleet, tmp_path)
     assert process.returncode == 130, stderr
     assert time.monotonic() - started < 10  # not the rest of the queue
     assert b"interrupted" in stderr and b"Traceback" not in stderr
-    assert len(list(out.glob("c*.yaml"))) < len(copies)
+    finished = sorted(p.stem for p in out.glob("c*.yaml"))
+    assert len(finished) < len(copies)
+    # the logs finished before the Ctrl-C are summarised (they had no summary)
+    summary = (out / "summary.csv").read_text()
+    assert all(f"{name}.mcap" in summary for name in finished)
+    assert "interrupted" in (out / "summary.json").read_text()
+
+
+def test_sigterm_during_a_batch_ends_it_as_a_ctrl_c_does_with_exit_143(fleet, tmp_path):
+    """SIGTERM (a CI runner's timeout) to batch's main process left its --jobs workers
+    computing their logs. It now ends as a Ctrl-C does: workers ended, the finished logs
+    summarised, exit 143."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root, logs = fleet
+    copies = []
+    for k in range(9):
+        copies.append(tmp_path / f"c{k}.mcap")
+        copies[-1].write_bytes(logs[k % 3].read_bytes())
+    out = tmp_path / "out"
+    argv = [sys.executable, "-m", "imucal_cli.cli", "batch", *map(str, copies)]
+    argv += ["-c", str(root / "config.yaml"), "--out-dir", str(out), "--jobs", "2"]
+    process = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (out.is_dir() and any(out.glob("*.yaml"))):
+        time.sleep(0.02)
+    process.send_signal(signal.SIGTERM)  # the main process alone
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 143, stderr
+    assert b"terminated" in stderr and b"Traceback" not in stderr
+    assert (out / "summary.csv").exists()
+    deadline = time.monotonic() + 10  # and no process of its group left
+    while time.monotonic() < deadline:
+        left = [p for p in os.listdir("/proc") if p.isdigit() and _in_group(p, process.pid)]
+        if not left:
+            break
+        time.sleep(0.05)
+    assert left == []
+
+
+def _in_group(pid: str, group: int) -> bool:
+    import os
+
+    try:
+        return os.getpgid(int(pid)) == group
+    except OSError:
+        return False
 
 
 def test_a_scheduler_without_workers_is_an_error_not_a_hang(fleet, tmp_path, monkeypatch):

@@ -247,7 +247,14 @@ def test_the_live_table_shows_status_std_windows_and_what_is_missing():
     assert "rotation z (yaw)" in text and "translation x" in text
 
 
-def test_ctrl_c_while_following_writes_the_last_estimate_and_exits_130(aggressive, tmp_path):
+@pytest.mark.parametrize(
+    ("sent", "code", "said"), [("SIGINT", 130, b"interrupted"), ("SIGTERM", 143, b"terminated")]
+)
+def test_ctrl_c_while_following_writes_the_last_estimate_and_exits_130(
+    aggressive, tmp_path, sent, code, said
+):
+    """A Ctrl-C, or a SIGTERM (which wrote no estimate: 19 windows lost), ends follow mode
+    with the last estimate written."""
     import os
     import signal
     import subprocess
@@ -280,11 +287,11 @@ def test_ctrl_c_while_following_writes_the_last_estimate_and_exits_130(aggressiv
     while first and '"waiting"' in first.decode():
         first = process.stdout.readline()
     assert first, process.stderr.read()
-    os.killpg(process.pid, signal.SIGINT)
+    os.killpg(process.pid, getattr(signal, sent))
     _, stderr = process.communicate(timeout=60)
     recorder.join(60)
-    assert process.returncode == 130, stderr
-    assert b"Traceback" not in stderr and b"interrupted" in stderr
+    assert process.returncode == code, stderr
+    assert b"Traceback" not in stderr and said in stderr
     assert yaml.safe_load(out.read_text())["sensors"]
 
 
