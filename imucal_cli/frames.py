@@ -32,6 +32,8 @@ TF_MSGTYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage")
 STRING_MSGTYPE = "std_msgs/msg/String"
 #: Most /tf_static messages and transforms read: a static tree holds tens.
 MAX_TF_MESSAGES, MAX_TRANSFORMS = 1000, 10_000
+#: The largest /tf_static message deserialised: its 10,000 transforms at 400 bytes each.
+MAX_TF_MESSAGE_BYTES = 4 << 20
 #: tf2's bound on a quaternion's squared norm (``QUATERNION_NORMALIZATION_TOLERANCE``).
 TF2_QUATERNION_TOLERANCE = 10e-3
 #: Sensor keys a tree may supply, and the base's.
@@ -234,6 +236,12 @@ def read_tf_static(reader: Any) -> FrameTree:
             if messages > MAX_TF_MESSAGES:
                 tree.notes.append(f"{TF_TOPIC} read to its first {MAX_TF_MESSAGES:,} messages")
                 return tree
+            if length > MAX_TF_MESSAGE_BYTES:  # (not deserialised: 200 MiB made 2.5 GB)
+                tree.notes.append(
+                    f"{where}: a message of {length / 1e6:.0f} MB, larger than a static tree "
+                    f"({MAX_TF_MESSAGE_BYTES >> 20} MiB), was left out"
+                )
+                continue
             data = batch.buffer[start : start + length].tobytes()
             try:
                 read = store.deserialize_ros1 if ros1 else store.deserialize_cdr

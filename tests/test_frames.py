@@ -335,3 +335,19 @@ def test_a_urdf_that_is_no_regular_file_or_too_large_is_refused_at_once(drive, t
     with pytest.raises(InputError, match=says):
         load_config(tmp_path / "min.yaml", log, urdf)
     assert time.monotonic() - start < 5.0
+
+
+def test_a_tf_static_message_larger_than_a_tree_is_left_out_and_said(drive, tmp_path, monkeypatch):
+    """One /tf_static message of 200 MiB (2.38 M transforms, 1.6 MB compressed) was
+    deserialised whole before the transform cap counted: 2.5 GB. A message larger than any
+    static tree (MAX_TF_MESSAGE_BYTES, lowered here to the test's tree) is not deserialised,
+    and a frame then missing says so."""
+    import imucal_cli.frames as frames
+
+    monkeypatch.setattr(frames, "MAX_TF_MESSAGE_BYTES", 100)
+    log = write_imu_log(
+        tmp_path / "d.mcap", "mcap", drive.topics(), tf_static=drive.static_transforms()
+    )
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    with pytest.raises(ConfigError, match=r"a message of 0 MB, larger than a static tree"):
+        load_config(tmp_path / "min.yaml", log)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import struct
 import time
+from array import array
 from collections.abc import Callable, Iterable, Iterator
 from io import BytesIO
 from pathlib import Path
@@ -59,6 +60,8 @@ _MESSAGE_RECORD = np.dtype(  # a Message record up to its data
 )
 _MESSAGE_HEADER = _MESSAGE_RECORD.itemsize  # 31 bytes before a message's data
 REPAIR = "`mcap recover FILE -o FIXED.mcap` rewrites what is readable"
+
+MESSAGE_HEAD = 2 + 4 + 8 + 8  # a Message record's channel id, sequence, log and publish times
 
 
 def _encoding(channel: Channel) -> str:
@@ -288,7 +291,7 @@ class McapLog(LogReader):
         """The offsets of the Message records in ``data`` (records end to end, as in a
         chunk), channels and schemas noted. A record cut off ends the list."""
         raw = data.data
-        offsets: list[int] = []
+        offsets = array("q")  # (8 bytes an offset: a chunk holds millions of records)
         pos, size = 0, len(data)
         unpack = _RECORD.unpack_from
         while pos + 9 <= size:
@@ -296,7 +299,7 @@ class McapLog(LogReader):
             end = pos + 9 + length
             if end > size:
                 break
-            if opcode == _MESSAGE_OP:
+            if opcode == _MESSAGE_OP and length >= MESSAGE_HEAD:  # (shorter: no message)
                 offsets.append(pos)
             elif opcode == _CHANNEL_OP:
                 channel = Channel.read(ReadDataStream(BytesIO(raw[pos + 9 : end])))
@@ -305,7 +308,7 @@ class McapLog(LogReader):
                 schema = Schema.read(ReadDataStream(BytesIO(raw[pos + 9 : end])))
                 schemas[schema.id] = schema
             pos = end
-        return np.asarray(offsets, dtype=np.int64)
+        return np.frombuffer(offsets, dtype=np.int64) if offsets else np.zeros(0, np.int64)
 
     def _message_indexes(self, index: ChunkIndex, channel_ids: set[int]) -> dict[int, np.ndarray]:
         """The message index entries (log time, offset in the chunk) of some channels of a chunk."""

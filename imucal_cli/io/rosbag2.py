@@ -126,12 +126,8 @@ class Rosbag2Log(LogReader):
         batcher = Batcher()
         try:
             for conn, timestamp, data in self._reader.messages(connections=connections):
-                yield from batcher.add(
-                    conn.topic,
-                    getattr(conn.ext, "serialization_format", "cdr"),
-                    int(timestamp),
-                    bytes(data),
-                )
+                encoding = getattr(conn.ext, "serialization_format", "cdr")
+                yield from batcher.add(conn.topic, encoding, int(timestamp), bytes(data))
         except Exception as exc:
             raise self.error(
                 f"cannot read its messages: {exc}; `sqlite3 FILE.db3 .recover` salvages a damaged "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import without_summary
 from typer.testing import CliRunner
@@ -205,3 +206,32 @@ def test_the_topics_of_a_group_spanning_a_minute_arrive_interleaved(tmp_path, mo
     for sensor in run.document["sensors"].values():
         assert not any("sent nothing" in w for w in sensor["warnings"]), sensor["warnings"]
         assert sensor["status"] == "ok"
+
+
+def test_an_empty_message_record_is_passed_over_not_the_end_of_the_walk(tmp_path, short_drive):
+    """A Message record too short for its fields (9 bytes) made the record walk read a log
+    time past it (IndexError): the file was 'damaged' there and everything after was lost. It
+    is passed over; every message after it is read."""
+    import struct
+
+    from conftest import without_summary
+
+    from imucal_cli.io.logs import open_log
+    from imucal_cli.reading import read_imu
+
+    topics = list(short_drive.topics())
+    intact = write_imu_log(tmp_path / "d.mcap", "mcap", short_drive.topics())
+    bare = without_summary(intact, tmp_path / "bare.mcap")
+    data = bare.read_bytes()
+    (header_length,) = struct.unpack_from("<Q", data, 8 + 1)
+    at = 8 + 9 + header_length  # after the magic and the header
+    empty = struct.pack("<BQ", 0x05, 0)  # a Message record with no fields
+    hostile = tmp_path / "empty.mcap"
+    hostile.write_bytes(data[:at] + empty + data[at:])
+    expected = read_imu(bare, topics)
+    got = read_imu(hostile, topics)
+    for topic in topics:
+        np.testing.assert_array_equal(got[topic].stream.t_ns, expected[topic].stream.t_ns)
+    with open_log(hostile) as reader:
+        reader.topics()
+        assert not any(loss.lost for loss in reader.losses)
