@@ -23,14 +23,10 @@ T = TypeVar("T")
 D = TypeVar("D")
 Bytes = bytes | memoryview  # a chunk's stored data: as read, or a view of it
 
-#: The largest decompressed chunk believed. Recorders write chunks of 768 KiB (rosbag) to a few
-#: MiB (MCAP); a chunk claiming more than this is damaged or hostile, and is lost alone.
-MAX_CHUNK_BYTES = 256 << 20
-#: The largest compression ratio believed of a chunk. The most compressible IMU data there is,
-#: a simulated motionless and noise-free sensor, compresses 23:1 with zstd; a chunk claiming
-#: more than this many times its stored size is a decompression bomb. With :data:`MAX_CHUNK_BYTES`
-#: it bounds what a read decompresses by the file's size, not by what its records claim.
-MAX_RATIO = 1000
+#: The largest decompressed chunk and compression ratio believed (recorders write chunks of
+#: 768 KiB to a few MiB; motionless noise-free IMU data compress 23:1): what a read decompresses
+#: is bounded by the file's size, not by what its records claim.
+MAX_CHUNK_BYTES, MAX_RATIO = 256 << 20, 1000
 
 
 def check_chunk_size(claimed: int, stored: int, compression: str) -> None:

@@ -1,15 +1,7 @@
-"""MCAP files, read with the ``mcap`` library.
-
-A file whose summary lists its channels and chunk indexes, each chunk with message indexes (what
-the official writers produce by default), is read chunk by chunk: only the chunks that hold a
-wanted channel are read and decompressed, and the messages are found through the message
-indexes, whose entries this module reads as numpy arrays: the library builds a Python tuple per
-message, 1.2 s for the 3.2 M messages of an hour of five IMUs (docs/performance.md). Every other
-valid file (no summary, no indexes, channels only inside the chunks, no chunks at all) is walked
-record by record, the library parsing each chunk, channel and schema record. A file cut off
-mid-write has no summary: it is read up to the cut, and the cut is a :class:`Loss`; a chunk
-that does not decompress is one too.
-"""
+"""MCAP files, read with the ``mcap`` library: through the summary's chunk and message indexes
+(read as numpy arrays) where a file has them, only the chunks of wanted channels; else record
+by record. A file cut off mid-write is read to the cut, and the cut is a :class:`Loss`; a chunk
+that does not decompress is one too."""
 
 from __future__ import annotations
 

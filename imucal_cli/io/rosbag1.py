@@ -1,13 +1,7 @@
-"""ROS 1 bags (format 2.0), read by this module.
-
-``rosbags`` reads a bag one message at a time: 34 s for the 3.2 M messages of an hour of five
-IMUs (docs/performance.md), 10x this tool's calibration of it. This reader uses the bag's own
-index instead: the connection and chunk-info records at its end, then per chunk the index data
-records that follow it, whose (time, offset) entries become numpy arrays, so a chunk's messages
-are gathered without walking its records. A bag whose index is missing or unusable (the
-recorder was killed: ``index_pos`` is 0, or points past the end) is walked record by record
-from the start, chunks included, up to the cut, which is a :class:`Loss`.
-"""
+"""ROS 1 bags (format 2.0), read through the bag's own index (its connection and chunk-info
+records, then each chunk's index data as numpy arrays: ``rosbags``, a message at a time, took
+10x a calibration); a bag whose index is missing or unusable (a killed recorder) is walked
+record by record from the start up to the cut, which is a :class:`Loss`."""
 
 from __future__ import annotations
 

@@ -1,11 +1,6 @@
-"""rosbag2 folders (sqlite3 or mcap storage), opened with ``rosbags``.
-
-``rosbags`` reads the folder's ``metadata.yaml`` (topics, types, counts, storage, compression).
-Messages come from ``rosbags`` too, one at a time (the hour of five IMUs of docs/performance.md:
-9.6 s; the ``sqlite3`` module in blocks of rows was no faster, 9.5 s), except from uncompressed
-mcap storage files, which :class:`~imucal_cli.io.mcap_log.McapLog` reads (1.5 s, and up to the
-cut where the recorder was killed).
-"""
+"""rosbag2 folders (sqlite3 or mcap storage), opened with ``rosbags``: its metadata, and its
+messages one at a time, but for uncompressed mcap storage, which
+:class:`~imucal_cli.io.mcap_log.McapLog` reads (6x faster, and up to a killed recorder's cut)."""
 
 from __future__ import annotations
 
@@ -14,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from imucal_cli.errors import LogError
-from imucal_cli.io.base import Batcher, LogReader, Loss, TopicInfo
+from imucal_cli.io.base import MAX_RATIO, Batcher, LogReader, Loss, TopicInfo
 from imucal_cli.io.imu_msg import RawBatch
 from imucal_cli.io.mcap_log import McapLog
 
@@ -84,6 +79,8 @@ class Rosbag2Log(LogReader):
         else:
             from rosbags.rosbag2 import Reader
 
+            if info.get("compression_mode") == "file":
+                self._inflatable(info)
             self.format_name = f"rosbag2-{info.get('storage_identifier', '?')}"
             try:
                 self._reader = Reader(self.path)
@@ -93,6 +90,27 @@ class Rosbag2Log(LogReader):
                     f"cannot read the rosbag2 folder: {exc}; {REINDEX}; `sqlite3 FILE.db3 "
                     ".recover` salvages a damaged database"
                 ) from None
+
+    def _inflatable(self, info: dict[str, Any]) -> None:
+        """A file-compressed bag, which rosbags inflates whole into TMPDIR: each storage file's
+        size decompressed (to nowhere) first, held to MAX_RATIO times its own and TMPDIR's room
+        (a 130 kB bag wrote 4 GiB there)."""
+        import shutil
+        import tempfile
+
+        import zstandard
+
+        room, inflated = shutil.disk_usage(tempfile.gettempdir()).free, zstandard.ZstdDecompressor()
+        for path in (self.path / Path(str(n)).name for n in info["relative_file_paths"] or []):
+            size, limit = 0, min(MAX_RATIO * path.stat().st_size, room) if path.is_file() else 0
+            try:
+                with path.open("rb") as f, inflated.stream_reader(f) as z:
+                    while size <= limit and (piece := z.read(1 << 20)):
+                        size += len(piece)
+            except (OSError, zstandard.ZstdError) as exc:
+                raise self.error(f"{path.name} does not decompress: {exc}") from None
+            if size > limit:
+                raise self.error(f"{path.name} decompresses to more than {limit:,} bytes")
 
     def close(self) -> None:
         if self._reader is not None:

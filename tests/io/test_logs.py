@@ -192,3 +192,41 @@ def test_the_same_drive_gives_the_same_windows_and_estimate_from_every_container
             assert sensor["warnings"] == expected["warnings"] == [], (fmt, name)
             assert sensor["T_base_lidar"] == expected["T_base_lidar"], (fmt, name)
             assert sensor["rotation_std_deg"] == expected["rotation_std_deg"], (fmt, name)
+
+
+def _file_compressed(bag, payload=None):
+    """The rosbag2 folder ``bag`` with its storage compressed whole (``compression_mode:
+    file``, as ``ros2 bag record --compression-mode file`` writes it), or with ``payload``
+    compressed in its place."""
+    import yaml
+    import zstandard
+
+    metadata = bag / "metadata.yaml"
+    document = yaml.safe_load(metadata.read_text())
+    info = document["rosbag2_bagfile_information"]
+    files = []
+    for name in info["relative_file_paths"]:
+        storage = bag / name
+        data = storage.read_bytes() if payload is None else payload
+        (bag / f"{name}.zstd").write_bytes(zstandard.ZstdCompressor().compress(data))
+        storage.unlink()
+        files.append(f"{name}.zstd")
+    info |= {"relative_file_paths": files, "compression_format": "zstd", "compression_mode": "file"}
+    metadata.write_text(yaml.safe_dump(document))
+    return bag
+
+
+def test_a_file_compressed_bag_reads_and_a_bomb_is_refused_before_it_is_inflated(tmp_path):
+    """rosbags inflates a file-compressed bag whole into TMPDIR: a 130 kB bag wrote 4 GiB there
+    (ENOSPC on a small TMPDIR, an empty temp folder left). Each file is now counted
+    decompressed first, held to 1000:1 and TMPDIR's room."""
+    stream = random_stream(np.random.default_rng(0), 500, 10_000_000, "imu")
+    bag = write_imu_log(tmp_path / "bag", "rosbag2-sqlite3", {"/imu": TopicData(stream)})
+    (tmp_path / "bomb").mkdir()
+    for path in bag.iterdir():
+        (tmp_path / "bomb" / path.name).write_bytes(path.read_bytes())
+    read = read_imu(_file_compressed(bag), ["/imu"])
+    np.testing.assert_array_equal(read["/imu"].stream.t_ns, stream.t_ns)
+    bomb = _file_compressed(tmp_path / "bomb", bytes(200 << 20))  # 200 MiB of zeros
+    with pytest.raises(LogError, match="decompresses to more than"):
+        read_imu(bomb, ["/imu"])
