@@ -702,7 +702,7 @@ def calibrate(
 
         pyplot()  # fail before the work when matplotlib is missing
     if follow:
-        _follow(log, config, out, as_json, until_converged, timeout, report)
+        _follow(log, config, out, as_json, until_converged, timeout, report, urdf)
         return
     _cfg, streamed = _stream_log(log, config, urdf)
     from imucal_cli.api import estimate
@@ -818,6 +818,7 @@ def _follow(
     until_converged: bool,
     timeout: float | None,
     report: Path | None = None,
+    urdf: Path | None = None,
 ) -> None:
     """calibrate --follow: from the first data what each sensor has and waits for, then an
     update per window (a JSON line with --json, a table on a terminal, else a line on stderr),
@@ -834,7 +835,7 @@ def _follow(
     # the log, and the tree of a config that leaves transforms out: waited for within --timeout
     limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
     _wait_for(log, limit)
-    cfg = _follow_config(config_path, log, limit)
+    cfg = _follow_config(config_path, log, limit, urdf)
     live = None
     if not as_json and sys.stderr.isatty():  # a table on the terminal, redrawn each window
         from rich.console import Console
@@ -939,10 +940,11 @@ def _wait_for(log: Path, limit: float) -> None:
         time.sleep(0.1)
 
 
-def _follow_config(config_path: Path, log: Path, limit: float) -> Any:
+def _follow_config(config_path: Path, log: Path, limit: float, urdf: Path | None) -> Any:
     """Follow mode's config; one that leaves sensor transforms out is read against the
-    recording's /tf_static (or /robot_description) as soon as it holds them and the IMUs'
-    first messages (until ``limit``, monotonic s)."""
+    recording's /tf_static and the URDF (``urdf``, else its /robot_description) as soon as
+    they hold them and the IMUs' first messages (until ``limit``, monotonic s): an error in
+    the URDF itself is said at once."""
     import time
 
     from imucal_cli.config import load_config
@@ -954,9 +956,15 @@ def _follow_config(config_path: Path, log: Path, limit: float) -> Any:
     except ConfigError as exc:
         if not leaves_out_transforms(exc):
             raise
+    if urdf is not None:
+        from imucal_cli.documents import read_capped
+        from imucal_cli.frames import MAX_URDF_BYTES, FrameTree, read_urdf
+
+        text = read_capped(urdf, MAX_URDF_BYTES, "a URDF").decode("utf-8", errors="replace")
+        read_urdf(text, FrameTree(), str(urdf))  # (not a URDF: said now, not at --timeout)
     while True:
         try:
-            return load_config(config_path, log)
+            return load_config(config_path, log, urdf)
         except ImucalError:
             if time.monotonic() > limit:
                 raise

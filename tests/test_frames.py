@@ -351,3 +351,29 @@ def test_a_tf_static_message_larger_than_a_tree_is_left_out_and_said(drive, tmp_
     write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
     with pytest.raises(ConfigError, match=r"a message of 0 MB, larger than a static tree"):
         load_config(tmp_path / "min.yaml", log)
+
+
+def test_follow_mode_takes_the_transforms_from_urdf(drive, tmp_path):
+    """``calibrate --follow --urdf`` dropped the URDF, waited the whole --timeout and blamed
+    the log: the URDF now gives the transforms as it does without --follow, and a file that is
+    no URDF is said at once."""
+    from recorder import record
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    (tmp_path / "robot.urdf").write_text(drive.urdf())
+    live, out = tmp_path / "live.mcap", tmp_path / "f.yaml"
+    recorder = record(live, drive, factor=20.0)
+    argv = ["calibrate", str(live), "-c", str(tmp_path / "min.yaml"), "--follow"]
+    result = CliRunner().invoke(
+        app, [*argv, "--urdf", str(tmp_path / "robot.urdf"), "-o", str(out), "--timeout", "60"]
+    )
+    recorder.join(60)
+    assert result.exit_code == 0, result.output
+    for sensor in yaml.safe_load(out.read_text())["sensors"].values():
+        assert sensor["priors"]["T_imu_lidar"] == sensor["priors"]["prior_T_base_imu"] == "urdf"
+    (tmp_path / "bad.urdf").write_text("<robot")
+    bad = CliRunner().invoke(app, [*argv, "--urdf", str(tmp_path / "bad.urdf"), "--timeout", "60"])
+    assert bad.exit_code == 2 and "bad.urdf: not a URDF" in bad.stderr

@@ -14,6 +14,7 @@ from imucal_cli.io.imu_msg import RawBatch
 from imucal_cli.io.mcap_log import McapLog
 
 REINDEX = "`ros2 bag reindex FOLDER` rebuilds a missing or broken metadata.yaml"
+FOLLOW_ROWS = 65536  # rows a recording is read in
 
 
 def bag_folder(path: Path) -> Path:
@@ -174,22 +175,13 @@ class SqliteRecording(LogReader):
         while True:
             finished = (self.path / "metadata.yaml").is_file()  # before the read: no row is missed
             rows: list[tuple[int, int, int, bytes]] = []
-            try:
-                with sqlite3.connect(
-                    f"file:{self.db}?mode=ro", uri=True, timeout=1.0
-                ) as connection:
-                    ids = {
-                        t: (n, f)
-                        for t, n, f in connection.execute(
-                            "SELECT id, name, serialization_format FROM topics"
-                        )
-                        if n in wanted
-                    }
-                    rows = connection.execute(
-                        "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? ORDER BY "
-                        "id",
-                        (last,),
-                    ).fetchall()
+            try:  # the wanted topics' rows only, a block at a time (10 M rows of another: 1.7 GB)
+                with sqlite3.connect(f"file:{self.db}?mode=ro", uri=True, timeout=1.0) as db:
+                    query = "SELECT id, name, serialization_format FROM topics"
+                    ids = {t: (n, f) for t, n, f in db.execute(query) if n in wanted}
+                    query = "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? AND "
+                    query += f"topic_id IN ({','.join('?' * len(ids))}) ORDER BY id LIMIT ?"
+                    rows = db.execute(query, (last, *ids, FOLLOW_ROWS)).fetchall() if ids else []
             except sqlite3.OperationalError:  # locked by the recorder, or no table yet: try again
                 pass
             if rows:
