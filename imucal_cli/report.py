@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import base64
 import html
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -401,11 +402,40 @@ def write_report(
     progress: Any = None,
 ) -> list[Path]:
     """Draw every figure into ``out_dir`` and write ``report.html``; returns the files written.
-    ``progress`` is told (figures drawn, figures in all) as it goes."""
+    ``progress`` is told (figures drawn, figures in all) as it goes. The report is made in a
+    hidden folder beside ``out_dir`` and moved in whole: a run ended midway (a Ctrl-C, a
+    SIGTERM, a full disk: :class:`InputError`) leaves nothing of it."""
+    import shutil
+    import tempfile
+
+    made = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
+    try:
+        drawn = _draw_report(work, log, result, streamed, document, progress)
+        for path in drawn:
+            os.replace(path, out_dir / path.name)
+        return [out_dir / path.name for path in drawn]
+    except OSError as exc:
+        raise InputError(f"{out_dir}: cannot write the report: {exc.strerror or exc}") from None
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+        if made and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+
+
+def _draw_report(
+    out_dir: Path,
+    log: Path,
+    result: Any,
+    streamed: Any,
+    document: Mapping[str, Any],
+    progress: Any = None,
+) -> list[Path]:
+    """:func:`write_report`'s figures and page, drawn into ``out_dir``."""
     from imucal_cli.documents import write_text_atomic
 
     plt = pyplot()
-    out_dir.mkdir(parents=True, exist_ok=True)
     config = result.config
     estimates = {s.name: result.estimates[s.name] for s in config.sensors}
     offset = (

@@ -142,3 +142,25 @@ def test_the_page_says_why_each_sensor_has_its_status(tmp_path):
     }
     page = html_page("t", unobservable, [])
     assert "not shown" in page and "No checks" in page
+
+
+def test_a_report_ended_midway_leaves_nothing_of_it(tmp_path, monkeypatch):
+    """A SIGTERM during --report left a folder with 1 figure of 5; a full disk left a partial
+    figure and matplotlib's traceback. The report is made aside and moved in whole: a failed
+    figure leaves no file of it (and, on a full disk, one line and exit 2)."""
+    import errno
+
+    from imucal_cli import report as report_module
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(report_module, "vehicle_figure", full_disk)  # the fifth figure
+    out, report = tmp_path / "e.yaml", tmp_path / "report"
+    argv = ["calibrate", str(SAMPLE_DATA / "aggressive.mcap")]
+    argv += ["-c", str(SAMPLE_DATA / "aggressive.config.yaml"), "--report", str(report)]
+    result = CliRunner().invoke(app, [*argv, "-o", str(out)])
+    assert result.exit_code == 2, result.output
+    assert "cannot write the report: No space left on device" in result.stderr
+    assert result.stderr.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no report, no partial, no -o
