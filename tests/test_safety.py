@@ -547,3 +547,33 @@ def test_a_batch_into_a_folder_another_batch_holds_is_refused(tmp_path, short_dr
     assert list(out.iterdir()) == []
     done = runner.invoke(app, ["batch", str(log), "-c", str(config), "--out-dir", str(out)])
     assert done.exit_code in (0, 1) and (out / "summary.csv").exists()
+
+
+@pytest.fixture()
+def small_disk(tmp_path):
+    """A 1 MiB tmpfs (root only: skipped elsewhere), unmounted after."""
+    disk = tmp_path / "small"
+    disk.mkdir()
+    made = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=1M", "tmpfs", str(disk)], capture_output=True
+    )
+    if made.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (not root)")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag2-sqlite3"])
+def test_simulate_on_a_full_disk_is_one_line_and_leaves_nothing(small_disk, fmt):
+    """simulate on a full disk escaped as a traceback (ENOSPC, and sqlite3's "database or
+    disk is full"): one line naming the log, exit 2, no partial folder."""
+    out = small_disk / ("d.mcap" if fmt == "mcap" else "d")
+    result = runner.invoke(
+        app, ["simulate", str(out), "--duration", "60", "--format", fmt, "--sensors", "4"]
+    )
+    assert result.exit_code == 2, result.output
+    assert f"{out}: cannot write the log" in result.stderr
+    assert result.stderr.count("\n") == 1
+    assert list(small_disk.iterdir()) == []

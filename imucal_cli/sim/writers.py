@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import heapq
 import shutil
+import sqlite3
 import tempfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -276,6 +277,9 @@ def write_imu_log(
             refuse_existing(out, replace)  # (again: it may have appeared meanwhile)
             shutil.rmtree(out) if out.is_dir() else out.unlink()
         tmp.rename(out)
+    except (OSError, sqlite3.OperationalError) as exc:  # a full disk, mid-write
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise InputError(f"{out}: cannot write the log: {why}") from None
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return out
