@@ -400,4 +400,17 @@ def load_config(
     from imucal_cli.frames import complete_from_log
 
     data, priors = complete_from_log(data, log, str(path), urdf)
-    return replace(parse_config(data, str(path)), priors=priors)
+    try:
+        return replace(parse_config(data, str(path)), priors=priors)
+    except ConfigError as exc:  # a value the log supplied: said as the log's, not the file's
+        name, _, key = exc.key.removeprefix("sensors.").partition(".")
+        origin = priors.get(name, {}).get(key.split(".")[0], "config")
+        if exc.key.startswith("base."):
+            origin = next(iter(priors.values()), {}).get("base.T_base_imu", "config")
+        if origin == "config":
+            raise
+        raise ConfigError(
+            str(path),
+            exc.key,
+            f"{exc.problem} (the value {path} leaves out, taken from {origin} in {log})",
+        ) from None

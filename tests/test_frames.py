@@ -377,3 +377,19 @@ def test_follow_mode_takes_the_transforms_from_urdf(drive, tmp_path):
     (tmp_path / "bad.urdf").write_text("<robot")
     bad = CliRunner().invoke(app, [*argv, "--urdf", str(tmp_path / "bad.urdf"), "--timeout", "60"])
     assert bad.exit_code == 2 and "bad.urdf: not a URDF" in bad.stderr
+
+
+def test_a_value_the_tree_supplies_is_judged_as_the_trees_not_the_files(drive, tmp_path):
+    """A /tf_static lidar frame 5 m from its IMU: the error named
+    ``min.yaml: sensors.X.T_imu_lidar.translation``, a key the file leaves out. It now says the
+    value came from the log's tree."""
+    transforms = drive.static_transforms()
+    parent, child, T = transforms[3]  # a sensor's lidar frame under its os_sensor
+    transforms[3] = (parent, child, Transform(T.rotation, T.translation + np.array([5.0, 0.0, 0.0])))
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics(), tf_static=transforms)
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    with pytest.raises(ConfigError) as caught:
+        load_config(tmp_path / "min.yaml", log)
+    message = str(caught.value)
+    assert ".T_imu_lidar.translation" in message and "more than 1 m" in message
+    assert f"leaves out, taken from tf_static in {log}" in message
