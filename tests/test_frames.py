@@ -385,7 +385,8 @@ def test_a_value_the_tree_supplies_is_judged_as_the_trees_not_the_files(drive, t
     value came from the log's tree."""
     transforms = drive.static_transforms()
     parent, child, T = transforms[3]  # a sensor's lidar frame under its os_sensor
-    transforms[3] = (parent, child, Transform(T.rotation, T.translation + np.array([5.0, 0.0, 0.0])))
+    moved = Transform(T.rotation, T.translation + np.array([5.0, 0.0, 0.0]))
+    transforms[3] = (parent, child, moved)
     log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics(), tf_static=transforms)
     write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
     with pytest.raises(ConfigError) as caught:
