@@ -895,6 +895,7 @@ def _follow(
         if live is not None:
             live.stop()
     out_of_time = timed_out()  # why it stopped (the report below takes time of its own)
+    _note_losses(log, run.document["losses"])  # (garbage appended to a recording, say)
     if report is not None:
         from imucal_cli.report import write_report
 

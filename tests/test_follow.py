@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -415,3 +416,29 @@ def test_a_weak_drive_says_what_is_missing_while_it_records(tmp_path):
         assert sensor["missing"] and any("turns" in m for m in sensor["missing"])
     process.communicate(timeout=120)
     recorder.join(60)
+
+
+def test_garbage_appended_to_a_recording_is_said_damaged_not_waited_for(aggressive, tmp_path):
+    """Garbage appended to a followed MCAP was taken for a record cut off, waited for (500 MB
+    re-read on every poll: 2 GB) until --timeout, and nothing said the file was damaged. A
+    record of a reserved opcode is damage, said on stderr; the estimate is of what came
+    before."""
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+    from imucal_cli.sim.writers import write_imu_log
+
+    config = tmp_path / "c.yaml"
+    write_document(config, aggressive.config_document())
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", aggressive.topics())
+    data = log.read_bytes()
+    footer = data.rindex(b"\x02" + (20).to_bytes(8, "little"))  # the footer record
+    summary = int.from_bytes(data[footer + 9 : footer + 17], "little") or footer
+    end = data.rindex(b"\x0f", 0, summary)  # the data-end record, then the summary
+    garbage = bytes([0x42]) + (10**12).to_bytes(8, "little") + b"\x00" * 4096
+    log.write_bytes(data[:end] + garbage)  # (what a recorder left, garbage after its chunks)
+    argv = ["calibrate", str(log), "-c", str(config), "--follow", "--timeout", "30"]
+    started = time.monotonic()
+    result = CliRunner().invoke(app, [*argv, "-o", str(tmp_path / "f.yaml")])
+    assert time.monotonic() - started < 25  # (not the whole --timeout)
+    assert "damaged" in result.stderr and "reserved opcode 0x42" in result.stderr, result.stderr

@@ -180,7 +180,7 @@ class McapLog(LogReader):
         for data, at in self._walk(channels, {}, note=True, stop=stop, poll_s=poll_s):
             yield from _channel_batches(data, at, channels, set(topics))
 
-    def _record_at(self, pos: int) -> tuple[int, int, bytes] | None:
+    def _record_at(self, pos: int, waiting: bool = False) -> tuple[int, int, bytes] | None:
         """The top-level record at ``pos``: its opcode, its length and as much of it as the
         file holds now; ``None`` before a whole opcode and length. Read, not mapped: a file
         that shrinks while mapped would kill the process (SIGBUS)."""
@@ -190,6 +190,8 @@ class McapLog(LogReader):
             return None
         opcode, length = _RECORD.unpack(head)
         size = os.fstat(self._file.fileno()).st_size
+        if waiting and size < pos + 9 + length:  # (cut off, followed: read once all there)
+            return opcode, length, head
         return opcode, length, head + self._file.read(max(0, min(length, size - pos - 9)))
 
     def _walk(
@@ -208,10 +210,12 @@ class McapLog(LogReader):
         pos, messages, last_ns = len(MAGIC), 0, None
         try:
             while True:
-                opcode, length, data = self._record_at(pos) or (-1, 0, b"")
+                opcode, length, data = self._record_at(pos, stop is not None) or (-1, 0, b"")
                 if opcode in (_FOOTER_OP, _DATA_END_OP):
                     return
                 cut = opcode < 0 or len(data) < 9 + length
+                if opcode == 0 or 0x10 <= opcode < 0x80:  # reserved: no record, but damage
+                    raise ValueError(f"a record of reserved opcode {opcode:#04x} at byte {pos}")
                 if cut and stop is not None:
                     if stop():
                         return
