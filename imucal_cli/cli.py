@@ -843,7 +843,10 @@ def _follow(
 
         live = Live(console=Console(stderr=True), auto_refresh=False)
 
+    heard = [time.monotonic(), -1e9]  # the last news of the recording, the last stall said
+
     def update(result: Any, windows: int) -> None:
+        heard[0] = time.monotonic()
         sensors = {
             name: {
                 "status": e.status,
@@ -869,6 +872,7 @@ def _follow(
     told = [-1e9]
 
     def progress(state: dict[str, Any]) -> None:  # before the first estimate
+        heard[0] = time.monotonic()
         if as_json:
             typer.echo(json.dumps(to_plain({"windows": 0, **state})))
         elif live is not None:
@@ -882,8 +886,15 @@ def _follow(
                 + f"; waiting for {first.get('waiting_for', 'data')}"
             )
 
-    def timed_out() -> bool:
-        return deadline is not None and time.monotonic() > deadline
+    def timed_out() -> bool:  # (asked at every poll of the recording)
+        now = time.monotonic()
+        if now - heard[0] >= FOLLOW_STALL_S and now - heard[1] >= FOLLOW_STALL_S:
+            heard[1] = now  # a recording that stalls: said, not waited for in silence
+            _err(
+                f"imucal: {log}: nothing new for {now - heard[0]:.0f} s; still waiting"
+                + (" (--timeout not given: Ctrl-C ends it)" if deadline is None else "")
+            )
+        return deadline is not None and now > deadline
 
     if live is not None:
         live.start()
@@ -918,6 +929,8 @@ def _follow(
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
+#: Follow mode: after how long without news of the recording the wait is said (s of wall time).
+FOLLOW_STALL_S = 30.0
 #: Follow mode without --timeout: how long a log that does not exist yet is waited for (s).
 WAIT_FOR_LOG_S = 30.0
 

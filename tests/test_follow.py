@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 
 import numpy as np
@@ -442,3 +443,27 @@ def test_garbage_appended_to_a_recording_is_said_damaged_not_waited_for(aggressi
     result = CliRunner().invoke(app, [*argv, "-o", str(tmp_path / "f.yaml")])
     assert time.monotonic() - started < 25  # (not the whole --timeout)
     assert "damaged" in result.stderr and "reserved opcode 0x42" in result.stderr, result.stderr
+
+
+def test_a_recording_that_stalls_is_said_with_how_long_it_has_waited(
+    aggressive, tmp_path, monkeypatch
+):
+    """A recording that stalls (a recorder that hangs: no footer, no new record) was waited
+    for in silence after its last window, forever without --timeout. The wait is said, with
+    how long it has lasted."""
+    from typer.testing import CliRunner
+
+    import imucal_cli.cli as cli
+    from imucal_cli.sim.writers import write_imu_log
+
+    monkeypatch.setattr(cli, "FOLLOW_STALL_S", 1.0)
+    config = tmp_path / "c.yaml"
+    write_document(config, aggressive.config_document())
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", aggressive.topics())
+    data = log.read_bytes()
+    footer = data.rindex(b"\x02" + (20).to_bytes(8, "little"))
+    end = data.rindex(b"\x0f", 0, int.from_bytes(data[footer + 9 : footer + 17], "little"))
+    log.write_bytes(data[:end])  # the recorder hung: no data end, no summary, no footer
+    argv = ["calibrate", str(log), "-c", str(config), "--follow", "--timeout", "4"]
+    result = CliRunner().invoke(cli.app, argv)
+    assert re.search(r"nothing new for \d+ s; still waiting", result.stderr), result.stderr
