@@ -46,9 +46,11 @@ LAUNCHER = """
 import os, resource, signal, sys
 rss_file, limit, argv = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
 signal.signal(signal.SIGINT, signal.SIG_IGN)
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
 pid = os.fork()
 if pid == 0:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     os.execv(sys.executable, [sys.executable, "-m", "imucal_cli.cli", *argv])
 _, status, usage = os.wait4(pid, 0)
@@ -67,22 +69,27 @@ class Case:
     )  # files (relative to folder) the run may create or replace
     expect: int | None = None  # the exit code this case must give (None: 0 or 2)
     check: Callable[[subprocess.CompletedProcess], str] | None = None  # "" or what is wrong
-    signal_after_s: float | None = None  # send SIGINT to the group after this long
+    signal_after_s: float | None = None  # send ``sent`` to the group after this long
+    sent: int = signal.SIGINT
     #: A folder (relative to ``folder``) held with an exclusive flock while the case runs: what
     #: another run writing into it at once holds.
     held: str | None = None
 
 
 def _snapshot(folder: Path) -> dict[str, str]:
+    """Every regular file's hash (a file over 64 MiB, a sparse terabyte: its size and mtime)."""
     return {
         str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        if p.stat().st_size <= 64 << 20
+        else f"{p.stat().st_size}:{p.stat().st_mtime_ns}"
         for p in sorted(folder.rglob("*"))
         if p.is_file() and not p.is_symlink()
     }
 
 
 def _size_mb(folder: Path) -> float:
-    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) / 1e6
+    """The input's real size: the blocks its files hold (a sparse terabyte holds none)."""
+    return sum(p.stat().st_blocks * 512 for p in folder.rglob("*") if p.is_file()) / 1e6
 
 
 def run_case(case: Case) -> dict:
@@ -120,7 +127,7 @@ def run_case(case: Case) -> dict:
             break
         elapsed = time.perf_counter() - start
         if case.signal_after_s is not None and not signalled and elapsed > case.signal_after_s:
-            os.killpg(pid, signal.SIGINT)
+            os.killpg(pid, case.sent)
             signalled = True
         if elapsed > 2 * bound:
             os.killpg(pid, signal.SIGKILL)
@@ -742,6 +749,133 @@ def cases(work: Path) -> list[Case]:
         expect=0,
         outputs={"init.yaml"},
         check=no_injected_key,
+    )
+    # issue 49: what the priors, follow mode and signals let through
+    f = folder("sigterm")
+    add(
+        "SIGTERM during simulate (a 900 s drive)",
+        ["simulate", "long.mcap", "--duration", "900", "--sensors", "4"],
+        f,
+        expect=143,
+        signal_after_s=3.0,
+        sent=signal.SIGTERM,
+    )
+    first_log = log_in(f, "d0.mcap")
+    for k in range(1, BATCH_LOGS):
+        shutil.copyfile(first_log, f / f"d{k}.mcap")
+    logs_and_jobs = [f"d{k}.mcap" for k in range(BATCH_LOGS)]
+    logs_and_jobs += ["-c", "config.yaml", "--out-dir", "out", "--jobs", "2"]
+    add(
+        f"SIGTERM during batch --jobs 2 ({BATCH_LOGS} logs)",
+        ["batch", *logs_and_jobs],
+        f,
+        expect=143,
+        signal_after_s=2.0,
+        sent=signal.SIGTERM,
+        outputs={f"out/d{k}.yaml" for k in range(BATCH_LOGS)}
+        | {"out/summary.csv", "out/summary.json"},
+    )
+    f = folder("urdf not a file")
+    log_in(f)
+    minimal = {
+        "base": {k: config_doc["base"][k] for k in ("topic", "frame")},
+        "sensors": {
+            n: {k: s[k] for k in ("imu_topic", "lidar_frame")}
+            for n, s in config_doc["sensors"].items()
+        },
+    }
+    write_document(f / "min.yaml", minimal)
+    os.mkfifo(f / "fifo.urdf")
+    with (f / "sparse.urdf").open("wb") as handle:
+        handle.truncate(1 << 40)
+    for urdf in ("/dev/zero", "fifo.urdf", "sparse.urdf"):
+        add(
+            f"calibrate --urdf {urdf}",
+            ["calibrate", "d.mcap", "-c", "min.yaml", "--urdf", urdf],
+            f,
+            expect=2,
+        )
+    f = folder("tree")
+    tree_drive = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=60.0, seed=7, tf_static=True)
+    )
+    write_document(f / "min.yaml", minimal)
+    tree = tree_drive.static_transforms()
+    write_imu_log(
+        f / "loop.mcap",
+        "mcap",
+        drive.topics(),
+        tf_static=[*tree, (tree[2][1], "base_link", tree[2][2])],
+    )
+    write_imu_log(
+        f / "parents.mcap",
+        "mcap",
+        drive.topics(),
+        tf_static=[*tree, ("odom", tree[2][1], tree[2][2])],
+    )
+    junk = [(f"junk{k}", f"junk{k}_child", tree[0][2]) for k in range(10_000)]
+    write_imu_log(f / "capped.mcap", "mcap", drive.topics(), tf_static=junk + tree)
+    for name in ("loop", "parents", "capped"):
+        add(f"/tf_static: {name}", ["calibrate", f"{name}.mcap", "-c", "min.yaml"], f, expect=2)
+    f = folder("yaml scalars")
+    text = yaml.safe_dump(config_doc).replace("min_duration_s: 2.0", "min_duration_s: 2001-13-45")
+    (f / "date.yaml").write_text(text)
+    add("config holding the date 2001-13-45", ["check-config", "date.yaml"], f, expect=2)
+    f = folder("empty record")
+    data = log_in(f).read_bytes()
+    (f / "d.mcap").unlink()
+    # no summary, a Message record of 9 bytes after the header
+    footer = len(data) - 8 - (1 + 8 + 8 + 8 + 4)
+    (summary_start,) = struct.unpack_from("<Q", data, footer + 9)
+    (header_length,) = struct.unpack_from("<Q", data, 9)
+    at = 8 + 9 + header_length
+    bare = data[:summary_start] + struct.pack("<BQQQI", 0x02, 20, 0, 0, 0) + data[-8:]
+    (f / "empty.mcap").write_bytes(bare[:at] + struct.pack("<BQ", 0x05, 0) + bare[at:])
+    add(
+        "summary-less MCAP with an empty Message record",
+        ["inspect", "empty.mcap"],
+        f,
+        expect=0,
+        check=lambda r: "" if b"damaged" not in r.stderr else "said damaged",
+    )
+    f = folder("file-compressed bag")
+    bag = log_in(f, "bag", "rosbag2-sqlite3")
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+    info = meta["rosbag2_bagfile_information"]
+    for name in info["relative_file_paths"]:
+        (bag / name).unlink()
+        (bag / f"{name}.zstd").write_bytes(zstandard.ZstdCompressor().compress(bytes(200 << 20)))
+    info |= {
+        "relative_file_paths": [f"{n}.zstd" for n in info["relative_file_paths"]],
+        "compression_format": "zstd",
+        "compression_mode": "file",
+    }
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    add("rosbag2 file-compressed bomb (200 MiB)", ["inspect", "bag"], f, expect=2)
+    f = folder("follow garbage")
+    data = log_in(f).read_bytes()
+    footer = data.rindex(b"\x02" + (20).to_bytes(8, "little"))
+    end = data.rindex(b"\x0f", 0, int.from_bytes(data[footer + 9 : footer + 17], "little"))
+    garbage = bytes([0x42]) + (10**12).to_bytes(8, "little") + bytes(4 << 20)
+    (f / "d.mcap").write_bytes(data[:end] + garbage)
+    add(
+        "follow a recording with garbage appended",
+        ["calibrate", "d.mcap", "-c", "config.yaml", "--follow", "--timeout", "20"],
+        f,
+        expect=0,
+        check=lambda r: "" if b"damaged" in r.stderr else "the damage is not said",
+    )
+    f = folder("init many channels")
+    many = dict(drive.topics())
+    for k in range(200):
+        many[f"/lidar/extra_{k}/imu"] = many[sensor_topic]
+    log_in(f, topics=many)
+    add(
+        "init on a log of 203 IMU channels",
+        ["init", "d.mcap", "--base", base_topic],
+        f,
+        expect=0,
+        check=lambda r: "" if r.stderr.count(b"\n") <= 42 else "unbounded lines",
     )
     # 15 damage said
     f = folder("damage said")
