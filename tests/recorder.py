@@ -14,7 +14,7 @@ from imucal_cli.sim.writers import (
     _mcap_static,
     _messages,
     _msgdef,
-    _serialized,
+    _Serialized,
     _statics,
 )
 
@@ -47,7 +47,7 @@ class Recorder(threading.Thread):
         from mcap.writer import Writer
 
         msgdef, _ = _msgdef(False)
-        blobs = _serialized(self.topics, False)
+        blob = _Serialized(self.topics, False)
         with self.path.open("wb") as handle:
             writer = Writer(handle, chunk_size=self.chunk_size)
             writer.start(profile="ros2", library="recorder")
@@ -80,7 +80,7 @@ class Recorder(threading.Thread):
                 writer.add_message(
                     channel_id=channels[topic],
                     log_time=log_ns,
-                    data=blobs[topic][i].tobytes(),
+                    data=blob(topic, i),
                     publish_time=log_ns,
                 )
             writer.finish()
@@ -107,7 +107,7 @@ class SqliteRecorder(threading.Thread):
     def run(self) -> None:
         import sqlite3
 
-        blobs = _serialized(self.topics, False)
+        blob = _Serialized(self.topics, False)
         self.folder.mkdir(exist_ok=True)
         connection = sqlite3.connect(
             self.folder / f"{self.folder.name}_0.db3", check_same_thread=False
@@ -138,7 +138,7 @@ class SqliteRecorder(threading.Thread):
                 connection.commit()
                 pending = []
                 time.sleep(wait)
-            pending.append((ids[topic], log_ns, blobs[topic][i].tobytes()))
+            pending.append((ids[topic], log_ns, blob(topic, i)))
         connection.executemany(
             "INSERT INTO messages(topic_id, timestamp, data) VALUES (?, ?, ?)", pending
         )

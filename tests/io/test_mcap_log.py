@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from imucal_cli.cli import app
 from imucal_cli.reading import read_imu
-from imucal_cli.sim.writers import _messages, _msgdef, _serialized, write_imu_log
+from imucal_cli.sim.writers import _messages, _msgdef, _Serialized, write_imu_log
 
 runner = CliRunner()
 CONFORMANCE = Path(__file__).resolve().parents[3] / "shared" / "conformance" / "mcap"
@@ -51,7 +51,7 @@ def _write(path: Path, topics, **options) -> Path:
     from mcap.writer import Writer
 
     msgdef, _ = _msgdef(False)
-    blobs = _serialized(topics, False)
+    blob = _Serialized(topics, False)
     with path.open("wb") as handle:
         writer = Writer(handle, **options)
         writer.start(profile="ros2", library="test")
@@ -66,7 +66,7 @@ def _write(path: Path, topics, **options) -> Path:
             writer.add_message(
                 channel_id=channels[topic],
                 log_time=log_ns,
-                data=blobs[topic][i].tobytes(),
+                data=blob(topic, i),
                 publish_time=log_ns,
             )
         writer.finish()
