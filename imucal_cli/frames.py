@@ -34,6 +34,9 @@ STRING_MSGTYPE = "std_msgs/msg/String"
 MAX_TF_MESSAGES, MAX_TRANSFORMS = 1000, 10_000
 #: The largest /tf_static message deserialised: its 10,000 transforms at 400 bytes each.
 MAX_TF_MESSAGE_BYTES = 4 << 20
+#: The farthest a static transform's origin may lie (m): no vehicle's tree spans more, and a
+#: value beyond (1e308) would overflow the chains composed from it.
+MAX_STATIC_M = 1e4
 #: tf2's bound on a quaternion's squared norm (``QUATERNION_NORMALIZATION_TOLERANCE``).
 TF2_QUATERNION_TOLERANCE = 10e-3
 #: Sensor keys a tree may supply, and the base's.
@@ -148,11 +151,11 @@ def read_urdf(text: str, tree: FrameTree, where: str) -> None:
         origin = joint.origin
         xyz = np.zeros(3) if origin is None or origin.xyz is None else np.array(origin.xyz)
         rpy = np.zeros(3) if origin is None or origin.rpy is None else np.array(origin.rpy)
-        if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(rpy))):
+        if not (np.all(np.abs(xyz) <= MAX_STATIC_M) and np.all(np.isfinite(rpy))):
+            joint_edge = f"{quoted(str(joint.parent))} -> {quoted(str(joint.child))}"
             raise InputError(
-                f"{where}: joint {quoted(str(joint.name))} ({quoted(str(joint.parent))}"
-                f" -> {quoted(str(joint.child))}) has an origin that is not finite (xyz "
-                f"{xyz.tolist()}, rpy {rpy.tolist()})"
+                f"{where}: joint {quoted(str(joint.name))} ({joint_edge}) has an origin that is "
+                f"not finite or beyond {MAX_STATIC_M:g} m (xyz {xyz.tolist()}, rpy {rpy.tolist()})"
             )
         tree.add(joint.parent, joint.child, Transform.from_rpy(rpy, xyz), "urdf")
 
@@ -270,10 +273,10 @@ def _tf_transform(transform: Any, where: str, parent: str, child: str) -> Transf
     t, q = transform.translation, transform.rotation
     xyz, xyzw = np.array([t.x, t.y, t.z], float), np.array([q.x, q.y, q.z, q.w], float)
     edge = f"{where}: the transform {quoted(parent)} -> {quoted(child)}"
-    if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(xyzw))):
+    if not (np.all(np.abs(xyz) <= MAX_STATIC_M) and np.all(np.abs(xyzw) <= 2.0)):
         raise InputError(
-            f"{edge} is not finite (translation {xyz.tolist()}, rotation "
-            f"{xyzw.tolist()}): give the keys it would supply in the config"
+            f"{edge} is not finite or beyond {MAX_STATIC_M:g} m (translation {xyz.tolist()}, "
+            f"rotation {xyzw.tolist()}): give the keys it would supply in the config"
         )
     if abs(float(xyzw @ xyzw) - 1.0) > TF2_QUATERNION_TOLERANCE:
         raise InputError(

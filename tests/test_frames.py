@@ -394,3 +394,21 @@ def test_a_value_the_tree_supplies_is_judged_as_the_trees_not_the_files(drive, t
     message = str(caught.value)
     assert ".T_imu_lidar.translation" in message and "more than 1 m" in message
     assert f"leaves out, taken from tf_static in {log}" in message
+
+
+def test_a_static_transform_beyond_any_vehicle_is_refused_without_numpy_warnings(drive, tmp_path):
+    """A /tf_static translation of 1e308 m: numpy's overflow warnings reached stderr before
+    the error. It is refused where it is read, naming the frames, and nothing warns."""
+    import warnings
+
+    from imucal_cli.errors import InputError
+
+    transforms = drive.static_transforms()
+    parent, child, T = transforms[3]
+    transforms[3] = (parent, child, Transform(T.rotation, np.array([1e308, 1e308, 0.0])))
+    log = write_imu_log(tmp_path / "d.mcap", "mcap", drive.topics(), tf_static=transforms)
+    write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=f"{re.escape(repr(parent))} -> .* beyond 10000 m"):
+            load_config(tmp_path / "min.yaml", log)
