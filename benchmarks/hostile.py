@@ -217,6 +217,19 @@ def mcap_zstd_bomb(path: Path, chunks: int = 40) -> Path:
     return mcap_without_summary(path, [_mcap_chunk(64 << 20, "zstd", data)] * chunks)
 
 
+def mcap_empty_records(path: Path) -> Path:
+    """One chunk that claims 256 MiB, inside the bounds (about 250:1), of 29.8 M records: runs of
+    60 empty Message records (9 bytes each) with a private record of one random byte between
+    them. The record walk listed every offset as a Python int (1.7 GB)."""
+    rng = np.random.default_rng(0)
+    groups = (256 << 20) // (60 * 9 + 10)
+    noise = rng.integers(0, 256, groups, dtype=np.uint8).tobytes()
+    run, private = b"\x05" + bytes(8), b"\x80" + (1).to_bytes(8, "little")
+    data = b"".join(run * 60 + private + noise[k : k + 1] for k in range(groups))
+    chunk = _mcap_chunk(len(data), "zstd", zstandard.ZstdCompressor(level=3).compress(data))
+    return mcap_without_summary(path, [chunk])
+
+
 def mcap_claiming(path: Path, claimed: int, compression: str = "zstd", chunks: int = 40) -> Path:
     """Small real chunks each claiming ``claimed`` bytes."""
     data = (
@@ -838,6 +851,14 @@ def cases(work: Path) -> list[Case]:
         expect=0,
         check=lambda r: "" if b"damaged" not in r.stderr else "said damaged",
     )
+    f = folder("empty records")
+    mcap_empty_records(f / "e.mcap")
+    for command in (["inspect"], ["calibrate", "-c", "config.yaml"]):
+        add(
+            f"summary-less MCAP, a chunk of 29.8 M empty records: {command[0]}",
+            [command[0], "e.mcap", *command[1:]],
+            f,
+        )
     f = folder("file-compressed bag")
     bag = log_in(f, "bag", "rosbag2-sqlite3")
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())
