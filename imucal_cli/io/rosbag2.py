@@ -80,8 +80,11 @@ class Rosbag2Log(LogReader):
         else:
             from rosbags.rosbag2 import Reader
 
+            files = [self.path / Path(str(n)).name for n in info.get("relative_file_paths") or []]
+            if any(f.exists() and not f.is_file() for f in files):  # (a FIFO blocks sqlite)
+                raise self.error("a storage file is not a regular file (a FIFO?)")
             if info.get("compression_mode") == "file":
-                self._inflatable(info)
+                self._inflatable(files)
             self.format_name = f"rosbag2-{info.get('storage_identifier', '?')}"
             try:
                 self._reader = Reader(self.path)
@@ -92,17 +95,16 @@ class Rosbag2Log(LogReader):
                     ".recover` salvages a damaged database"
                 ) from None
 
-    def _inflatable(self, info: dict[str, Any]) -> None:
-        """A file-compressed bag, which rosbags inflates whole into TMPDIR: each storage file's
-        size decompressed (to nowhere) first, held to MAX_RATIO times its own and TMPDIR's room
-        (a 130 kB bag wrote 4 GiB there)."""
+    def _inflatable(self, files: list[Path]) -> None:
+        """A file-compressed bag, which rosbags inflates whole into TMPDIR (130 kB: 4 GiB): each
+        file's size decompressed to nowhere first, held to MAX_RATIO times its own and the room."""
         import shutil
         import tempfile
 
         import zstandard
 
         room, inflated = shutil.disk_usage(tempfile.gettempdir()).free, zstandard.ZstdDecompressor()
-        for path in (self.path / Path(str(n)).name for n in info["relative_file_paths"] or []):
+        for path in files:
             size, limit = 0, min(MAX_RATIO * path.stat().st_size, room) if path.is_file() else 0
             try:
                 with path.open("rb") as f, inflated.stream_reader(f) as z:

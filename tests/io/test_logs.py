@@ -230,3 +230,19 @@ def test_a_file_compressed_bag_reads_and_a_bomb_is_refused_before_it_is_inflated
     bomb = _file_compressed(tmp_path / "bomb", bytes(200 << 20))  # 200 MiB of zeros
     with pytest.raises(LogError, match="decompresses to more than"):
         read_imu(bomb, ["/imu"])
+
+
+def test_a_rosbag2_whose_storage_is_a_fifo_is_refused_not_waited_for(tmp_path):
+    """A rosbag2 folder whose .db3 is a FIFO nobody writes hung forever, silently."""
+    import os
+    import time
+
+    stream = random_stream(np.random.default_rng(0), 100, 10_000_000, "imu")
+    bag = write_imu_log(tmp_path / "bag", "rosbag2-sqlite3", {"/imu": TopicData(stream)})
+    storage = next(bag.glob("*.db3"))
+    storage.unlink()
+    os.mkfifo(storage)
+    started = time.monotonic()
+    with pytest.raises(LogError, match="not a regular file"):
+        read_imu(bag, ["/imu"])
+    assert time.monotonic() - started < 5.0
