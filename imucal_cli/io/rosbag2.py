@@ -65,14 +65,15 @@ class Rosbag2Log(LogReader):
             )
             self.format_name = "rosbag2-mcap"
             self._storage = [McapLog(f) for f in mcaps]
-        elif info.get("storage_identifier") == "mcap" and not info.get("compression_format"):
+            return
+        relative = info.get("relative_file_paths") or []
+        if not isinstance(relative, list) or not all(isinstance(p, str) for p in relative):
+            raise self.error(
+                f"metadata.yaml: relative_file_paths is not a list of file names; {REINDEX}"
+            )
+        files = [self.path / Path(p).name for p in relative]
+        if info.get("storage_identifier") == "mcap" and not info.get("compression_format"):
             self.format_name = "rosbag2-mcap"
-            relative = info.get("relative_file_paths", [])
-            if not isinstance(relative, list) or not all(isinstance(p, str) for p in relative):
-                raise self.error(
-                    f"metadata.yaml: relative_file_paths is not a list of file names; {REINDEX}"
-                )
-            files = [self.path / Path(p).name for p in relative]
             missing = [f.name for f in files if not f.is_file()]
             if missing:
                 raise self.error(f"storage file {missing[0]} of metadata.yaml is missing")
@@ -80,7 +81,6 @@ class Rosbag2Log(LogReader):
         else:
             from rosbags.rosbag2 import Reader
 
-            files = [self.path / Path(str(n)).name for n in info.get("relative_file_paths") or []]
             if any(f.exists() and not f.is_file() for f in files):  # (a FIFO blocks sqlite)
                 raise self.error("a storage file is not a regular file (a FIFO?)")
             if info.get("compression_mode") == "file":

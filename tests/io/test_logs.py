@@ -246,3 +246,19 @@ def test_a_rosbag2_whose_storage_is_a_fifo_is_refused_not_waited_for(tmp_path):
     with pytest.raises(LogError, match="not a regular file"):
         read_imu(bag, ["/imu"])
     assert time.monotonic() - started < 5.0
+
+
+@pytest.mark.parametrize("fmt", ["rosbag2-sqlite3", "rosbag2-mcap"])
+def test_a_rosbag2_whose_file_list_is_no_list_is_an_error_naming_the_key(tmp_path, fmt):
+    """``relative_file_paths: 7`` in metadata.yaml: one error naming the key, for either
+    storage (the sqlite3 one raised a TypeError)."""
+    import yaml
+
+    stream = random_stream(np.random.default_rng(0), 100, 10_000_000, "imu")
+    bag = write_imu_log(tmp_path / "bag", fmt, {"/imu": TopicData(stream)})
+    metadata = bag / "metadata.yaml"
+    document = yaml.safe_load(metadata.read_text())
+    document["rosbag2_bagfile_information"]["relative_file_paths"] = 7
+    metadata.write_text(yaml.safe_dump(document))
+    with pytest.raises(LogError, match="relative_file_paths is not a list of file names"):
+        read_imu(bag, ["/imu"])
