@@ -760,6 +760,14 @@ def cases(work: Path) -> list[Case]:
         check=no_injected_key,
     )
     # issue 49: what the priors, follow mode and signals let through
+    f = folder("simulate an hour")
+    add(
+        "simulate --duration 3600 --sensors 4 (made as written)",
+        ["simulate", "hour.mcap", "--duration", "3600", "--sensors", "4"],
+        f,
+        expect=0,
+        outputs={"hour.mcap", "hour.truth.yaml", "hour.config.yaml"},
+    )
     f = folder("urdf not a file")
     log_in(f)
     minimal = {

@@ -1531,7 +1531,8 @@ def simulate(
 
     from imucal_cli.core.grades import GRADES
     from imucal_cli.documents import write_document
-    from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
+    from imucal_cli.sim import DriveOptions, with_errors
+    from imucal_cli.sim.drive import BiasTrack, drive_pieces
     from imucal_cli.sim.writers import write_imu_log
 
     suffix = out.suffix.lower()
@@ -1571,14 +1572,32 @@ def simulate(
             base_grade=base_grade or options.base_grade,
             tf_static=tf_static,
         )
-        drive = simulate_drive(options)
+        pieces = drive_pieces(options)  # (made as written: memory does not grow with --duration)
+        drive = next(pieces)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    with _progress(f"writing {out}") as progress:
-        write_imu_log(out, fmt, drive.topics(), progress, force, drive.static_transforms())
-    write_document(truth_path, drive.truth_document())
-    write_document(config_path, drive.config_document())
+    track = BiasTrack(drive)
     counts = {topic: len(data.stream) for topic, data in drive.topics().items()}
+
+    def later() -> Iterator[Any]:
+        for piece in pieces:
+            track.add(piece)
+            for topic, data in piece.topics().items():
+                counts[topic] += len(data.stream)
+            yield piece.topics()
+
+    with _progress(f"writing {out}") as progress:
+        write_imu_log(
+            out,
+            fmt,
+            drive.topics(),
+            progress,
+            force,
+            drive.static_transforms(),
+            later=(later(), None),
+        )
+    write_document(truth_path, drive.truth_document(track))
+    write_document(config_path, drive.config_document())
     console = _stdout_console()
     from rich.text import Text
 

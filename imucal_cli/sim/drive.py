@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Any
@@ -19,12 +19,12 @@ from imucal_cli.config import (
 )
 from imucal_cli.core.grades import GRADES
 from imucal_cli.pipeline import DriveStreams
-from imucal_cli.sim.imu import MEMS_LIDAR, TACTICAL_BASE, ImuErrorModel, SimulatedImu, simulate_imu
+from imucal_cli.sim.imu import MEMS_LIDAR, TACTICAL_BASE, ImuErrorModel, ImuSampler, SimulatedImu
 from imucal_cli.sim.rig import DEFAULT_MOUNTS, WHEEL_MOUNTS, LidarMount, cad_prior
 from imucal_cli.sim.scenarios import SCENARIOS, VehicleDynamics, make_scenario
 from imucal_cli.sim.trajectory import Trajectory
 from imucal_cli.sim.writers import TopicData
-from imucal_cli.types import GRAVITY_MPS2, Transform
+from imucal_cli.types import GRAVITY_MPS2, ImuStream, Transform
 
 BASE_TOPIC = "/gnss/imu"
 BASE_FRAME = "base_link"
@@ -148,6 +148,38 @@ def grade_errors(model: ImuErrorModel, grade: str) -> ImuErrorModel:
     )
 
 
+class BiasTrack:
+    """Each IMU's true biases over the pieces of a drive, kept as figures (first, last, sum,
+    count) as the pieces go by, not as samples."""
+
+    def __init__(self, first: SimulatedDrive, later: Iterable[SimulatedDrive] = ()) -> None:
+        self.figures: dict[str, dict[str, list[Any]]] = {}
+        for piece in [first, *later]:
+            self.add(piece)
+
+    def add(self, piece: SimulatedDrive) -> None:
+        for name, imu in [("", piece.base), *piece.sensors.items()]:  # ("": the base)
+            for key, values in (
+                ("gyro_bias_radps", imu.gyro_bias),
+                ("accel_bias_mps2", imu.accel_bias),
+            ):
+                if not len(values):
+                    continue
+                kept = self.figures.setdefault(name, {}).get(key)
+                total, count = values.sum(axis=0), len(values)
+                if kept is not None:
+                    total, count = kept[2] + total, kept[3] + count
+                first = values[0] if kept is None else kept[0]
+                self.figures[name][key] = [first, values[-1], total, count]
+
+    def summary(self, name: str) -> dict[str, Any]:
+        """An IMU's (``""``: the base's) biases: initial, final, mean."""
+        return {
+            key: {"initial": first.tolist(), "final": last.tolist(), "mean": (total / n).tolist()}
+            for key, (first, last, total, n) in self.figures[name].items()
+        }
+
+
 @dataclass(frozen=True)
 class SimulatedDrive:
     options: DriveOptions
@@ -218,21 +250,11 @@ class SimulatedDrive:
             ]
         return "\n".join([*lines, "</robot>", ""])
 
-    def truth_document(self) -> dict[str, Any]:
-        """The SPEC truth file, plus ``T_base_imu``, time offsets and the true biases."""
-
-        def biases(imu: SimulatedImu) -> dict[str, Any]:
-            out = {}
-            for key, values in (
-                ("gyro_bias_radps", imu.gyro_bias),
-                ("accel_bias_mps2", imu.accel_bias),
-            ):
-                out[key] = {
-                    "initial": values[0].tolist(),
-                    "final": values[-1].tolist(),
-                    "mean": values.mean(axis=0).tolist(),
-                }
-            return out
+    def truth_document(self, later: Sequence[SimulatedDrive] | BiasTrack = ()) -> dict[str, Any]:
+        """The SPEC truth file, plus ``T_base_imu``, time offsets and the true biases (with
+        ``later``, the pieces that follow this one: :func:`drive_pieces`; or their
+        :class:`BiasTrack`)."""
+        tracks = later if isinstance(later, BiasTrack) else BiasTrack(self, later)
 
         sensors: dict[str, Any] = {}
         for mount in self.mounts:
@@ -242,7 +264,7 @@ class SimulatedDrive:
                 "T_base_imu": mount.T_base_imu.to_dict(),
                 "T_imu_lidar": mount.T_imu_lidar.to_dict(),
                 "time_offset_s": self.time_offsets_s[mount.name],
-                **biases(self.sensors[mount.name]),
+                **tracks.summary(mount.name),
             }
         pairs = {
             f"{a.name}/{b.name}": (a.T_base_lidar.inverse() * b.T_base_lidar).to_dict()
@@ -258,7 +280,7 @@ class SimulatedDrive:
             "errors": o.errors,
             "mount_tilt_deg_per_mps2": np.degrees(o.mount_tilt_rad_per_mps2).tolist(),
             "t0_ns": o.t0_ns,
-            "base": {"topic": BASE_TOPIC, "frame": BASE_FRAME, **biases(self.base)},
+            "base": {"topic": BASE_TOPIC, "frame": BASE_FRAME, **tracks.summary("")},
             "sensors": sensors,
             "pairs": pairs,
         }
@@ -299,7 +321,47 @@ class SimulatedDrive:
 
 
 def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
-    """Simulate a drive. Deterministic for given options (the seed drives every random draw)."""
+    """Simulate a drive. Deterministic for given options (the seed drives every random draw).
+    A drive longer than :data:`PIECE_S` is made piece by piece (:func:`drive_pieces`) and
+    joined."""
+    pieces = list(drive_pieces(options))
+    if len(pieces) == 1:
+        return pieces[0]
+    first = pieces[0]
+
+    def joined(imus: list[SimulatedImu]) -> SimulatedImu:
+        def cat(get: Callable[[SimulatedImu], np.ndarray]) -> np.ndarray:
+            return np.concatenate([get(i) for i in imus])
+
+        return replace(
+            imus[0],
+            stream=ImuStream(
+                cat(lambda i: i.stream.t_ns),
+                cat(lambda i: i.stream.gyro),
+                cat(lambda i: i.stream.accel),
+                imus[0].stream.frame_id,
+            ),
+            log_time_ns=cat(lambda i: i.log_time_ns),
+            true_time_s=cat(lambda i: i.true_time_s),
+            gyro_bias=cat(lambda i: i.gyro_bias),
+            accel_bias=cat(lambda i: i.accel_bias),
+        )
+
+    base = joined([p.base for p in pieces])
+    sensors = {name: joined([p.sensors[name] for p in pieces]) for name in first.sensors}
+    return replace(first, base=base, sensors=sensors)
+
+
+#: The span of a drive made at once (s): a longer one is made, and written, piece by piece, in
+#: memory that does not grow with its length (4 h at once: 2.5 GB).
+PIECE_S = 600.0
+
+
+def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive]:
+    """The drive as consecutive pieces of :data:`PIECE_S` (one piece where it is no longer):
+    each a :class:`SimulatedDrive` of the same trajectory, mounts, offsets and priors, with the
+    IMUs' samples of its span, their bias walks carried on. The first piece draws what
+    :func:`simulate_drive` of it alone would."""
     o = options or DriveOptions()
     if o.scenario not in SCENARIOS:
         raise ValueError(
@@ -316,6 +378,8 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         raise ValueError(f"give 1 or {len(mounts)} time offsets, got {len(o.time_offsets_s)}")
 
     trajectory = make_scenario(o.scenario, o.duration_s, seed=o.seed, dynamics=o.dynamics)
+    edges = [*np.arange(trajectory.t_start_s, trajectory.t_end_s, PIECE_S)[1:].tolist()]
+    spans = list(zip([trajectory.t_start_s, *edges], [*edges, trajectory.t_end_s], strict=True))
     rng = np.random.default_rng([o.seed, 7919])
     base_model = replace(
         grade_errors(o.base_model, o.base_grade).scaled(o.noise_scale),
@@ -323,10 +387,12 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         gyro_units=o.base_gyro_units,
     )
     base_frame = BASE_IMU_FRAME if o.tf_static else BASE_FRAME
-    base = simulate_imu(trajectory, o.base_T_base_imu, base_model, rng, o.t0_ns, base_frame)
+    base = ImuSampler(trajectory, o.base_T_base_imu, base_model, rng, o.t0_ns, base_frame)
+    base_piece = base.sample(*spans[0])
 
     offsets: dict[str, float] = {}
-    sensors: dict[str, SimulatedImu] = {}
+    samplers: dict[str, ImuSampler] = {}
+    firsts: dict[str, SimulatedImu] = {}
     priors: dict[str, Transform] = {}
     for k, mount in enumerate(mounts):
         if o.time_offsets_s is None:
@@ -339,7 +405,7 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
         )
         if o.lidar_rate_hz is not None:
             model = replace(model, rate_hz=o.lidar_rate_hz)
-        sensors[mount.name] = simulate_imu(
+        samplers[mount.name] = ImuSampler(
             trajectory,
             mount.T_base_imu,
             model,
@@ -348,8 +414,12 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
             mount.imu_frame,
             o.mount_tilt_rad_per_mps2,
         )
+        firsts[mount.name] = samplers[mount.name].sample(*spans[0])
         prior = cad_prior(mount.T_base_imu, rng)
         priors[mount.name] = Transform(
             prior.rotation, prior.translation + np.asarray(o.prior_offset_m)
         )
-    return SimulatedDrive(o, trajectory, mounts, base, sensors, offsets, priors)
+    yield SimulatedDrive(o, trajectory, mounts, base_piece, firsts, offsets, priors)
+    for span in spans[1:]:
+        piece = {name: sampler.sample(*span) for name, sampler in samplers.items()}
+        yield SimulatedDrive(o, trajectory, mounts, base.sample(*span), piece, offsets, priors)

@@ -217,80 +217,123 @@ def simulate_imu(
     frame_id: str,
     tilt_rad_per_mps2: tuple[float, float] = (0.0, 0.0),
 ) -> SimulatedImu:
-    """Sample an IMU over the trajectory's span.
+    """Sample an IMU over the trajectory's span (one piece of :class:`ImuSampler`)."""
+    sampler = ImuSampler(trajectory, T_base_imu, model, rng, t0_ns, frame_id, tilt_rad_per_mps2)
+    return sampler.sample(trajectory.t_start_s, trajectory.t_end_s)
+
+
+class ImuSampler:
+    """An IMU sampled over the trajectory piece by piece (a long drive is written as it is
+    made), its bias walks carried from one piece to the next.
 
     Samples are taken at ``t_k = phase + k / rate`` (true time, seconds from the trajectory
     start) with a random phase; stamps are ``t0_ns + (t_k + time_offset + jitter)``. The
     deterministic errors (axis errors, g-sensitivity, vibration) are drawn from a generator of
-    their own, so a model without them leaves every other draw as it was.
+    their own, so a model without them leaves every other draw as it was. One piece draws what
+    one pass over the whole span drew, in the same order.
     """
-    period = 1.0 / model.rate_hz
-    phase = rng.uniform(0.0, period)
-    t_true = np.arange(trajectory.t_start_s + phase, trajectory.t_end_s, period)
-    n = len(t_true)
-    gyro, accel = ideal_imu(trajectory, T_base_imu, t_true, tilt_rad_per_mps2)
-    gyro_axes = accel_axes = np.eye(3)
-    g_sensitivity = np.zeros((3, 3))
-    intrinsic = rng.spawn(1)[0] if _has_intrinsic_errors(model) else None  # spawning draws nothing
-    if intrinsic is not None:
-        if model.vibration_accel_mps2 > 0 or model.vibration_gyro_radps > 0:
+
+    def __init__(
+        self,
+        trajectory: Trajectory,
+        T_base_imu: Transform,
+        model: ImuErrorModel,
+        rng: np.random.Generator,
+        t0_ns: int,
+        frame_id: str,
+        tilt_rad_per_mps2: tuple[float, float] = (0.0, 0.0),
+    ) -> None:
+        self.trajectory, self.T_base_imu, self.model, self.rng = trajectory, T_base_imu, model, rng
+        self.t0_ns, self.frame_id, self.tilt = t0_ns, frame_id, tilt_rad_per_mps2
+        self.period = 1.0 / model.rate_hz
+        self.phase = rng.uniform(0.0, self.period)
+        self.gyro_axes = self.accel_axes = np.eye(3)
+        self.g_sensitivity = np.zeros((3, 3))
+        self.vibration: tuple[float, np.ndarray] | None = None
+        intrinsic = rng.spawn(1)[0] if _has_intrinsic_errors(model) else None  # (draws nothing)
+        if intrinsic is not None:
+            if model.vibration_accel_mps2 > 0 or model.vibration_gyro_radps > 0:
+                self.vibration = (
+                    intrinsic.uniform(*model.vibration_band_hz),
+                    intrinsic.uniform(0.0, 2 * np.pi, 6),
+                )
+            self.gyro_axes = _axis_errors(model, intrinsic) * (1.0 + model.gyro_scale)
+            self.g_sensitivity = intrinsic.normal(0.0, model.g_sensitivity_std, (3, 3))
+            self.accel_axes = _axis_errors(model, intrinsic)
+            if model.housing_std_rad > 0:  # the triads' frame against the housing's (drawn last)
+                from scipy.spatial.transform import Rotation
+
+                housing = Rotation.from_rotvec(intrinsic.normal(0.0, model.housing_std_rad, 3))
+                self.gyro_axes, self.accel_axes = (
+                    m @ housing.as_matrix() for m in (self.gyro_axes, self.accel_axes)
+                )
+        self.biases: tuple[np.ndarray, np.ndarray] | None = None  # the last sample's, so far
+
+    def sample(self, t_from_s: float, t_to_s: float) -> SimulatedImu:
+        """The samples whose true time lies in ``[t_from_s, t_to_s)``; pieces follow on."""
+        model, rng, period = self.model, self.rng, self.period
+        # the instants np.arange(start, t_end, period) gives, those of [t_from_s, t_to_s)
+        start, end = self.trajectory.t_start_s + self.phase, self.trajectory.t_end_s
+        delta, total = (start + period) - start, int(np.ceil((end - start) / period))
+        first = min(max(0, int(np.ceil((t_from_s - start) / delta))), total)
+        last = total if t_to_s >= end else min(total, int(np.ceil((t_to_s - start) / delta)))
+        t_true = start + np.arange(first, max(first, last)) * delta
+        n = len(t_true)
+        gyro, accel = ideal_imu(self.trajectory, self.T_base_imu, t_true, self.tilt)
+        if self.vibration is not None:
             # a mount resonance, sampled at the output's instants as a real IMU samples it
             # (no anti-alias filter): what lies above Nyquist folds back
-            freq = intrinsic.uniform(*model.vibration_band_hz)
-            phases = intrinsic.uniform(0.0, 2 * np.pi, 6)
+            freq, phases = self.vibration
             wave = np.sin(2 * np.pi * freq * t_true[:, None] + phases)
             accel = accel + model.vibration_accel_mps2 * wave[:, :3]
             gyro = gyro + model.vibration_gyro_radps * wave[:, 3:]
-        gyro_axes = _axis_errors(model, intrinsic) * (1.0 + model.gyro_scale)
-        g_sensitivity = intrinsic.normal(0.0, model.g_sensitivity_std, (3, 3))
-        accel_axes = _axis_errors(model, intrinsic)
-        if model.housing_std_rad > 0:  # the triads' frame against the housing's (drawn last)
-            from scipy.spatial.transform import Rotation
+        if _has_intrinsic_errors(model):
+            gyro = gyro @ self.gyro_axes.T + accel @ self.g_sensitivity.T
+            accel = accel @ self.accel_axes.T
 
-            housing = Rotation.from_rotvec(intrinsic.normal(0.0, model.housing_std_rad, 3))
-            gyro_axes, accel_axes = (m @ housing.as_matrix() for m in (gyro_axes, accel_axes))
-        gyro = gyro @ gyro_axes.T + accel @ g_sensitivity.T
-        accel = accel @ accel_axes.T
+        def bias(turn_on: float, walk: float, last: np.ndarray | None) -> np.ndarray:
+            b = rng.normal(0.0, 1.0, 3) * turn_on if last is None else last
+            steps = rng.normal(0.0, 1.0, (n, 3)) * walk * np.sqrt(period)
+            if last is None and n:
+                steps[0] = 0.0
+            return b + np.cumsum(steps, axis=0)
 
-    def bias(turn_on: float, walk: float) -> np.ndarray:
-        b = rng.normal(0.0, 1.0, 3) * turn_on
-        steps = rng.normal(0.0, 1.0, (n, 3)) * walk * np.sqrt(period)
-        steps[0] = 0.0
-        return b + np.cumsum(steps, axis=0)
+        last_g, last_a = self.biases if self.biases is not None else (None, None)
+        gyro_bias = bias(model.gyro_turn_on_bias_std, model.gyro_bias_random_walk, last_g)
+        accel_bias = bias(model.accel_turn_on_bias_std, model.accel_bias_random_walk, last_a)
+        if n:
+            self.biases = (gyro_bias[-1].copy(), accel_bias[-1].copy())
+        gyro = gyro + gyro_bias + rng.normal(0.0, 1.0, (n, 3)) * model.gyro_noise_std()
+        accel = accel + accel_bias + rng.normal(0.0, 1.0, (n, 3)) * model.accel_noise_std()
 
-    gyro_bias = bias(model.gyro_turn_on_bias_std, model.gyro_bias_random_walk)
-    accel_bias = bias(model.accel_turn_on_bias_std, model.accel_bias_random_walk)
-    gyro = gyro + gyro_bias + rng.normal(0.0, 1.0, (n, 3)) * model.gyro_noise_std()
-    accel = accel + accel_bias + rng.normal(0.0, 1.0, (n, 3)) * model.accel_noise_std()
+        if model.gyro_units == "dps":
+            gyro = np.degrees(gyro)  # the resolution below is then in deg/s
+        if model.accel_units == "g":
+            accel = accel / GRAVITY_MPS2
+        if model.gyro_lsb > 0:
+            gyro = np.round(gyro / model.gyro_lsb) * model.gyro_lsb
+        if model.accel_lsb > 0:
+            accel = np.round(accel / model.accel_lsb) * model.accel_lsb
+        if model.float32_output:
+            gyro = gyro.astype(np.float32).astype(np.float64)
+            accel = accel.astype(np.float32).astype(np.float64)
 
-    if model.gyro_units == "dps":
-        gyro = np.degrees(gyro)  # the resolution below is then in deg/s
-    if model.accel_units == "g":
-        accel = accel / GRAVITY_MPS2
-    if model.gyro_lsb > 0:
-        gyro = np.round(gyro / model.gyro_lsb) * model.gyro_lsb
-    if model.accel_lsb > 0:
-        accel = np.round(accel / model.accel_lsb) * model.accel_lsb
-    if model.float32_output:
-        gyro = gyro.astype(np.float32).astype(np.float64)
-        accel = accel.astype(np.float32).astype(np.float64)
-
-    stamp_s = t_true + model.time_offset_s
-    if model.jitter_s > 0:
-        stamp_s = stamp_s + rng.normal(0.0, model.jitter_s, n)
-    keep = np.ones(n, dtype=bool)
-    if model.drop_fraction > 0:
-        keep = rng.uniform(size=n) >= model.drop_fraction
-    t_ns = t0_ns + np.round(stamp_s * 1e9).astype(np.int64)
-    log_ns = t0_ns + np.round((t_true + model.latency_s) * 1e9).astype(np.int64)
-    stream = ImuStream(t_ns[keep], gyro[keep], accel[keep], frame_id)
-    return SimulatedImu(
-        stream,
-        log_ns[keep],
-        t_true[keep],
-        gyro_bias[keep],
-        accel_bias[keep],
-        gyro_axes,
-        accel_axes,
-        g_sensitivity,
-    )
+        stamp_s = t_true + model.time_offset_s
+        if model.jitter_s > 0:
+            stamp_s = stamp_s + rng.normal(0.0, model.jitter_s, n)
+        keep = np.ones(n, dtype=bool)
+        if model.drop_fraction > 0:
+            keep = rng.uniform(size=n) >= model.drop_fraction
+        t_ns = self.t0_ns + np.round(stamp_s * 1e9).astype(np.int64)
+        log_ns = self.t0_ns + np.round((t_true + model.latency_s) * 1e9).astype(np.int64)
+        stream = ImuStream(t_ns[keep], gyro[keep], accel[keep], self.frame_id)
+        return SimulatedImu(
+            stream,
+            log_ns[keep],
+            t_true[keep],
+            gyro_bias[keep],
+            accel_bias[keep],
+            self.gyro_axes,
+            self.accel_axes,
+            self.g_sensitivity,
+        )

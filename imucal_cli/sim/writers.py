@@ -8,10 +8,11 @@ Messages are serialised in bulk (:mod:`imucal_cli.sim.serialize`, byte-identical
 from __future__ import annotations
 
 import heapq
+import itertools
 import shutil
 import sqlite3
 import tempfile
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from imucal_cli.types import ImuStream, Transform
 #: ``--format`` names: plain MCAP with ROS 2 CDR, plain MCAP with ROS 1 encoding, rosbag2
 #: directories with sqlite3 or mcap storage, ROS 1 bag.
 FORMATS = ("mcap", "mcap-ros1", "rosbag2-sqlite3", "rosbag2-mcap", "rosbag1")
-Progress = Callable[[int, int], None]
+Progress = Callable[[int, int | None], None]
 #: Static transforms to write on ``/tf_static``: ``(parent, child, T_parent_child)``.
 StaticTransforms = Sequence[tuple[str, str, Transform]]
 
@@ -40,6 +41,9 @@ def _first_ns(topics: Mapping[str, TopicData]) -> int:
     )
 
 
+#: The pieces of a log written as they are made (each topics' data), and their messages' total
+#: where known.
+Pieces = tuple[Iterable[Mapping[str, "TopicData"]], int | None]
 #: A message written once at the log's start: (topic, msgtype, serialised).
 Static = tuple[str, str, bytes]
 
@@ -96,6 +100,25 @@ def _messages(
     return told()
 
 
+def _serialised_messages(
+    pieces: Iterable[Mapping[str, TopicData]],
+    ros1: bool,
+    progress: Progress | None,
+    total: int | None,
+) -> Iterator[tuple[int, str, bytes]]:
+    """``(log_time_ns, topic, serialised message)`` of every piece in turn (a long drive, made
+    and written piece by piece), each merged in log-time order; ``progress`` told (written,
+    ``total``: None where not known) every 10,000 messages."""
+    count = 0
+    for piece in pieces:
+        blob = _Serialized(piece, ros1)
+        for log_ns, topic, i in _merged(piece):
+            count += 1
+            if progress is not None and (count % 10_000 == 0 or count == total):
+                progress(count, total)
+            yield log_ns, topic, blob(topic, i)
+
+
 def _merged(topics: Mapping[str, TopicData]) -> Iterator[tuple[int, str, int]]:
     def one(topic: str, data: TopicData) -> Iterator[tuple[int, str, int]]:
         log_ns = data.stream.t_ns if data.log_time_ns is None else data.log_time_ns
@@ -149,11 +172,14 @@ def _write_mcap(
     chunk_size: int = 1024 * 1024,
     progress: Progress | None = None,
     statics: Sequence[Static] = (),
+    pieces: Pieces | None = None,
 ) -> None:
+    """``topics`` (the first piece's, where ``pieces`` holds every piece and their messages'
+    total) to an MCAP file at ``path``."""
     from mcap.writer import CompressionType, Writer
 
     msgdef, _ = _msgdef(ros1)
-    blob = _Serialized(topics, ros1)
+    every, total = pieces or ([topics], sum(len(d.stream) for d in topics.values()))
     with path.open("wb") as handle:
         writer = Writer(
             handle, compression=CompressionType[compression.upper()], chunk_size=chunk_size
@@ -173,11 +199,11 @@ def _write_mcap(
         for static in statics:
             _mcap_static(writer, static, _first_ns(topics), ros1)
         sequence = dict.fromkeys(topics, 0)
-        for log_ns, topic, i in _messages(topics, progress):
+        for log_ns, topic, data in _serialised_messages(every, ros1, progress, total):
             writer.add_message(
                 channel_id=channels[topic],
                 log_time=log_ns,
-                data=blob(topic, i),
+                data=data,
                 publish_time=log_ns,
                 sequence=sequence[topic],
             )
@@ -208,10 +234,12 @@ def _fill_rosbags_writer(
     ros1: bool,
     progress: Progress | None = None,
     statics: Sequence[Static] = (),
+    pieces: Pieces | None = None,
 ) -> None:
-    """Open a rosbags writer, add one connection per topic, write every message, close."""
+    """Open a rosbags writer, add one connection per topic, write every message (of every
+    piece, as :func:`_write_mcap`), close."""
     _, typestore = _msgdef(ros1)
-    blob = _Serialized(topics, ros1)
+    every, total = pieces or ([topics], sum(len(d.stream) for d in topics.values()))
     writer.open()
     try:
         from imucal_cli.frames import tf_typestore
@@ -223,8 +251,8 @@ def _fill_rosbags_writer(
             topic: writer.add_connection(topic, IMU_MSGTYPE, typestore=typestore)
             for topic in topics
         }
-        for log_ns, topic, i in _messages(topics, progress):
-            writer.write(connections[topic], log_ns, blob(topic, i))
+        for log_ns, topic, data in _serialised_messages(every, ros1, progress, total):
+            writer.write(connections[topic], log_ns, data)
     finally:
         writer.close()
 
@@ -235,12 +263,13 @@ def _write_rosbag2(
     storage: str,
     progress: Progress | None = None,
     statics: Sequence[Static] = (),
+    pieces: Pieces | None = None,
 ) -> None:
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     writer = Writer(path, version=9, storage_plugin=plugin)
-    _fill_rosbags_writer(writer, topics, False, progress, statics)
+    _fill_rosbags_writer(writer, topics, False, progress, statics, pieces)
 
 
 def _write_rosbag1(
@@ -248,12 +277,13 @@ def _write_rosbag1(
     topics: Mapping[str, TopicData],
     progress: Progress | None = None,
     statics: Sequence[Static] = (),
+    pieces: Pieces | None = None,
 ) -> None:
     from rosbags.rosbag1 import Writer
 
     writer = Writer(path)
     writer.set_compression(Writer.CompressionFormat.LZ4)
-    _fill_rosbags_writer(writer, topics, True, progress, statics)
+    _fill_rosbags_writer(writer, topics, True, progress, statics, pieces)
 
 
 def write_imu_log(
@@ -264,10 +294,12 @@ def write_imu_log(
     replace: bool = False,
     tf_static: StaticTransforms = (),
     robot_description: str | None = None,
+    later: Pieces | None = None,
 ) -> Path:
     """Write IMU topics to ``out`` in format ``fmt`` (one of :data:`FORMATS`), and (where
     given) ``tf_static`` as one ``/tf_static`` message and ``robot_description`` (a URDF) as
-    one ``/robot_description`` message at the log's start.
+    one ``/robot_description`` message at the log's start. ``later``: the pieces that follow
+    ``topics`` (a long drive, made as it is written) and the messages' total, where known.
 
     The log is built in a new temporary folder beside ``out`` and renamed into place once
     complete, so an interrupted write leaves no partial log. An existing ``out`` is an error;
@@ -287,12 +319,14 @@ def write_imu_log(
     try:
         ros1 = fmt in ("mcap-ros1", "rosbag1")
         statics = _statics(tf_static, robot_description, topics, ros1)
+        pieces = None if later is None else (itertools.chain([topics], later[0]), later[1])
         if fmt in ("mcap", "mcap-ros1"):
-            _write_mcap(tmp, topics, ros1, progress=progress, statics=statics)
+            _write_mcap(tmp, topics, ros1, progress=progress, statics=statics, pieces=pieces)
         elif fmt == "rosbag1":
-            _write_rosbag1(tmp, topics, progress, statics)
+            _write_rosbag1(tmp, topics, progress, statics, pieces)
         else:
-            _write_rosbag2(tmp, topics, fmt.removeprefix("rosbag2-"), progress, statics)
+            storage = fmt.removeprefix("rosbag2-")
+            _write_rosbag2(tmp, topics, storage, progress, statics, pieces)
         if out.exists() or out.is_symlink():
             refuse_existing(out, replace)  # (again: it may have appeared meanwhile)
             shutil.rmtree(out) if out.is_dir() else out.unlink()
