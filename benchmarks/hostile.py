@@ -230,6 +230,92 @@ def mcap_empty_records(path: Path) -> Path:
     return mcap_without_summary(path, [chunk])
 
 
+def mcap_tf_static_bomb(path: Path, drive, megabytes: int = 200) -> Path:
+    """The drive's IMU topics with, first, one /tf_static message of ``megabytes`` MiB of junk
+    transforms (2.38 M at 200), a chunk of its own compressed 800:1: deserialised whole it took
+    2.5 GB before the transform cap counted."""
+    from mcap.writer import CompressionType, Writer
+
+    from imucal_cli.frames import TF_MSGTYPES, TF_TOPIC, tf_message, tf_typestore
+    from imucal_cli.sim.writers import _msgdef, _Serialized
+    from imucal_cli.types import Transform
+
+    store = tf_typestore(False)
+
+    def serialised(n: int) -> bytes:
+        junk = tf_message(store, [("junk", "junk_child", Transform.identity())] * n, 1)
+        return bytes(store.serialize_cdr(junk, TF_MSGTYPES[0]))
+
+    one, two = serialised(1), serialised(2)
+    size = len(two) - len(one)
+    n = (megabytes << 20) // size
+    # every 8th transform's x translation a random byte: about 800:1, as the issue's file
+    elements = np.frombuffer(two[len(one) :] * (n - 1), np.uint8).reshape(n - 1, size).copy()
+    noise = np.random.default_rng(0).integers(0, 256, len(elements[::8]), dtype=np.uint8)
+    elements[::8, size - 50] = noise
+    bomb = one[:4] + n.to_bytes(4, "little") + one[8:] + elements.tobytes()
+    topics = drive.topics()
+    with path.open("wb") as handle:
+        writer = Writer(handle, compression=CompressionType.ZSTD, chunk_size=1 << 20)
+        writer.start(profile="ros2", library="probe")
+        text, _ = store.generate_msgdef(TF_MSGTYPES[0], ros_version=2)
+        schema = writer.register_schema(name=TF_MSGTYPES[0], encoding="ros2msg", data=text.encode())
+        channel = writer.register_channel(topic=TF_TOPIC, message_encoding="cdr", schema_id=schema)
+        writer.add_message(channel_id=channel, log_time=1, data=bomb, publish_time=1)
+        imu = writer.register_schema(
+            name="sensor_msgs/msg/Imu", encoding="ros2msg", data=_msgdef(False)[0].encode()
+        )
+        ids = {
+            t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=imu)
+            for t in topics
+        }
+        blob = _Serialized(topics, False)
+        for topic, data in topics.items():
+            for i, stamp in enumerate(data.stream.t_ns.tolist()):
+                writer.add_message(
+                    channel_id=ids[topic], log_time=stamp, data=blob(topic, i), publish_time=stamp
+                )
+        writer.finish()
+    return path
+
+
+def sqlite3_recording(folder: Path, drive, other_rows: int) -> Path:
+    """A rosbag2 folder still recording to sqlite3 (no metadata.yaml): ``other_rows`` rows of a
+    topic nobody asked for first, then the drive's IMU messages."""
+    import sqlite3
+
+    from imucal_cli.sim.writers import _merged, _Serialized
+
+    folder.mkdir()
+    db = sqlite3.connect(folder / f"{folder.name}_0.db3")
+    db.execute(
+        "CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL, "
+        "serialization_format TEXT NOT NULL, offered_qos_profiles TEXT NOT NULL)"
+    )
+    db.execute(
+        "CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, timestamp "
+        "INTEGER NOT NULL, data BLOB NOT NULL)"
+    )
+    topics = drive.topics()
+    ids = {topic: k + 2 for k, topic in enumerate(topics)}
+    rows = [(1, "/camera/points", "sensor_msgs/msg/PointCloud2")]
+    rows += [(i, t, "sensor_msgs/msg/Imu") for t, i in ids.items()]
+    db.executemany("INSERT INTO topics VALUES (?, ?, ?, 'cdr', '')", rows)
+    first = int(min(d.stream.t_ns[0] for d in topics.values()))
+    db.executemany(
+        "INSERT INTO messages(topic_id, timestamp, data) VALUES (1, ?, x'00000000')",
+        ((first,) for _ in range(other_rows)),
+    )
+    blob = _Serialized(topics, False)
+    db.executemany(
+        "INSERT INTO messages(topic_id, timestamp, data) VALUES (?, ?, ?)",
+        ((ids[t], log_ns, blob(t, i)) for log_ns, t, i in _merged(topics)),
+    )
+    db.commit()
+    db.close()
+    return folder
+
+
 def mcap_claiming(path: Path, claimed: int, compression: str = "zstd", chunks: int = 40) -> Path:
     """Small real chunks each claiming ``claimed`` bytes."""
     data = (
@@ -788,6 +874,52 @@ def cases(work: Path) -> list[Case]:
             f,
             expect=2,
         )
+    f = folder("tf_static bomb")
+    write_document(f / "min.yaml", minimal)
+    mcap_tf_static_bomb(f / "d.mcap", drive)
+    for command in (["calibrate", "d.mcap", "-c", "min.yaml"], ["init", "d.mcap"]):
+        add(f"a /tf_static message of 200 MiB (2.4 M transforms): {command[0]}", command, f)
+    f = folder("sqlite3 recording")
+    sqlite3_recording(f / "rec", drive, 2_000_000)
+    add(
+        "follow a sqlite3 recording with 2 M rows of another topic",
+        ["calibrate", "rec", "-c", "config.yaml", "--follow", "--timeout", "20"],
+        f,
+        expect=0,
+    )
+    f = folder("urdf values")
+    write_document(f / "min.yaml", minimal)
+    log_in(f)
+    tree_urdf = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=60.0, seed=7, tf_static=True)
+    ).urdf()
+    first_xyz = tree_urdf.split('<origin xyz="', 1)[1].split('"', 1)[0]
+    for name, value in (("nan", "nan 0 0"), ("huge", "1e308 1e308 0")):
+        (f / f"{name}.urdf").write_text(
+            tree_urdf.replace(f'xyz="{first_xyz}"', f'xyz="{value}"', 1)
+        )
+        add(
+            f"URDF origin {value}",
+            ["calibrate", "d.mcap", "-c", "min.yaml", "--urdf", f"{name}.urdf"],
+            f,
+            expect=2,
+            check=lambda r: "" if b"RuntimeWarning" not in r.stderr else "numpy warned",
+        )
+    (f / "robot.urdf").write_text(tree_urdf)
+    follow = ["--timeout", "20", "-o", "f.json"]
+
+    def took_urdf(result: subprocess.CompletedProcess, f: Path = f) -> str:
+        used = (f / "f.json").exists() and '"urdf"' in (f / "f.json").read_text()
+        return "" if used else "the URDF was not used"
+
+    add(
+        "calibrate --follow --urdf (a finished recording with no /tf_static)",
+        [*["calibrate", "d.mcap", "-c", "min.yaml", "--follow", "--urdf", "robot.urdf"], *follow],
+        f,
+        expect=0,
+        outputs={"f.json"},
+        check=took_urdf,
+    )
     f = folder("tree")
     tree_drive = simulate_drive(
         DriveOptions(scenario="aggressive", duration_s=60.0, seed=7, tf_static=True)
