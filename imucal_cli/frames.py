@@ -383,7 +383,9 @@ def _why(log: str | Path, tree: FrameTree, ends: tuple[Any, Any], imu: str | Non
     that names the missing frame's place in the tree (``imu_frame``, ``lidar_frame``)."""
     left_out = "".join(f"; {note}" for note in tree.notes)  # (what reading left out)
     if not tree.edges:
-        return f"missing required key, and {log} has no {TF_TOPIC} to take it from{left_out}"
+        if tree.notes:  # (it has one, and what was read of it gave no transform)
+            return f"missing required key, and {log}'s {TF_TOPIC} gave no transform{left_out}"
+        return f"missing required key, and {log} has no {TF_TOPIC} to take it from"
     if imu is None:
         return (
             f"missing required key, and the IMU topic's messages in {log} name no frame: give it "

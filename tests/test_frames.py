@@ -349,8 +349,11 @@ def test_a_tf_static_message_larger_than_a_tree_is_left_out_and_said(drive, tmp_
         tmp_path / "d.mcap", "mcap", drive.topics(), tf_static=drive.static_transforms()
     )
     write_document(tmp_path / "min.yaml", _minimal(drive.config_document()))
-    with pytest.raises(ConfigError, match=r"a message of 0 MB, larger than a static tree"):
+    with pytest.raises(
+        ConfigError, match=r"a message of 0 MB, larger than a static tree"
+    ) as caught:
         load_config(tmp_path / "min.yaml", log)
+    assert "/tf_static gave no transform" in str(caught.value)  # (not: "has no /tf_static")
 
 
 def test_follow_mode_takes_the_transforms_from_urdf(drive, tmp_path):
