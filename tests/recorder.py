@@ -12,7 +12,7 @@ from pathlib import Path
 from imucal_cli.sim.writers import (
     _first_ns,
     _mcap_static,
-    _messages,
+    _merged,
     _msgdef,
     _Serialized,
     _statics,
@@ -63,7 +63,7 @@ class Recorder(threading.Thread):
             handle.flush()
             self.started_writing.set()
             start_wall, start_log = time.monotonic(), None
-            for log_ns, topic, i in _messages(self.topics):
+            for log_ns, topic, i in _merged(self.topics):
                 start_log = log_ns if start_log is None else start_log
                 elapsed_log = (log_ns - start_log) * 1e-9
                 if self.die_after_s is not None and elapsed_log > self.die_after_s:
@@ -128,7 +128,7 @@ class SqliteRecorder(threading.Thread):
         connection.commit()
         self.started_writing.set()
         start_wall, start_log, pending = time.monotonic(), None, []
-        for log_ns, topic, i in _messages(self.topics):
+        for log_ns, topic, i in _merged(self.topics):
             start_log = log_ns if start_log is None else start_log
             wait = start_wall + (log_ns - start_log) * 1e-9 / self.factor - time.monotonic()
             if wait > 0.05:

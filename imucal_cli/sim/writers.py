@@ -81,25 +81,6 @@ class TopicData:
     log_time_ns: np.ndarray | None = None  # defaults to the stamps
 
 
-def _messages(
-    topics: Mapping[str, TopicData], progress: Progress | None = None
-) -> Iterator[tuple[int, str, int]]:
-    """``(log_time_ns, topic, index)`` over all topics, merged in log-time order; ``progress``
-    told (written, total) every 10,000 messages."""
-    merged = _merged(topics)
-    if progress is None:
-        return merged
-    total = sum(len(d.stream) for d in topics.values())
-
-    def told() -> Iterator[tuple[int, str, int]]:
-        for count, item in enumerate(merged, start=1):
-            if count % 10_000 == 0 or count == total:
-                progress(count, total)
-            yield item
-
-    return told()
-
-
 def _serialised_messages(
     pieces: Iterable[Mapping[str, TopicData]],
     ros1: bool,

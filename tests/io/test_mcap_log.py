@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from imucal_cli.cli import app
 from imucal_cli.reading import read_imu
-from imucal_cli.sim.writers import _messages, _msgdef, _Serialized, write_imu_log
+from imucal_cli.sim.writers import _merged, _msgdef, _Serialized, write_imu_log
 
 runner = CliRunner()
 CONFORMANCE = Path(__file__).resolve().parents[3] / "shared" / "conformance" / "mcap"
@@ -62,7 +62,7 @@ def _write(path: Path, topics, **options) -> Path:
             t: writer.register_channel(topic=t, message_encoding="cdr", schema_id=schema)
             for t in topics
         }
-        for log_ns, topic, i in _messages(topics):
+        for log_ns, topic, i in _merged(topics):
             writer.add_message(
                 channel_id=channels[topic],
                 log_time=log_ns,
