@@ -7,14 +7,13 @@ partial output file. Heavy imports happen inside the commands so ``imucal --help
 from __future__ import annotations
 
 import functools
-import gc
 import os
 import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any, NoReturn, ParamSpec, TypeVar
+from typing import Annotated, Any, ParamSpec, TypeVar
 
 import typer
 
@@ -110,34 +109,8 @@ def _err(text: str) -> None:
 class _Process:
     """What :func:`main` made of this process."""
 
-    #: The command line's own (:func:`main` ran): only then are process-wide settings (the
-    #: garbage collector, malloc's) the command's to change.
-    own = False
     #: A SIGTERM came (:func:`_terminate`).
     terminated = False
-
-
-def _collect_from_here() -> None:
-    """The cyclic garbage collector on again, what exists now frozen out of its passes
-    (``gc.freeze``): modules, functions and classes, which are never garbage. In the command
-    line's own process, where :func:`main` and :func:`_loading` turn it off while modules
-    load: each of its passes went over every object loaded so far (1 h log: 0.07 s of the
-    calibrating process's start-up, docs/performance.md)."""
-    if _Process.own and not gc.isenabled():
-        gc.freeze()
-        gc.enable()
-
-
-@contextmanager
-def _loading() -> Iterator[None]:
-    """The collector off while a command imports what it runs and loads its config
-    (:func:`_collect_from_here` after)."""
-    if _Process.own:
-        gc.disable()
-    try:
-        yield
-    finally:
-        _collect_from_here()
 
 
 def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
@@ -145,7 +118,6 @@ def handles_errors(command: Callable[P, R]) -> Callable[P, R]:
 
     @functools.wraps(command)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
-        _collect_from_here()  # the command line's modules are loaded
         try:
             return command(*args, **kwargs)
         except ImucalError as exc:
@@ -462,41 +434,16 @@ def _note_losses(log: Path, losses: list[Any]) -> None:
         _err(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read")
 
 
-@contextmanager
-def _reading(log: Path, config_path: Path) -> Iterator[Any]:
-    """The log's reading child (:class:`~imucal_cli.reading.ForkedBatches`) of the config's
-    IMU topics, started now and ended on leaving, or None where the system does not fork.
-
-    One log: it is read in a child process from now, on the second core, while this one loads
-    the config (an invalid one's error is this process's) and imports what takes the batches
-    (a batch runs a process per core instead)."""
-    from imucal_cli.reading import FORKS, ForkedBatches, ImuBatches
-
-    def open_reader() -> ImuBatches:  # in the reading child: the config's topics
-        from imucal_cli.config import imu_names_in
-
-        return ImuBatches(log, imu_names_in(config_path))
-
-    reading = ForkedBatches.opening(log, open_reader) if FORKS else None
-    try:
-        yield reading
-    finally:
-        if reading is not None:
-            reading.close()
-
-
 def _stream_log(log: Path, config_path: Path, urdf: Path | None = None) -> tuple[Any, Any]:
     """Load the config and stream the log's IMU messages through a calibrator (windows reduced
     beside the reading, nothing solved yet); say on stderr what reading found. Returns the
     config and the :class:`~imucal_cli.api.StreamedLog`."""
-    with _reading(log, config_path) as reading:
-        with _loading():
-            from imucal_cli.api import stream_log
-            from imucal_cli.config import load_config
+    from imucal_cli.api import stream_log
+    from imucal_cli.config import load_config
 
-            config = load_config(config_path, log, urdf)  # what it leaves out: /tf_static, URDF
-        with _progress(f"reading {log}") as progress:
-            streamed = stream_log(log, config, progress=progress, threaded=True, reading=reading)
+    config = load_config(config_path, log, urdf)  # what it leaves out: /tf_static, URDF
+    with _progress(f"reading {log}") as progress:
+        streamed = stream_log(log, config, progress=progress)
     _note_losses(log, streamed.losses)
     for topic, stats in streamed.stats.items():
         _note_read(log, topic, stats.to_dict() | {"duplicates": streamed.duplicates[topic]})
@@ -520,14 +467,12 @@ def biases(
 ) -> None:
     """Per IMU: rest periods, accelerometer bias and noise, gyro bias track summary."""
     _check_output(out, log, config, urdf)
-    with _reading(log, config) as reading:
-        with _loading():
-            from imucal_cli.api import stream_biases
-            from imucal_cli.config import load_config
+    from imucal_cli.api import stream_biases
+    from imucal_cli.config import load_config
 
-            cfg = load_config(config, log, urdf)
-        with _progress(f"reading {log}") as progress:
-            document = stream_biases(log, cfg, progress, reading=reading)
+    cfg = load_config(config, log, urdf)
+    with _progress(f"reading {log}") as progress:
+        document = stream_biases(log, cfg, progress)
     _note_losses(log, document["losses"])
 
     def render(doc: dict[str, Any]) -> None:
@@ -709,7 +654,7 @@ def calibrate(
     from imucal_cli.outputs import calibration_document
 
     with _progress("calibrating"):
-        result = estimate(streamed, apart=True)
+        result = estimate(streamed)
     document = calibration_document(result, str(log), streamed.losses, streamed.counts())
 
     def render(doc: dict[str, Any]) -> None:
@@ -1641,89 +1586,14 @@ def _simulate_outputs(out: Path, force: bool) -> tuple[Path, Path]:
 # --------------------------------------------------------------------------- entry point
 
 
-#: The interpreter's thread switch interval in the command (s; Python's default 0.005).
-SWITCH_INTERVAL_S = 0.0002
-#: Blocks up to this size (bytes) come from glibc's heap, not from a mapping of their own.
-MALLOC_MMAP_THRESHOLD = 256 << 20
-#: glibc's heap hands memory back to the kernel when this much (bytes) is free at its top.
-MALLOC_TRIM_THRESHOLD = 1 << 30
-
-
-def keep_freed_memory() -> None:
-    """Have glibc's malloc keep the memory a command frees for its next arrays, where the
-    process runs on glibc and the user set neither threshold.
-
-    By default, a block over its threshold (128 kB, raised as such blocks are freed) is a
-    mapping of its own, and a freed heap top goes back to the kernel: each window's arrays
-    were mapped and zeroed by the kernel anew, half the system time of a calibration
-    (1 h log: 0.69 s of 5.4 CPU-s; docs/performance.md). Peak memory is the same: what is
-    kept is what the command had in use before. A process-wide setting, so the command
-    line's only: the Python API leaves its caller's process as it is."""
-    tunables = os.environ.get("GLIBC_TUNABLES", "")
-    users = (
-        "MALLOC_MMAP_THRESHOLD_" in os.environ
-        or "MALLOC_TRIM_THRESHOLD_" in os.environ
-        or "malloc.mmap_threshold" in tunables
-        or "malloc.trim_threshold" in tunables
-    )
-    if users or not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):  # no C library with mallopt in the process
-        return
-    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
-    mallopt(m_mmap_threshold, MALLOC_MMAP_THRESHOLD)
-    mallopt(m_trim_threshold, MALLOC_TRIM_THRESHOLD)
-
-
 def main() -> None:
-    """Console-script entry point (usage errors exit 2, as Typer does).
-
-    A Ctrl-C ends with exit 130 at once: CPython 3.11 takes a KeyboardInterrupt that passed
-    through an import's exec() (scipy's lazy imports run some) for an unhandled one even when
-    it was caught, and would end the process by SIGINT (a caller saw -2, not 130).
-
-    BLAS runs on one thread: its matrices here are small, and its spinning threads took a
-    third of the CPU time of a calibration and made it 10% slower (docs/performance.md);
-    ``batch --jobs`` runs a process per core. The user's own setting is kept.
-
-    The garbage collector is off until the command's modules are loaded
-    (:func:`_collect_from_here`), and glibc's malloc keeps what it frees
-    (:func:`keep_freed_memory`)."""
-    _Process.own = True
-    gc.disable()  # while the modules load (_collect_from_here)
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy is imported
-    # three threads share the GIL (reading, decoding, the windows' math, which mostly releases
-    # it): a thread that waits for it waits less (1 h log: stream 3.2-3.3 s against 3.7)
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
-    keep_freed_memory()
+    """Console-script entry point (usage errors exit 2, as Typer does); a SIGTERM ends a
+    command as a Ctrl-C does, with exit code 143."""
     import signal
 
-    signal.signal(signal.SIGTERM, _terminate)  # ended as a Ctrl-C is (exit 143)
+    signal.signal(signal.SIGTERM, _terminate)
     os.register_at_fork(after_in_child=_default_sigterm)
-    try:
-        app()
-    except SystemExit as exc:
-        leave(exc.code)
-    leave(0)
-
-
-def leave(code: int | str | None) -> NoReturn:
-    """End the process with ``code`` once the standard streams are flushed, without the
-    interpreter's teardown: every file of the command's is closed by then, and the teardown
-    (freeing numpy's and scipy's modules) took 80-90 ms after a calibration, 3% of an hour's."""
-    if isinstance(code, str):  # as SystemExit prints it
-        print(code, file=sys.stderr)
-        code = 1
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # a reader that went away, a stream closed
-            pass
-    os._exit(code or 0)
+    app()
 
 
 if __name__ == "__main__":

@@ -360,19 +360,6 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     return Config(base=base, sensors=tuple(sensors), **sections, source=source)
 
 
-def imu_names_in(path: str | Path) -> dict[str, str]:
-    """The IMU topics a config file names, as :meth:`Config.imu_names` gives them, from its
-    two keys alone: what a process that reads the log needs, before the config is loaded
-    (no transform is made, so scipy is not imported). Where the file is not a valid config,
-    this may fail, or give topics that :func:`load_config` then rejects with its message."""
-    from imucal_cli.documents import load_document
-
-    data = load_document(path)
-    return {data["base"]["topic"]: "base"} | {
-        sensor["imu_topic"]: name for name, sensor in data["sensors"].items()
-    }
-
-
 def load_config(
     path: str | Path, log: str | Path | None = None, urdf: str | Path | None = None
 ) -> Config:

@@ -22,15 +22,7 @@ from imucal_cli.core.grades import GRADES
 from imucal_cli.core.streaming import BOOT_S, SensorSetup, StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.base import Loss
-from imucal_cli.reading import (
-    FORKS,
-    ForkedBatches,
-    ImuBatches,
-    ReadStats,
-    end_child,
-    fork_child,
-    read_beside,
-)
+from imucal_cli.reading import ImuBatches, ReadStats
 from imucal_cli.result import CalibrationResult
 from imucal_cli.types import ImuStream
 
@@ -70,10 +62,7 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
 
 
 def make_calibrator(
-    config: Config,
-    block_windows: int | None = None,
-    reorder_s: float | None = None,
-    threaded: bool = False,
+    config: Config, block_windows: int | None = None, reorder_s: float | None = None
 ) -> StreamingCalibrator:
     """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names
     (``block_windows=1``: every window reduced as soon as the data cover it, for live use)."""
@@ -97,7 +86,6 @@ def make_calibrator(
         base_units=(config.base.gyro_units, config.base.accel_units),
         base_label=(config.base.topic, "base"),
         base_pose=config.base.T_base_imu,
-        threaded=threaded,
         **extra,
     )
 
@@ -268,7 +256,7 @@ Sink = Callable[[str, np.ndarray, np.ndarray, np.ndarray], object]
 
 
 def read_log(
-    reader: ImuBatches | ForkedBatches,
+    reader: ImuBatches,
     config: Config,
     sink: Sink,
     clocks: bool = True,
@@ -303,7 +291,7 @@ def read_log(
 
 
 def _finish(
-    reader: ImuBatches | ForkedBatches,
+    reader: ImuBatches,
     calibrator: StreamingCalibrator,
     t0_ns: int | None,
     config: Config,
@@ -326,7 +314,7 @@ def _finish(
 
 
 def _streamed(
-    reader: ImuBatches | ForkedBatches,
+    reader: ImuBatches,
     calibrator: StreamingCalibrator,
     t0_ns: int | None,
     config: Config,
@@ -346,24 +334,12 @@ def _streamed(
 
 
 def stream_log(
-    log: str | Path,
-    config: Config,
-    progress: Callable[[int, int], None] | None = None,
-    threaded: bool = False,
-    reading: ForkedBatches | None = None,
+    log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None
 ) -> StreamedLog:
     """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
-    log's length: windows reduced, nothing solved yet. With ``threaded`` (one log on the
-    machine) the log is read in a child process and the windows reduced in a worker thread;
-    ``reading``: that child, started already (:meth:`ForkedBatches.opening`)."""
-    # threaded: the reading in a second process, the reduction in a second thread
-    reader: ImuBatches | ForkedBatches
-    if reading is not None:
-        reader = reading
-    else:
-        batches = ImuBatches(Path(log), config.imu_names())
-        reader = read_beside(batches) if threaded else batches
-    calibrator = make_calibrator(config, threaded=threaded)
+    log's length: windows reduced, nothing solved yet."""
+    reader = ImuBatches(Path(log), config.imu_names())
+    calibrator = make_calibrator(config)
     t0_ns = read_log(
         reader, config, calibrator.add, progress=progress, clipped=calibrator.add_clipped
     )
@@ -371,19 +347,15 @@ def stream_log(
 
 
 def stream_biases(
-    log: str | Path,
-    config: Config,
-    progress: Callable[[int, int], None] | None = None,
-    reading: ForkedBatches | None = None,
+    log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None
 ) -> dict[str, Any]:
     """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
-    :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length;
-    ``reading``: the log's reading child, started already (:meth:`ForkedBatches.opening`)."""
+    :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length."""
     from imucal_cli.outputs import biases_document
 
     names = config.imu_names()
     trackers = bias_trackers(config)
-    reader = reading if reading is not None else ImuBatches(Path(log), names)
+    reader = ImuBatches(Path(log), names)
     read_log(
         reader,
         config,
@@ -557,14 +529,11 @@ def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> Calibratio
     return CalibrationResult(estimates, config, dict(calibrator.rates_hz), dict(calibrator.noise))
 
 
-def estimate(streamed: StreamedLog, apart: bool = False) -> CalibrationResult:
-    """Solve for every sensor from a streamed log. With ``apart`` (one log on the machine),
-    half of the sensors are solved in a child process, on the second core."""
+def estimate(streamed: StreamedLog) -> CalibrationResult:
+    """Solve for every sensor from a streamed log."""
     try:
         with np.errstate(all="ignore"):
-            estimates = (
-                _estimates_apart(streamed.calibrator) if apart else streamed.calibrator.estimates()
-            )
+            estimates = streamed.calibrator.estimates()
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         # only data no IMU produces get here (the reader drops what it can recognise)
         raise InputError(
@@ -577,34 +546,3 @@ def estimate(streamed: StreamedLog, apart: bool = False) -> CalibrationResult:
         dict(streamed.calibrator.rates_hz),
         dict(streamed.calibrator.noise),
     )
-
-
-def _estimates_apart(calibrator: StreamingCalibrator) -> dict[str, SensorEstimate]:
-    """:meth:`StreamingCalibrator.estimates`, every other sensor solved in a forked child
-    process (the sensors' solves are independent): the same figures, on two cores. Where the
-    child fails, its sensors are solved here again, so that an error is the one the solve
-    raises in this process. Forks, so Linux only: elsewhere all are solved here."""
-    names = list(calibrator.sensors)
-    if len(names) < 2 or not FORKS:
-        return calibrator.estimates()
-    calibrator.settle()
-    theirs = names[1::2]
-
-    def answer(send: Any) -> None:
-        try:
-            send.send({name: calibrator.estimate(name) for name in theirs})
-        except BaseException:  # solved again in the parent, which raises it itself
-            send.send(None)
-
-    child, receive = fork_child(answer)
-    try:
-        ours = {name: calibrator.estimate(name) for name in names[0::2]}
-        try:
-            solved = receive.recv()
-        except EOFError:  # the child was killed
-            solved = None
-    finally:
-        end_child(child, receive)
-    if solved is None:
-        solved = {name: calibrator.estimate(name) for name in theirs}
-    return {name: (ours | solved)[name] for name in names}

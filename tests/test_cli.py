@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import ctypes
 import json
-import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 import yaml
-from conftest import SAMPLE_DATA, without_summary
+from conftest import without_summary
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
@@ -210,8 +208,6 @@ def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_wh
 ):
     """The console script's entry point (``imucal_cli.cli:main``): the output file is whole,
     what was printed reaches a pipe, and the exit code is the command's (0, 2 on bad input)."""
-    import subprocess
-    import sys
 
     from imucal_cli.documents import write_document
     from imucal_cli.sim.writers import write_imu_log
@@ -270,85 +266,3 @@ def test_no_help_page_shows_a_bool_metavar():
         result = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "200"})
         assert result.exit_code == 0, (command, result.output)
         assert "--help" in result.stdout and "<bool>" not in result.stdout, command
-
-
-KEPT_MEMORY_PROBE = """
-import ctypes, sys
-import numpy as np
-from imucal_cli.cli import keep_freed_memory
-
-class Mallinfo2(ctypes.Structure):
-    _fields_ = [(name, ctypes.c_size_t) for name in (
-        "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
-        "fordblks", "keepcost")]
-
-libc = ctypes.CDLL(None)
-libc.mallinfo2.restype = Mallinfo2
-if sys.argv[1] == "keep":
-    keep_freed_memory()
-before = libc.mallinfo2().hblks
-block = np.ones(8 << 20)  # 64 MB: a mapping of its own by glibc's default
-print(libc.mallinfo2().hblks - before)
-"""
-
-
-@pytest.mark.skipif(
-    not sys.platform.startswith("linux") or not hasattr(ctypes.CDLL(None), "mallinfo2"),
-    reason="glibc's malloc",
-)
-@pytest.mark.parametrize(
-    ("how", "environ", "mapped"),
-    [
-        ("keep", {}, 0),  # from the heap, which keeps what was freed
-        ("default", {}, 1),
-        ("keep", {"MALLOC_MMAP_THRESHOLD_": "131072"}, 1),  # the user's setting stands
-        ("keep", {"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=131072"}, 1),
-    ],
-)
-def test_the_command_keeps_freed_memory_unless_the_user_set_malloc(how, environ, mapped):
-    """The command line has a large block come from the heap, not a mapping of its own (which
-    the kernel would map and zero anew after each free); a threshold the user set is kept."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_TUN"))}
-    found = subprocess.run(
-        [sys.executable, "-c", KEPT_MEMORY_PROBE, how],
-        env=env | environ,
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    assert int(found.stdout) == mapped
-
-
-COLLECTOR_PROBE = """
-import gc, sys
-import imucal_cli.cli as cli
-
-def leave(code):  # what the collector was left as when the command ended
-    print(code, gc.isenabled(), gc.get_freeze_count())
-    sys.stdout.flush()
-    cli.os._exit(0)
-
-cli.leave = leave
-sys.argv = ["imucal", *sys.argv[1:]]
-cli.main()
-"""
-
-
-@pytest.mark.parametrize("command", ["biases", "calibrate", "inspect"])
-def test_the_command_collects_garbage_again_once_its_modules_are_loaded(command, tmp_path):
-    """The command line loads its modules with the collector off; it is on again, with what
-    was loaded frozen out of its passes, when the command runs (``biases`` and ``calibrate``
-    load theirs with the config, ``inspect`` before it runs)."""
-    args = [str(SAMPLE_DATA / "urban.mcap")]
-    if command != "inspect":
-        args += ["-c", str(SAMPLE_DATA / "urban.config.yaml"), "-o", str(tmp_path / "out.yaml")]
-    found = subprocess.run(
-        [sys.executable, "-c", COLLECTOR_PROBE, command, *args],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=tmp_path,
-    )
-    code, enabled, frozen = found.stdout.splitlines()[-1].split()  # (inspect prints a table)
-    assert (code, enabled) == ("0", "True"), found.stderr
-    assert int(frozen) > 10_000  # the modules' objects

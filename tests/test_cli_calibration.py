@@ -231,16 +231,10 @@ def test_biases_report():
             assert np.all(np.abs(np.array(imu["gyro_bias_radps"]["initial"]) - true_initial) < 5e-4)
 
 
-@pytest.mark.parametrize("slot_bytes", [None, 20_000])
-def test_biases_read_in_a_child_give_the_documents_of_one_process(monkeypatch, slot_bytes):
-    """``imucal biases`` reads the log in a child process, its batches joined per topic into
-    shared slots (or through the pipe, where a group is larger than a slot: the small slots);
-    the document is the Python API's, which reads in-process."""
+def test_biases_from_the_command_line_is_the_python_apis_document():
+    """``imucal biases --json`` prints the document the Python API returns."""
     import imucal_cli
-    from imucal_cli import reading
 
-    if slot_bytes is not None:
-        monkeypatch.setattr(reading, "SLOT_BYTES", slot_bytes)
     log, config = SAMPLE_DATA / "urban.mcap", SAMPLE_DATA / "urban.config.yaml"
     result = runner.invoke(app, ["biases", str(log), "-c", str(config), "--json"])
     assert result.exit_code == 0, result.output

@@ -266,22 +266,6 @@ def test_grades_default_to_a_consumer_lidar_imu_and_a_tactical_ins(base_dict):
         parse_config(_mutate(base_dict, "base.grade", "excellent"), "x.yaml")
 
 
-def test_a_configs_imu_topics_read_alone_are_the_loaded_configs():
-    """A lone calibrate's reading child starts from the config file's two topic keys alone
-    (:func:`imu_names_in`): for every shipped config, the names and topics (in order) the
-    whole load gives."""
-    from imucal_cli.config import imu_names_in
-
-    root = Path(__file__).resolve().parent.parent
-    configs = [*(root / "configs").glob("*.yaml"), *(root / "sample_data").glob("*.config.yaml")]
-    assert len(configs) >= 3
-    for path in configs:
-        if "sensors" not in (yaml.safe_load(path.read_text()) or {}):
-            continue  # (a defaults file)
-        loaded = load_config(path).imu_names()
-        assert list(imu_names_in(path).items()) == list(loaded.items()), path
-
-
 def test_a_sensor_named_base_is_refused_not_confused_with_the_base_imu(base_dict):
     """``base`` is the base IMU's name beside the sensors' (the biases document's
     ``imus.base``): a lidar named so came back unobservable ("every window has a gap") and

@@ -15,7 +15,7 @@ from imucal_cli.cli import app
 def test_report_for_the_sample_drive(tmp_path, monkeypatch):
     from imucal_cli import reading
 
-    # counted in a file: the log is read in a child process (ForkedBatches)
+    # how many times the log is opened
     opens = tmp_path / "opened"
     real_open = reading.open_log
 

@@ -13,9 +13,7 @@ matrices, and :func:`imucal_cli.core.calibrate.solve` estimates from them.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -65,8 +63,6 @@ BLOCK_WINDOWS = 6
 #: An IMU with no sample for this long (s) while another goes on has stopped (a driver that
 #: died, a topic not recorded): the others' windows go on without it, its own are not used.
 STOPPED_S = 30.0
-#: Blocks of windows under way in the worker thread at most (each holds its samples).
-PENDING_BLOCKS = 2
 #: Windows whose observability is computed together (bounds scratch memory).
 INFO_CHUNK = 128
 
@@ -534,7 +530,6 @@ class StreamingCalibrator:
         reorder_s: float = REORDER_S,
         base_units: tuple[str, str] = ("auto", "auto"),
         base_label: tuple[str, str] = ("", ""),
-        threaded: bool = False,
         base_pose: Transform | None = None,
     ) -> None:
         if not sensors:
@@ -551,15 +546,6 @@ class StreamingCalibrator:
         self.t_ref_ns: int | None = None
         self.next_window = 0
         self.windows: dict[str, list[WindowMoments]] = {name: [] for name in self.sensors}
-        #: With ``threaded``, windows are reduced in a worker thread (the FFTs and products
-        #: release the GIL, so it runs beside the decoding): the blocks under way, in order. A
-        #: lone calibration gains 8-9% wall time for as much more CPU time; a batch that runs a
-        #: process per core would lose, so it is the command's choice.
-        self.threaded = threaded
-        self._pending: deque[
-            tuple[list[tuple[int, float, float]], Future[dict[str, list[WindowMoments]]]]
-        ] = deque()
-        self._worker: ThreadPoolExecutor | None = None
         self.tau0: dict[str, float] = {}
         #: Each sensor's clock offset as the boot's correlation placed it (None: not estimated).
         self.time_offsets: dict[str, TimeOffset | None] = {}
@@ -928,8 +914,6 @@ class StreamingCalibrator:
                 buffer.drop_before(self.t_ref_ns + int(keep_from * 1e9))
             if partial or len(spans) < self.block_windows:
                 break
-        if final:
-            self._collect(wait=True)
         if final and not any(self.windows.values()):
             raise TooLittleData(self._too_little(covered))
         return count
@@ -992,15 +976,12 @@ class StreamingCalibrator:
                 saturated = self._saturated(name, first_s + tau - self.lowpass.reach_s)
                 samples[name] = (tau, t[a:b], both[a:b], saturated)
         args = (spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after)
-        future: Future[dict[str, list[WindowMoments]]]
-        if self.base_name in samples and self.threaded:
-            future = self._executor().submit(_reduce_block, *args, self.base_name, samples)
-        else:
-            future = Future()
-            has_base = self.base_name in samples
-            future.set_result(_reduce_block(*args, self.base_name, samples) if has_base else {})
-        self._pending.append((spans, future))
-        self._collect(wait=len(self._pending) > PENDING_BLOCKS)
+        has_base = self.base_name in samples
+        reduced = _reduce_block(*args, self.base_name, samples) if has_base else {}
+        for name in self.sensors:
+            self.windows[name].extend(
+                reduced.get(name) or [_unused(number, start, end) for number, start, end in spans]
+            )
 
     def _saturated(self, name: str, from_s: float) -> np.ndarray:
         """The stamps (s) from ``from_s`` on where IMU ``name`` read its full scale (either
@@ -1010,26 +991,8 @@ class StreamingCalibrator:
         stamps = self.saturation[name].after(from_ns, self.scales.get(name, (1.0, 1.0)))
         return self._seconds(stamps)
 
-    def _executor(self) -> ThreadPoolExecutor:
-        if self._worker is None:
-            self._worker = ThreadPoolExecutor(1, thread_name_prefix="imucal-windows")
-        return self._worker
-
-    def _collect(self, wait: bool = False) -> None:
-        """The windows of the blocks reduced in the worker thread, in order: those done, or
-        (``wait``) every one."""
-        while self._pending and (wait or self._pending[0][1].done()):
-            spans, future = self._pending.popleft()
-            reduced = future.result()
-            for name in self.sensors:
-                self.windows[name].extend(
-                    reduced.get(name)
-                    or [_unused(number, start, end) for number, start, end in spans]
-                )
-
     def _ensure_infos(self, name: str) -> list[WindowMoments]:
         """Fill in the observability of windows that lack it (all at once)."""
-        self._collect(wait=True)
         windows = self.windows[name]
         missing = [w for w in windows if w.info is None]
         setup = self.sensors[name]
@@ -1069,11 +1032,6 @@ class StreamingCalibrator:
     def estimates(self) -> dict[str, SensorEstimate]:
         """The estimate from the windows reduced so far (every sensor)."""
         return {name: self.estimate(name) for name in self.sensors}
-
-    def settle(self) -> None:
-        """Take in every block the worker thread is reducing (before a fork: the child has no
-        worker thread, and :meth:`estimate` waits for them)."""
-        self._collect(wait=True)
 
     def estimate(self, name: str) -> SensorEstimate:
         """One sensor's estimate from the windows reduced so far (each sensor's is independent

@@ -135,28 +135,6 @@ def test_symmetric_terms_filtered_by_their_upper_triangles_are_the_full_matrices
         np.testing.assert_allclose(got, _vec(full), rtol=0, atol=1e-12)
 
 
-def test_windows_reduced_in_the_worker_thread_give_the_same_estimate_to_the_bit():
-    """``threaded`` moves the windows' math to a worker thread and collects its blocks in
-    order: the estimate is the same, bit for bit."""
-    from imucal_cli.pipeline import feed, make_calibrator
-
-    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=100.0, seed=9))
-    config = parse_config(drive.config_document(), "sim.config.yaml")
-    streams = DriveStreams(
-        drive.base.stream, {m.name: drive.sensors[m.name].stream for m in drive.mounts}, 0
-    )
-    results = []
-    for threaded in (False, True):
-        calibrator = make_calibrator(config, threaded=threaded)
-        feed(calibrator, streams, block_s=1.0)  # many small feeds: blocks left under way
-        results.append(calibrator.finish())
-    for name, plain in results[0].items():
-        other = results[1][name]
-        assert other.status == plain.status and other.warnings == plain.warnings
-        assert np.array_equal(other.T_base_imu.as_matrix(), plain.T_base_imu.as_matrix())
-        assert np.array_equal(other.covariance, plain.covariance)
-
-
 def test_windows_that_hold_a_saturated_reading_are_not_used(monkeypatch):
     """A sensor gyro clipped at its full scale (here a tenth of a percent of the readings, at a
     full scale the test lowers to the drive's peaks): every window within the low-pass's
