@@ -195,24 +195,33 @@ class _Spline:
 
 def filled(t: np.ndarray, both: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
     """The samples (stamps ``t`` in s, strictly increasing) with each dropped one put back, from
-    the natural cubic spline through the others: a step of ``k`` periods (``k`` from 2 to
-    :data:`GAP_PERIODS`) gets ``k - 1`` samples. A filter that runs over the samples as a
-    uniform series would shift everything after a dropped sample by a period (a 10 ms lag of a
-    gravity turning at 3 Hz in a wheel's IMU: residuals of m/s^2); longer gaps are gaps."""
+    the cubic through the two samples on each side of its step: a step of ``k`` periods (``k``
+    from 2 to :data:`GAP_PERIODS`) gets ``k - 1`` samples. A filter that runs over the samples
+    as a uniform series would shift everything after a dropped sample by a period (a 10 ms lag
+    of a gravity turning at 3 Hz in a wheel's IMU: residuals of m/s^2); longer gaps are gaps."""
     steps = np.diff(t)
     missing = np.rint(steps / period).astype(np.int64) - 1
     missing[(missing < 0) | (steps > GAP_PERIODS * period)] = 0
     where = np.flatnonzero(missing)
-    if not len(where):
+    if not len(where) or len(t) < 4:
         return t, both
     counts = missing[where]
     k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + 1
     fraction = k / np.repeat(counts + 1, counts)
-    new_t = np.repeat(t[where], counts) + fraction * np.repeat(steps[where], counts)
+    left = np.repeat(where, counts)
+    new_t = t[left] + fraction * steps[left]
+    # Lagrange's cubic through samples first .. first + 3 around the step (inside the ends)
+    first = np.clip(left - 1, 0, len(t) - 4)
+    nodes = t[first[:, None] + np.arange(4)]
+    weights = np.ones((len(new_t), 4))
+    for i in range(4):
+        for j in range(4):
+            if i != j:
+                weights[:, i] *= (new_t - nodes[:, j]) / (nodes[:, i] - nodes[:, j])
+    values = np.einsum("qk,qkc->qc", weights, both[first[:, None] + np.arange(4)])
     all_t = np.concatenate([t, new_t])
     order = np.argsort(all_t, kind="stable")
-    values = np.concatenate([both, _NaturalCubic(t, both)(new_t)])
-    return all_t[order], values[order]
+    return all_t[order], np.concatenate([both, values])[order]
 
 
 #: The largest response the low-pass may have above a decimated rate's Nyquist frequency.

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import queue
-import threading
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -16,8 +14,6 @@ from imucal_cli.io.imu_msg import IMU_MSGTYPE, RawBatch, normalize_msgtype, pack
 
 #: Messages of one topic gathered into a batch by the readers that get them one at a time.
 BATCH_MESSAGES = 8192
-#: Groups of chunks read and decompressed ahead of the one being decoded.
-READ_AHEAD_GROUPS = 2
 
 T = TypeVar("T")
 D = TypeVar("D")
@@ -235,43 +231,3 @@ def interleaved(batches: list[RawBatch], span_ns: int = BATCH_SPAN_NS) -> list[R
     if len(pieces) == len(batches):
         return batches
     return sorted(pieces, key=lambda p: int(p.log_time_ns[0]) if len(p.log_time_ns) else 0)
-
-
-def read_ahead(items: Iterator[T], depth: int = READ_AHEAD_GROUPS) -> Iterator[T]:
-    """``items`` made in a thread, up to ``depth`` ahead of the consumer (file reads and
-    decompression run outside the GIL)."""
-    ready: queue.Queue[tuple[str, Any]] = queue.Queue(depth)
-    stop = threading.Event()
-
-    def produce() -> None:
-        try:
-            for item in items:
-                while not stop.is_set():
-                    try:
-                        ready.put(("item", item), timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            ready.put(("end", None))
-        except BaseException as exc:
-            ready.put(("error", exc))
-
-    thread = threading.Thread(target=produce, name="imucal-read-ahead", daemon=True)
-    thread.start()
-    try:
-        while True:
-            kind, value = ready.get()
-            if kind == "end":
-                return
-            if kind == "error":
-                raise value
-            yield value
-    finally:
-        stop.set()
-        while thread.is_alive():
-            try:
-                ready.get(timeout=0.05)
-            except queue.Empty:
-                pass

@@ -19,7 +19,6 @@ from imucal_cli.io.base import (
     TopicInfo,
     decompress,
     interleaved,
-    read_ahead,
 )
 from imucal_cli.io.imu_msg import RawBatch, gather
 
@@ -143,9 +142,8 @@ class Ros1Log(LogReader):
             return
         chunks = [chunk for chunk in self.chunks if wanted & chunk[1].keys()]
         groups = [chunks[i : i + GROUP_CHUNKS] for i in range(0, len(chunks), GROUP_CHUNKS)]
-        # file reads and lz4 (outside the GIL) in a thread, ahead of the decode
-        for group, found in read_ahead((g, self._group(g, wanted)) for g in groups):
-            yield from interleaved(self._group_batches(group, *found, wanted))
+        for group in groups:
+            yield from interleaved(self._group_batches(group, *self._group(group, wanted), wanted))
 
     def _group_batches(
         self,

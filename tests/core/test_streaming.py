@@ -212,3 +212,30 @@ def test_a_short_log_has_one_threshold_stated_truly_and_never_passes_with_no_win
     assert outcomes == sorted(outcomes) and outcomes[0] is False and outcomes[-1] is True
     (need,) = thresholds
     assert 9.0 < need <= 9.5  # the last failing and first passing durations bracket it
+
+
+def test_dropped_samples_are_put_back_on_a_cubic_exactly_and_gaps_are_left():
+    """A cubic sampled at 200 Hz with single, double and triple drops and one long gap: every
+    dropped sample comes back on the cubic to rounding (the fill is Lagrange's cubic through
+    two samples each side), at its stamp on the period's grid; the long gap stays a gap."""
+    from imucal_cli.core.streaming import GAP_PERIODS, filled
+
+    period = 0.005
+    k = np.arange(2000)
+    drops = {10, 300, 301, 900, 901, 902, 1999 - 2}
+    gap = set(range(1500, 1500 + int(GAP_PERIODS) + 5))
+    kept = np.array([i for i in k if i not in drops | gap])
+    t = 0.37 + kept * period
+
+    def cubic(x):
+        return np.stack([x**3 - 2 * x, 0.5 * x**2 + 1, -(x**3)], axis=1)
+
+    both = np.hstack([cubic(t), cubic(t - 1.0)])
+    t_out, both_out = filled(t, both, period)
+    back = sorted(drops)
+    assert len(t_out) == len(t) + len(back)
+    assert np.all(np.diff(t_out) > 0)
+    expected_t = 0.37 + np.array(sorted(set(kept) | drops)) * period
+    np.testing.assert_allclose(t_out, expected_t, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(both_out[:, :3], cubic(t_out), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(both_out[:, 3:], cubic(t_out - 1.0), rtol=0, atol=1e-9)
