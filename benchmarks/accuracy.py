@@ -38,10 +38,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from imucal_cli.api import calibrate, calibrate_streams
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.documents import write_document
 from imucal_cli.errors import ImucalError
-from imucal_cli.pipeline import calibrate_log, run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
 from imucal_cli.sim.drive import ERROR_CLASSES, SimulatedDrive
 from imucal_cli.sim.writers import TopicData, write_imu_log
@@ -198,14 +198,14 @@ def _read(
     if container == "memory" and not tree:
         from imucal_cli.config import parse_config
 
-        result = run_calibrate(drive.streams(), parse_config(config, "sim.config.yaml"))
+        result = calibrate_streams(drive.streams(), parse_config(config, "sim.config.yaml"))
         return result, time.perf_counter() - start, None
     fmt = "mcap" if container == "memory" else container  # (a tree needs a log)
     log = write_imu_log(folder / f"drive-{container}", fmt, topics, tf_static=tree)
     write_document(folder / "config.yaml", config)
     start = time.perf_counter()
     try:
-        result = calibrate_log(log, folder / "config.yaml").result
+        result = calibrate(log, folder / "config.yaml")
     except ImucalError as exc:
         return None, time.perf_counter() - start, str(exc)
     return result, time.perf_counter() - start, None

@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 from real_rigs import RIGS, header
 
+from imucal_cli.api import calibrate
 from imucal_cli.config import parse_config
 from imucal_cli.documents import load_document
-from imucal_cli.pipeline import calibrate_log
 from imucal_cli.sim.writers import TopicData, write_imu_log
 from imucal_cli.types import ImuStream
 
@@ -110,15 +110,15 @@ def main() -> None:
         for flight, files in flights.items():
             for base in ("DOT1", "DOT2"):
                 log = write_flight(files, base, Path(tmp) / f"{flight}_{base}.mcap")
-                runs[flight, base] = calibrate_log(log, config_for(base))
+                runs[flight, base] = calibrate(log, config_for(base))
 
     print("## Every DOT against DOT1 and against DOT2\n")
     header("flight", "base", "sensor", "status", "t mm", "total std mm", "stat std mm", "rpy deg")
     for (flight, base), run in runs.items():
-        for name, estimate in sorted(run.result.estimates.items()):
-            T = run.result.T_base_lidar(name)
+        for name, estimate in sorted(run.estimates.items()):
+            T = run.T_base_lidar(name)
             stat = np.sqrt(np.diag(estimate.statistical_covariance)[3:])
-            total = run.document["sensors"][name].get("translation_std_m") or [np.nan] * 3
+            total = run.document()["sensors"][name].get("translation_std_m") or [np.nan] * 3
             rpy = T.rotation.as_euler("xyz", degrees=True)
             print(
                 f"| {flight} | {base} | {name} | {estimate.status} | {fmt(T.translation, 1e3)} "
@@ -129,13 +129,13 @@ def main() -> None:
     header("flight", "DOTk", "direct mm", "composed mm", "difference mm", "over total std")
     for flight in flights:
         one, two = runs[flight, "DOT1"], runs[flight, "DOT2"]
-        T12 = one.result.T_base_lidar("DOT2")
+        T12 = one.T_base_lidar("DOT2")
         for dot in ("DOT4", "DOT7"):
-            T1k = one.result.T_base_lidar(dot)
+            T1k = one.T_base_lidar(dot)
             composed = T12.rotation.inv().apply(T1k.translation - T12.translation)
-            direct = two.result.T_base_lidar(dot).translation
+            direct = two.T_base_lidar(dot).translation
             var = sum(
-                np.square(run.document["sensors"][name]["translation_std_m"])
+                np.square(run.document()["sensors"][name]["translation_std_m"])
                 for run, name in ((one, "DOT2"), (one, dot), (two, dot))
             )
             diff = direct - composed
@@ -148,11 +148,11 @@ def main() -> None:
     header("sensor", "flights", "difference mm", "over combined statistical std")
     for dot in ("DOT2", "DOT4", "DOT7"):
         for a, b in combinations(flights, 2):
-            ea = runs[a, "DOT1"].result.estimates[dot]
-            eb = runs[b, "DOT1"].result.estimates[dot]
+            ea = runs[a, "DOT1"].estimates[dot]
+            eb = runs[b, "DOT1"].estimates[dot]
             diff = (
-                runs[a, "DOT1"].result.T_base_lidar(dot).translation
-                - runs[b, "DOT1"].result.T_base_lidar(dot).translation
+                runs[a, "DOT1"].T_base_lidar(dot).translation
+                - runs[b, "DOT1"].T_base_lidar(dot).translation
             )
             combined = np.sqrt(
                 np.diag(ea.statistical_covariance)[3:] + np.diag(eb.statistical_covariance)[3:]
@@ -163,7 +163,7 @@ def main() -> None:
     header("flight", "distances mm, shortest first", "largest |z| mm")
     for flight in flights:
         run = runs[flight, "DOT1"]
-        points = [np.zeros(3)] + [run.result.T_base_lidar(d).translation for d in DOTS[1:]]
+        points = [np.zeros(3)] + [run.T_base_lidar(d).translation for d in DOTS[1:]]
         distances = sorted(np.linalg.norm(p - q) for p, q in combinations(points, 2))
         z = max(abs(p[2]) for p in points)
         print(f"| {flight} | {fmt(distances, 1e3, 0)} | {1e3 * z:.1f} |")

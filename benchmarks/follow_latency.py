@@ -1,7 +1,7 @@
 """Follow-mode latency: a five-IMU drive recorded in real time, followed as it is written.
 
 The recorder (tests/recorder.py) writes one base IMU at 100 Hz and four lidar IMUs at 200 Hz
-into an MCAP file at real time (64 KiB chunks, flushed). The follower (``api.follow_log``) runs
+into an MCAP file at real time (64 KiB chunks, flushed). The follower (``api.follow``) runs
 beside it. For each window, the latency is from the moment the recorder wrote the last message
 the window needs (its end, plus the padding and the clock-offset margin the reduction needs, on
 every topic: the method's filter padding and clock margin; the wait for stragglers counts as
@@ -28,7 +28,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 def main() -> None:
     from recorder import Recorder
 
-    from imucal_cli.api import follow_log
+    from imucal_cli.api import follow
     from imucal_cli.core.streaming import PAD_S
     from imucal_cli.sim import DriveOptions, simulate_drive
 
@@ -51,20 +51,22 @@ def main() -> None:
         recorder.started_writing.wait(30)
         start_wall = time.monotonic()
         updates: list[tuple[float, int]] = []
-        run, _, _ = follow_log(
-            path, config, lambda result, windows: updates.append((time.monotonic(), windows))
+        run, _ = follow(
+            path,
+            config,
+            on_window=lambda calibration, windows: updates.append((time.monotonic(), windows)),
         )
         recorder.join()
     # the recorder writes log time t at wall time start + (t - t0) / factor: a window k (grid
     # clock) is complete once every topic reached its end + PAD_S + max_offset
-    t_ref = (run.streamed.calibrator.t_ref_ns - run.streamed.t0_ns) * 1e-9
+    t_ref = (run.t_ref_ns - run.t0_ns) * 1e-9
     window_s = config.segments.window_s
     margin = PAD_S + config.calibration.max_time_offset_s
     latencies = []
     seen = 0
     for wall, windows in updates:
         for k in range(seen, windows):
-            grid_start = run.streamed.calibrator._grid_start  # the grid's origin
+            grid_start = run.windows[next(iter(run.windows))][0].start_s  # the grid's origin
             needed = t_ref + grid_start + (k + 1) * window_s + margin
             ready = start_wall + needed / args.factor
             latencies.append(wall - ready)

@@ -783,12 +783,12 @@ def cases(work: Path) -> list[Case]:
             f,
             expect=2,
         )
+    from imucal_cli.api import calibrate_streams
     from imucal_cli.outputs import calibration_document
-    from imucal_cli.pipeline import run_calibrate
 
     write_document(
         f / "est.yaml",
-        calibration_document(run_calibrate(drive.streams(), drive.config()), "d.mcap"),
+        calibration_document(calibrate_streams(drive.streams(), drive.config()), "d.mcap"),
     )
     (f / "robot.launch.xml").write_text("<launch><!-- mine --></launch>\n")
     add(

@@ -18,11 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from imucal_cli.api import load_transforms
+from imucal_cli.api import DriveStreams, calibrate, calibrate_streams, load_transforms
 from imucal_cli.config import Config, parse_config
 from imucal_cli.documents import load_document
 from imucal_cli.errors import ImucalError
-from imucal_cli.pipeline import DriveStreams, calibrate_log, run_calibrate
 from imucal_cli.reading import ImuBatches
 from imucal_cli.types import ImuStream
 
@@ -123,13 +122,13 @@ def main() -> None:
     wrong_ok = 0
     for folder in rigs:
         config = rig_config(folder)
-        run = calibrate_log(folder / "log.mcap", config)
+        run = calibrate(folder / "log.mcap", config)
         truth = load_transforms(folder / "truth.yaml")["imu2"]
-        sensor = run.document["sensors"]["imu2"]
-        T = run.result.T_base_lidar("imu2")
+        sensor = run.document()["sensors"]["imu2"]
+        T = run.T_base_lidar("imu2")
         d_rot = np.degrees((truth.rotation * T.rotation.inv()).as_rotvec())
         dt = 1e3 * (T.translation - truth.translation)
-        estimate = run.result.estimates["imu2"]
+        estimate = run.estimates["imu2"]
         stat = (
             np.degrees(np.sqrt(np.diag(estimate.statistical_covariance)[:3]))
             if estimate.statistical_covariance is not None
@@ -170,7 +169,7 @@ def main() -> None:
         results, statuses = [], []
         for part in split(streams, args.parts):
             try:
-                results.append(run_calibrate(part, config))
+                results.append(calibrate_streams(part, config))
                 statuses.append(results[-1].estimates["imu2"].status)
             except ImucalError as exc:  # a part inside a gap of the recording
                 statuses.append(f"not calibrated ({str(exc).split(':')[0]})")

@@ -29,13 +29,13 @@ HERE = Path(__file__).resolve().parent
 
 def figures(scenario: str, errors: str, seed: int) -> dict[str, dict]:
     """Per sensor: the status, and every estimated figure as one flat list."""
-    from imucal_cli.pipeline import run_calibrate
+    from imucal_cli.api import calibrate_streams
     from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
 
     drive = simulate_drive(
         with_errors(DriveOptions(scenario=scenario, seed=seed, sensors=4), errors)
     )
-    result = run_calibrate(drive.streams(), drive.config())
+    result = calibrate_streams(drive.streams(), drive.config())
     out = {}
     for name, estimate in result.estimates.items():
         T = estimate.T_base_imu

@@ -1,16 +1,21 @@
 """imucal: calibrate the extrinsics of every lidar on a vehicle from raw IMU signals alone.
 
 The method is Das & Boberg, "IMU-based online multi-lidar calibration without lidar
-odometry" (Scania/KTH). See README.md for the conventions and the commands.
+odometry" (Scania/KTH). See README.md for the conventions and the commands, and
+:mod:`imucal_cli.api` for the functions below.
 """
 
 __all__ = [
+    "Calibration",
     "__version__",
-    "calibrate_log",
+    "biases",
+    "calibrate",
+    "calibrate_streams",
     "evaluate",
-    "export_extrinsics",
+    "export",
+    "follow",
     "load_config",
-    "stream_biases",
+    "segments",
     "write_document",
     "write_report",
 ]
@@ -22,19 +27,8 @@ def __getattr__(name: str):
 
         globals()["__version__"] = version()
         return globals()["__version__"]
-    if name in (
-        "calibrate_log",
-        "evaluate",
-        "export_extrinsics",
-        "stream_biases",
-        "write_document",
-        "write_report",
-    ):
+    if name in __all__:
         from imucal_cli import api
 
         return getattr(api, name)
-    if name == "load_config":
-        from imucal_cli.config import load_config
-
-        return load_config
     raise AttributeError(f"module 'imucal_cli' has no attribute {name!r}")

@@ -1,51 +1,125 @@
-"""The Python API: calibrate a recorded log, export and evaluate, without the command line.
+"""The Python API, which the command line, ``batch`` and ``--follow`` call as users do.
 
->>> from imucal_cli import calibrate_log, load_config              # doctest: +SKIP
->>> run = calibrate_log("drive.mcap", load_config("vehicle.yaml"))  # doctest: +SKIP
->>> run.result.T_base_lidar("front_left_top").as_matrix()          # doctest: +SKIP
->>> run.document["sensors"]["front_left_top"]["status"]             # doctest: +SKIP
+>>> import imucal_cli                                                       # doctest: +SKIP
+>>> cal = imucal_cli.calibrate("drive.mcap", "vehicle.yaml")               # doctest: +SKIP
+>>> cal.T_base_lidar("front_left_top").as_matrix()                         # doctest: +SKIP
+>>> cal.document()["sensors"]["front_left_top"]["status"]                  # doctest: +SKIP
+>>> imucal_cli.export(cal.document(), "urdf")["main"]                      # doctest: +SKIP
 
-Everything here raises :class:`~imucal_cli.errors.ImucalError` subclasses on bad input (with
+Every function raises :class:`~imucal_cli.errors.ImucalError` subclasses on bad input (with
 the file, topic or key in the message) and prints nothing; what reading found (counts, losses)
-is returned for the caller to report.
+is in the :class:`~imucal_cli.calibration.Calibration` for the caller to report. A config is a
+:class:`~imucal_cli.config.Config` or the path of its YAML file (what it leaves out taken from
+the log's ``/tf_static`` and a URDF, ``urdf``, else the log's ``/robot_description``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from imucal_cli import pipeline
+from imucal_cli.calibration import Calibration, Reading
+from imucal_cli.config import Config, load_config
 from imucal_cli.errors import InputError
-from imucal_cli.pipeline import (
-    LogCalibration,
-    StreamedLog,
-    calibrate_log,
-    estimate,
-    follow_log,
-    lost_summary,
-    stream_biases,
-    stream_log,
-)
+from imucal_cli.pipeline import DriveStreams, calibrate_streams, lost_summary
 from imucal_cli.types import Transform
 
 __all__ = [
-    "LogCalibration",
-    "StreamedLog",
-    "calibrate_log",
-    "estimate",
+    "Calibration",
+    "DriveStreams",
+    "Reading",
+    "biases",
+    "calibrate",
+    "calibrate_streams",
     "evaluate",
-    "export_extrinsics",
-    "follow_log",
+    "export",
+    "follow",
+    "load_config",
     "load_transforms",
     "lost_summary",
-    "stream_biases",
-    "stream_log",
+    "segments",
+    "write_document",
     "write_report",
 ]
 
+Progress = Callable[[int, int], None]
+ConfigLike = Config | str | Path
 
-def export_extrinsics(
+
+def _config(config: ConfigLike, log: str | Path, urdf: str | Path | None) -> Config:
+    return config if isinstance(config, Config) else load_config(config, log, urdf)
+
+
+def calibrate(
+    log: str | Path,
+    config: ConfigLike,
+    *,
+    urdf: str | Path | None = None,
+    progress: Progress | None = None,
+    on_window: Callable[[int], None] | None = None,
+    stop: Callable[[], bool] | None = None,
+    workers: int = 1,
+) -> Calibration:
+    """Calibrate every sensor of ``config`` from the IMU topics of ``log`` (MCAP, rosbag2 or
+    ROS 1 bag): ``progress(messages read, messages in the log)`` as reading goes,
+    ``on_window(windows reduced)``, and where ``stop()`` says so the reading ends there and the
+    calibration is of what was read. ``workers``: threads the linear algebra may take."""
+    config = _config(config, log, urdf)
+    return pipeline.calibrate(
+        log, config, progress=progress, on_window=on_window, stop=stop, workers=workers
+    )
+
+
+def segments(
+    log: str | Path,
+    config: ConfigLike,
+    *,
+    urdf: str | Path | None = None,
+    progress: Progress | None = None,
+    workers: int = 1,
+) -> Calibration:
+    """Every window's observability (``.segments_document()``), nothing solved."""
+    config = _config(config, log, urdf)
+    return pipeline.segments(log, config, progress=progress, workers=workers)
+
+
+def biases(
+    log: str | Path,
+    config: ConfigLike,
+    *,
+    urdf: str | Path | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """The SPEC's ``biases`` document of ``log``."""
+    return pipeline.biases(log, _config(config, log, urdf), progress=progress)
+
+
+def follow(
+    log: str | Path,
+    config: Config,
+    *,
+    on_window: Callable[[Calibration, int], None] | None = None,
+    on_waiting: Callable[[dict[str, Any]], None] | None = None,
+    stop: Callable[[], bool] = lambda: False,
+    until_converged: bool = False,
+    workers: int = 1,
+) -> tuple[Calibration, bool]:
+    """Follow a log still being written (:func:`imucal_cli.pipeline.follow`): the last
+    calibration, and whether a Ctrl-C ended it."""
+    return pipeline.follow(
+        log,
+        config,
+        on_window=on_window,
+        on_waiting=on_waiting,
+        stop=stop,
+        until_converged=until_converged,
+        workers=workers,
+    )
+
+
+def export(
     document: Mapping[str, Any],
     fmt: str,
     parent: str | None = None,
@@ -53,13 +127,14 @@ def export_extrinsics(
     T_base_parent: Transform | None = None,
     allow_not_ok: bool = False,
 ) -> dict[str, str]:
-    """The text of one export format (:mod:`imucal_cli.exports`) from a calibrate document:
-    ``{"main": ...}``, plus ``{"launch": ...}`` for the tf2 static publishers; relative to
-    ``parent`` where given; sensors not ``ok`` only with ``allow_not_ok``."""
-    from imucal_cli.exports import Extrinsics, export
+    """The text of one export format (:data:`imucal_cli.exports.FORMATS`) from a calibrate
+    document: ``{"main": ...}``, plus ``{"launch": ...}`` for the tf2 static publishers;
+    relative to ``parent`` where given; sensors not ``ok`` only with ``allow_not_ok``."""
+    from imucal_cli.exports import Extrinsics
+    from imucal_cli.exports import export as make
 
-    return export(
-        Extrinsics.from_document(dict(document), source), fmt, parent, T_base_parent, allow_not_ok
+    return make(
+        Extrinsics.from_document(document, source), fmt, parent, T_base_parent, allow_not_ok
     )
 
 
@@ -71,8 +146,8 @@ def evaluate(
     allow_missing: bool = False,
 ) -> dict[str, Any]:
     """The SPEC's evaluate document of a calibrate output (or any document with ``sensors:
-    NAME: T_base_lidar``) against a truth, each a file or the document itself (``run.document``);
-    ``document["pass"]`` is the verdict."""
+    NAME: T_base_lidar``) against a truth, each a file or the document itself
+    (``cal.document()``); ``document["pass"]`` is the verdict."""
     from imucal_cli.outputs import evaluate_document
 
     estimates, truths = load_transforms(estimate), load_transforms(truth)
@@ -81,16 +156,18 @@ def evaluate(
     return evaluate_document(estimates, truths, max_rotation_deg, max_translation_m, allow_missing)
 
 
-def write_report(out_dir: str | Path, run: LogCalibration) -> list[Path]:
+def write_report(
+    out_dir: str | Path, calibration: Calibration, progress: Progress | None = None
+) -> list[Path]:
     """The report's figures and ``report.html`` of a calibration into ``out_dir`` (needs
     matplotlib, ``imucal[report]``); returns the files written."""
     from imucal_cli.report import write_report as draw
 
-    return draw(Path(out_dir), run.streamed.log, run.result, run.streamed, run.document)
+    return draw(Path(out_dir), calibration, progress)
 
 
 def write_document(path: str | Path, document: Any) -> None:
-    """Write a document (``run.document``, an evaluate or biases document) as YAML or JSON by
+    """Write a document (``cal.document()``, an evaluate or biases document) as YAML or JSON by
     the suffix of ``path``, atomically, as the commands' ``-o`` does."""
     from imucal_cli.documents import write_document as write
 

@@ -288,65 +288,12 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
     """Validate a config mapping (as loaded from YAML) into a :class:`Config`."""
     top = _Section(data, source, "")
     base = top.section("base", required=True).fields(BaseConfig)
-    length = math.hypot(*base.T_base_imu.translation)  # (no overflow warning at 1e308)
-    if length > MAX_PRIOR_M:
-        raise ConfigError(
-            source,
-            "base.T_base_imu.translation",
-            f"{length:.4g} m from the origin, more than {MAX_PRIOR_M:g} m",
-        )
+    _within(source, "base.T_base_imu", base.T_base_imu, MAX_PRIOR_M)
     sensors_section = top.section("sensors", required=True)
     if not sensors_section.data:
         raise ConfigError(source, "sensors", "needs at least one sensor")
-    sensors = []
-    for name in sensors_section.data:
-        problem = name_problem(name, "sensor")
-        if name == RESERVED_SENSOR_NAME:
-            problem = (
-                f"{name!r} names the base IMU (the documents' base entry, biases' imus.base): "
-                "name this lidar otherwise"
-            )
-        if problem:
-            raise ConfigError(source, f"sensors.{printable(name)}", problem)
-        section = sensors_section.section(name, required=True)
-        sensor = section.fields(SensorConfig, name=name)
-        sensors.append(
-            sensor if sensor.lidar_frame else replace(sensor, lidar_frame=f"{name}_lidar")
-        )  # the default frame
-        for what, T, limit, hint in (
-            (
-                "T_imu_lidar",
-                sensor.T_imu_lidar,
-                MAX_IMU_IN_LIDAR_M,
-                "a lidar's IMU lies inside its housing: "
-                "given in mm? (Ouster's metadata is: divide by 1000)",
-            ),
-            ("prior_T_base_imu", sensor.prior_T_base_imu, MAX_PRIOR_M, ""),
-        ):
-            length = math.hypot(*T.translation)
-            if length > limit:
-                raise ConfigError(
-                    source,
-                    f"sensors.{name}.{what}.translation",
-                    f"{length:.4g} m from the origin, more than {limit:g} "
-                    f"m{'; ' + hint if hint else ''}",
-                )
-    topics: dict[str, str] = {base.topic: "base.topic"}
-    frames: dict[str, str] = {base.frame: "base.frame"}
-    for sensor in sensors:
-        for value, seen, key in (
-            (sensor.imu_topic, topics, "imu_topic"),
-            (sensor.lidar_frame, frames, "lidar_frame"),
-        ):
-            path = f"sensors.{sensor.name}.{key}"
-            if value in seen:
-                raise ConfigError(
-                    source,
-                    path,
-                    f"{'topic' if key == 'imu_topic' else 'frame'} {value!r} is already used by "
-                    f"{seen[value]}",
-                )
-            seen[value] = path
+    sensors = [_sensor(sensors_section, name, source) for name in sensors_section.data]
+    _unique(base, sensors, source)
     sections: dict[str, Any] = {
         name: top.section(name).fields(cls) for name, cls in SECTIONS.items()
     }
@@ -358,6 +305,53 @@ def parse_config(data: Any, source: str = "<config>") -> Config:
         )
     top.reject_unknown()
     return Config(base=base, sensors=tuple(sensors), **sections, source=source)
+
+
+def _within(source: str, key: str, T: Transform, limit: float, hint: str = "") -> None:
+    length = math.hypot(*T.translation)  # (no overflow warning at 1e308)
+    if length > limit:
+        raise ConfigError(
+            source,
+            f"{key}.translation",
+            f"{length:.4g} m from the origin, more than {limit:g} m{'; ' + hint if hint else ''}",
+        )
+
+
+def _sensor(sensors: _Section, name: Any, source: str) -> SensorConfig:
+    """One sensor's section, its name and the lengths of its transforms checked."""
+    problem = name_problem(name, "sensor")
+    if name == RESERVED_SENSOR_NAME:
+        problem = (
+            f"{name!r} names the base IMU (the documents' base entry, biases' imus.base): "
+            "name this lidar otherwise"
+        )
+    if problem:
+        raise ConfigError(source, f"sensors.{printable(name)}", problem)
+    sensor = sensors.section(name, required=True).fields(SensorConfig, name=name)
+    hint = (
+        "a lidar's IMU lies inside its housing: given in mm? (Ouster's metadata is: divide by 1000)"
+    )
+    _within(source, f"sensors.{name}.T_imu_lidar", sensor.T_imu_lidar, MAX_IMU_IN_LIDAR_M, hint)
+    _within(source, f"sensors.{name}.prior_T_base_imu", sensor.prior_T_base_imu, MAX_PRIOR_M)
+    return sensor if sensor.lidar_frame else replace(sensor, lidar_frame=f"{name}_lidar")
+
+
+def _unique(base: BaseConfig, sensors: list[SensorConfig], source: str) -> None:
+    """No two IMUs on one topic, no two lidars (or a lidar and the base) on one frame."""
+    topics: dict[str, str] = {base.topic: "base.topic"}
+    frames: dict[str, str] = {base.frame: "base.frame"}
+    for sensor in sensors:
+        for value, seen, key in (
+            (sensor.imu_topic, topics, "imu_topic"),
+            (sensor.lidar_frame, frames, "lidar_frame"),
+        ):
+            path = f"sensors.{sensor.name}.{key}"
+            if value in seen:
+                kind = "topic" if key == "imu_topic" else "frame"
+                raise ConfigError(
+                    source, path, f"{kind} {value!r} is already used by {seen[value]}"
+                )
+            seen[value] = path
 
 
 def load_config(

@@ -27,8 +27,6 @@ from imucal_cli.errors import ConfigError, InputError
 from imucal_cli.names import name_problem
 from imucal_cli.types import Transform
 
-FORMATS = ("autoware", "urdf", "tf-static-ros2", "tf-static-ros1", "kalibr", "json")
-
 
 @dataclass(frozen=True)
 class SensorExtrinsics:
@@ -392,6 +390,8 @@ def export(
     ``parent``: re-express every transform relative to that frame (:func:`relative_to`). A
     sensor that is not ``ok`` is refused unless ``allow_not_ok`` (its prior would go out as if
     calibrated)."""
+    if fmt not in FORMATS:
+        raise InputError(f"--format {fmt}: unknown format (expected one of: {', '.join(FORMATS)})")
     weak = [f"{s.name} ({s.status or 'no status'})" for s in ex.sensors if s.status != "ok"]
     if weak and not allow_not_ok:
         raise InputError(
@@ -401,25 +401,47 @@ def export(
     if parent is not None:
         _check_name(parent, "frame", "--parent")
     if parent is not None and (parent != ex.base_frame or T_base_parent is not None):
-        if fmt == "kalibr":
+        if not FORMATS[fmt].takes_parent:
             raise InputError(
                 f"--parent {parent}: a Kalibr IMU chain is relative to its first IMU, the base's: "
                 "no other parent"
             )
         ex = relative_to(ex, parent, T_base_parent)
-    parent = ex.base_frame
-    if fmt == "autoware":
-        return {"main": autoware(ex, parent)}
-    if fmt == "urdf":
-        return {"main": urdf(ex, parent)}
-    if fmt == "tf-static-ros2":
-        commands, launch = tf_static_ros2(ex, parent)
+    return FORMATS[fmt].write(ex, ex.base_frame)
+
+
+@dataclass(frozen=True)
+class ExportFormat:
+    """One export format: what it is for (the help says it), the files it makes of the
+    extrinsics (``{"main": text}``, plus ``{"launch": text}``), and the suffix of its launch
+    file beside ``-o``'s, if it has one."""
+
+    what: str
+    write: Any  # (Extrinsics, parent frame) -> dict[str, str]
+    launch_suffix: str | None = None
+    takes_parent: bool = True
+
+
+def _pair(make: Any) -> Any:
+    def write(ex: Extrinsics, parent: str) -> dict[str, str]:
+        commands, launch = make(ex, parent)
         return {"main": commands, "launch": launch}
-    if fmt == "tf-static-ros1":
-        commands, launch = tf_static_ros1(ex, parent)
-        return {"main": commands, "launch": launch}
-    if fmt == "kalibr":
-        return {"main": kalibr(ex)}
-    if fmt == "json":
-        return {"main": json_matrices(ex)}
-    raise InputError(f"unknown export format {fmt!r} (expected one of: {', '.join(FORMATS)})")
+
+    return write
+
+
+#: Every export format, by the name ``--format`` takes.
+FORMATS = {
+    "autoware": ExportFormat(
+        "Autoware's sensor_kit_calibration.yaml", lambda ex, p: {"main": autoware(ex, p)}
+    ),
+    "urdf": ExportFormat("URDF joints", lambda ex, p: {"main": urdf(ex, p)}),
+    "tf-static-ros2": ExportFormat(
+        "tf2 static publishers, ROS 2", _pair(tf_static_ros2), ".launch.xml"
+    ),
+    "tf-static-ros1": ExportFormat(
+        "tf2 static publishers, ROS 1", _pair(tf_static_ros1), ".launch"
+    ),
+    "kalibr": ExportFormat("a Kalibr IMU chain", lambda ex, p: {"main": kalibr(ex)}, None, False),
+    "json": ExportFormat("4x4 matrices", lambda ex, p: {"main": json_matrices(ex)}),
+}

@@ -129,124 +129,133 @@ def run_one(task: Task) -> Outcome:
     process that runs the batch writes each document as it arrives, :func:`deliver`)."""
     import time
 
-    from imucal_cli.api import calibrate_log
-    from imucal_cli.outputs import transform_errors
+    from imucal_cli.api import calibrate
 
     start = time.perf_counter()
     try:
-        run = calibrate_log(task.log, task.config)
+        calibration = calibrate(task.log, task.config)
     except ImucalError as exc:
-        return [
-            Row(task.name, "", "failed", error=str(exc), seconds=time.perf_counter() - start)
-        ], None
+        error = str(exc)
     except Exception as exc:
         where = traceback.extract_tb(exc.__traceback__)[-1]
         at = f"{Path(where.filename).name}:{where.lineno}"
         error = f"internal error: {type(exc).__name__}: {exc} ({at})"
-        return [
-            Row(task.name, "", "failed", error=error, seconds=time.perf_counter() - start)
-        ], None
-    lost_s, losses, dropped = (
-        run.document["lost_s"],
-        run.document["losses"],
-        run.document["dropped"],
-    )
+    else:
+        document = calibration.document()
+        read_error = _read_error(task, document)
+        rows = []
+        for name, s in document["sensors"].items():
+            T = calibration.T_base_lidar(name)
+            rows.append(_compared(task, _row(task, name, s, T, document, read_error), s, T))
+        for row in rows:
+            row.seconds = time.perf_counter() - start
+        return rows, document
+    return [Row(task.name, "", "failed", error=error, seconds=time.perf_counter() - start)], None
+
+
+def _read_error(task: Task, document: dict[str, Any]) -> str:
+    """Why what the read lost fails the log ("" where it does not: nothing lost, or within
+    ``--max-lost-s``)."""
+    lost_s, losses, dropped = document["lost_s"], document["losses"], document["dropped"]
     undecodable = sum(d.get("decode_errors", 0) for d in dropped.values())  # (counted in lost_s)
-    lost_ok = not (losses or undecodable) or (
+    if not (losses or undecodable) or (
         task.max_lost_s is not None and lost_s is not None and lost_s <= task.max_lost_s
+    ):
+        return ""
+    limit = (
+        "any loss fails (--max-lost-s)"
+        if task.max_lost_s is None
+        else f"--max-lost-s {task.max_lost_s:g}"
     )
-    rows = []
-    for sensor, s in run.document["sensors"].items():
-        T = run.result.T_base_lidar(sensor)
-        std_r, std_t = s["rotation_std_deg"], s["translation_std_m"]
-        statistical = s.get("statistical_std") or {}  # how far two drives differ: for "moved"
-        stat_r = max(statistical["rotation_deg"]) if statistical else None
-        stat_t = max(statistical["translation_m"]) if statistical else None
-        x, y, z = (float(v) for v in T.translation)
-        roll, pitch, yaw = (float(v) for v in np.degrees(T.rpy_rad))
-        row = Row(
-            task.name,
-            sensor,
-            s["status"],
-            x,
-            y,
-            z,
-            roll,
-            pitch,
-            yaw,
-            None if std_r is None else float(max(std_r)),
-            None if std_t is None else float(max(std_t)),
-            lost_s=lost_s,
-            dropped=sum(sum(d.values()) for d in dropped.values()),
-            warnings="; ".join([x["reason"] for x in losses] + s["warnings"]),
+    lost = "an unknown span" if lost_s is None else f"{lost_s:.2f} s"
+    damaged = f" ({undecodable:,} messages not decodable)" if undecodable else ""
+    return f"the read lost {lost} of the log{damaged}; {limit}"
+
+
+def _row(
+    task: Task,
+    sensor: str,
+    s: dict[str, Any],
+    T: Transform,
+    document: dict[str, Any],
+    read_error: str,
+) -> Row:
+    """A sensor's summary row from the calibrate document and its part of it."""
+    losses = [x["reason"] for x in document["losses"]]
+    dropped = sum(sum(d.values()) for d in document["dropped"].values())
+    std_r, std_t = s["rotation_std_deg"], s["translation_std_m"]
+    x, y, z = (float(v) for v in T.translation)
+    roll, pitch, yaw = (float(v) for v in np.degrees(T.rpy_rad))
+    row = Row(
+        task.name,
+        sensor,
+        s["status"],
+        *(x, y, z, roll, pitch, yaw),
+        None if std_r is None else float(max(std_r)),
+        None if std_t is None else float(max(std_t)),
+        lost_s=document["lost_s"],
+        dropped=dropped,
+        warnings="; ".join([*losses, *s["warnings"]]),
+        error=read_error,
+    )
+    row.passed = s["status"] == "ok" and not read_error
+    return row
+
+
+def _limits(task: Task, s: dict[str, Any]) -> tuple[float | None, float | None]:
+    """The thresholds a sensor is held to: the task's, else (against a reference) the two
+    calibrations' combined statistical std, or the fallback where one is not known."""
+    limit_r, limit_t = task.max_rotation_deg, task.max_translation_m
+    if not task.reference:
+        return limit_r, limit_t
+    statistical = s.get("statistical_std") or {}  # how far two drives differ: for "moved"
+    stat_r = max(statistical["rotation_deg"]) if statistical else None
+    stat_t = max(statistical["translation_m"]) if statistical else None
+    ref_r, ref_t = task.reference_std.get(s["_name"], (None, None))
+    return (
+        limit_r if limit_r is not None else _combined(stat_r, ref_r, MOVED_FALLBACK_DEG),
+        limit_t if limit_t is not None else _combined(stat_t, ref_t, MOVED_FALLBACK_M),
+    )
+
+
+def _compared(task: Task, row: Row, s: dict[str, Any], T: Transform) -> Row:
+    """The row compared with the task's truth or reference, where it has one."""
+    from imucal_cli.outputs import transform_errors
+
+    if task.against is None:
+        return row
+    if row.sensor not in task.against:
+        missing_file = task.against_source and not Path(task.against_source).is_file()
+        row.passed = False
+        row.error = (
+            f"{task.against_source}: no such truth file for this log"
+            if missing_file
+            else f"{task.against_source}: no entry for sensor {row.sensor}"
         )
-        row.passed = s["status"] == "ok" and lost_ok
-        if not lost_ok:
-            limit = (
-                "any loss fails (--max-lost-s)"
-                if task.max_lost_s is None
-                else f"--max-lost-s {task.max_lost_s:g}"
-            )
-            lost = "an unknown span" if lost_s is None else f"{lost_s:.2f} s"
-            damaged = f" ({undecodable:,} messages not decodable)" if undecodable else ""
-            row.error = f"the read lost {lost} of the log{damaged}; {limit}"
-        if task.against is not None and sensor in task.against:
-            errors = transform_errors(T, task.against[sensor])
-            row.rotation_error_deg = errors["rotation_error_deg"]
-            row.translation_error_m = errors["translation_error_m"]
-            limit_r, limit_t = task.max_rotation_deg, task.max_translation_m
-            if task.reference:
-                ref_r, ref_t = task.reference_std.get(sensor, (None, None))
-                limit_r = (
-                    limit_r if limit_r is not None else _combined(stat_r, ref_r, MOVED_FALLBACK_DEG)
-                )
-                limit_t = (
-                    limit_t if limit_t is not None else _combined(stat_t, ref_t, MOVED_FALLBACK_M)
-                )
-            over = (limit_r is not None and row.rotation_error_deg > limit_r) or (
-                limit_t is not None and row.translation_error_m > limit_t
-            )
-            if over and task.reference:
-                row.error = (
-                    row.error
-                    or f"moved: {row.rotation_error_deg:.4f} deg (limit {limit_r:.4g}), "
-                    f"{row.translation_error_m:.4f} m (limit {limit_t:.4g})"
-                )
-            elif over:  # the threshold that failed, as evaluate names it
-                row.error = row.error or "; ".join(
-                    f"{name} {value:.6g} > {option} {limit:g}"
-                    for name, value, option, limit in (
-                        (
-                            "rotation_error_deg",
-                            row.rotation_error_deg,
-                            "--max-rotation-deg",
-                            limit_r,
-                        ),
-                        (
-                            "translation_error_m",
-                            row.translation_error_m,
-                            "--max-translation-m",
-                            limit_t,
-                        ),
-                    )
-                    if limit is not None and value > limit
-                )
-            if task.reference:
-                row.moved = bool(over)
-            row.passed = row.passed and not over
-        elif task.against is not None:
-            row.passed = False
-            missing_file = task.against_source and not Path(task.against_source).is_file()
-            row.error = (
-                f"{task.against_source}: no such truth file for this log"
-                if missing_file
-                else f"{task.against_source}: no entry for sensor {sensor}"
-            )
-        rows.append(row)
-    elapsed = time.perf_counter() - start
-    for row in rows:
-        row.seconds = elapsed
-    return rows, run.document
+        return row
+    errors = transform_errors(T, task.against[row.sensor])
+    row.rotation_error_deg = errors["rotation_error_deg"]
+    row.translation_error_m = errors["translation_error_m"]
+    limit_r, limit_t = _limits(task, {**s, "_name": row.sensor})
+    over = [
+        (name, value, option, limit)
+        for name, value, option, limit in (
+            ("rotation_error_deg", row.rotation_error_deg, "--max-rotation-deg", limit_r),
+            ("translation_error_m", row.translation_error_m, "--max-translation-m", limit_t),
+        )
+        if limit is not None and value > limit
+    ]
+    if over and task.reference:
+        row.error = row.error or (
+            f"moved: {row.rotation_error_deg:.4f} deg (limit {limit_r:.4g}), "
+            f"{row.translation_error_m:.4f} m (limit {limit_t:.4g})"
+        )
+    elif over:  # the threshold that failed, as evaluate names it
+        row.error = row.error or "; ".join(f"{n} {v:.6g} > {o} {lim:g}" for n, v, o, lim in over)
+    if task.reference:
+        row.moved = bool(over)
+    row.passed = row.passed and not over
+    return row
 
 
 def deliver(task: Task, outcome: Outcome) -> list[Row]:
@@ -288,68 +297,86 @@ def run_local(
     out-of-memory killer) fails its log alone, by name; a Ctrl-C stops the running ones and
     starts no other."""
     results: list[list[Row]] = [[] for _ in tasks]
+
+    def done(i: int, outcome: Outcome) -> None:
+        results[i] = deliver(tasks[i], outcome)
+        if on_done:
+            on_done(i, results[i])
+
     if jobs <= 1:
         for i, task in enumerate(tasks):
-            results[i] = deliver(task, run_one(task))
-            if on_done:
-                on_done(i, results[i])
+            done(i, run_one(task))
         return results
-    import multiprocessing
+    from multiprocessing.connection import wait
+
+    waiting = list(enumerate(tasks))
+    running: dict[Any, tuple[int, Any]] = {}  # result pipe -> (task number, process)
+    with _signals_noted() as interrupted:
+        try:
+            while waiting or running:
+                while waiting and len(running) < jobs and not interrupted:
+                    i, task = waiting.pop(0)
+                    running[_start(task)] = (i, task)
+                if interrupted:
+                    raise Terminated if interrupted[0] == "SIGTERM" else KeyboardInterrupt
+                for receive in wait(list(running), timeout=0.2):
+                    i, _ = running.pop(receive)
+                    done(i, _outcome(tasks[i], receive))
+        finally:
+            for receive in running:  # interrupted: stop what runs, start nothing more
+                receive.process.kill()
+                receive.process.join()
+    return results
+
+
+@contextlib.contextmanager
+def _signals_noted() -> Any:
+    """A Ctrl-C or SIGTERM noted (their names, in the list yielded) and acted on by the
+    caller between two steps: raised anywhere (in a pipe's finaliser, a fork) Python may print
+    it and carry on with the whole queue. Only the main thread can set handlers."""
     import signal
     import threading
-    from multiprocessing.connection import wait
+
+    noted: list[str] = []
+    numbers = (signal.SIGINT, signal.SIGTERM)
+    main = threading.current_thread() is threading.main_thread()
+    previous = [
+        signal.signal(n, lambda number, frame: noted.append(signal.Signals(number).name))
+        for n in (numbers if main else ())
+    ]
+    try:
+        yield noted
+    finally:
+        for number, handler in zip(numbers, previous, strict=False):
+            signal.signal(number, handler)
+
+
+def _start(task: Task) -> Any:
+    """A process calibrating ``task``; the receiving end of its pipe (``.process``: it)."""
+    import multiprocessing
 
     method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
     context: Any = multiprocessing.get_context(method)
-    waiting = list(enumerate(tasks))
-    running: dict[Any, tuple[int, Any]] = {}  # result pipe -> (task number, process)
-    # A Ctrl-C is noted and acted on here, between two steps: raised anywhere (in a pipe's
-    # finaliser, a fork) Python may print it and carry on with the whole queue
-    interrupted: list[int] = []
-    main = (
-        threading.current_thread() is threading.main_thread()
-    )  # (only there can a handler be set)
-    signals = (signal.SIGINT, signal.SIGTERM)  # (a SIGTERM ends it as a Ctrl-C does)
-    previous = (
-        [signal.signal(n, lambda number, frame: interrupted.append(number)) for n in signals]
-        if main
-        else []
+    receive, send = context.Pipe(duplex=False)
+    process = context.Process(
+        target=_work, args=(task, send), name=f"imucal {task.name}", daemon=True
     )
+    process.start()
+    send.close()
+    receive.process = process
+    return receive
+
+
+def _outcome(task: Task, receive: Any) -> Outcome:
+    """What a worker process answered; a worker that died fails its log, saying how."""
     try:
-        while waiting or running:
-            while waiting and len(running) < jobs and not interrupted:
-                i, task = waiting.pop(0)
-                receive, send = context.Pipe(duplex=False)
-                process = context.Process(
-                    target=_work, args=(task, send), name=f"imucal {task.name}", daemon=True
-                )
-                process.start()
-                send.close()
-                running[receive] = (i, process)
-            if interrupted:
-                raise Terminated if signal.SIGTERM in interrupted else KeyboardInterrupt
-            ready: list[Any] = wait(list(running), timeout=0.2)
-            for receive in ready:
-                i, process = running.pop(receive)
-                try:
-                    outcome = receive.recv()
-                except EOFError:  # it died before it answered
-                    process.join()
-                    outcome = _failed(
-                        tasks[i],
-                        f"the worker calibrating {tasks[i].log} died ({_death(process.exitcode)})",
-                    )
-                process.join()
-                results[i] = deliver(tasks[i], outcome)
-                if on_done:
-                    on_done(i, results[i])
-    finally:
-        for number, handler in zip(signals, previous, strict=False):
-            signal.signal(number, handler)
-        for _, process in running.values():  # interrupted: stop what runs, start nothing more
-            process.kill()
-            process.join()
-    return results
+        outcome = receive.recv()
+    except EOFError:  # it died before it answered
+        receive.process.join()
+        why = _death(receive.process.exitcode)
+        outcome = _failed(task, f"the worker calibrating {task.log} died ({why})")
+    receive.process.join()
+    return outcome
 
 
 def _work(task: Task, send: Any) -> None:
@@ -378,30 +405,17 @@ def run_dask(
 ) -> list[list[Row]]:
     """Every task on the Dask cluster whose scheduler listens at ``address``; a scheduler
     without workers is an error, one lost mid-batch fails the logs not yet done."""
-    try:
-        from dask.distributed import Client, as_completed
-    except ImportError:
-        raise InputError(
-            "--scheduler needs dask.distributed: pip install 'imucal[fleet]'"
-        ) from None
-    import logging
+    from dask.distributed import as_completed
 
-    for name in [n for n in logging.root.manager.loggerDict if n.startswith("distributed")]:
-        logging.getLogger(name).setLevel(
-            logging.CRITICAL + 1
-        )  # a lost scheduler is said in the rows, once
-    try:
-        client = Client(address, timeout="10s")
-    except Exception as exc:
-        raise InputError(f"--scheduler {address}: cannot connect: {exc}") from None
     results: list[list[Row] | None] = [None] * len(tasks)
+
+    def done(i: int, outcome: Outcome) -> None:
+        results[i] = deliver(tasks[i], outcome)
+        if on_done:
+            on_done(i, results[i] or [])
+
+    client = _client(address)
     try:
-        try:
-            client.wait_for_workers(1, timeout=DASK_WORKERS_S)
-        except Exception:
-            raise InputError(
-                f"--scheduler {address}: no worker joined within {DASK_WORKERS_S:g} s"
-            ) from None
         futures = client.map(run_one, list(tasks), pure=False)
         index = {future.key: i for i, future in enumerate(futures)}
         try:
@@ -410,47 +424,68 @@ def run_dask(
                 try:
                     outcome = future.result()
                 except Exception as exc:
-                    lost = "connection-lost" in str(exc)
-                    why = (
-                        f"the scheduler at {address} was lost"
-                        if lost
-                        else f"worker failed: {type(exc).__name__}: "
-                        f"{(str(exc).splitlines() or [''])[0]}"
-                    )
-                    outcome = _failed(tasks[i], why)
-                results[i] = deliver(tasks[i], outcome)
-                if on_done:
-                    on_done(i, results[i])  # type: ignore[arg-type]
+                    outcome = _failed(tasks[i], _lost(address, exc))
+                done(i, outcome)
         except Exception as exc:  # the scheduler went away
-            for i, task in enumerate(tasks):
-                if results[i] is None:
-                    results[i] = deliver(
-                        task,
-                        _failed(
-                            task, f"the scheduler at {address} was lost ({type(exc).__name__})"
-                        ),
-                    )
-                    if on_done:
-                        on_done(i, results[i])  # type: ignore[arg-type]
+            lost = f"the scheduler at {address} was lost ({type(exc).__name__})"
+            for i in [i for i, r in enumerate(results) if r is None]:
+                done(i, _failed(tasks[i], lost))
     finally:
         with contextlib.suppress(Exception):
             client.close(timeout=5)
     return [r or [] for r in results]
 
 
+def _client(address: str) -> Any:
+    """A Dask client of the scheduler at ``address`` with a worker; errors said as the
+    option's. Dask's own loggers are quieted: a lost scheduler is said in the rows, once."""
+    try:
+        from dask.distributed import Client
+    except ImportError:
+        raise InputError(
+            "--scheduler needs dask.distributed: pip install 'imucal[fleet]'"
+        ) from None
+    import logging
+
+    for name in [n for n in logging.root.manager.loggerDict if n.startswith("distributed")]:
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+    try:
+        client = Client(address, timeout="10s")
+    except Exception as exc:
+        raise InputError(f"--scheduler {address}: cannot connect: {exc}") from None
+    try:
+        client.wait_for_workers(1, timeout=DASK_WORKERS_S)
+    except Exception:
+        with contextlib.suppress(Exception):
+            client.close(timeout=5)
+        raise InputError(
+            f"--scheduler {address}: no worker joined within {DASK_WORKERS_S:g} s"
+        ) from None
+    return client
+
+
+def _lost(address: str, exc: Exception) -> str:
+    if "connection-lost" in str(exc):
+        return f"the scheduler at {address} was lost"
+    return f"worker failed: {type(exc).__name__}: {(str(exc).splitlines() or [''])[0]}"
+
+
 def _shared_config(path: str) -> Config | None:
-    """The config every log of the run shares, or None where it leaves transforms out: each
-    log's own ``/tf_static`` (or ``/robot_description``) then gives them (SPEC)."""
+    """The config every log of the run shares, or None where it leaves a transform out (the
+    base IMU's pose included): each log's own ``/tf_static`` (or ``/robot_description``) then
+    gives it, as ``calibrate`` takes it (SPEC)."""
     from imucal_cli.config import load_config
+    from imucal_cli.documents import load_document
     from imucal_cli.errors import ConfigError
-    from imucal_cli.frames import leaves_out_transforms
+    from imucal_cli.frames import leaves_out, leaves_out_transforms
 
     try:
-        return load_config(path)
+        config = load_config(path)  # (an invalid one: said here, once)
     except ConfigError as exc:
         if leaves_out_transforms(exc):
             return None
         raise
+    return None if leaves_out(load_document(path)) else config
 
 
 def plan_tasks(
@@ -476,19 +511,12 @@ def plan_tasks(
     if truth_dir is not None and not truth_dir.is_dir():
         raise InputError(f"{truth_dir}: folder does not exist")
     paths = [log_folder(Path(e["log"]).resolve()) for e in entries]  # a rosbag2 log is its folder
-    root = Path(os.path.commonpath([p.parent for p in paths]))
+    stems, outputs = _stems(paths)
     configs: dict[str, Config | None] = {}
     loaded: dict[
         str, tuple[dict[str, Transform], dict[str, tuple[float | None, float | None]]]
     ] = {}  # truth or reference files
     tasks: list[Task] = []
-    stems = [
-        log.relative_to(root)
-        .as_posix()
-        .removesuffix(log.suffix if log.suffix in LOG_SUFFIXES else "")
-        for log in paths
-    ]
-    outputs = _output_names(stems, paths)  # vehicle/2024.01.05.mcap -> 2024.01.05
     for entry, log, stem, output in zip(entries, paths, stems, outputs, strict=True):
         cfg = entry.get("config") or (str(config) if config else None)
         if cfg is None:
@@ -497,20 +525,7 @@ def plan_tasks(
             configs[cfg] = _shared_config(cfg)
         # (a config that leaves transforms out is read by the worker against its log)
         job_config = configs[cfg] or str(Path(cfg).resolve())
-        optional = False  # a truth file the folder may not have (then: nothing to compare with)
-        if entry.get("reference") or entry.get("truth"):
-            source, is_reference = (
-                entry.get("reference") or entry["truth"],
-                bool(entry.get("reference")),
-            )
-        elif truth_dir is not None:
-            nested, flat = (
-                truth_dir / f"{stem}.truth.yaml",
-                truth_dir / f"{Path(stem).name}.truth.yaml",
-            )
-            source, is_reference, optional = str(nested if nested.is_file() else flat), False, True
-        else:
-            source, is_reference = str(reference or ""), reference is not None
+        source, is_reference, optional = _against(entry, stem, truth_dir, reference)
         if source and source not in loaded and not (optional and not Path(source).is_file()):
             loaded[source] = load_transforms(source), _reference_std(source) if is_reference else {}
         against, std = loaded.get(source, ({} if source else None, {}))
@@ -530,6 +545,34 @@ def plan_tasks(
             )
         )
     return tasks
+
+
+def _stems(paths: list[Path]) -> tuple[list[str], list[str]]:
+    """Each log's path from the logs' common folder without its log suffix, and its output's
+    name (:func:`_output_names`: vehicle/2024.01.05.mcap -> 2024.01.05)."""
+    root = Path(os.path.commonpath([p.parent for p in paths]))
+    stems = [
+        log.relative_to(root)
+        .as_posix()
+        .removesuffix(log.suffix if log.suffix in LOG_SUFFIXES else "")
+        for log in paths
+    ]
+    return stems, _output_names(stems, paths)
+
+
+def _against(
+    entry: dict[str, str], stem: str, truth_dir: Path | None, reference: str | Path | None
+) -> tuple[str, bool, bool]:
+    """What a log is compared with: the file ("" for nothing), whether it is a reference (a
+    previous calibration) rather than a truth, and whether it may be missing (a truth folder
+    need not hold every log's: then there is nothing to compare with)."""
+    if entry.get("reference") or entry.get("truth"):
+        return entry.get("reference") or entry["truth"], bool(entry.get("reference")), False
+    if truth_dir is not None:
+        nested = truth_dir / f"{stem}.truth.yaml"
+        flat = truth_dir / f"{Path(stem).name}.truth.yaml"
+        return str(nested if nested.is_file() else flat), False, True
+    return str(reference or ""), reference is not None, False
 
 
 def _output_names(stems: Sequence[str], paths: Sequence[Path]) -> list[str]:
@@ -776,3 +819,123 @@ def evaluate_junit(document: dict[str, Any], estimate: str, truth: str) -> str:
         f'<testsuites><testsuite name="imucal evaluate" tests="{len(cases)}" failures="{failures}" '
         'errors="0">\n' + "\n".join(cases) + "\n</testsuite></testsuites>\n"
     )
+
+
+@dataclass
+class Batch:
+    """A batch of logs, as ``imucal batch`` gives it: the logs (``entries``, a manifest's
+    rows), their config, where the outputs go, what each is compared with and how."""
+
+    entries: list[dict[str, str]]
+    config: Path | None
+    out_dir: Path
+    truth_dir: Path | None = None
+    reference: Path | None = None
+    max_rotation_deg: float | None = None
+    max_translation_m: float | None = None
+    max_lost_s: float | None = None
+    junit: Path | None = None
+    manifest: Path | None = None
+
+    def plan(self, force: bool) -> list[Task]:
+        """The tasks, every input read and every output checked before any work."""
+        if self.out_dir.exists() and not self.out_dir.is_dir():
+            raise InputError(f"{self.out_dir}: --out-dir exists and is not a folder")
+        given = [f"--max-{k}" for k, v in self._limits().items() if v is not None]
+        against = self.truth_dir or self.reference
+        if (
+            given
+            and against is None
+            and not all(e.get("truth") or e.get("reference") for e in self.entries)
+        ):
+            raise InputError(
+                f"{given[0]}: nothing to compare with: give --truth-dir or --reference "
+                "(or truth/reference columns in the manifest for every log)"
+            )
+        tasks = plan_tasks(
+            self.entries,
+            self.config,
+            self.out_dir,
+            self.truth_dir,
+            self.reference,
+            self.max_rotation_deg,
+            self.max_translation_m,
+            self.max_lost_s,
+        )
+        summaries = [self.out_dir / "summary.csv", self.out_dir / "summary.json"]
+        inputs = [self.manifest, self.reference, self.config]
+        check_batch_outputs(
+            tasks, [*summaries, *([self.junit] if self.junit else [])], inputs, force
+        )
+        return tasks
+
+    def _limits(self) -> dict[str, float | None]:
+        return {"rotation-deg": self.max_rotation_deg, "translation-m": self.max_translation_m}
+
+    def moved_rule(self) -> str | None:
+        """With ``reference`` and a threshold not given: the rule that says a sensor moved."""
+        if self.reference is None or None not in self._limits().values():
+            return None
+        given = "".join(f"; --max-{k} {v:g}" for k, v in self._limits().items() if v is not None)
+        return (
+            f"--reference: a sensor moved past {MOVED_STD:g} combined std of the two calibrations "
+            f"(largest axis; {MOVED_FALLBACK_DEG:g} deg, {MOVED_FALLBACK_M:g} m where a std is "
+            f"not known){given}"
+        )
+
+    def settings(self, jobs: int, scheduler: str | None) -> dict[str, Any]:
+        return {
+            "jobs": jobs,
+            "scheduler": scheduler,
+            "max_rotation_deg": self.max_rotation_deg,
+            "max_translation_m": self.max_translation_m,
+            "max_lost_s": self.max_lost_s,
+            "truth_dir": str(self.truth_dir) if self.truth_dir else None,
+            "reference": str(self.reference) if self.reference else None,
+        }
+
+    def summarise(self, rows: list[Row], settings: dict[str, Any]) -> None:
+        """The summaries: the JUnit first (what a CI reads: a full disk then costs the CSV and
+        JSON, said in the error), then the CSV and the JSON."""
+        from imucal_cli.documents import write_text_atomic
+
+        if self.junit is not None:
+            write_text_atomic(self.junit, junit_xml(rows))
+        write_text_atomic(self.out_dir / "summary.csv", summary_csv(rows))
+        write_text_atomic(self.out_dir / "summary.json", summary_json(rows, settings))
+
+    def run(
+        self,
+        tasks: list[Task],
+        jobs: int,
+        scheduler: str | None,
+        on_done: Callable[[int, list[Row]], None],
+    ) -> list[Row]:
+        """Every task, locally or on Dask, then the summaries; a Ctrl-C summarises the logs
+        finished by then (``settings.interrupted``) and is raised again."""
+        for task in tasks:
+            try:
+                Path(task.out).parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                folder = Path(task.out).parent
+                raise InputError(
+                    f"{folder}: cannot make the output folder: {exc.strerror}"
+                ) from None
+        finished: dict[int, list[Row]] = {}
+
+        def done(i: int, rows: list[Row]) -> None:
+            finished[i] = rows
+            on_done(i, rows)
+
+        settings = self.settings(jobs, scheduler)
+        try:
+            results = (
+                run_dask(tasks, scheduler, done) if scheduler else run_local(tasks, jobs, done)
+            )
+        except KeyboardInterrupt:
+            settings["interrupted"] = f"after {len(finished)} of {len(tasks)} logs"
+            self.summarise([row for i in sorted(finished) for row in finished[i]], settings)
+            raise
+        rows = [row for result in results for row in result]
+        self.summarise(rows, settings)
+        return rows

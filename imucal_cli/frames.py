@@ -316,6 +316,15 @@ def _missing(data: Mapping[str, Any]) -> tuple[list[tuple[str, str]], bool]:
     return missing, isinstance(base, Mapping) and base.get(BASE_KEY) is None
 
 
+def leaves_out(data: Any) -> bool:
+    """Whether a config document leaves a transform out for a log's tree to supply (a sensor's,
+    or the base IMU's pose)."""
+    if not isinstance(data, Mapping):
+        return False
+    missing, base_missing = _missing(data)
+    return bool(missing) or base_missing
+
+
 def frame_tree(reader: Any, urdf: str | Path | None = None) -> FrameTree:
     """The log's ``/tf_static``, then what a URDF adds: the file ``urdf``, else the log's
     ``/robot_description`` (a transform /tf_static holds is kept)."""

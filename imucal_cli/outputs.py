@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from itertools import combinations
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -19,11 +19,32 @@ from imucal_cli.version import version
 if TYPE_CHECKING:
     from imucal_cli.config import Config
     from imucal_cli.core.biases import BiasReport
-    from imucal_cli.core.streaming import StreamingCalibrator
     from imucal_cli.inspection import LogSummary
     from imucal_cli.io.base import Loss
-    from imucal_cli.result import CalibrationResult
     from imucal_cli.types import Transform
+
+
+class Calibration(Protocol):
+    """What the documents take of a :class:`imucal_cli.calibration.Calibration`."""
+
+    @property
+    def config(self) -> Config: ...
+    @property
+    def estimates(self) -> dict[str, Any]: ...
+    @property
+    def windows(self) -> Mapping[str, list[Any]]: ...
+    @property
+    def t0_ns(self) -> int: ...
+    @property
+    def t_ref_ns(self) -> int: ...
+    @property
+    def time_offsets_s(self) -> Mapping[str, float]: ...
+    @property
+    def rates_hz(self) -> Mapping[str, float]: ...
+    @property
+    def noise_density(self) -> Mapping[str, tuple[float, float]]: ...
+
+    def T_base_lidar(self, name: str) -> Transform: ...
 
 
 def inspect_document(summary: LogSummary) -> dict[str, Any]:
@@ -102,18 +123,16 @@ def biases_document(
     )
 
 
-def segments_document(
-    t0_ns: int, config: Config, calibrator: StreamingCalibrator
-) -> dict[str, Any]:
-    assert calibrator.t_ref_ns is not None
-    offset = (calibrator.t_ref_ns - t0_ns) * 1e-9
+def segments_document(calibration: Calibration) -> dict[str, Any]:
+    config = calibration.config
+    offset = (calibration.t_ref_ns - calibration.t0_ns) * 1e-9
     sensors: dict[str, Any] = {}
     for sensor in config.sensors:
-        windows = calibrator.window_infos(sensor.name)
+        windows = calibration.windows[sensor.name]
         sensors[sensor.name] = {
             "total": len(windows),
             "selected": sum(w.selected for w in windows),
-            "time_offset_s": calibrator.tau0.get(sensor.name, 0.0),
+            "time_offset_s": calibration.time_offsets_s.get(sensor.name, 0.0),
             "windows": [
                 {
                     "start_s": offset + w.start_s,
@@ -135,7 +154,7 @@ def segments_document(
     return to_plain(
         {
             "imucal_version": version(),
-            "t0_ns": t0_ns,
+            "t0_ns": calibration.t0_ns,
             "window_s": config.segments.window_s,
             "max_rotation_std_deg": config.segments.max_rotation_std_deg,
             "sensors": sensors,
@@ -147,7 +166,7 @@ def _std_list(values: np.ndarray | None) -> list[float] | None:
     return None if values is None else [float(v) for v in values]
 
 
-def _rate(result: CalibrationResult, name: str) -> float | None:
+def _rate(result: Calibration, name: str) -> float | None:
     rate = result.rates_hz.get(name)
     return None if rate is None else round(float(rate), 6)
 
@@ -186,7 +205,7 @@ def _base_source(config: Config) -> str:
     return sources.pop() if len(sources) == 1 else "config"
 
 
-def imu_noise(result: CalibrationResult, name: str) -> dict[str, float | None]:
+def imu_noise(result: Calibration, name: str) -> dict[str, float | None]:
     """An IMU's noise in Kalibr's terms: white-noise densities measured above the motion, and
     the gyro and accelerometer bias random walks measured from the knots of the relative biases
     the fit estimated (sensor minus base, one knot a window: for each IMU an upper bound, and
@@ -258,7 +277,7 @@ def read_warnings(topic: str, counts: Mapping[str, int]) -> list[str]:
 
 
 def calibration_document(
-    result: CalibrationResult,
+    result: Calibration,
     log: str,
     losses: Sequence[Loss] = (),
     counts: Mapping[str, Mapping[str, int]] | None = None,
@@ -277,64 +296,6 @@ def calibration_document(
         undecodable, rate = counts.get(topic, {}).get("decode_errors", 0), _rate(result, name)
         if undecodable and lost_s is not None:
             lost_s = None if rate is None else lost_s + undecodable / rate
-    base_warnings = [
-        f"base: {w}" for w in read_warnings(config.base.topic, counts.get(config.base.topic, {}))
-    ]
-    sensors: dict[str, Any] = {}
-    for sensor in config.sensors:
-        est = result.estimates[sensor.name]
-        cov = est.covariance
-        sensors[sensor.name] = {
-            "status": est.status,
-            "warnings": [  # what reading dropped first: it is the cause of what the fit says
-                *base_warnings,
-                *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {})),
-                *est.warnings,
-            ],
-            "notes": list(est.notes),
-            "imu_topic": sensor.imu_topic,
-            "lidar_frame": sensor.lidar_frame,
-            # where each transform came from (SPEC): config (or its default), tf_static
-            "priors": dict(config.priors.get(sensor.name) or config_sources()),
-            "imu_rate_hz": _rate(result, sensor.name),
-            "imu_noise": imu_noise(result, sensor.name),
-            "T_base_imu": est.T_base_imu.to_dict(),
-            "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
-            "rotation_std_deg": _std_list(est.rotation_std_deg),
-            "translation_std_m": _std_list(est.translation_std_m),
-            "statistical_std": None
-            if est.statistical_covariance is None
-            else {
-                "rotation_deg": _std_list(est.statistical_rotation_std_deg),
-                "translation_m": _std_list(est.statistical_translation_std_m),
-            },
-            "covariance": None
-            if cov is None
-            else {
-                "of": "T_base_imu",
-                "order": ["rx", "ry", "rz", "tx", "ty", "tz"],
-                "rotation_axes": "base",
-                "units": ["rad", "rad", "rad", "m", "m", "m"],
-                "matrix": [[float(v) for v in row] for row in cov],
-            },
-            "translation_observable": [bool(v) for v in est.translation_observable],
-            "time_offset_s": est.time_offset_s,
-            "time_offset_std_s": est.time_offset_std_s,
-            "time_offset_observable": bool(est.time_offset_observable),
-            "checks": to_plain(est.checks),
-            "accel_intrinsics": to_plain(est.accel_intrinsics) if est.accel_intrinsics else None,
-            "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,
-            "gyro_bias_radps": est.gyro_bias,
-            "accel_bias_mps2": est.accel_bias,
-            "segments": {
-                "total": len(est.windows),
-                "selected": sum(w.selected for w in est.windows),
-            },
-            "residual_rms": {
-                "gyro_radps": est.residual_rms_gyro,
-                "accel_mps2": est.residual_rms_accel,
-            },
-        }
     names = sorted(s.name for s in config.sensors)
     pairs = {
         f"{a}/{b}": (result.T_base_lidar(a).inverse() * result.T_base_lidar(b)).to_dict()
@@ -354,13 +315,75 @@ def calibration_document(
                 "grade": config.base.grade,
                 "source": _base_source(config),
             },
-            "sensors": sensors,
+            "sensors": {s.name: _sensor_document(result, s, counts) for s in config.sensors},
             "pairs": pairs,
             "lost_s": lost_s,
             "losses": losses_document(losses),
             "dropped": dropped_document(counts),
         }
     )
+
+
+def _sensor_document(
+    result: Calibration, sensor: Any, counts: Mapping[str, Mapping[str, int]]
+) -> dict[str, Any]:
+    """One sensor's part of the calibrate document."""
+    config, est = result.config, result.estimates[sensor.name]
+    base_warnings = [
+        f"base: {w}" for w in read_warnings(config.base.topic, counts.get(config.base.topic, {}))
+    ]
+    return {
+        "status": est.status,
+        "warnings": [  # what reading dropped first: it is the cause of what the fit says
+            *base_warnings,
+            *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {})),
+            *est.warnings,
+        ],
+        "notes": list(est.notes),
+        "imu_topic": sensor.imu_topic,
+        "lidar_frame": sensor.lidar_frame,
+        # where each transform came from (SPEC): config (or its default), tf_static
+        "priors": dict(config.priors.get(sensor.name) or config_sources()),
+        "imu_rate_hz": _rate(result, sensor.name),
+        "imu_noise": imu_noise(result, sensor.name),
+        "T_base_imu": est.T_base_imu.to_dict(),
+        "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
+        "rotation_std_deg": _std_list(est.rotation_std_deg),
+        "translation_std_m": _std_list(est.translation_std_m),
+        "statistical_std": None
+        if est.statistical_covariance is None
+        else {
+            "rotation_deg": _std_list(est.statistical_rotation_std_deg),
+            "translation_m": _std_list(est.statistical_translation_std_m),
+        },
+        "covariance": _covariance(est.covariance),
+        "translation_observable": [bool(v) for v in est.translation_observable],
+        "time_offset_s": est.time_offset_s,
+        "time_offset_std_s": est.time_offset_std_s,
+        "time_offset_observable": bool(est.time_offset_observable),
+        "checks": to_plain(est.checks),
+        "accel_intrinsics": to_plain(est.accel_intrinsics) if est.accel_intrinsics else None,
+        "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,
+        "gyro_bias_radps": est.gyro_bias,
+        "accel_bias_mps2": est.accel_bias,
+        "segments": {
+            "total": len(est.windows),
+            "selected": sum(w.selected for w in est.windows),
+        },
+        "residual_rms": {"gyro_radps": est.residual_rms_gyro, "accel_mps2": est.residual_rms_accel},
+    }
+
+
+def _covariance(cov: np.ndarray | None) -> dict[str, Any] | None:
+    if cov is None:
+        return None
+    return {
+        "of": "T_base_imu",
+        "order": ["rx", "ry", "rz", "tx", "ty", "tz"],
+        "rotation_axes": "base",
+        "units": ["rad", "rad", "rad", "m", "m", "m"],
+        "matrix": [[float(v) for v in row] for row in cov],
+    }
 
 
 def transform_errors(estimate: Transform, truth: Transform) -> dict[str, Any]:

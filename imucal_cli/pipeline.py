@@ -1,42 +1,31 @@
 """The one pipeline that ``calibrate``, ``--follow``, ``biases``, ``segments``, ``batch`` and
-the Python API run: one read loop (:func:`read_log`, with the clock comparison) feeding a
-streaming calibrator (or the bias trackers), the final reduction and its checks
-(:func:`_finish`), the solve, and the document (:mod:`imucal_cli.documents`). Nothing here
-prints; the CLI draws progress and writes the documents.
+the Python API run, in one process: one read loop (:func:`read_log`, with the clock
+comparison) feeding a streaming calibrator (or the bias trackers), the final reduction and its
+checks, the solve, and one :class:`~imucal_cli.calibration.Calibration`. Nothing here prints;
+the CLI draws progress and writes the documents.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from imucal_cli.config import Config, SensorConfig, load_config
+from imucal_cli.calibration import Calibration, Reading
+from imucal_cli.config import Config, SensorConfig
 from imucal_cli.core.biases import BiasTracker
-from imucal_cli.core.calibrate import CalibrationOptions, SensorEstimate
+from imucal_cli.core.calibrate import CalibrationOptions
 from imucal_cli.core.grades import GRADES
+from imucal_cli.core.status import every_axis_missing
 from imucal_cli.core.streaming import BOOT_S, SensorSetup, StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.base import Loss
-from imucal_cli.reading import ImuBatches, ReadStats
-from imucal_cli.result import CalibrationResult
-from imucal_cli.types import ImuStream
-
-
-@dataclass(frozen=True)
-class DriveStreams:
-    """The IMU streams of one log: the base and one per configured sensor (by name)."""
-
-    base: ImuStream
-    sensors: Mapping[str, ImuStream]
-    t0_ns: int  # first stamp of the log's IMU messages: the origin of report times
-
-    def seconds(self, t_ns: int) -> float:
-        return (t_ns - self.t0_ns) * 1e-9
+from imucal_cli.reading import ImuBatches
+from imucal_cli.types import DriveStreams
 
 
 def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
@@ -90,56 +79,6 @@ def make_calibrator(
     )
 
 
-#: What driving supplies information about each axis (the lever arm enters through
-#: ``([w]x^2 + [dw]x) t``: x and y through the yaw rate and its changes, z through roll and pitch).
-MANOEUVRES = {
-    "rotation x (roll)": "roll motion: crossfall, speed bumps, turns taken briskly",
-    "rotation y (pitch)": "pitch motion: braking and accelerating, speed bumps",
-    "rotation z (yaw)": "turns in both directions",
-    "translation x": "turns in both directions and changes of turn rate (slalom, roundabouts)",
-    "translation y": "turns in both directions and changes of turn rate (slalom, roundabouts)",
-    "translation z": "roll and pitch motion: speed bumps, crossfall, braking and accelerating",
-}
-
-
-def every_axis_missing() -> list[str]:
-    """Nothing determined yet: every axis, with the driving that supplies it."""
-    return [f"{axis}: {what}" for axis, what in MANOEUVRES.items()]
-
-
-def missing_axes(estimate: SensorEstimate, stop: Any) -> list[str]:
-    """The axes whose std is not yet within the ``stop:`` targets, each with the driving that
-    supplies it: from the estimate's statistical std (what more driving shrinks)."""
-    if estimate.statistical_covariance is None:
-        return every_axis_missing()
-    # the statistical std: what more driving shrinks (the total adds what it cannot)
-    rotation = estimate.statistical_rotation_std_deg
-    translation = estimate.statistical_translation_std_m
-    assert rotation is not None and translation is not None
-    names = list(MANOEUVRES)
-    out = [
-        f"{names[k]}: {MANOEUVRES[names[k]]} (std {rotation[k]:.3g} deg, target "
-        f"{stop.max_rotation_std_deg:g})"
-        for k in range(3)
-        if rotation[k] > stop.max_rotation_std_deg
-    ]
-    out += [
-        f"{names[3 + k]}: {MANOEUVRES[names[3 + k]]} (std {translation[k]:.3g} m, target "
-        f"{stop.max_translation_std_m:g})"
-        for k in range(3)
-        if translation[k] > stop.max_translation_std_m or not estimate.translation_observable[k]
-    ]
-    return out
-
-
-def converged(result: CalibrationResult) -> bool:
-    """Every sensor ``ok`` and within the config's ``stop:`` targets."""
-    return all(
-        e.status == "ok" and not missing_axes(e, result.config.stop)
-        for e in result.estimates.values()
-    )
-
-
 def feed(calibrator: StreamingCalibrator, streams: DriveStreams, block_s: float = 10.0) -> None:
     """Feed in-memory streams to a calibrator in time order, ``block_s`` at a time."""
     all_streams = {"base": streams.base, **streams.sensors}
@@ -169,15 +108,13 @@ def bias_trackers(config: Config) -> dict[str, BiasTracker]:
     return {name: BiasTracker(*args) for name in ["base", *(s.name for s in config.sensors)]}
 
 
-def run_calibrate(streams: DriveStreams, config: Config) -> CalibrationResult:
-    """Calibrate every sensor from in-memory streams."""
+def calibrate_streams(streams: DriveStreams, config: Config) -> Calibration:
+    """Calibrate every sensor from streams in memory (a simulated drive, say)."""
     calibrator = make_calibrator(config)
     feed(calibrator, streams)
-    estimates = calibrator.finish()
-    return CalibrationResult(estimates, config, dict(calibrator.rates_hz), dict(calibrator.noise))
+    calibrator.process(final=True)
+    return _solved(calibrator, config, streams.t0_ns, None)
 
-
-# --------------------------------------------------------------------------- one run over a log
 
 #: Follow mode: how far out of order a recording's stamps may arrive (s). A recorder appends in
 #: receive order, so a window waits less for stragglers than in a file (0.5 s), and its
@@ -230,31 +167,6 @@ class _ClockCheck:
                 )
 
 
-@dataclass
-class StreamedLog:
-    """A log streamed through a calibrator: windows reduced, nothing solved yet."""
-
-    log: Path
-    config: Config
-    calibrator: StreamingCalibrator
-    t0_ns: int  # first IMU stamp: the origin of report times
-    stats: dict[str, ReadStats]  # per topic: what reading counted
-    duplicates: dict[str, int]  # per topic: duplicate stamps the calibrator removed
-    losses: list[Loss]  # parts of a damaged log that could not be read
-    format_name: str
-
-    def counts(self) -> dict[str, dict[str, int]]:
-        """Per topic, what reading counted (:class:`ReadStats`), the calibrator's duplicates in."""
-        return {
-            topic: stats.to_dict()
-            | {"duplicates": stats.duplicates + self.duplicates.get(topic, 0)}
-            for topic, stats in self.stats.items()
-        }
-
-
-Sink = Callable[[str, np.ndarray, np.ndarray, np.ndarray], object]
-
-
 def blas_threads(workers: int = 1) -> Any:
     """BLAS on ``workers`` threads while the pipeline runs, as it was after: its products are
     of a window's few dozen columns, where OpenBLAS's threads cost more than they share (1 h
@@ -265,50 +177,62 @@ def blas_threads(workers: int = 1) -> Any:
     return threadpool_limits(workers, user_api="blas")
 
 
+Progress = Callable[[int, int], None]
+Sink = Callable[[str, np.ndarray, np.ndarray, np.ndarray], object]
+
+
 def read_log(
     reader: ImuBatches,
     config: Config,
     sink: Sink,
     clocks: bool = True,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Progress | None = None,
     after: Callable[[], None] | None = None,
     clipped: Callable[[str, np.ndarray], None] | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> int | None:
     """The one read loop: every IMU batch of ``reader`` to ``sink(name, stamps, gyro,
     accel)`` (``name``: "base" or the sensor's), the clocks compared (``clocks``),
     ``progress(messages read, messages in the log)`` and ``after()`` after each batch, and
-    before it the stamps of the clipped samples reading dropped to ``clipped(name, stamps)``.
-    Returns the first stamp (ns), None where no message was read."""
+    before it the stamps of the clipped samples reading dropped to ``clipped(name, stamps)``;
+    it ends early where ``stop()`` says so after a batch. Returns the first stamp (ns), None
+    where no message was read."""
     names = config.imu_names()
     check = _ClockCheck(reader.path, config.base.topic, config.calibration.max_time_offset_s)
     topics, t0_ns, count = list(names), None, 0
-    with blas_threads():
-        for topic, stamps, log_times, gyro, accel in reader:
-            if clocks:
-                check.add(topic, stamps, log_times, topics)
-            if len(stamps):
-                first = int(stamps.min())
-                t0_ns = first if t0_ns is None else min(t0_ns, first)
-            dropped = reader.take_clipped(topic)  # taken always: kept, they would pile up
-            if clipped is not None:
-                clipped(names[topic], dropped)
-            sink(names[topic], stamps, gyro, accel)
-            count += len(stamps)
-            if progress is not None:
-                progress(count, sum(reader.expected.values()))
-            if after is not None:
-                after()
+    for topic, stamps, log_times, gyro, accel in reader:
+        if clocks:
+            check.add(topic, stamps, log_times, topics)
+        if len(stamps):
+            first = int(stamps.min())
+            t0_ns = first if t0_ns is None else min(t0_ns, first)
+        dropped = reader.take_clipped(topic)  # taken always: kept, they would pile up
+        if clipped is not None:
+            clipped(names[topic], dropped)
+        sink(names[topic], stamps, gyro, accel)
+        count += len(stamps)
+        if progress is not None:
+            progress(count, sum(reader.expected.values()))
+        if after is not None:
+            after()
+        if stop is not None and stop():
+            break
     return t0_ns
 
 
-def _finish(
-    reader: ImuBatches,
-    calibrator: StreamingCalibrator,
-    t0_ns: int | None,
-    config: Config,
-) -> StreamedLog:
-    """What is left reduced, once the reading has ended; the topics that gave too little
-    data named."""
+def _reading(reader: ImuBatches, calibrator: StreamingCalibrator, config: Config) -> Reading:
+    """What the reader and the calibrator found."""
+    counts = {
+        topic: stats.to_dict()
+        | {"duplicates": stats.duplicates + calibrator.duplicates(config.imu_names()[topic])}
+        for topic, stats in reader.stats.items()
+    }
+    return Reading(reader.path, reader.format_name, counts, list(reader.losses))
+
+
+def _reduce_rest(reader: ImuBatches, calibrator: StreamingCalibrator, t0_ns: int | None) -> None:
+    """What is left reduced, once the reading has ended; the topics that gave too little data
+    named."""
     log, lost = reader.path, lost_summary(reader.losses)
     for topic, stats in reader.stats.items():
         if stats.usable() < 10:
@@ -321,44 +245,124 @@ def _finish(
         calibrator.process(final=True)
     except ImucalError as exc:
         raise InputError(f"{log}: {str(exc).removeprefix(str(log) + ': ')}{lost}") from None
-    return _streamed(reader, calibrator, t0_ns, config)
+
+
+def _solved(
+    calibrator: StreamingCalibrator,
+    config: Config,
+    t0_ns: int | None,
+    reading: Reading | None,
+    followed: bool = False,
+) -> Calibration:
+    """Every sensor solved from the windows reduced so far."""
+    try:
+        with np.errstate(all="ignore"):
+            estimates = calibrator.estimates()
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        # only data no IMU produces get here (the reader drops what it can recognise)
+        log = reading.log if reading is not None else "the streams"
+        raise InputError(
+            f"{log}: the IMU data are numerically degenerate ({exc}); the log may hold "
+            "damaged samples"
+        ) from None
+    return _calibration(calibrator, config, t0_ns, reading, estimates, followed)
+
+
+def _calibration(
+    calibrator: StreamingCalibrator,
+    config: Config,
+    t0_ns: int | None,
+    reading: Reading | None,
+    estimates: dict[str, Any],
+    followed: bool = False,
+) -> Calibration:
+    windows = {name: calibrator.window_infos(name) for name in calibrator.sensors}
+    return Calibration(
+        config,
+        estimates,
+        windows,
+        int(t0_ns or 0),
+        int(calibrator.t_ref_ns or 0),
+        dict(calibrator.tau0),
+        dict(calibrator.rates_hz),
+        dict(calibrator.noise),
+        reading,
+        followed,
+    )
 
 
 def _streamed(
-    reader: ImuBatches,
-    calibrator: StreamingCalibrator,
-    t0_ns: int | None,
+    log: str | Path,
     config: Config,
-) -> StreamedLog:
-    """What the reader and the calibrator found, as one :class:`StreamedLog`."""
-    duplicates = {topic: calibrator.duplicates(name) for topic, name in config.imu_names().items()}
-    return StreamedLog(
-        reader.path,
-        config,
-        calibrator,
-        int(t0_ns or 0),
-        reader.stats,
-        duplicates,
-        reader.losses,
-        reader.format_name,
-    )
-
-
-def stream_log(
-    log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None
-) -> StreamedLog:
-    """Stream the configured IMU topics of ``log`` through a calibrator, memory flat in the
-    log's length: windows reduced, nothing solved yet."""
+    progress: Progress | None,
+    on_window: Callable[[int], None] | None,
+    stop: Callable[[], bool] | None,
+) -> tuple[StreamingCalibrator, int | None, Reading]:
+    """The log's IMU topics through a calibrator, every window reduced, nothing solved."""
     reader = ImuBatches(Path(log), config.imu_names())
     calibrator = make_calibrator(config)
+    told = [0]
+
+    def after() -> None:
+        reduced = min(len(w) for w in calibrator.windows.values())
+        if on_window is not None and reduced > told[0]:
+            told[0] = reduced
+            on_window(reduced)
+
     t0_ns = read_log(
-        reader, config, calibrator.add, progress=progress, clipped=calibrator.add_clipped
+        reader,
+        config,
+        calibrator.add,
+        progress=progress,
+        after=after,
+        clipped=calibrator.add_clipped,
+        stop=stop,
     )
-    return _finish(reader, calibrator, t0_ns, config)
+    _reduce_rest(reader, calibrator, t0_ns)
+    return calibrator, t0_ns, _reading(reader, calibrator, config)
 
 
-def stream_biases(
-    log: str | Path, config: Config, progress: Callable[[int, int], None] | None = None
+def calibrate(
+    log: str | Path,
+    config: Config,
+    *,
+    progress: Progress | None = None,
+    on_window: Callable[[int], None] | None = None,
+    stop: Callable[[], bool] | None = None,
+    workers: int = 1,
+) -> Calibration:
+    """Calibrate every sensor of ``config`` from the IMU topics of ``log``, memory flat in the
+    log's length. ``progress(messages read, messages in the log)`` as reading goes,
+    ``on_window(windows reduced)`` as each block of windows is, and where ``stop()`` says so
+    the reading ends there and the calibration is of what was read. ``workers``: the threads
+    the linear algebra may take (BLAS; one, as a fleet that runs a log per core wants)."""
+    with blas_threads(workers):
+        calibrator, t0_ns, reading = _streamed(log, config, progress, on_window, stop)
+        return _solved(calibrator, config, t0_ns, reading)
+
+
+def segments(
+    log: str | Path,
+    config: Config,
+    *,
+    progress: Progress | None = None,
+    on_window: Callable[[int], None] | None = None,
+    stop: Callable[[], bool] | None = None,
+    workers: int = 1,
+) -> Calibration:
+    """:func:`calibrate` without the solve: every window's observability
+    (:meth:`Calibration.segments_document`), no estimate."""
+    with blas_threads(workers):
+        calibrator, t0_ns, reading = _streamed(log, config, progress, on_window, stop)
+        return _calibration(calibrator, config, t0_ns, reading, {})
+
+
+def biases(
+    log: str | Path,
+    config: Config,
+    *,
+    progress: Progress | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> dict[str, Any]:
     """The SPEC's ``biases`` document of ``log``: every configured IMU streamed through a
     :class:`~imucal_cli.core.biases.BiasTracker`, memory flat in the log's length."""
@@ -373,6 +377,7 @@ def stream_biases(
         lambda name, t, w, f: trackers[name].add(t, w, f),
         clocks=False,
         progress=progress,
+        stop=stop,
     )
     empty = [topic for topic, name in names.items() if trackers[name].first_ns is None]
     if empty:
@@ -384,111 +389,103 @@ def stream_biases(
     return biases_document(config, reports, reader.losses, counts)
 
 
-@dataclass
-class LogCalibration:
-    """The outcome of :func:`calibrate_log` and :func:`follow_log`."""
+class _Follower:
+    """What :func:`follow` keeps: the calibrator, the samples seen, the latest calibration,
+    and when it last told the state before the first estimate."""
 
-    result: CalibrationResult  # estimates per sensor; ``result.T_base_lidar(name)``
-    document: dict[str, Any]  # the SPEC's calibrate document (what ``imucal calibrate -o`` writes)
-    streamed: StreamedLog  # what reading found: counts per topic, losses
+    def __init__(
+        self,
+        config: Config,
+        on_window: Callable[[Calibration, int], None] | None,
+        on_waiting: Callable[[dict[str, Any]], None] | None,
+        stop: Callable[[], bool],
+        until_converged: bool,
+    ) -> None:
+        self.config, self.on_window, self.on_waiting = config, on_window, on_waiting
+        self.stop, self.until_converged = stop, until_converged
+        self.calibrator = make_calibrator(config, reorder_s=FOLLOW_REORDER_S)
+        self.samples = dict.fromkeys(["base", *(s.name for s in config.sensors)], 0)
+        self.windows, self.told, self.done = 0, -np.inf, False
+        self.latest: Calibration | None = None
+
+    def sink(self, name: str, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        self.samples[name] += len(t)
+        self.calibrator.add(name, t, gyro, accel)
+
+    def talk(self) -> None:
+        """Until the first estimate: what each sensor has and waits for, at most every
+        :data:`PROGRESS_S` (nothing before the first data)."""
+        now = time.monotonic()
+        if self.on_waiting is None or self.latest is not None or now - self.told < PROGRESS_S:
+            return
+        if any(self.samples.values()):
+            self.told = now
+            self.on_waiting(waiting(self.calibrator, self.config, self.samples))
+
+    def caught_up(self) -> bool:
+        """Asked by the reader whenever it waits for the recording: the windows covered so far
+        reduced and solved; whether to stop."""
+        if self.calibrator.t_ref_ns is not None:
+            with np.errstate(all="ignore"):
+                self.calibrator.process(whole_blocks=False)
+        reduced = min(len(w) for w in self.calibrator.windows.values())
+        if reduced > self.windows:
+            self.windows = reduced
+            latest = _estimate_now(self.calibrator, self.config)
+            if latest is not None:
+                self.latest = latest
+                if self.on_window is not None:
+                    self.on_window(latest, reduced)
+                self.done = self.until_converged and latest.converged
+        self.talk()
+        return self.done or self.stop()
 
 
-def calibrate_log(
-    log: str | Path, config: Config | str | Path, progress: Callable[[int, int], None] | None = None
-) -> LogCalibration:
-    """Calibrate every sensor of ``config`` from the IMU topics of ``log`` (MCAP, rosbag2 or
-    ROS 1 bag). ``config`` is a :class:`Config` or the path of its YAML file; ``progress`` is
-    called with (messages read, messages in the log) as reading goes."""
-    if not isinstance(config, Config):
-        config = load_config(config, log)  # what it leaves out, from the log's /tf_static
-    streamed = stream_log(log, config, progress)
-    return _calibration(streamed, estimate(streamed))
-
-
-def _calibration(streamed: StreamedLog, result: CalibrationResult) -> LogCalibration:
-    from imucal_cli.outputs import calibration_document
-
-    document = calibration_document(result, str(streamed.log), streamed.losses, streamed.counts())
-    return LogCalibration(result, document, streamed)
-
-
-def follow_log(
+def follow(
     log: str | Path,
     config: Config,
-    on_update: Callable[[CalibrationResult, int], None] | None = None,
+    *,
+    on_window: Callable[[Calibration, int], None] | None = None,
+    on_waiting: Callable[[dict[str, Any]], None] | None = None,
     stop: Callable[[], bool] = lambda: False,
     until_converged: bool = False,
-    on_progress: Callable[[dict[str, Any]], None] | None = None,
-) -> tuple[LogCalibration, bool, bool]:
+    workers: int = 1,
+) -> tuple[Calibration, bool]:
     """Follow a log that is still being written (an MCAP file, or a rosbag2 folder recording
-    to mcap or sqlite3 storage): the estimate after every window, ``on_update(result,
-    windows)``, until the recording ends, ``stop()`` says so, or (``until_converged``) every
-    sensor is within the config's ``stop:`` targets. The read loop, its checks and the final
-    reduction are :func:`calibrate_log`'s. Returns the last calibration (its document with each
-    sensor's ``missing`` axes and ``converged``), whether it converged, and whether a Ctrl-C
-    ended it (the estimate so far is returned all the same). Until the first estimate,
-    ``on_progress`` is told at most every :data:`PROGRESS_S` what each sensor has and waits for
-    (:func:`waiting`)."""
-    calibrator = make_calibrator(config, block_windows=1, reorder_s=FOLLOW_REORDER_S)
-    done = [False]
-    reader = ImuBatches(Path(log), config.imu_names(), follow=lambda: done[0] or stop())
-    state: dict[str, Any] = {"windows": 0, "result": None, "told": -np.inf}
-    samples = dict.fromkeys(["base", *(s.name for s in config.sensors)], 0)
-
-    def sink(name: str, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        samples[name] += len(t)
-        calibrator.add(name, t, gyro, accel)
-
-    def talk() -> None:
-        now = time.monotonic()
-        if on_progress is None or state["result"] is not None or now - state["told"] < PROGRESS_S:
-            return
-        state["told"] = now
-        on_progress(waiting(calibrator, config, samples))
-
-    def update() -> None:
-        reduced = min(len(w) for w in calibrator.windows.values())
-        if reduced <= state["windows"]:
-            return
-        state["windows"] = reduced
-        result = _estimate_now(calibrator, config)
-        if result is not None:
-            state["result"] = result
-            if on_update is not None:
-                on_update(result, reduced)
-            done[0] = done[0] or (until_converged and converged(result))
-
-    def after() -> None:
-        update()
-        talk()
-
+    to mcap or sqlite3 storage) until the recording ends, ``stop()`` says so, or
+    (``until_converged``) every sensor is within the config's ``stop:`` targets. The read loop,
+    its checks, the windows and the final reduction are :func:`calibrate`'s: where the reader
+    waits for the recording, the windows it covers are reduced and solved, ``on_window(
+    calibration, windows)``; a finished file gives :func:`calibrate`'s calibration. Until the
+    first estimate, ``on_waiting`` is told at most every :data:`PROGRESS_S` what each sensor
+    has and waits for (:func:`waiting`). Returns the last calibration (its documents with each
+    sensor's ``missing`` axes and ``converged``) and whether a Ctrl-C ended it (the estimate
+    so far is returned all the same)."""
+    state = _Follower(config, on_window, on_waiting, stop, until_converged)
+    calibrator = state.calibrator
+    reader = ImuBatches(Path(log), config.imu_names(), follow=state.caught_up)
     t0_ns, interrupted = None, False
-    try:
-        t0_ns = read_log(reader, config, sink, after=after, clipped=calibrator.add_clipped)
-    except KeyboardInterrupt:
-        interrupted = True
-        t0_ns = _first_stamp(calibrator)
-    if done[0] and not stop():  # converged: the estimate that did
-        streamed = _streamed(reader, calibrator, t0_ns, config)
-        result = state["result"]
-    else:  # the recording ended, time is up, or a Ctrl-C: what is buffered, reduced
+    with blas_threads(workers):
         try:
-            streamed = _finish(reader, calibrator, t0_ns, config)
-        except ImucalError:
-            if not interrupted or state["result"] is None:  # after a Ctrl-C: the estimate so far
-                raise
-            streamed = _streamed(reader, calibrator, t0_ns, config)
-        result = _estimate_now(calibrator, config) or state["result"]
-    if result is None:
+            t0_ns = read_log(
+                reader, config, state.sink, after=state.talk, clipped=calibrator.add_clipped
+            )
+        except KeyboardInterrupt:
+            interrupted, t0_ns = True, _first_stamp(calibrator)
+        latest = state.latest
+        if not (state.done and not stop()):  # not converged: what is buffered, reduced
+            try:
+                _reduce_rest(reader, calibrator, t0_ns)
+            except ImucalError:
+                if not interrupted or latest is None:  # after a Ctrl-C: the estimate so far
+                    raise
+            latest = _estimate_now(calibrator, config) or latest
+    if latest is None:
         raise InputError(
             f"{log}: too little data to estimate anything yet{lost_summary(reader.losses)}"
         )
-    run = _calibration(streamed, result)
-    good = converged(result)
-    for name, sensor in result.estimates.items():  # what each sensor still lacks of the targets
-        run.document["sensors"][name]["missing"] = missing_axes(sensor, config.stop)
-    run.document["converged"] = good
-    return run, good, interrupted
+    reading = _reading(reader, calibrator, config)
+    return replace(latest, t0_ns=int(t0_ns or 0), reading=reading), interrupted
 
 
 #: Follow mode: how often the state before the first estimate is told (s of wall time).
@@ -528,7 +525,7 @@ def _first_stamp(calibrator: StreamingCalibrator) -> int | None:
     return min(firsts) if firsts else None
 
 
-def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> CalibrationResult | None:
+def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> Calibration | None:
     """The estimate from the windows so far, or None before the calibrator has booted."""
     if not calibrator.tau0:
         return None
@@ -537,23 +534,6 @@ def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> Calibratio
             estimates = calibrator.estimates()
         except (ImucalError, np.linalg.LinAlgError, ValueError):
             return None
-    return CalibrationResult(estimates, config, dict(calibrator.rates_hz), dict(calibrator.noise))
-
-
-def estimate(streamed: StreamedLog) -> CalibrationResult:
-    """Solve for every sensor from a streamed log."""
-    try:
-        with np.errstate(all="ignore"), blas_threads():
-            estimates = streamed.calibrator.estimates()
-    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
-        # only data no IMU produces get here (the reader drops what it can recognise)
-        raise InputError(
-            f"{streamed.log}: the IMU data are numerically degenerate ({exc}); the log may hold "
-            "damaged samples"
-        ) from None
-    return CalibrationResult(
-        estimates,
-        streamed.config,
-        dict(streamed.calibrator.rates_hz),
-        dict(streamed.calibrator.noise),
+    return _calibration(
+        calibrator, config, _first_stamp(calibrator), None, estimates, followed=True
     )

@@ -143,6 +143,22 @@ def _clipped(values: np.ndarray, floor: float) -> np.ndarray:
     return out
 
 
+def _all_within(
+    gyro: np.ndarray, accel: np.ndarray, gyro_max: float, accel_max: float, strict: bool = False
+) -> bool:
+    """Whether every value lies within the bounds (and is finite: a NaN anywhere makes the
+    whole-array extremes NaN, and the comparisons False)."""
+    extremes = (float(gyro.min()), float(gyro.max()), float(accel.min()), float(accel.max()))
+    bounds = (-gyro_max, gyro_max, -accel_max, accel_max)
+    if strict:
+        return bool(extremes[0] > bounds[0] and extremes[1] < bounds[1]) and bool(
+            extremes[2] > bounds[2] and extremes[3] < bounds[3]
+        )
+    return bool(extremes[0] >= bounds[0] and extremes[1] <= bounds[1]) and bool(
+        extremes[2] >= bounds[2] and extremes[3] <= bounds[3]
+    )
+
+
 class ImuBatches:
     """Decoded ``sensor_msgs/Imu`` batches of a log, in the container's order, without holding
     the whole log: ``(topic, stamp_ns, log_time_ns, gyro, accel)`` per batch (stamps that are
@@ -186,19 +202,6 @@ class ImuBatches:
             return stamps, log_times, gyro, accel
         jump = int(CLOCK_JUMP_S * 1e9)
         reached_before = self._reached.get(topic, -(2**62))
-        # whole-array extremes (a NaN anywhere makes them NaN, and the comparisons False)
-        g_lo, g_hi, a_lo, a_hi = (
-            float(gyro.min()),
-            float(gyro.max()),
-            float(accel.min()),
-            float(accel.max()),
-        )
-        values_ok = (
-            g_lo > -SATURATION_GYRO_RADPS
-            and g_hi < SATURATION_GYRO_RADPS
-            and a_lo > -SATURATION_ACCEL_MPS2
-            and a_hi < SATURATION_ACCEL_MPS2
-        )
         low, high = int(stamps.min()), int(stamps.max())
         # no step can leap by more than `jump` when the whole batch spans less than that
         narrow = high - low <= jump
@@ -206,27 +209,30 @@ class ImuBatches:
             narrow or bool(np.abs(np.diff(stamps)).max() <= jump)
         ) and low >= reached_before - jump
         quiet = narrow and low >= reached_before - jump  # nothing leaps, nothing falls behind
-        if values_ok and stamps_ok:
-            self._reached[topic] = max(reached_before, high)
-            return stamps, log_times, gyro, accel
-        # values past the saturation floors but finite and plausible, stamps quiet (a lively
-        # sensor): only a clipped run could be dropped, and there is none in the usual case
-        plausible = (
-            g_lo >= -IMPLAUSIBLE_GYRO_RADPS
-            and g_hi <= IMPLAUSIBLE_GYRO_RADPS
-            and a_lo >= -IMPLAUSIBLE_ACCEL_MPS2
-            and a_hi <= IMPLAUSIBLE_ACCEL_MPS2
-        )  # and finite: a NaN anywhere makes the extremes NaN, and the comparisons False
-        if (
+        values_ok = _all_within(gyro, accel, SATURATION_GYRO_RADPS, SATURATION_ACCEL_MPS2, True)
+        # values past the saturation floors but plausible, stamps quiet (a lively sensor):
+        # only a clipped run could be dropped, and there is none in the usual case
+        if (values_ok and stamps_ok) or (
             quiet
-            and plausible
-            and not (
-                _clipped(gyro, SATURATION_GYRO_RADPS).any()
-                or _clipped(accel, SATURATION_ACCEL_MPS2).any()
-            )
+            and _all_within(gyro, accel, IMPLAUSIBLE_GYRO_RADPS, IMPLAUSIBLE_ACCEL_MPS2)
+            and not _clipped(gyro, SATURATION_GYRO_RADPS).any()
+            and not _clipped(accel, SATURATION_ACCEL_MPS2).any()
         ):
             self._reached[topic] = max(reached_before, high)
             return stamps, log_times, gyro, accel
+        unusable, clipped = self._bad_values(topic, stamps, gyro, accel)
+        bad = unusable | clipped | self._bad_stamps(topic, stamps, reached_before, jump, unusable)
+        if bad.any():
+            keep = ~bad
+            return stamps[keep], log_times[keep], gyro[keep], accel[keep]
+        return stamps, log_times, gyro, accel
+
+    def _bad_values(
+        self, topic: str, stamps: np.ndarray, gyro: np.ndarray, accel: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The samples whose values are not finite or not plausible, and those clipped,
+        counted; the clipped ones' stamps kept for :meth:`take_clipped`."""
+        st = self.stats[topic]
         finite = np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1)
         bad = ~finite
         st.non_finite += int(np.count_nonzero(bad))
@@ -238,6 +244,22 @@ class ImuBatches:
         st.implausible += int(np.count_nonzero(absurd))
         bad |= absurd
         finite &= ~absurd
+        clipped = np.zeros(len(stamps), dtype=bool)
+        if finite.any():
+            clipped[finite] = _clipped(gyro[finite], SATURATION_GYRO_RADPS) | _clipped(
+                accel[finite], SATURATION_ACCEL_MPS2
+            )
+        st.saturated += int(np.count_nonzero(clipped))
+        if clipped.any():
+            self.clipped[topic].append(stamps[clipped])
+        return bad, clipped
+
+    def _bad_stamps(
+        self, topic: str, stamps: np.ndarray, reached_before: int, jump: int, unusable: np.ndarray
+    ) -> np.ndarray:
+        """The samples whose stamps are damaged or leap back behind what the topic reached,
+        counted (the ``unusable`` ones, bad by their values, left out of the count)."""
+        st = self.stats[topic]
         outlier = _stamp_outliers(stamps)
         # stamps that leap back by minutes or more behind what this topic already reached
         # cannot be placed in time: dropped (a forward leap is kept: time moves on)
@@ -247,24 +269,11 @@ class ImuBatches:
         behind = ~outlier & (stamps < running - jump)
         if (~outlier).any():
             self._reached[topic] = max(reached_before, int(stamps[~outlier].max()))
-        st.stamp_outliers += int(np.count_nonzero((outlier | behind) & ~bad))
+        st.stamp_outliers += int(np.count_nonzero((outlier | behind) & ~unusable))
         st.clock_jumps += int(
             np.count_nonzero(np.diff(np.concatenate([[0], behind.astype(np.int8)])) == 1)
         )
-        bad |= outlier | behind
-        clipped = np.zeros(len(stamps), dtype=bool)
-        if finite.any():
-            clipped[finite] = _clipped(gyro[finite], SATURATION_GYRO_RADPS) | _clipped(
-                accel[finite], SATURATION_ACCEL_MPS2
-            )
-        st.saturated += int(np.count_nonzero(clipped))
-        if clipped.any():
-            self.clipped[topic].append(stamps[clipped])
-        bad |= clipped
-        if bad.any():
-            keep = ~bad
-            return stamps[keep], log_times[keep], gyro[keep], accel[keep]
-        return stamps, log_times, gyro, accel
+        return outlier | behind
 
     def take_clipped(self, topic: str) -> np.ndarray:
         """The stamps (ns) of ``topic``'s clipped samples dropped since the last call."""

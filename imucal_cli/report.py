@@ -22,12 +22,15 @@ import html
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from imucal_cli.errors import InputError
 from imucal_cli.types import Transform
+
+if TYPE_CHECKING:
+    from imucal_cli.calibration import Calibration
 
 AXES = ("x", "y", "z")
 COLOURS = ("tab:red", "tab:green", "tab:blue")
@@ -247,44 +250,12 @@ def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path)
         ("whole vehicle, top view (x forward, y left)", 0, 1),
         ("whole vehicle, side view (x forward, z up)", 0, 2),
     )
-    base_len, sensor_len = 0.5, 0.3
+    base_len, sensor_len, close = 0.5, 0.3, 0.06
     for col, (title, i, j) in enumerate(views):
         ax = fig.add_subplot(grid[0, col * max(2, n) // 2 : (col + 1) * max(2, n) // 2])
-        _draw_axes(ax, Transform.identity(), i, j, base_len, "-", 1.0)
-        ax.annotate("base", (0, 0), textcoords="offset points", xytext=(4, -14), fontsize=9)
-        for name, p in poses.items():
-            _draw_axes(ax, p["prior_imu"], i, j, sensor_len, "--", 0.6)
-            _draw_axes(ax, p["lidar"], i, j, sensor_len, "-", 1.0)
-            at = p["lidar"].translation
-            ax.plot(at[i], at[j], "s", color="black", ms=4)
-            side = 1 if at[1] >= 0 else -1
-            ax.annotate(
-                name, (at[i], at[j]), textcoords="offset points", xytext=(6, 8 * side), fontsize=8
-            )
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.margins(0.15)
-        ax.set_xlabel(f"{'xyz'[i]} in the base frame (m)")
-        ax.set_ylabel(f"{'xyz'[j]} in the base frame (m)")
-        ax.set_title(title, fontsize=10)
-        ax.grid(alpha=0.3)
+        _whole_vehicle(ax, poses, title, i, j, base_len, sensor_len)
     for col, (name, p) in enumerate(poses.items()):
-        ax = fig.add_subplot(grid[1, col])
-        close = 0.06
-        for key, style, alpha, marker, colour in (
-            ("prior_imu", "--", 0.6, "x", "grey"),
-            ("imu", "-", 1.0, "o", "black"),
-            ("lidar", "-", 1.0, "s", "black"),
-        ):
-            _draw_axes(ax, p[key], 0, 1, close, style, alpha)
-            ax.plot(p[key].translation[0], p[key].translation[1], marker, color=colour, ms=6)
-        centre = p["lidar"].translation
-        ax.set_xlim(centre[0] - 0.15, centre[0] + 0.15)
-        ax.set_ylim(centre[1] - 0.15, centre[1] + 0.15)
-        ax.set_aspect("equal")
-        ax.set_title(f"{name}: close-up, top view", fontsize=10)
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-        ax.grid(alpha=0.3)
+        _close_up(fig.add_subplot(grid[1, col]), name, p, close)
     legend = [
         Line2D([], [], color="black", marker="o", ls="", label="IMU, estimated"),
         Line2D([], [], color="black", marker="s", ls="", label="lidar, estimated"),
@@ -299,6 +270,54 @@ def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path)
     )
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     return _save(fig, path)
+
+
+def _whole_vehicle(
+    ax: Any,
+    poses: Mapping[str, Mapping[str, Any]],
+    title: str,
+    i: int,
+    j: int,
+    base_len: float,
+    sensor_len: float,
+) -> None:
+    """The base frame and every lidar (the IMU's prior dashed) on axes ``i``, ``j``."""
+    _draw_axes(ax, Transform.identity(), i, j, base_len, "-", 1.0)
+    ax.annotate("base", (0, 0), textcoords="offset points", xytext=(4, -14), fontsize=9)
+    for name, p in poses.items():
+        _draw_axes(ax, p["prior_imu"], i, j, sensor_len, "--", 0.6)
+        _draw_axes(ax, p["lidar"], i, j, sensor_len, "-", 1.0)
+        at = p["lidar"].translation
+        ax.plot(at[i], at[j], "s", color="black", ms=4)
+        side = 1 if at[1] >= 0 else -1
+        ax.annotate(
+            name, (at[i], at[j]), textcoords="offset points", xytext=(6, 8 * side), fontsize=8
+        )
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.margins(0.15)
+    ax.set_xlabel(f"{'xyz'[i]} in the base frame (m)")
+    ax.set_ylabel(f"{'xyz'[j]} in the base frame (m)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+
+
+def _close_up(ax: Any, name: str, p: Mapping[str, Any], close: float) -> None:
+    """One sensor from above: its IMU's prior, its IMU and its lidar."""
+    for key, style, alpha, marker, colour in (
+        ("prior_imu", "--", 0.6, "x", "grey"),
+        ("imu", "-", 1.0, "o", "black"),
+        ("lidar", "-", 1.0, "s", "black"),
+    ):
+        _draw_axes(ax, p[key], 0, 1, close, style, alpha)
+        ax.plot(p[key].translation[0], p[key].translation[1], marker, color=colour, ms=6)
+    centre = p["lidar"].translation
+    ax.set_xlim(centre[0] - 0.15, centre[0] + 0.15)
+    ax.set_ylim(centre[1] - 0.15, centre[1] + 0.15)
+    ax.set_aspect("equal")
+    ax.set_title(f"{name}: close-up, top view", fontsize=10)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.grid(alpha=0.3)
 
 
 def html_page(title: str, document: Mapping[str, Any], figures: list[tuple[Path, str]]) -> str:
@@ -393,14 +412,7 @@ def _sensor_notes(name: str, sensor: Mapping[str, Any]) -> str:
 FIGURES = ("biases.png", "windows.png", "residuals.png", "std.png", "vehicle.png")
 
 
-def write_report(
-    out_dir: Path,
-    log: Path,
-    result: Any,
-    streamed: Any,
-    document: Mapping[str, Any],
-    progress: Any = None,
-) -> list[Path]:
+def write_report(out_dir: Path, calibration: Calibration, progress: Any = None) -> list[Path]:
     """Draw every figure into ``out_dir`` and write ``report.html``; returns the files written.
     ``progress`` is told (figures drawn, figures in all) as it goes. The report is made in a
     hidden folder beside ``out_dir`` and moved in whole: a run ended midway (a Ctrl-C, a
@@ -412,7 +424,7 @@ def write_report(
     out_dir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
     try:
-        drawn = _draw_report(work, log, result, streamed, document, progress)
+        drawn = _draw_report(work, calibration, progress)
         for path in drawn:
             os.replace(path, out_dir / path.name)
         return [out_dir / path.name for path in drawn]
@@ -424,23 +436,15 @@ def write_report(
             out_dir.rmdir()
 
 
-def _draw_report(
-    out_dir: Path,
-    log: Path,
-    result: Any,
-    streamed: Any,
-    document: Mapping[str, Any],
-    progress: Any = None,
-) -> list[Path]:
+def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> list[Path]:
     """:func:`write_report`'s figures and page, drawn into ``out_dir``."""
     from imucal_cli.documents import write_text_atomic
 
     plt = pyplot()
+    log, document = result.log, result.document()
     config = result.config
     estimates = {s.name: result.estimates[s.name] for s in config.sensors}
-    offset = (
-        streamed.calibrator.t_ref_ns - streamed.t0_ns
-    ) * 1e-9  # the grid clock from the first stamp
+    offset = (result.t_ref_ns - result.t0_ns) * 1e-9  # the grid clock from the first stamp
     stds = {
         n: (s["rotation_std_deg"], s["translation_std_m"]) for n, s in document["sensors"].items()
     }

@@ -111,6 +111,21 @@ def rotation_to_rpy(rotation: Rotation) -> np.ndarray:
     return np.array([roll, pitch, yaw])
 
 
+def _quaternion(value: Any, source: str, key: str) -> Rotation:
+    """A quaternion [qx, qy, qz, qw] of norm 1 (within :data:`QUATERNION_NORM_TOLERANCE`)."""
+    if not isinstance(value, (list, tuple)) or len(value) != 4:
+        raise ConfigError(source, key, f"expected a quaternion [qx, qy, qz, qw], got {value!r}")
+    quat = _finite_numbers(value, source, key)
+    norm = float(np.linalg.norm(quat))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise ConfigError(
+            source,
+            key,
+            f"quaternion norm is {norm:.6g}, not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})",
+        )
+    return rotation_type().from_quat(quat / norm)
+
+
 def _vector3(value: Any, source: str, key: str) -> np.ndarray:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         raise ConfigError(source, key, f"expected a list of 3 numbers, got {value!r}")
@@ -232,28 +247,13 @@ class Transform:
             raise ConfigError(source, sub("translation"), "missing required key")
         translation = _vector3(data["translation"], source, sub("translation"))
 
-        rotation: Rotation | None = None
-        if "rotation" in data:
-            value = data["rotation"]
-            if not isinstance(value, (list, tuple)) or len(value) != 4:
-                raise ConfigError(
-                    source,
-                    sub("rotation"),
-                    f"expected a quaternion [qx, qy, qz, qw], got {value!r}",
-                )
-            quat = _finite_numbers(value, source, sub("rotation"))
-            norm = float(np.linalg.norm(quat))
-            if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-                raise ConfigError(
-                    source,
-                    sub("rotation"),
-                    f"quaternion norm is {norm:.6g}, not 1 (tolerance "
-                    f"{QUATERNION_NORM_TOLERANCE:g})",
-                )
-            rotation = rotation_type().from_quat(quat / norm)
+        rotation = (
+            _quaternion(data["rotation"], source, sub("rotation")) if "rotation" in data else None
+        )
         if "rpy_deg" in data:
-            rpy = np.radians(_vector3(data["rpy_deg"], source, sub("rpy_deg")))
-            rotation_rpy = rpy_to_rotation(rpy)
+            rotation_rpy = rpy_to_rotation(
+                np.radians(_vector3(data["rpy_deg"], source, sub("rpy_deg")))
+            )
             if rotation is not None:
                 angle = float((rotation.inv() * rotation_rpy).magnitude())
                 if angle > ROTATION_AGREEMENT_TOLERANCE_RAD:
@@ -263,8 +263,7 @@ class Transform:
                         f"disagrees with {sub('rotation')} by {angle:.3g} rad "
                         f"(tolerance {ROTATION_AGREEMENT_TOLERANCE_RAD:g} rad)",
                     )
-            else:
-                rotation = rotation_rpy
+            rotation = rotation_rpy if rotation is None else rotation
         if rotation is None:
             raise ConfigError(source, sub("rotation"), "missing: give rotation or rpy_deg")
         return Transform(rotation, translation)
@@ -273,3 +272,15 @@ class Transform:
         t = np.array2string(self.translation, precision=4)
         rpy = np.array2string(np.degrees(self.rpy_rad), precision=3)
         return f"Transform(t={t} m, rpy={rpy} deg)"
+
+
+@dataclass(frozen=True)
+class DriveStreams:
+    """The IMU streams of one log: the base and one per configured sensor (by name)."""
+
+    base: ImuStream
+    sensors: Mapping[str, ImuStream]
+    t0_ns: int  # first stamp of the log's IMU messages: the origin of report times
+
+    def seconds(self, t_ns: int) -> float:
+        return (t_ns - self.t0_ns) * 1e-9

@@ -238,7 +238,7 @@ def test_biases_from_the_command_line_is_the_python_apis_document():
     log, config = SAMPLE_DATA / "urban.mcap", SAMPLE_DATA / "urban.config.yaml"
     result = runner.invoke(app, ["biases", str(log), "-c", str(config), "--json"])
     assert result.exit_code == 0, result.output
-    in_process = imucal_cli.stream_biases(log, imucal_cli.load_config(config))
+    in_process = imucal_cli.biases(log, imucal_cli.load_config(config))
     assert json.loads(result.stdout) == json.loads(json.dumps(in_process))
 
 

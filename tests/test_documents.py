@@ -9,17 +9,14 @@ from conftest import SAMPLE_DATA
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from imucal_cli.api import calibrate, segments
 from imucal_cli.documents import dumps, to_plain
-from imucal_cli.pipeline import calibrate_log, stream_log
 
 
 def test_the_written_yaml_is_pure_pythons_text():
-    run = calibrate_log(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
-    from imucal_cli.outputs import segments_document
-
-    streamed = stream_log(SAMPLE_DATA / "aggressive.mcap", run.result.config)
-    segments = segments_document(streamed.t0_ns, run.result.config, streamed.calibrator)
-    for document in (run.document, segments):
+    run = calibrate(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
+    windows = segments(SAMPLE_DATA / "aggressive.mcap", run.config).segments_document()
+    for document in (run.document(), windows):
         expected = yaml.safe_dump(
             to_plain(document), sort_keys=False, default_flow_style=None, width=100
         )

@@ -338,17 +338,17 @@ def test_gap_is_counted_and_windows_across_it_are_not_used(tmp_path, short_drive
         pass
     assert reader.stats[name].gaps == 1
     assert all(reader.stats[o].gaps == 0 for o in topics if o != name)
-    from imucal_cli.api import stream_log
+    from imucal_cli.api import segments
     from imucal_cli.config import load_config
     from imucal_cli.documents import write_document
 
     write_document(tmp_path / "c.yaml", short_drive.config_document())
     config = load_config(tmp_path / "c.yaml")
-    streamed = stream_log(log, config)
+    streamed = segments(log, config)
     sensor = next(s.name for s in config.sensors if s.imu_topic == name)
-    windows = streamed.calibrator.windows[sensor]
+    windows = streamed.windows[sensor]
     gap = (8.0, 11.0)
-    t_ref = (streamed.calibrator.t_ref_ns - int(t[0])) * 1e-9
+    t_ref = (streamed.t_ref_ns - int(t[0])) * 1e-9
     for w in windows:
         start, end = w.start_s + t_ref, w.end_s + t_ref
         if start < gap[1] and end > gap[0]:
@@ -653,7 +653,7 @@ def test_mcap_message_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
 def test_a_long_gap_in_one_imu_does_not_confuse_its_units_or_its_clock(tmp_path):
     """A lidar IMU silent for 10 s of a 60 s drive: units and clock offsets are measured where
     every IMU has data (a spline across the gap once read as a gyro in neither unit)."""
-    from imucal_cli.api import calibrate_log
+    from imucal_cli.api import calibrate
     from imucal_cli.sim import DriveOptions, simulate_drive
     from imucal_cli.sim.writers import TopicData
     from imucal_cli.types import ImuStream
@@ -672,17 +672,17 @@ def test_a_long_gap_in_one_imu_does_not_confuse_its_units_or_its_clock(tmp_path)
     from imucal_cli.documents import write_document
 
     write_document(tmp_path / "c.yaml", drive.config_document())
-    run = calibrate_log(log, tmp_path / "c.yaml")
-    for sensor in run.document["sensors"].values():
+    run = calibrate(log, tmp_path / "c.yaml")
+    for sensor in run.document()["sensors"].values():
         assert not any("publishes" in w for w in sensor["warnings"])  # no unit conversion made up
-    assert run.streamed.stats[name].gaps == 1
+    assert run.reading.counts[name]["gaps"] == 1
 
 
 def test_a_topic_that_stops_is_named_and_the_others_use_the_whole_log(tmp_path):
     """A lidar IMU that stops sending a third of the way in (a driver that died): a warning
     names it, its windows after that are not used, and the other sensor calibrates from the
     whole log (it used to wait for the stopped one, buffering everything)."""
-    from imucal_cli.api import calibrate_log
+    from imucal_cli.api import calibrate
     from imucal_cli.documents import write_document
     from imucal_cli.sim import DriveOptions, simulate_drive
     from imucal_cli.sim.writers import TopicData
@@ -705,10 +705,10 @@ def test_a_topic_that_stops_is_named_and_the_others_use_the_whole_log(tmp_path):
     log = write_imu_log(tmp_path / "d.mcap", "mcap", topics)
     config = tmp_path / "c.yaml"
     write_document(config, drive.config_document())
-    run = calibrate_log(log, config)
+    run = calibrate(log, config)
     names = {s["imu_topic"]: n for n, s in drive.config_document()["sensors"].items()}
     gone, other = names[stopped], next(n for t, n in names.items() if t != stopped)
-    sensors = run.document["sensors"]
+    sensors = run.document()["sensors"]
     assert any(stopped in w and "sent nothing from" in w for w in sensors[gone]["warnings"])
     assert not any("sent nothing" in w for w in sensors[other]["warnings"])
     total = sensors[other]["segments"]["total"]
@@ -775,14 +775,14 @@ def test_windows_that_held_a_clipped_run_the_reader_dropped_are_not_used(tmp_pat
     """A lidar gyro at the end of a 250 deg/s range for three samples: reading drops the run
     (a clipped value is not the motion), and the window that held it is not used, where the
     spline would otherwise interpolate across the hole as if nothing had happened."""
-    from imucal_cli.api import calibrate_log
+    from imucal_cli.api import calibrate
     from imucal_cli.documents import write_document
     from imucal_cli.sim import DriveOptions, simulate_drive
     from imucal_cli.sim.writers import TopicData
 
     drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=90.0, seed=5))
     write_document(tmp_path / "c.yaml", drive.config_document())
-    clean = calibrate_log(
+    clean = calibrate(
         write_imu_log(tmp_path / "a.mcap", "mcap", drive.topics()), tmp_path / "c.yaml"
     )
     topics = drive.topics()
@@ -792,15 +792,15 @@ def test_windows_that_held_a_clipped_run_the_reader_dropped_are_not_used(tmp_pat
     at = int(np.searchsorted(data.stream.t_ns, data.stream.t_ns[0] + 45 * 10**9))
     gyro[at : at + 3, 1] = 4.3633
     topics[name] = TopicData(_with(data.stream, gyro), data.log_time_ns)
-    run = calibrate_log(write_imu_log(tmp_path / "b.mcap", "mcap", topics), tmp_path / "c.yaml")
-    assert run.streamed.stats[name].saturated == 3
+    run = calibrate(write_imu_log(tmp_path / "b.mcap", "mcap", topics), tmp_path / "c.yaml")
+    assert run.reading.counts[name]["saturated"] == 3
     sensor = next(
         s
         for s in drive.config_document()["sensors"]
         if drive.config_document()["sensors"][s]["imu_topic"] == name
     )
-    before = clean.result.estimates[sensor].windows
-    after = run.result.estimates[sensor].windows
+    before = clean.estimates[sensor].windows
+    after = run.estimates[sensor].windows
     changed = [i for i, (b, a) in enumerate(zip(before, after, strict=True)) if b.valid != a.valid]
     assert len(changed) >= 1 and all(before[i].valid and not after[i].valid for i in changed)
     t_clip = (data.stream.t_ns[at] - data.stream.t_ns[0]) * 1e-9

@@ -12,7 +12,7 @@ import yaml
 from recorder import SqliteRecorder, record, with_terminal_sigint
 from typer.testing import CliRunner
 
-from imucal_cli.api import calibrate_log
+from imucal_cli.api import calibrate
 from imucal_cli.cli import app
 from imucal_cli.documents import write_document
 from imucal_cli.sim import DriveOptions, simulate_drive
@@ -67,7 +67,7 @@ def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does
     updates = [json.loads(line) for line in result.stdout.splitlines()]
     assert len(updates) >= 2 and updates[-1]["windows"] >= updates[0]["windows"]
     followed = yaml.safe_load((tmp_path / "f.yaml").read_text())
-    batch = calibrate_log(target, config).document
+    batch = calibrate(target, config).document()
     for name, s in batch["sensors"].items():
         f = followed["sensors"][name]
         assert f["status"] == s["status"]
@@ -110,9 +110,9 @@ def test_following_a_rosbag2_recording_to_sqlite3_ends_where_the_batch_calibrati
     recorder.join(60)
     assert result.exit_code == 0, result.output
     followed = yaml.safe_load((tmp_path / "f.yaml").read_text())
-    batch = calibrate_log(
+    batch = calibrate(
         write_imu_log(tmp_path / "done", "rosbag2-sqlite3", aggressive.topics()), config
-    ).document
+    ).document()
     for name, s in batch["sensors"].items():
         d_t = np.abs(
             np.array(followed["sensors"][name]["T_base_imu"]["translation"])
@@ -216,32 +216,24 @@ def test_a_writer_that_dies_mid_record_ends_at_the_timeout_with_what_was_read(ag
 
 
 def test_the_live_table_shows_status_std_windows_and_what_is_missing():
+    from dataclasses import replace
     from pathlib import Path
 
     from conftest import SAMPLE_DATA
     from rich.console import Console
 
-    from imucal_cli.cli import _follow_table
-    from imucal_cli.pipeline import missing_axes
+    from imucal_cli.cli.follow import follow_table
 
-    run = calibrate_log(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
-    stop = run.result.config.stop.__class__(
+    run = calibrate(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
+    stop = run.config.stop.__class__(
         max_rotation_std_deg=0.001, max_translation_std_m=0.0001
     )  # out of reach
-    sensors = {
-        n: {
-            "status": e.status,
-            "rotation_std_deg": e.rotation_std_deg,
-            "translation_std_m": e.translation_std_m,
-            "missing": missing_axes(e, stop),
-        }
-        for n, e in run.result.estimates.items()
-    }
+    run = replace(run, config=replace(run.config, stop=stop))
     console = Console(width=200, record=True)
-    console.print(_follow_table(Path("live.mcap"), 7, run.result, sensors))
+    console.print(follow_table(Path("live.mcap"), 7, run))
     text = console.export_text()
     assert "following live.mcap: 7 windows" in text
-    for name, estimate in run.result.estimates.items():
+    for name, estimate in run.estimates.items():
         assert (
             name in text
             and f"{sum(w.selected for w in estimate.windows)}/{len(estimate.windows)}" in text
@@ -302,42 +294,54 @@ def _kinds(warnings):
     return [w.split(next((c for c in w if c.isdigit()), "\0"))[0] for w in warnings]
 
 
-def test_follow_on_a_finished_log_runs_the_same_checks_and_gives_the_same_document():
-    """``follow_log`` and ``calibrate_log`` share the read loop, its checks, the final reduction
-    and the document. On a finished log they differ only in how windows are conditioned (one
-    at a time live, six at a time in batch: the filter's padding at a block's edges), which
-    moves the estimate by far less than its std."""
+def test_one_document_from_the_api_the_cli_batch_and_follow_on_a_finished_log(tmp_path):
+    """One process layout, one pipeline: the calibrate document of the sample drive is the
+    same, to the bit, from ``imucal_cli.calibrate``, ``imucal calibrate -o``, ``imucal batch``
+    and ``calibrate --follow`` of the finished file (which adds only each sensor's ``missing``
+    axes and ``converged``)."""
     from conftest import SAMPLE_DATA
 
-    from imucal_cli.api import follow_log
+    from imucal_cli.api import follow
+    from imucal_cli.cli import app
     from imucal_cli.config import load_config
+    from imucal_cli.documents import load_document, to_plain
 
-    config = load_config(SAMPLE_DATA / "aggressive.config.yaml")
-    batch = calibrate_log(SAMPLE_DATA / "aggressive.mcap", config).document
-    run, _, interrupted = follow_log(SAMPLE_DATA / "aggressive.mcap", config, stop=lambda: True)
-    followed = run.document
+    log = (SAMPLE_DATA / "aggressive.mcap").resolve()  # (as batch names it)
+    path = SAMPLE_DATA / "aggressive.config.yaml"
+    config = load_config(path, log)  # (what it leaves out: the log's /tf_static)
+    api = to_plain(calibrate(log, path).document())
+    followed, interrupted = follow(log, config)
     assert not interrupted
-    assert set(followed) - set(batch) == {"converged"}
-    for key in ("counts", "dropped", "losses", "lost_s", "pairs"):
-        assert (key in followed) == (key in batch)
-        if key in batch and key != "pairs":
-            assert followed[key] == batch[key], key
-    for name, s in batch["sensors"].items():
-        f = followed["sensors"][name]
-        assert set(f) - set(s) == {"missing"}
-        assert f["status"] == s["status"]
-        assert {k: v["pass"] for k, v in f["checks"].items()} == {
-            k: v["pass"] for k, v in s["checks"].items()
-        }
-        assert _kinds(f["warnings"]) == _kinds(s["warnings"])
-        assert (
-            f["segments"]["total"] == s["segments"]["total"]
-            and f["segments"]["selected"] == s["segments"]["selected"]
-        )
-        for key, std in (("translation", "translation_std_m"), ("rpy_deg", "rotation_std_deg")):
-            d = np.abs(np.array(f["T_base_imu"][key]) - s["T_base_imu"][key])
-            assert np.all(d <= 1e-3 * np.array(s[std])), (name, key, d, s[std])
-        np.testing.assert_allclose(f[std], s[std], rtol=1e-3)
+    from_follow = to_plain(followed.document())
+    assert from_follow.pop("converged") is followed.converged
+    for sensor in from_follow["sensors"].values():
+        assert isinstance(sensor.pop("missing"), list)
+    runner = CliRunner()
+    result = runner.invoke(
+        app, ["calibrate", str(log), "-c", str(path), "-o", str(tmp_path / "c.yaml")]
+    )
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(
+        app, ["batch", str(log), "-c", str(path), "--out-dir", str(tmp_path / "b")]
+    )
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(
+        app,
+        ["calibrate", str(log), "-c", str(path), "--follow", "-o", str(tmp_path / "f.yaml")],
+    )
+    assert result.exit_code == 0, result.output
+    cli_follow = load_document(tmp_path / "f.yaml")
+    del cli_follow["converged"]
+    for sensor in cli_follow["sensors"].values():
+        del sensor["missing"]
+    documents = {
+        "cli": load_document(tmp_path / "c.yaml"),
+        "batch": load_document(tmp_path / "b" / "aggressive.yaml"),
+        "follow": from_follow,
+        "cli --follow": cli_follow,
+    }
+    for name, document in documents.items():
+        assert document == api, name
 
 
 @pytest.mark.parametrize("follow", [False, True])
@@ -453,10 +457,11 @@ def test_a_recording_that_stalls_is_said_with_how_long_it_has_waited(
     how long it has lasted."""
     from typer.testing import CliRunner
 
-    import imucal_cli.cli as cli
+    from imucal_cli.cli import app
+    from imucal_cli.cli import follow as following
     from imucal_cli.sim.writers import write_imu_log
 
-    monkeypatch.setattr(cli, "FOLLOW_STALL_S", 1.0)
+    monkeypatch.setattr(following, "FOLLOW_STALL_S", 1.0)
     config = tmp_path / "c.yaml"
     write_document(config, aggressive.config_document())
     log = write_imu_log(tmp_path / "d.mcap", "mcap", aggressive.topics())
@@ -465,5 +470,5 @@ def test_a_recording_that_stalls_is_said_with_how_long_it_has_waited(
     end = data.rindex(b"\x0f", 0, int.from_bytes(data[footer + 9 : footer + 17], "little"))
     log.write_bytes(data[:end])  # the recorder hung: no data end, no summary, no footer
     argv = ["calibrate", str(log), "-c", str(config), "--follow", "--timeout", "4"]
-    result = CliRunner().invoke(cli.app, argv)
+    result = CliRunner().invoke(app, argv)
     assert re.search(r"nothing new for \d+ s; still waiting", result.stderr), result.stderr

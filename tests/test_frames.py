@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import yaml
 
+from imucal_cli.api import calibrate
 from imucal_cli.config import load_config
 from imucal_cli.documents import write_document
 from imucal_cli.errors import ConfigError
 from imucal_cli.frames import FrameTree
-from imucal_cli.pipeline import calibrate_log
 from imucal_cli.sim import DriveOptions, simulate_drive
 from imucal_cli.sim.drive import INS_AWAY
 from imucal_cli.sim.writers import write_imu_log
@@ -54,8 +54,8 @@ def test_a_config_naming_only_topics_and_frames_calibrates_as_the_full_one(
     full = drive.config_document()
     write_document(tmp_path / "full.yaml", full)
     write_document(tmp_path / "min.yaml", _minimal(full))
-    with_config = calibrate_log(log, tmp_path / "full.yaml")
-    from_log = calibrate_log(log, tmp_path / "min.yaml")
+    with_config = calibrate(log, tmp_path / "full.yaml")
+    from_log = calibrate(log, tmp_path / "min.yaml")
     loaded = load_config(tmp_path / "min.yaml", log)
     for sensor in load_config(tmp_path / "full.yaml").sensors:
         mine = loaded.sensor(sensor.name)
@@ -64,14 +64,14 @@ def test_a_config_naming_only_topics_and_frames_calibrates_as_the_full_one(
                 getattr(mine, key).as_matrix(), getattr(sensor, key).as_matrix(), atol=1e-12
             )
         np.testing.assert_allclose(
-            from_log.result.T_base_lidar(sensor.name).as_matrix(),
-            with_config.result.T_base_lidar(sensor.name).as_matrix(),
+            from_log.T_base_lidar(sensor.name).as_matrix(),
+            with_config.T_base_lidar(sensor.name).as_matrix(),
             atol=1e-9,
         )
-        assert from_log.document["sensors"][sensor.name]["priors"] == dict.fromkeys(
+        assert from_log.document()["sensors"][sensor.name]["priors"] == dict.fromkeys(
             ("T_imu_lidar", "prior_T_base_imu", "base.T_base_imu"), "tf_static"
         )
-        given = with_config.document["sensors"][sensor.name]["priors"]
+        given = with_config.document()["sensors"][sensor.name]["priors"]
         assert given["T_imu_lidar"] == given["prior_T_base_imu"] == "config"
     np.testing.assert_allclose(loaded.base.T_base_imu.as_matrix(), INS_AWAY.as_matrix(), atol=1e-12)
 

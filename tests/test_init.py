@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from imucal_cli.api import calibrate
 from imucal_cli.config import load_config
 from imucal_cli.errors import ConfigError
 from imucal_cli.init import sensor_name
-from imucal_cli.pipeline import calibrate_log
 from imucal_cli.sim import DriveOptions, simulate_drive
 from imucal_cli.sim.writers import write_imu_log
 
@@ -47,8 +47,8 @@ def test_init_on_a_sample_log_writes_a_config_that_checks_and_calibrates(tmp_pat
             np.testing.assert_allclose(
                 getattr(mine, key).as_matrix(), getattr(sensor, key).as_matrix(), atol=1e-8
             )
-    run = calibrate_log(log, written)
-    assert all(s["status"] == "ok" for s in run.document["sensors"].values())
+    run = calibrate(log, written)
+    assert all(s["status"] == "ok" for s in run.document()["sensors"].values())
 
 
 def test_init_on_a_log_without_transforms_writes_placeholders_and_says_which(tmp_path):
@@ -97,8 +97,8 @@ def test_init_on_a_drive_whose_ins_sits_away_finds_it_in_the_tree(tmp_path):
     config = load_config(tmp_path / "c.yaml")
     assert config.base.topic == drive.config_document()["base"]["topic"]
     np.testing.assert_allclose(config.base.T_base_imu.as_matrix(), INS_AWAY.as_matrix(), atol=1e-8)
-    run = calibrate_log(log, config)
-    assert all(s["status"] == "ok" for s in run.document["sensors"].values())
+    run = calibrate(log, config)
+    assert all(s["status"] == "ok" for s in run.document()["sensors"].values())
 
 
 def test_init_refuses_an_output_that_is_its_urdf_and_damaged_imu_data_is_one_line(tmp_path):

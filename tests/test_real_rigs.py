@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 from conftest import REALDATA
 
-from imucal_cli.api import evaluate, load_transforms
+from imucal_cli.api import calibrate, evaluate, load_transforms
 from imucal_cli.config import parse_config
-from imucal_cli.pipeline import calibrate_log
 
 RIGS = REALDATA / "multi_imu"
 
@@ -37,8 +36,8 @@ def _config(folder):
 
 def _run(rig: str):
     folder = _folder(rig)
-    run = calibrate_log(folder / "log.mcap", _config(folder))
-    return run, evaluate(run.document, folder / "truth.yaml")
+    run = calibrate(folder / "log.mcap", _config(folder))
+    return run, evaluate(run.document(), folder / "truth.yaml")
 
 
 @pytest.mark.parametrize("rig", ["erle_31-3-2015_83", "quad_flight1_dot1_dot7"])
@@ -47,20 +46,20 @@ def test_two_imus_on_one_board_come_back_within_a_degree_and_a_half_of_identity(
     (the DOTs placed by hand, measured 0.8 deg apart): identity by design to about 1 deg."""
     run, verdict = _run(rig)
     assert verdict["sensors"]["imu2"]["rotation_error_deg"] < 1.5
-    assert run.document["sensors"]["imu2"]["status"] != "unobservable"
+    assert run.document()["sensors"]["imu2"]["status"] != "unobservable"
 
 
 def test_a_robot_that_only_yaws_is_not_called_ok():
     """The hallway robot's lever arm lies along its only rotation axis: no confident number."""
     run, _ = _run("magpie_ugv1_b1_b5_kcal")
-    assert run.document["sensors"]["imu2"]["status"] != "ok"
+    assert run.document()["sensors"]["imu2"]["status"] != "ok"
 
 
 def test_the_array_board_is_read_whole_no_topic_taken_for_stopped():
     """The array board's log packs 400 s in a read group: both topics are read interleaved,
     so no window is lost to a topic taken for stopped (it was, from 47 s to 142 s)."""
     run, _ = _run("mimu_exp1_imu8")
-    sensor = run.document["sensors"]["imu2"]
+    sensor = run.document()["sensors"]["imu2"]
     assert not any("sent nothing" in w for w in sensor["warnings"]), sensor["warnings"]
 
 
@@ -70,8 +69,8 @@ def test_the_quadrotor_plate_is_ok_only_inside_its_std():
     identity lies inside it; the std was 0.02-0.11 deg without it (about 10 std)."""
     run, _ = _run("quad_flight1_dot1_dot7")
     truth = load_transforms(_folder("quad_flight1_dot1_dot7") / "truth.yaml")["imu2"]
-    sensor = run.document["sensors"]["imu2"]
-    error = (truth.rotation * run.result.T_base_lidar("imu2").rotation.inv()).as_rotvec()
+    sensor = run.document()["sensors"]["imu2"]
+    error = (truth.rotation * run.T_base_lidar("imu2").rotation.inv()).as_rotvec()
     assert sensor["status"] == "ok"
     assert np.all(np.degrees(np.abs(error)) < 4 * np.array(sensor["rotation_std_deg"]))
 
@@ -84,8 +83,8 @@ def test_the_array_board_comes_back_within_its_design_and_inside_its_total_std()
     the total std. (It was 1.68 deg off with every window used.)"""
     run, verdict = _run("mimu_exp1_imu8")
     truth = load_transforms(_folder("mimu_exp1_imu8") / "truth.yaml")["imu2"]
-    sensor = run.document["sensors"]["imu2"]
-    T = run.result.T_base_lidar("imu2")
+    sensor = run.document()["sensors"]["imu2"]
+    T = run.T_base_lidar("imu2")
     rotation = np.abs((truth.rotation * T.rotation.inv()).as_rotvec())
     translation = np.abs(T.translation - truth.translation)
     assert verdict["sensors"]["imu2"]["rotation_error_deg"] < 0.75
@@ -107,15 +106,15 @@ def _parts_agree(rig: str, parts: int) -> np.ndarray:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from real_rigs import agreement, read_streams, split
 
+    from imucal_cli.api import calibrate_streams
     from imucal_cli.errors import ImucalError
-    from imucal_cli.pipeline import run_calibrate
 
     folder = _folder(rig)
     config = _config(folder)
     results = []
     for part in split(read_streams(folder / "log.mcap", config), parts):
         try:
-            results.append(run_calibrate(part, config))
+            results.append(calibrate_streams(part, config))
         except ImucalError:  # a part that lies in a gap of the recording
             continue
     ratios = [agreement(a, b, "imu2") for a, b in combinations(results, 2)]

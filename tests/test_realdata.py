@@ -93,9 +93,9 @@ def test_real_highway_drive_is_reported_unobservable():
     'unobservable' with the prior, never a confident wrong extrinsic."""
     from scipy.interpolate import make_interp_spline
 
+    from imucal_cli.api import DriveStreams, calibrate_streams
     from imucal_cli.config import parse_config
     from imucal_cli.core.so3 import skew_squared
-    from imucal_cli.pipeline import DriveStreams, run_calibrate
     from imucal_cli.sim.rig import DEFAULT_MOUNTS, cad_prior
 
     if not (COMMA / "processed_log_IMU_gyro_t.npy").exists():
@@ -141,7 +141,7 @@ def test_real_highway_drive_is_reported_unobservable():
     streams = DriveStreams(
         ImuStream(t_ns, w_B, f_B), {mount.name: ImuStream(t_ns, w_I, f_I)}, int(t_ns[0])
     )
-    estimate = run_calibrate(streams, config).estimates[mount.name]
+    estimate = calibrate_streams(streams, config).estimates[mount.name]
     assert estimate.status == "unobservable"
     assert np.array_equal(estimate.T_base_imu.as_matrix(), prior.as_matrix())
     assert estimate.windows and all(w.rotation_std_deg > 1.0 for w in estimate.windows)

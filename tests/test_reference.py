@@ -18,8 +18,8 @@ from scipy.interpolate import CubicSpline
 from scipy.signal import butter, filtfilt
 from scipy.spatial.transform import Rotation
 
+from imucal_cli.api import calibrate_streams
 from imucal_cli.core.so3 import skew
-from imucal_cli.pipeline import run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive
 
 RATE = 100.0
@@ -70,7 +70,7 @@ def test_fast_estimator_agrees_with_the_plain_reference(noise_scale):
             "calibration": config.calibration.__class__(resample_hz=100.0, max_time_offset_s=0.0),
         }
     )
-    result = run_calibrate(streams, config)
+    result = calibrate_streams(streams, config)
     for mount in drive.mounts:
         fast = result.estimates[mount.name]
         R, t = reference(streams.base, streams.sensors[mount.name], streams.t0_ns)

@@ -115,7 +115,7 @@ def test_the_page_says_why_each_sensor_has_its_status(tmp_path):
     an unobservable one gets 'not shown' for its clock and says it has no checks."""
     import html
 
-    from imucal_cli.pipeline import calibrate_log
+    from imucal_cli.api import calibrate
     from imucal_cli.report import html_page
 
     document = yaml.safe_load((SAMPLE_DATA / "aggressive.config.yaml").read_text())
@@ -123,9 +123,9 @@ def test_the_page_says_why_each_sensor_has_its_status(tmp_path):
     first["prior_T_base_imu"]["translation"][0] += 0.5  # the box binds: not ok
     config = tmp_path / "off.yaml"
     config.write_text(yaml.safe_dump(document))
-    run = calibrate_log(SAMPLE_DATA / "aggressive.mcap", config)
-    page = html_page("t", run.document, [])
-    for name, sensor in run.document["sensors"].items():
+    run = calibrate(SAMPLE_DATA / "aggressive.mcap", config)
+    page = html_page("t", run.document(), [])
+    for name, sensor in run.document()["sensors"].items():
         assert f"<h2>{name}: {sensor['status']}</h2>" in page
         for warning in sensor["warnings"]:
             assert f"<li>{html.escape(warning)}</li>" in page
@@ -133,12 +133,12 @@ def test_the_page_says_why_each_sensor_has_its_status(tmp_path):
             verdict = "pass" if figures["pass"] else "FAIL"
             assert f"<tr><td>{check}</td><td>{verdict}</td>" in page
     assert any(
-        not c["pass"] for s in run.document["sensors"].values() for c in s["checks"].values()
+        not c["pass"] for s in run.document()["sensors"].values() for c in s["checks"].values()
     )
-    unobservable = {**run.document}
+    unobservable = {**run.document()}
     name = next(iter(unobservable["sensors"]))
     unobservable["sensors"] = {
-        name: {**run.document["sensors"][name], "status": "unobservable", "checks": {}}
+        name: {**run.document()["sensors"][name], "status": "unobservable", "checks": {}}
     }
     page = html_page("t", unobservable, [])
     assert "not shown" in page and "No checks" in page

@@ -506,10 +506,10 @@ def test_no_output_goes_into_a_bag_that_is_not_an_input(bags, command):
 def test_export_never_replaces_a_launch_file_nobody_named(tmp_path, short_drive):
     """``-f tf-static-ros2 -o robot.sh`` writes robot.launch.xml beside it: a hand-written
     one there is kept (and the run refused); one an earlier export wrote is replaced."""
+    from imucal_cli.api import calibrate_streams
     from imucal_cli.outputs import calibration_document
-    from imucal_cli.pipeline import run_calibrate
 
-    result = run_calibrate(short_drive.streams(), short_drive.config())
+    result = calibrate_streams(short_drive.streams(), short_drive.config())
     estimate = tmp_path / "estimate.yaml"
     write_document(estimate, calibration_document(result, "sim.mcap"))
     launch = tmp_path / "robot.launch.xml"

@@ -168,3 +168,45 @@ def unsolved_sentence(why: str) -> str:
         f"the drive's equations for this sensor could not be solved ({why}): the motion "
         "does not determine its pose as the model states it; the prior is returned"
     )
+
+
+#: What driving supplies information about each axis (the lever arm enters through
+#: ``([w]x^2 + [dw]x) t``: x and y through the yaw rate and its changes, z through roll and pitch).
+MANOEUVRES = {
+    "rotation x (roll)": "roll motion: crossfall, speed bumps, turns taken briskly",
+    "rotation y (pitch)": "pitch motion: braking and accelerating, speed bumps",
+    "rotation z (yaw)": "turns in both directions",
+    "translation x": "turns in both directions and changes of turn rate (slalom, roundabouts)",
+    "translation y": "turns in both directions and changes of turn rate (slalom, roundabouts)",
+    "translation z": "roll and pitch motion: speed bumps, crossfall, braking and accelerating",
+}
+
+
+def every_axis_missing() -> list[str]:
+    """Nothing determined yet: every axis, with the driving that supplies it."""
+    return [f"{axis}: {what}" for axis, what in MANOEUVRES.items()]
+
+
+def missing_axes(estimate: Any, stop: Any) -> list[str]:
+    """The axes whose std is not yet within the ``stop:`` targets, each with the driving that
+    supplies it: from the estimate's statistical std (what more driving shrinks)."""
+    if estimate.statistical_covariance is None:
+        return every_axis_missing()
+    # the statistical std: what more driving shrinks (the total adds what it cannot)
+    rotation = estimate.statistical_rotation_std_deg
+    translation = estimate.statistical_translation_std_m
+    assert rotation is not None and translation is not None
+    names = list(MANOEUVRES)
+    out = [
+        f"{names[k]}: {MANOEUVRES[names[k]]} (std {rotation[k]:.3g} deg, target "
+        f"{stop.max_rotation_std_deg:g})"
+        for k in range(3)
+        if rotation[k] > stop.max_rotation_std_deg
+    ]
+    out += [
+        f"{names[3 + k]}: {MANOEUVRES[names[3 + k]]} (std {translation[k]:.3g} m, target "
+        f"{stop.max_translation_std_m:g})"
+        for k in range(3)
+        if translation[k] > stop.max_translation_std_m or not estimate.translation_observable[k]
+    ]
+    return out

@@ -883,9 +883,12 @@ class StreamingCalibrator:
                     )
         return {name: (g, a) for name, (g, a) in scales.items()}
 
-    def process(self, final: bool = False) -> int:
+    def process(self, final: bool = False, whole_blocks: bool = True) -> int:
         """Reduce every window all IMUs now cover, ``block_windows`` at a time (one spline and
-        one filter pass per IMU and block); returns how many."""
+        one filter pass per IMU and block); returns how many. Without ``whole_blocks`` (a
+        follower that caught up with the recording), the windows covered so far are reduced
+        in a block that is not whole."""
+        need = self.block_windows if whole_blocks else 1
         if self.t_ref_ns is None or not self._boot(final):
             if final:  # (the boot found no stretch to read: no window either)
                 raise TooLittleData(self._too_little(self._covered_until()))
@@ -893,7 +896,7 @@ class StreamingCalibrator:
         count = 0
         covered = self._covered_until()
         while True:
-            if not final and covered < self._need(self.next_window + self.block_windows - 1, final):
+            if not final and covered < self._need(self.next_window + need - 1, final):
                 break  # no whole block yet (skipping empty stretches would only move it later)
             self._skip_empty()
             spans: list[tuple[int, float, float]] = []
@@ -912,7 +915,7 @@ class StreamingCalibrator:
                             partial = end < start + self.window_s
                     break
                 spans.append((number, start, end))
-            if not spans or (not final and len(spans) < self.block_windows):
+            if not spans or (not final and len(spans) < need):
                 break  # wait for a whole block
             self._reduce(spans)
             self.next_window += len(spans)

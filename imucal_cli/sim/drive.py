@@ -18,13 +18,12 @@ from imucal_cli.config import (
     parse_config,
 )
 from imucal_cli.core.grades import GRADES
-from imucal_cli.pipeline import DriveStreams
 from imucal_cli.sim.imu import MEMS_LIDAR, TACTICAL_BASE, ImuErrorModel, ImuSampler, SimulatedImu
 from imucal_cli.sim.rig import DEFAULT_MOUNTS, WHEEL_MOUNTS, LidarMount, cad_prior
 from imucal_cli.sim.scenarios import SCENARIOS, VehicleDynamics, make_scenario
 from imucal_cli.sim.trajectory import Trajectory
 from imucal_cli.sim.writers import TopicData
-from imucal_cli.types import GRAVITY_MPS2, ImuStream, Transform
+from imucal_cli.types import GRAVITY_MPS2, DriveStreams, ImuStream, Transform
 
 BASE_TOPIC = "/gnss/imu"
 BASE_FRAME = "base_link"
@@ -191,7 +190,7 @@ class SimulatedDrive:
     priors: dict[str, Transform]
 
     def streams(self) -> DriveStreams:
-        """What the drive's log holds, as :func:`imucal_cli.pipeline.run_calibrate` takes it."""
+        """What the drive's log holds, as :func:`imucal_cli.api.calibrate_streams` takes it."""
         return DriveStreams(
             base=self.base.stream,
             sensors={m.name: self.sensors[m.name].stream for m in self.mounts},
@@ -357,12 +356,8 @@ def simulate_drive(options: DriveOptions | None = None) -> SimulatedDrive:
 PIECE_S = 600.0
 
 
-def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive]:
-    """The drive as consecutive pieces of :data:`PIECE_S` (one piece where it is no longer):
-    each a :class:`SimulatedDrive` of the same trajectory, mounts, offsets and priors, with the
-    IMUs' samples of its span, their bias walks carried on. The first piece draws what
-    :func:`simulate_drive` of it alone would."""
-    o = options or DriveOptions()
+def _checked(o: DriveOptions) -> DriveOptions:
+    """The options, checked; a wheel's mounts where the vehicle's were left."""
     if o.scenario not in SCENARIOS:
         raise ValueError(
             f"unknown scenario {o.scenario!r} (expected one of: {', '.join(SCENARIOS)})"
@@ -373,9 +368,19 @@ def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive
         raise ValueError("noise_scale must be >= 0")
     if o.scenario == "wheel" and o.mounts == DEFAULT_MOUNTS:
         o = replace(o, mounts=WHEEL_MOUNTS)  # (a vehicle's lidars would spin off a wheel)
+    n = min(o.sensors, len(o.mounts))
+    if o.time_offsets_s is not None and len(o.time_offsets_s) not in (1, n):
+        raise ValueError(f"give 1 or {n} time offsets, got {len(o.time_offsets_s)}")
+    return o
+
+
+def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive]:
+    """The drive as consecutive pieces of :data:`PIECE_S` (one piece where it is no longer):
+    each a :class:`SimulatedDrive` of the same trajectory, mounts, offsets and priors, with the
+    IMUs' samples of its span, their bias walks carried on. The first piece draws what
+    :func:`simulate_drive` of it alone would."""
+    o = _checked(options or DriveOptions())
     mounts = o.mounts[: o.sensors]
-    if o.time_offsets_s is not None and len(o.time_offsets_s) not in (1, len(mounts)):
-        raise ValueError(f"give 1 or {len(mounts)} time offsets, got {len(o.time_offsets_s)}")
 
     trajectory = make_scenario(o.scenario, o.duration_s, seed=o.seed, dynamics=o.dynamics)
     edges = [*np.arange(trajectory.t_start_s, trajectory.t_end_s, PIECE_S)[1:].tolist()]
@@ -403,8 +408,7 @@ def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive
         model = replace(
             grade_errors(o.lidar_model, o.lidar_grade).scaled(o.noise_scale), time_offset_s=offset
         )
-        if o.lidar_rate_hz is not None:
-            model = replace(model, rate_hz=o.lidar_rate_hz)
+        model = model if o.lidar_rate_hz is None else replace(model, rate_hz=o.lidar_rate_hz)
         samplers[mount.name] = ImuSampler(
             trajectory,
             mount.T_base_imu,

@@ -269,16 +269,10 @@ class ImuSampler:
                 )
         self.biases: tuple[np.ndarray, np.ndarray] | None = None  # the last sample's, so far
 
-    def sample(self, t_from_s: float, t_to_s: float) -> SimulatedImu:
-        """The samples whose true time lies in ``[t_from_s, t_to_s)``; pieces follow on."""
-        model, rng, period = self.model, self.rng, self.period
-        # the instants np.arange(start, t_end, period) gives, those of [t_from_s, t_to_s)
-        start, end = self.trajectory.t_start_s + self.phase, self.trajectory.t_end_s
-        delta, total = (start + period) - start, int(np.ceil((end - start) / period))
-        first = min(max(0, int(np.ceil((t_from_s - start) / delta))), total)
-        last = total if t_to_s >= end else min(total, int(np.ceil((t_to_s - start) / delta)))
-        t_true = start + np.arange(first, max(first, last)) * delta
-        n = len(t_true)
+    def _sensed(self, t_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The motion at ``t_true`` as the IMU senses it, before its biases and noise: its
+        mount's vibration and its axes' errors in."""
+        model = self.model
         gyro, accel = ideal_imu(self.trajectory, self.T_base_imu, t_true, self.tilt)
         if self.vibration is not None:
             # a mount resonance, sampled at the output's instants as a real IMU samples it
@@ -290,6 +284,19 @@ class ImuSampler:
         if _has_intrinsic_errors(model):
             gyro = gyro @ self.gyro_axes.T + accel @ self.g_sensitivity.T
             accel = accel @ self.accel_axes.T
+        return gyro, accel
+
+    def sample(self, t_from_s: float, t_to_s: float) -> SimulatedImu:
+        """The samples whose true time lies in ``[t_from_s, t_to_s)``; pieces follow on."""
+        model, rng, period = self.model, self.rng, self.period
+        # the instants np.arange(start, t_end, period) gives, those of [t_from_s, t_to_s)
+        start, end = self.trajectory.t_start_s + self.phase, self.trajectory.t_end_s
+        delta, total = (start + period) - start, int(np.ceil((end - start) / period))
+        first = min(max(0, int(np.ceil((t_from_s - start) / delta))), total)
+        last = total if t_to_s >= end else min(total, int(np.ceil((t_to_s - start) / delta)))
+        t_true = start + np.arange(first, max(first, last)) * delta
+        n = len(t_true)
+        gyro, accel = self._sensed(t_true)
 
         def bias(turn_on: float, walk: float, last: np.ndarray | None) -> np.ndarray:
             b = rng.normal(0.0, 1.0, 3) * turn_on if last is None else last
@@ -306,17 +313,7 @@ class ImuSampler:
         gyro = gyro + gyro_bias + rng.normal(0.0, 1.0, (n, 3)) * model.gyro_noise_std()
         accel = accel + accel_bias + rng.normal(0.0, 1.0, (n, 3)) * model.accel_noise_std()
 
-        if model.gyro_units == "dps":
-            gyro = np.degrees(gyro)  # the resolution below is then in deg/s
-        if model.accel_units == "g":
-            accel = accel / GRAVITY_MPS2
-        if model.gyro_lsb > 0:
-            gyro = np.round(gyro / model.gyro_lsb) * model.gyro_lsb
-        if model.accel_lsb > 0:
-            accel = np.round(accel / model.accel_lsb) * model.accel_lsb
-        if model.float32_output:
-            gyro = gyro.astype(np.float32).astype(np.float64)
-            accel = accel.astype(np.float32).astype(np.float64)
+        gyro, accel = _published(model, gyro, accel)
 
         stamp_s = t_true + model.time_offset_s
         if model.jitter_s > 0:
@@ -337,3 +334,21 @@ class ImuSampler:
             self.accel_axes,
             self.g_sensitivity,
         )
+
+
+def _published(
+    model: ImuErrorModel, gyro: np.ndarray, accel: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """What the driver publishes: its units, its resolution, its float width."""
+    if model.gyro_units == "dps":
+        gyro = np.degrees(gyro)  # the resolution below is then in deg/s
+    if model.accel_units == "g":
+        accel = accel / GRAVITY_MPS2
+    if model.gyro_lsb > 0:
+        gyro = np.round(gyro / model.gyro_lsb) * model.gyro_lsb
+    if model.accel_lsb > 0:
+        accel = np.round(accel / model.accel_lsb) * model.accel_lsb
+    if model.float32_output:
+        gyro = gyro.astype(np.float32).astype(np.float64)
+        accel = accel.astype(np.float32).astype(np.float64)
+    return gyro, accel

@@ -27,7 +27,33 @@ from imucal_cli.types import ImuStream, Transform
 
 #: ``--format`` names: plain MCAP with ROS 2 CDR, plain MCAP with ROS 1 encoding, rosbag2
 #: directories with sqlite3 or mcap storage, ROS 1 bag.
-FORMATS = ("mcap", "mcap-ros1", "rosbag2-sqlite3", "rosbag2-mcap", "rosbag1")
+#: Every format the simulator writes, with the suffix of its file (None: a rosbag2 folder).
+SUFFIXES = {
+    "mcap": ".mcap",
+    "mcap-ros1": ".mcap",
+    "rosbag2-sqlite3": None,
+    "rosbag2-mcap": None,
+    "rosbag1": ".bag",
+}
+FORMATS = tuple(SUFFIXES)
+
+
+def format_for(out: Path, fmt: str | None) -> str:
+    """The format to write ``out`` in: ``fmt``, else the one its suffix names (a rosbag2
+    folder where it names none); an error where the two disagree."""
+    suffix = out.suffix.lower()
+    if fmt is None:
+        fmt = {".mcap": "mcap", ".bag": "rosbag1"}.get(suffix, "rosbag2-sqlite3")
+    expected = SUFFIXES[fmt]
+    if expected is not None and suffix != expected:
+        raise InputError(f"{out}: format {fmt} writes a {expected} file; name OUT with that suffix")
+    if expected is None and suffix in {".mcap", ".bag"}:
+        raise InputError(
+            f"{out}: format {fmt} writes a rosbag2 directory; name OUT without {suffix}"
+        )
+    return fmt
+
+
 Progress = Callable[[int, int | None], None]
 #: Static transforms to write on ``/tf_static``: ``(parent, child, T_parent_child)``.
 StaticTransforms = Sequence[tuple[str, str, Transform]]

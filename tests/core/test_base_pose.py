@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from conftest import lidar_error
 
+from imucal_cli.api import calibrate_streams
 from imucal_cli.config import parse_config
 from imucal_cli.errors import ConfigError
-from imucal_cli.pipeline import run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive
 from imucal_cli.types import Transform
 
@@ -38,7 +38,7 @@ def test_a_noise_free_drive_with_the_ins_turned_and_away_comes_back_exactly():
     drive = simulate_drive(options)
     config = drive.config()
     assert np.allclose(config.base.T_base_imu.as_matrix(), INS.as_matrix())
-    result = run_calibrate(drive.streams(), config)
+    result = calibrate_streams(drive.streams(), config)
     for name, (rotation, translation, _) in _errors(drive, result).items():
         assert result.estimates[name].status == "ok", name
         assert np.degrees(np.linalg.norm(rotation)) < 1e-3, name
@@ -54,7 +54,7 @@ def test_the_ins_away_from_the_origin_calibrates_as_well_as_its_twin_at_the_orig
         drive = simulate_drive(
             DriveOptions(scenario="aggressive", seed=seed, sensors=4, base_T_base_imu=pose)
         )
-        results[pose is INS] = _errors(drive, run_calibrate(drive.streams(), drive.config()))
+        results[pose is INS] = _errors(drive, calibrate_streams(drive.streams(), drive.config()))
     for name, (rotation, translation, std) in results[True].items():
         assert np.all(np.abs(rotation) < 4 * std[:3]), (name, rotation / std[:3])
         assert np.all(np.abs(translation) < 4 * std[3:]), (name, translation / std[3:])
@@ -81,7 +81,7 @@ def test_an_ins_upside_down_that_the_config_does_not_declare_is_not_called_ok():
     )
     config = drive.config(lambda document: document["base"].pop("T_base_imu"))
     assert np.array_equal(config.base.T_base_imu.as_matrix(), np.eye(4))
-    result = run_calibrate(drive.streams(), config)
+    result = calibrate_streams(drive.streams(), config)
     for name, estimate in result.estimates.items():
         assert estimate.status == "inconsistent", name
         assert estimate.checks["base_gravity"]["pass"] is False

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from conftest import lidar_error
 
+from imucal_cli.api import calibrate_streams
 from imucal_cli.config import parse_config
 from imucal_cli.core.so3 import rotation_angle_deg
-from imucal_cli.pipeline import run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive
 
 
 def calibrate(drive):
-    return run_calibrate(drive.streams(), drive.config())
+    return calibrate_streams(drive.streams(), drive.config())
 
 
 def errors(drive, result, name):
@@ -146,10 +146,10 @@ def test_a_base_gyro_scale_no_gyro_has_is_a_failed_check_that_covers_the_error()
     `inconsistent`, and the std covers the error."""
     from dataclasses import replace
 
+    from imucal_cli.api import DriveStreams, calibrate_streams
     from imucal_cli.config import parse_config
     from imucal_cli.core.checks import BASE_SCALE_PLAUSIBLE
     from imucal_cli.core.so3 import rotation_angle_deg
-    from imucal_cli.pipeline import DriveStreams, run_calibrate
     from imucal_cli.sim import DriveOptions, simulate_drive
     from imucal_cli.sim.drive import with_errors
 
@@ -164,7 +164,7 @@ def test_a_base_gyro_scale_no_gyro_has_is_a_failed_check_that_covers_the_error()
     drive = simulate_drive(options)
     config = parse_config(drive.config_document(), "sim.config.yaml")
     streams = {m.name: drive.sensors[m.name].stream for m in drive.mounts}
-    result = run_calibrate(DriveStreams(drive.base.stream, streams, 0), config)
+    result = calibrate_streams(DriveStreams(drive.base.stream, streams, 0), config)
     for mount in drive.mounts:
         estimate = result.estimates[mount.name]
         check = estimate.checks["base_gyro_scale"]
@@ -202,7 +202,7 @@ def urban_minute():
 def test_an_imu_180_deg_from_its_prior_is_inconsistent_and_says_why(urban_minute):
     """The data place the IMU right, 180 deg from a prior whose T_imu_lidar lacks the Ouster's
     yaw: never ``ok``; the check and the warning name the angle and what to look at."""
-    result = run_calibrate(urban_minute.streams(), urban_minute.config(_turned_priors(180.0)))
+    result = calibrate_streams(urban_minute.streams(), urban_minute.config(_turned_priors(180.0)))
     for estimate in result.estimates.values():
         check = estimate.checks["prior_rotation"]
         assert estimate.status == "inconsistent"
@@ -213,7 +213,7 @@ def test_an_imu_180_deg_from_its_prior_is_inconsistent_and_says_why(urban_minute
 
 def test_a_cad_prior_10_deg_off_stays_ok(urban_minute):
     """CAD priors a few degrees off are ordinary: within rotation_bound_deg the check passes."""
-    result = run_calibrate(urban_minute.streams(), urban_minute.config(_turned_priors(10.0)))
+    result = calibrate_streams(urban_minute.streams(), urban_minute.config(_turned_priors(10.0)))
     for name, estimate in result.estimates.items():
         check = estimate.checks["prior_rotation"]
         assert check["pass"] is True and 5.0 < check["angle_deg"] < 15.0, name

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from conftest import lidar_error
 
+from imucal_cli.api import DriveStreams, calibrate_streams
 from imucal_cli.config import parse_config
 from imucal_cli.core.signals import (
     Lowpass,
@@ -20,14 +21,13 @@ from imucal_cli.core.streaming import UnitsError
 from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S, time_offset_shown
 from imucal_cli.errors import ConfigError, ImucalError
 from imucal_cli.outputs import calibration_document
-from imucal_cli.pipeline import DriveStreams, run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive, with_errors
 from imucal_cli.sim.imu import MEMS_LIDAR
 from imucal_cli.types import ImuStream
 
 
 def calibrate(drive):
-    return run_calibrate(drive.streams(), drive.config())
+    return calibrate_streams(drive.streams(), drive.config())
 
 
 def normalized_errors(drive, result, name):
@@ -88,7 +88,7 @@ def test_declared_units_are_taken_as_declared():
         for sensor in document["sensors"].values():
             sensor["gyro_units"] = "dps"
 
-    result = run_calibrate(drive.streams(), drive.config(declare))
+    result = calibrate_streams(drive.streams(), drive.config(declare))
     for mount in drive.mounts:
         assert result.estimates[mount.name].status == "ok"
         assert not any("publishes" in w for w in result.estimates[mount.name].warnings)
@@ -100,7 +100,7 @@ def test_units_that_cannot_be_told_are_an_error_naming_topic_and_key():
     stream = drive.sensors[mount.name].stream
     odd = ImuStream(stream.t_ns, stream.gyro, stream.accel * 3.0, stream.frame_id)  # |f| about 29
     with pytest.raises(UnitsError) as error:
-        run_calibrate(DriveStreams(drive.base.stream, {mount.name: odd}, 0), drive.config())
+        calibrate_streams(DriveStreams(drive.base.stream, {mount.name: odd}, 0), drive.config())
     assert mount.imu_topic in str(error.value) and f"sensors.{mount.name}.accel_units" in str(
         error.value
     )
@@ -180,7 +180,7 @@ def test_floors_of_the_config_are_added_to_the_std(si_twin):
         for sensor in document["sensors"].values():
             sensor["rotation_floor_deg"], sensor["translation_floor_m"] = 0.05, 0.01
 
-    floored = run_calibrate(drive.streams(), drive.config(floors))
+    floored = calibrate_streams(drive.streams(), drive.config(floors))
     for mount in drive.mounts:
         a, b = plain.estimates[mount.name], floored.estimates[mount.name]
         np.testing.assert_allclose(
@@ -346,7 +346,7 @@ def test_a_failed_rotation_check_covers_the_discrepancy_it_measured():
     drive = simulate_drive(
         with_errors(DriveOptions(scenario="urban", seed=3, sensors=2), "misaligned")
     )
-    result = run_calibrate(drive.streams(), drive.config())
+    result = calibrate_streams(drive.streams(), drive.config())
     failed = 0
     for estimate in result.estimates.values():
         check = estimate.checks["gyro_vs_accel_rotation"]
@@ -373,7 +373,7 @@ def test_a_base_spinning_about_one_axis_gets_a_result_not_an_error(wheel):
     failing its factorisation; every other axis within its std."""
     rates = np.degrees(np.abs(wheel.base.stream.gyro).max())
     assert rates > 1000.0
-    result = run_calibrate(wheel.streams(), wheel.config())
+    result = calibrate_streams(wheel.streams(), wheel.config())
     for mount in wheel.mounts:
         estimate = result.estimates[mount.name]
         assert estimate.status == "partial", (mount.name, estimate.warnings)
@@ -388,7 +388,7 @@ def test_a_dropped_sample_does_not_lag_what_follows_it(wheel):
     of 2.7-3x the noise (inconsistent, the model "not explaining" a rigid wheel). The dropped
     samples are put back first: the residuals are at the noise."""
     assert any(np.diff(wheel.sensors[m.name].stream.t_ns).max() > 15e6 for m in wheel.mounts)
-    result = run_calibrate(wheel.streams(), wheel.config())
+    result = calibrate_streams(wheel.streams(), wheel.config())
     for estimate in result.estimates.values():
         level = estimate.checks["residual_level"]
         assert level["pass"] and level["accel"] < 1.2 and level["gyro"] < 1.2, level
@@ -402,7 +402,7 @@ def test_the_residual_check_tests_the_residuals_of_the_fit_it_reports():
     drive = simulate_drive(
         with_errors(DriveOptions(scenario="aggressive", seed=1, sensors=2), "consumer")
     )
-    result = run_calibrate(drive.streams(), drive.config())
+    result = calibrate_streams(drive.streams(), drive.config())
     for mount in drive.mounts:
         estimate = result.estimates[mount.name]
         level, r = estimate.checks["residual_level"], estimate.window_residuals

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from imucal_cli.api import calibrate_streams
 from imucal_cli.config import parse_config
-from imucal_cli.pipeline import run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive
 
 
@@ -30,7 +30,7 @@ def test_planar_motion_leaves_height_unobservable():
         max_grade=0.0,
     )
     drive = simulate_drive(DriveOptions(scenario="parking", seed=3, dynamics=flat))
-    result = run_calibrate(drive.streams(), drive.config())
+    result = calibrate_streams(drive.streams(), drive.config())
     config = parse_config(drive.config_document(), "sim.config.yaml")
     for sensor in config.sensors:
         estimate = result.estimates[sensor.name]

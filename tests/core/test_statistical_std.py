@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from imucal_cli.api import calibrate_streams
 from imucal_cli.config import parse_config
+from imucal_cli.core.status import missing_axes
 from imucal_cli.outputs import calibration_document
-from imucal_cli.pipeline import missing_axes, run_calibrate
 from imucal_cli.sim import DriveOptions, simulate_drive
 
 FLOOR_DEG, FLOOR_M = 0.05, 0.01
@@ -21,7 +22,7 @@ def floored():
     for sensor in document["sensors"].values():
         sensor["rotation_floor_deg"], sensor["translation_floor_m"] = FLOOR_DEG, FLOOR_M
     config = parse_config(document, "floored.yaml")
-    return drive, config, run_calibrate(drive.streams(), config)
+    return drive, config, calibrate_streams(drive.streams(), config)
 
 
 def test_the_total_is_the_statistical_std_and_the_floors_the_drive_cannot_see(floored):

@@ -7,8 +7,8 @@ import pytest
 
 from imucal_cli.config import parse_config
 from imucal_cli.core.so3 import rotation_angle_deg
-from imucal_cli.pipeline import DriveStreams
 from imucal_cli.sim import DriveOptions, simulate_drive
+from imucal_cli.types import DriveStreams
 
 
 def _vec(A):
@@ -190,15 +190,15 @@ def test_a_short_log_has_one_threshold_stated_truly_and_never_passes_with_no_win
     states, too little data; at or above it, a result with at least one window."""
     import re
 
+    from imucal_cli.api import calibrate_streams
     from imucal_cli.core.streaming import TooLittleData
-    from imucal_cli.pipeline import run_calibrate
     from imucal_cli.sim import DriveOptions, simulate_drive
 
     thresholds, outcomes = set(), []
     for duration in (4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 9.5, 10.0):
         drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=duration, seed=1))
         try:
-            result = run_calibrate(drive.streams(), drive.config())
+            result = calibrate_streams(drive.streams(), drive.config())
         except TooLittleData as exc:
             overlap, need = map(float, re.findall(r"([\d.]+) s", str(exc)))
             assert overlap == pytest.approx(duration, abs=0.05) and overlap < need

@@ -174,8 +174,8 @@ def test_the_same_drive_gives_the_same_windows_and_estimate_from_every_container
     topic 82 s ahead of the others: on a drive longer than that the others looked stopped
     ("sent nothing"), windows were dropped, the std inflated. Every container now gives what
     MCAP gives, to the bit."""
+    from imucal_cli.api import calibrate
     from imucal_cli.documents import write_document
-    from imucal_cli.pipeline import calibrate_log
     from imucal_cli.sim import DriveOptions, simulate_drive
 
     drive = simulate_drive(DriveOptions(scenario="urban", duration_s=200.0, seed=3))
@@ -183,7 +183,7 @@ def test_the_same_drive_gives_the_same_windows_and_estimate_from_every_container
     documents = {}
     for fmt in FORMATS:
         log = write_imu_log(tmp_path / f"d-{fmt}", fmt, drive.topics())
-        documents[fmt] = calibrate_log(log, tmp_path / "c.yaml").document["sensors"]
+        documents[fmt] = calibrate(log, tmp_path / "c.yaml").document()["sensors"]
     reference = documents["mcap"]
     for fmt, sensors in documents.items():
         for name, sensor in sensors.items():

@@ -186,8 +186,8 @@ def test_the_topics_of_a_group_spanning_a_minute_arrive_interleaved(tmp_path, mo
     s); each topic's batch of it was given whole, so one topic ran minutes ahead of the other
     and the calibrator took the other for stopped, its windows lost. Batches are now cut at
     ``BATCH_SPAN_NS`` and given in time order."""
+    from imucal_cli.api import calibrate
     from imucal_cli.io import base, mcap_log
-    from imucal_cli.pipeline import calibrate_log
     from imucal_cli.reading import ImuBatches
     from imucal_cli.sim import DriveOptions, simulate_drive
     from imucal_cli.sim.writers import write_imu_log
@@ -202,8 +202,8 @@ def test_the_topics_of_a_group_spanning_a_minute_arrive_interleaved(tmp_path, mo
         if len(reached) == 2:
             lead = max(lead, max(reached.values()) - min(reached.values()))
     assert 0 < lead <= base.BATCH_SPAN_NS + 1_000_000_000
-    run = calibrate_log(log, drive.config())
-    for sensor in run.document["sensors"].values():
+    run = calibrate(log, drive.config())
+    for sensor in run.document()["sensors"].values():
         assert not any("sent nothing" in w for w in sensor["warnings"]), sensor["warnings"]
         assert sensor["status"] == "ok"
 

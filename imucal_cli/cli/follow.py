@@ -1,0 +1,237 @@
+"""``calibrate --follow``: what each sensor has and waits for, an update per window (a JSON
+line with --json, a table on a terminal, else a line on stderr), then the last estimate with
+each sensor's missing axes and why it stopped."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from imucal_cli.cli import render
+from imucal_cli.cli.app import EXIT_CHECK_FAILED, err, interrupted
+from imucal_cli.errors import InputError
+
+#: After how long without news of the recording the wait is said (s of wall time).
+FOLLOW_STALL_S = 30.0
+#: Without --timeout: how long a log that does not exist yet is waited for (s).
+WAIT_FOR_LOG_S = 30.0
+
+
+def follow_table(log: Path, windows: int, calibration: Any) -> Any:
+    """The live table: per sensor its status, std per axis, windows used and what it lacks."""
+    from rich.table import Table
+
+    table = Table(title=f"following {log}: {windows} windows")
+    for column in ("sensor", "status", "std rpy deg", "std xyz mm", "windows used", "missing"):
+        table.add_column(column)
+    for name, e in calibration.estimates.items():
+        std_t = None if e.translation_std_m is None else [1000 * v for v in e.translation_std_m]
+        table.add_row(
+            name,
+            e.status,
+            render.fmt(e.rotation_std_deg, 4),
+            render.fmt(std_t, 2),
+            f"{sum(w.selected for w in e.windows)}/{len(e.windows)}",
+            "; ".join(m.split(":")[0] for m in calibration.missing(name)) or "-",
+        )
+    return table
+
+
+def _waiting_table(log: Path, state: dict[str, Any]) -> Any:
+    """The table before the first estimate: per sensor, samples and what it waits for."""
+    from rich.table import Table
+
+    table = Table(title=f"following {log}: base {state['base_samples']:,} samples")
+    for column in ("sensor", "samples", "windows", "waiting for"):
+        table.add_column(column)
+    for name, s in state["sensors"].items():
+        table.add_row(name, f"{s['samples']:,}", str(s["windows"]), s["waiting_for"])
+    return table
+
+
+def _wait_for(log: Path, limit: float) -> None:
+    """Started beside a recorder: wait until ``limit`` (monotonic s) for the log to appear, a
+    rosbag2 folder for its storage file."""
+
+    def present() -> bool:
+        if log.is_dir():
+            return any(log.glob("*.mcap")) or any(log.glob("*.db3"))
+        return log.exists()
+
+    if present():
+        return
+    err(f"imucal: waiting for {log} to be created")
+    while not present():
+        if time.monotonic() > limit:
+            raise InputError(f"{log}: no such file or directory (waited for it to be created)")
+        time.sleep(0.1)
+
+
+def _follow_config(config_path: Path, log: Path, limit: float, urdf: Path | None) -> Any:
+    """The config; one that leaves transforms out (the base IMU's pose too) is read against the
+    recording's /tf_static and the URDF (``urdf``, else its /robot_description) as soon as they
+    hold them and the IMUs' first messages (until ``limit``, monotonic s): an error in the URDF
+    itself is said at once."""
+    from imucal_cli.config import load_config
+    from imucal_cli.documents import load_document
+    from imucal_cli.errors import ConfigError, ImucalError
+    from imucal_cli.frames import (
+        MAX_URDF_BYTES,
+        FrameTree,
+        leaves_out,
+        leaves_out_transforms,
+        read_urdf,
+    )
+
+    try:
+        config = load_config(config_path)
+        if not leaves_out(load_document(config_path)):
+            return config
+        try:  # the base IMU's pose alone left out: the recording's tree, where it reads now
+            return load_config(config_path, log, urdf)
+        except ImucalError as exc:
+            err(
+                f"imucal: note: {log}: no base.T_base_imu from the recording yet ({exc}): the "
+                "config's default is used"
+            )
+            return config
+    except ConfigError as exc:
+        if not leaves_out_transforms(exc):
+            raise
+    if urdf is not None:
+        from imucal_cli.documents import read_capped
+
+        text = read_capped(urdf, MAX_URDF_BYTES, "a URDF").decode("utf-8", errors="replace")
+        read_urdf(text, FrameTree(), str(urdf))  # (not a URDF: said now, not at --timeout)
+    while True:
+        try:
+            return load_config(config_path, log, urdf)
+        except ImucalError:
+            if time.monotonic() > limit:
+                raise
+            time.sleep(0.5)
+
+
+class _View:
+    """How the follow is shown: JSON lines, a live table on a terminal, or lines on stderr;
+    and the stalls of the recording said."""
+
+    def __init__(self, log: Path, as_json: bool, deadline: float | None) -> None:
+        self.log, self.as_json, self.deadline = log, as_json, deadline
+        self.live = None
+        if not as_json and sys.stderr.isatty():  # a table on the terminal, redrawn each window
+            from rich.console import Console
+            from rich.live import Live
+
+            self.live = Live(console=Console(stderr=True), auto_refresh=False)
+        self.heard, self.stalled, self.told = time.monotonic(), -1e9, -1e9
+
+    def window(self, calibration: Any, windows: int) -> None:
+        from imucal_cli.documents import to_plain
+
+        self.heard = time.monotonic()
+        if self.as_json:
+            sensors = {
+                name: {
+                    "status": e.status,
+                    "rotation_std_deg": e.rotation_std_deg,
+                    "translation_std_m": e.translation_std_m,
+                    "missing": calibration.missing(name),
+                }
+                for name, e in calibration.estimates.items()
+            }
+            typer.echo(json.dumps(to_plain({"windows": windows, "sensors": sensors})))
+        elif self.live is not None:
+            self.live.update(follow_table(self.log, windows, calibration), refresh=True)
+        else:
+            said = (
+                f"{n} {e.status} ({len(calibration.missing(n))} axes missing)"
+                for n, e in calibration.estimates.items()
+            )
+            err(f"imucal: {windows} windows: " + ", ".join(said))
+
+    def waiting(self, state: dict[str, Any]) -> None:  # before the first estimate
+        from imucal_cli.documents import to_plain
+
+        self.heard = time.monotonic()
+        if self.as_json:
+            typer.echo(json.dumps(to_plain({"windows": 0, **state})))
+        elif self.live is not None:
+            self.live.update(_waiting_table(self.log, state), refresh=True)
+        elif time.monotonic() - self.told >= 5.0:  # (a log file: every 5 s)
+            self.told = time.monotonic()
+            first: dict[str, Any] = next(iter(state["sensors"].values()), {})
+            samples = (f"{n} {v['samples']:,} samples" for n, v in state["sensors"].items())
+            err(
+                f"imucal: following {self.log}: {', '.join(samples)}; waiting for "
+                f"{first.get('waiting_for', 'data')}"
+            )
+
+    def timed_out(self) -> bool:  # (asked at every poll of the recording)
+        now = time.monotonic()
+        if now - self.heard >= FOLLOW_STALL_S and now - self.stalled >= FOLLOW_STALL_S:
+            self.stalled = now  # a recording that stalls: said, not waited for in silence
+            err(
+                f"imucal: {self.log}: nothing new for {now - self.heard:.0f} s; still waiting"
+                + (" (--timeout not given: Ctrl-C ends it)" if self.deadline is None else "")
+            )
+        return self.deadline is not None and now > self.deadline
+
+
+def follow_log(
+    log: Path,
+    config_path: Path,
+    out: Path | None,
+    as_json: bool,
+    until_converged: bool,
+    timeout: float | None,
+    report: Path | None = None,
+    urdf: Path | None = None,
+) -> None:
+    """calibrate --follow, shown and written; exit codes as the SPEC says."""
+    from imucal_cli import api
+    from imucal_cli.documents import write_document
+
+    deadline = None if timeout is None else time.monotonic() + timeout
+    # the log, and the tree of a config that leaves transforms out: waited for within --timeout
+    limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
+    _wait_for(log, limit)
+    config = _follow_config(config_path, log, limit, urdf)
+    view = _View(log, as_json, deadline)
+    if view.live is not None:
+        view.live.start()
+    try:
+        calibration, stopped = api.follow(
+            log,
+            config,
+            on_window=view.window,
+            on_waiting=view.waiting,
+            stop=view.timed_out,
+            until_converged=until_converged,
+        )
+    finally:
+        if view.live is not None:
+            view.live.stop()
+    out_of_time = view.timed_out()  # why it stopped (the report below takes time of its own)
+    document = calibration.document()
+    render.note_losses(log, document["losses"])  # (garbage appended to a recording, say)
+    if report is not None:
+        render.report(report, calibration)
+    if out is not None:
+        write_document(out, document)
+    for name, s in document["sensors"].items():
+        for line in s["missing"]:
+            err(f"imucal: {name}: missing {line}")
+    if stopped:
+        raise interrupted()
+    good = calibration.converged
+    if not (until_converged and good):
+        err("imucal: --timeout reached" if out_of_time else f"imucal: the recording {log} ended")
+    if until_converged and not good:
+        err("imucal: not converged" + (" before --timeout" if out_of_time else ""))
+        raise typer.Exit(EXIT_CHECK_FAILED)
