@@ -27,6 +27,7 @@ import numpy as np
 
 from imucal_cli.config import Config
 from imucal_cli.errors import ImucalError, InputError, Terminated
+from imucal_cli.io.formats import LOG_SUFFIXES
 from imucal_cli.names import printable
 from imucal_cli.paths import log_folder
 from imucal_cli.types import Transform
@@ -39,7 +40,6 @@ MOVED_FALLBACK_DEG, MOVED_FALLBACK_M = 0.1, 0.02
 DASK_WORKERS_S = 30.0
 
 #: Log file suffixes a batch output's name drops (``2024.01.05.mcap`` -> ``2024.01.05.yaml``).
-LOG_SUFFIXES = (".mcap", ".bag", ".db3")
 
 SUMMARY_COLUMNS = (
     "log",

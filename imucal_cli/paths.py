@@ -16,9 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from imucal_cli.errors import InputError
-
-#: The files a rosbag2 folder holds (its metadata and its storage, with SQLite's side files).
-ROSBAG2_FILES = (".db3", ".mcap", ".db3-shm", ".db3-wal", ".db3-journal", ".zstd")
+from imucal_cli.io.formats import ROSBAG2_FILES, by_magic
 
 
 def log_folder(path: Path) -> Path:
@@ -79,11 +77,8 @@ def recognised_log(path: Path) -> bool:
     if path.is_symlink():
         return False
     if path.is_file():
-        from imucal_cli.io.logs import MCAP_MAGIC, ROSBAG1_MAGIC  # (the readers' own)
-
         with path.open("rb") as handle:
-            head = handle.read(16)
-        return head.startswith((MCAP_MAGIC, ROSBAG1_MAGIC))
+            return by_magic(handle.read(16)) is not None
     if path.is_dir():
         entries = list(path.iterdir())
         return (path / "metadata.yaml").is_file() and all(

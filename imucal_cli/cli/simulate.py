@@ -10,7 +10,7 @@ import typer
 
 from imucal_cli.cli import options, render
 from imucal_cli.cli.app import PANEL_SIM, command
-from imucal_cli.sim.writers import FORMATS
+from imucal_cli.io.formats import FORMATS
 
 
 class Scenario(StrEnum):

@@ -18,10 +18,9 @@ from pathlib import Path
 
 from imucal_cli.errors import LogError
 from imucal_cli.io.base import LogReader, Loss, TopicInfo
+from imucal_cli.io.formats import by_magic, by_suffix
 from imucal_cli.io.imu_msg import IMU_MSGTYPE
-from imucal_cli.io.mcap_log import MAGIC as MCAP_MAGIC
 from imucal_cli.io.mcap_log import McapLog
-from imucal_cli.io.rosbag1 import MAGIC as ROSBAG1_MAGIC
 from imucal_cli.io.rosbag1 import Ros1Log
 from imucal_cli.io.rosbag2 import Rosbag2Log, SqliteRecording
 
@@ -36,6 +35,11 @@ __all__ = [
 ]
 
 
+#: The reader of each container (:data:`imucal_cli.io.formats.FORMATS`); a rosbag2 folder is
+#: known by being a folder.
+READERS: dict[str, type[LogReader]] = {"mcap": McapLog, "rosbag1": Ros1Log}
+
+
 def open_log(path: str | Path) -> LogReader:
     """Open a log for reading, picking the reader from the path. Raises :class:`LogError`."""
     path = Path(path)
@@ -48,10 +52,9 @@ def open_log(path: str | Path) -> LogReader:
             head = handle.read(16)
     except OSError as exc:
         raise LogError(str(path), f"cannot open: {exc.strerror}") from None
-    if head.startswith(MCAP_MAGIC) or path.suffix.lower() == ".mcap":
-        return McapLog(path)
-    if head.startswith(ROSBAG1_MAGIC) or path.suffix.lower() == ".bag":
-        return Ros1Log(path)
+    found = by_magic(head) or by_suffix(path.suffix)
+    if found is not None and found.container in READERS:
+        return READERS[found.container](path)
     raise LogError(
         str(path), "unknown log format (expected a .mcap file, a ROS 1 .bag or a rosbag2 folder)"
     )

@@ -31,9 +31,10 @@ from imucal_cli.io.base import (
     decompress,
     interleaved,
 )
+from imucal_cli.io.formats import MCAP_MAGIC
 from imucal_cli.io.imu_msg import RawBatch, gather
 
-MAGIC = b"\x89MCAP0\r\n"
+MAGIC = MCAP_MAGIC
 #: Decompressed bytes of chunks decoded together: fewer, larger gathers. The 1 h MCAP of
 #: benchmarks/throughput.py (1 MiB chunks) read and decoded in 2.0 s one chunk at a time,
 #: 1.5-1.9 s in groups of 2 MiB and 2.0-2.4 s in groups of 16 MiB (docs/performance.md).

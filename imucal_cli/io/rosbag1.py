@@ -20,9 +20,10 @@ from imucal_cli.io.base import (
     decompress,
     interleaved,
 )
+from imucal_cli.io.formats import ROSBAG1_MAGIC
 from imucal_cli.io.imu_msg import RawBatch, gather
 
-MAGIC = b"#ROSBAG V2.0\n"
+MAGIC = ROSBAG1_MAGIC
 REPAIR = "`rosbag reindex FILE` rebuilds its index"
 _U32 = struct.Struct("<I")
 _INDEX_ENTRY = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])

@@ -20,22 +20,15 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.errors import InputError
+from imucal_cli.io.formats import FORMATS as LOG_FORMATS
+from imucal_cli.io.formats import by_suffix
 from imucal_cli.io.imu_msg import IMU_MSGTYPE
 from imucal_cli.paths import refuse_existing
 from imucal_cli.sim.serialize import serialize_cdr, serialize_ros1
 from imucal_cli.types import ImuStream, Transform
 
-#: ``--format`` names: plain MCAP with ROS 2 CDR, plain MCAP with ROS 1 encoding, rosbag2
-#: directories with sqlite3 or mcap storage, ROS 1 bag.
-#: Every format the simulator writes, with the suffix of its file (None: a rosbag2 folder).
-SUFFIXES = {
-    "mcap": ".mcap",
-    "mcap-ros1": ".mcap",
-    "rosbag2-sqlite3": None,
-    "rosbag2-mcap": None,
-    "rosbag1": ".bag",
-}
-FORMATS = tuple(SUFFIXES)
+#: ``--format`` names (:data:`imucal_cli.io.formats.FORMATS`).
+FORMATS = tuple(LOG_FORMATS)
 
 
 def format_for(out: Path, fmt: str | None) -> str:
@@ -43,8 +36,8 @@ def format_for(out: Path, fmt: str | None) -> str:
     folder where it names none); an error where the two disagree."""
     suffix = out.suffix.lower()
     if fmt is None:
-        fmt = {".mcap": "mcap", ".bag": "rosbag1"}.get(suffix, "rosbag2-sqlite3")
-    expected = SUFFIXES[fmt]
+        fmt = getattr(by_suffix(suffix), "name", "rosbag2-sqlite3")
+    expected = LOG_FORMATS[fmt].suffix
     if expected is not None and suffix != expected:
         raise InputError(f"{out}: format {fmt} writes a {expected} file; name OUT with that suffix")
     if expected is None and suffix in {".mcap", ".bag"}:
@@ -324,16 +317,16 @@ def write_imu_log(
     )  # ours alone
     tmp = work / out.name
     try:
-        ros1 = fmt in ("mcap-ros1", "rosbag1")
+        form = LOG_FORMATS[fmt]
+        ros1 = form.encoding == "ros1"
         statics = _statics(tf_static, robot_description, topics, ros1)
         pieces = None if later is None else (itertools.chain([topics], later[0]), later[1])
-        if fmt in ("mcap", "mcap-ros1"):
+        if form.container == "mcap":
             _write_mcap(tmp, topics, ros1, progress=progress, statics=statics, pieces=pieces)
-        elif fmt == "rosbag1":
+        elif form.container == "rosbag1":
             _write_rosbag1(tmp, topics, progress, statics, pieces)
         else:
-            storage = fmt.removeprefix("rosbag2-")
-            _write_rosbag2(tmp, topics, storage, progress, statics, pieces)
+            _write_rosbag2(tmp, topics, str(form.storage), progress, statics, pieces)
         if out.exists() or out.is_symlink():
             refuse_existing(out, replace)  # (again: it may have appeared meanwhile)
             shutil.rmtree(out) if out.is_dir() else out.unlink()
