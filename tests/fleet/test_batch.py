@@ -381,7 +381,7 @@ def test_plan_takes_each_reference_std_from_its_own_file(tmp_path):
     from imucal_cli.errors import InputError
     from imucal_cli.fleet import plan_tasks
 
-    sample = Path(__file__).resolve().parents[1] / "sample_data"
+    sample = Path(__file__).resolve().parents[2] / "sample_data"
     config = sample / "urban.config.yaml"
     refs = {}
     for std in (0.01, 0.5):
