@@ -21,7 +21,7 @@ from typing import Any
 
 from imucal_cli import pipeline
 from imucal_cli.calibration import Calibration, Reading
-from imucal_cli.config import Config, load_config
+from imucal_cli.config import Config
 from imucal_cli.errors import InputError
 from imucal_cli.pipeline import DriveStreams, calibrate_streams, lost_summary
 from imucal_cli.types import Transform
@@ -46,6 +46,18 @@ __all__ = [
 
 Progress = Callable[[int, int], None]
 ConfigLike = Config | str | Path
+
+
+def load_config(
+    path: str | Path, log: str | Path | None = None, urdf: str | Path | None = None
+) -> Config:
+    """The config at ``path``; with ``log``, the transforms it leaves out taken from the log's
+    ``/tf_static`` and a URDF (``urdf``, else the log's ``/robot_description``)."""
+    from imucal_cli import config, priors
+
+    if log is None:
+        return config.load_config(path)
+    return priors.load_config_for(path, log, urdf)
 
 
 def _config(config: ConfigLike, log: str | Path, urdf: str | Path | None) -> Config:

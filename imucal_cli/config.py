@@ -354,18 +354,20 @@ def _unique(base: BaseConfig, sensors: list[SensorConfig], source: str) -> None:
             seen[value] = path
 
 
-def load_config(
-    path: str | Path, log: str | Path | None = None, urdf: str | Path | None = None
-) -> Config:
-    """Load and validate a YAML config file; with ``log``, the transforms it leaves out are
-    taken from the log's ``/tf_static`` and a URDF (``urdf``, else the log's
-    ``/robot_description``: :func:`imucal_cli.frames.complete_from_log`).
+def load_config(path: str | Path) -> Config:
+    """Load and validate a YAML config file; it opens no log (what a config leaves out, from a
+    log's ``/tf_static`` or a URDF: :func:`imucal_cli.priors.load_config_for`).
 
     Raises
     ------
     ConfigError
         Naming the file and the key path of the first problem found.
     """
+    return parse_config(read_config(path), str(path))
+
+
+def read_config(path: str | Path) -> Any:
+    """A config file's document, as loaded (a :class:`ConfigError` where it is not one)."""
     from imucal_cli.documents import load_document
 
     try:
@@ -374,22 +376,4 @@ def load_config(
         raise ConfigError(str(path), "", str(exc).removeprefix(f"{path}: ")) from None
     if data is None:
         raise ConfigError(str(path), "", "the file is empty")
-    if log is None:
-        return parse_config(data, str(path))
-    from imucal_cli.frames import complete_from_log
-
-    data, priors = complete_from_log(data, log, str(path), urdf)
-    try:
-        return replace(parse_config(data, str(path)), priors=priors)
-    except ConfigError as exc:  # a value the log supplied: said as the log's, not the file's
-        name, _, key = exc.key.removeprefix("sensors.").partition(".")
-        origin = priors.get(name, {}).get(key.split(".")[0], "config")
-        if exc.key.startswith("base."):
-            origin = next(iter(priors.values()), {}).get("base.T_base_imu", "config")
-        if origin == "config":
-            raise
-        raise ConfigError(
-            str(path),
-            exc.key,
-            f"{exc.problem} (the value {path} leaves out, taken from {origin} in {log})",
-        ) from None
+    return data

@@ -311,10 +311,10 @@ class ImuBatches:
                 if self.follow is None:
                     available = check_topics(log, self.topics)
                     self.expected = {t: available[t].count for t in self.topics}
-                    pairs = log.decoded_batches(self.topics, lambda b: decode(log, b))
+                    batches = log.batches(self.topics)
                 else:  # topics appear as they are recorded
-                    follow = log.follow(self.topics, self.follow)
-                    pairs = ((b, decode(log, b)) for b in follow)
+                    batches = log.follow(self.topics, self.follow)
+                pairs = ((b, decode(log, b)) for b in batches)
                 for batch, decoded in pairs:
                     st = self.stats[batch.topic]
                     st.messages += len(batch.starts)

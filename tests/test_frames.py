@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from imucal_cli.api import calibrate
-from imucal_cli.config import load_config
+from imucal_cli.api import calibrate, load_config
 from imucal_cli.documents import write_document
 from imucal_cli.errors import ConfigError
 from imucal_cli.frames import FrameTree

@@ -14,7 +14,7 @@ from imucal_cli.names import printable
 
 
 def _config(log: Path, config: Path, urdf: Path | None) -> Any:
-    from imucal_cli.config import load_config
+    from imucal_cli.api import load_config
 
     return load_config(config, log, urdf)  # what it leaves out: the log's /tf_static, a URDF
 

@@ -77,7 +77,7 @@ def _follow_config(config_path: Path, log: Path, limit: float, urdf: Path | None
     recording's /tf_static and the URDF (``urdf``, else its /robot_description) as soon as they
     hold them and the IMUs' first messages (until ``limit``, monotonic s): an error in the URDF
     itself is said at once."""
-    from imucal_cli.config import load_config
+    from imucal_cli.api import load_config
     from imucal_cli.documents import load_document
     from imucal_cli.errors import ConfigError, ImucalError
     from imucal_cli.frames import (

@@ -126,7 +126,7 @@ def check_config(
     urdf: options.Urdf = None,
 ) -> None:
     """Validate a config and print it with every default filled in."""
-    from imucal_cli.config import load_config
+    from imucal_cli.api import load_config
     from imucal_cli.documents import dumps
 
     options.needs("--urdf", urdf, "--log (the IMUs' frames are in the log)", log)

@@ -160,13 +160,6 @@ class LogReader:
         """Raw batches of ``topics``, each of one topic, in roughly log-time order."""
         raise NotImplementedError
 
-    def decoded_batches(
-        self, topics: Iterable[str], decode: Callable[[RawBatch], D]
-    ) -> Iterator[tuple[RawBatch, D]]:
-        """:meth:`batches`, each with ``decode(batch)``: a reader that decompresses ahead in a
-        thread decodes there too, while the bytes are in that core's cache."""
-        return ((batch, decode(batch)) for batch in self.batches(topics))
-
     def follow(
         self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05
     ) -> Iterator[RawBatch]:

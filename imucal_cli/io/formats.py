@@ -1,16 +1,6 @@
 """Every log format, in one table (as rosbags' ``STORAGE_PLUGINS``): what ``open_log``
 recognises, what ``batch`` strips from a log's name, what ``simulate --format`` writes, and
 what the help says. Importing it imports nothing else (``imucal --help`` reads it).
-
-===================  ==============  ======================  =========  ==================
-format               file            recognised by           reader     messages
-===================  ==============  ======================  =========  ==================
-``mcap``             ``*.mcap``      magic ``\\x89MCAP0\\r\\n``  mcap       ROS 2 CDR
-``mcap-ros1``        ``*.mcap``      magic                   mcap       ROS 1
-``rosbag2-sqlite3``  a folder        ``metadata.yaml``       rosbag2    ROS 2 CDR (sqlite3)
-``rosbag2-mcap``     a folder        ``metadata.yaml``       rosbag2    ROS 2 CDR (mcap)
-``rosbag1``          ``*.bag``       magic ``#ROSBAG V2.0``  rosbag1    ROS 1
-===================  ==============  ======================  =========  ==================
 """
 
 from __future__ import annotations

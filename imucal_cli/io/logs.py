@@ -1,15 +1,6 @@
-"""Opening every log a user has: :func:`open_log` picks the container's reader from the path.
-
-==========================================  ==============================  ==================
-path                                        reader                          message encoding
-==========================================  ==============================  ==================
-``*.mcap`` file                             :mod:`.mcap_log` (``mcap``)      ROS 2 CDR or ROS 1
-rosbag2 folder, or its ``metadata.yaml``    :mod:`.rosbag2` (``rosbags``)    ROS 2 CDR
-``*.bag`` file                              :mod:`.rosbag1`                 ROS 1
-==========================================  ==============================  ==================
-
-Readers yield raw batches of one topic; :mod:`.imu_msg` decodes them; :mod:`imucal_cli.reading`
-streams, screens and counts the samples.
+"""Opening every log a user has: :func:`open_log` picks the container's reader from the path
+and the table of formats (:mod:`.formats`). Readers yield raw batches of one topic;
+:mod:`.imu_msg` decodes them; :mod:`imucal_cli.reading` streams, screens and counts the samples.
 """
 
 from __future__ import annotations

@@ -23,7 +23,6 @@ from mcap.summary import Summary
 from imucal_cli.io.base import (
     MAX_CHUNK_BYTES,
     MAX_RATIO,
-    D,
     LogReader,
     Loss,
     TopicInfo,
@@ -146,28 +145,18 @@ class McapLog(LogReader):
     # ----------------------------------------------------------------- messages
 
     def batches(self, topics: Iterable[str]) -> Iterator[RawBatch]:
-        return (batch for batch, _ in self.decoded_batches(topics, lambda batch: None))
-
-    def decoded_batches(
-        self, topics: Iterable[str], decode: Callable[[RawBatch], D]
-    ) -> Iterator[tuple[RawBatch, D]]:
         wanted = set(topics)
         if self._summary is None:
             channels: dict[int, Channel] = {}
             for data, at in self._walk(channels, {}, note=False):
-                for batch in _channel_batches(data, at, channels, wanted):
-                    yield batch, decode(batch)
+                yield from _channel_batches(data, at, channels, wanted)
             return
         ids = {c: (ch.topic, _encoding(ch)) for c, ch in self._summary.channels.items()}
         ids = {c: found for c, found in ids.items() if found[0] in wanted}
         chunks = sorted(self._summary.chunk_indexes, key=lambda i: i.chunk_start_offset)
 
-        def decoded(group: list[ChunkIndex]) -> list[tuple[RawBatch, D]]:
-            batches = interleaved(self._chunk_batches(*self._group(group, set(ids)), ids))
-            return [(batch, decode(batch)) for batch in batches]
-
         for group in _groups(chunks, set(ids)):
-            yield from decoded(group)
+            yield from interleaved(self._chunk_batches(*self._group(group, set(ids)), ids))
 
     def follow(
         self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05

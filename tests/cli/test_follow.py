@@ -301,9 +301,8 @@ def test_one_document_from_the_api_the_cli_batch_and_follow_on_a_finished_log(tm
     axes and ``converged``)."""
     from conftest import SAMPLE_DATA
 
-    from imucal_cli.api import follow
+    from imucal_cli.api import follow, load_config
     from imucal_cli.cli import app
-    from imucal_cli.config import load_config
     from imucal_cli.documents import load_document, to_plain
 
     log = (SAMPLE_DATA / "aggressive.mcap").resolve()  # (as batch names it)
