@@ -19,6 +19,7 @@ from imucal_cli.calibration import Calibration, Reading
 from imucal_cli.config import Config, SensorConfig
 from imucal_cli.core.biases import BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions
+from imucal_cli.core.estimates import estimates as solved_estimates
 from imucal_cli.core.grades import GRADES
 from imucal_cli.core.status import every_axis_missing
 from imucal_cli.core.streaming import BOOT_S, SensorSetup, StreamingCalibrator
@@ -257,7 +258,7 @@ def _solved(
     """Every sensor solved from the windows reduced so far."""
     try:
         with np.errstate(all="ignore"):
-            estimates = calibrator.estimates()
+            estimates = solved_estimates(calibrator)
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         # only data no IMU produces get here (the reader drops what it can recognise)
         log = reading.log if reading is not None else "the streams"
@@ -531,7 +532,7 @@ def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> Calibratio
         return None
     with np.errstate(all="ignore"):
         try:
-            estimates = calibrator.estimates()
+            estimates = solved_estimates(calibrator)
         except (ImucalError, np.linalg.LinAlgError, ValueError):
             return None
     return _calibration(

@@ -16,17 +16,16 @@ import numpy as np
 
 from imucal_cli.core.model import (
     ACCEL_AXES,
-    ACCEL_GLOBALS,
     ACCEL_ROTATION,
     AXIS_ERRORS,
     BASE_GYRO_SCALE,
     G_SENSITIVITY,
     GYRO_AXES,
     N_PARAMETERS,
+    PARAMETERS,
     ROTATION,
     SENSOR_ERRORS,
     TILT,
-    TIME_OFFSET,
     TRANSLATION,
 )
 from imucal_cli.core.solver import Fit, Problem
@@ -252,16 +251,14 @@ def rotation_agreement(
     put, with its large covariance, instead of wandering off). Where the triads' misalignment
     is not estimated, the grades' prior on it (``misalignment_std``, rad per axis) is a
     disagreement the model allows."""
-    rotation_only = np.zeros(N_PARAMETERS, dtype=bool)
-    rotation_only[ROTATION] = True
+    rotation_only = PARAMETERS.mask("rotation")
     by_gyro = problem.fit(
         fit, rotation_only, use=(True, False), max_iterations=1, prior_std=ROTATION_PRIOR
     )
-    accel_only = np.zeros(
-        N_PARAMETERS, dtype=bool
-    )  # the free globals the accelerometer holds, but tau
-    accel_only[ACCEL_GLOBALS] = fit.free[ACCEL_GLOBALS]
-    accel_only[TIME_OFFSET] = accel_only[ACCEL_ROTATION] = False
+    # the free globals the accelerometer holds, but the clock and its own rotation
+    accel_only = fit.free & PARAMETERS.mask(
+        "rotation", "translation", "tilt", "accel_axes", "base_gyro_scale", "base_accel_axes"
+    )
     by_accel = problem.fit(
         fit, accel_only, use=(False, True), max_iterations=1, prior_std=ROTATION_PRIOR
     )

@@ -82,6 +82,14 @@ class Layout:
         """The positions of several blocks, in the order named."""
         return np.concatenate([np.arange(self.slices[n].start, self.slices[n].stop) for n in names])
 
+    def mask(self, *names: str) -> np.ndarray:
+        """A boolean mask over the vector, True on the blocks named (as symforce's
+        ``optimized_keys``)."""
+        out = np.zeros(self.size, dtype=bool)
+        for name in names:
+            out[self.slices[name]] = True
+        return out
+
     def without(self, *names: str) -> Layout:
         """The layout of the other blocks, in order, packed from 0."""
         return Layout(*((n, s.stop - s.start) for n, s in self.slices.items() if n not in names))
@@ -118,6 +126,8 @@ ACCEL_ROTATION, BASE_GYRO_SCALE = PARAMETERS["accel_rotation"], PARAMETERS["base
 BASE_ACCEL_AXES = PARAMETERS["base_accel_axes"]
 #: Both IMUs' own errors, as :attr:`Point.errors` holds them.
 SENSOR_ERRORS = slice(ACCEL_AXES.start, BASE_ACCEL_AXES.stop)
+#: What the fit starts with free: the extrinsics and the clock.
+START_FREE = PARAMETERS.mask("rotation", "translation", "time_offset")
 #: The extrinsics and the clock: what the jackknife and the reported covariance cover.
 EXTRINSICS = slice(ROTATION.start, TIME_OFFSET + 1)
 #: The globals each equation holds, in the order of its derivatives' columns.

@@ -1,4 +1,6 @@
-"""Each window reduced to the second moments of its data vectors (:mod:`.model`'s layouts).
+"""Each window reduced to the second moments of its data vectors (:mod:`.model`'s layouts),
+and the builder that does it for a block of windows (:func:`reduce_block`): the base's terms
+low-passed once, every data vector side by side, one Gram matrix per window.
 
 The base's part of each data vector is shared by every sensor, so a window's moments are held
 as the base's block (upper triangles, once per window) and each sensor's own rows.
@@ -11,8 +13,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imucal_cli.core.model import ACCEL_BASE, ACCEL_DATA, ACCEL_OWN, GYRO_BASE, GYRO_DATA, GYRO_OWN
+from imucal_cli.core.model import (
+    ACCEL_BASE,
+    ACCEL_DATA,
+    ACCEL_OWN,
+    GYRO_BASE,
+    GYRO_DATA,
+    GYRO_OWN,
+    Layout,
+)
+from imucal_cli.core.resample import Spline
 from imucal_cli.core.segments import WindowInfo
+from imucal_cli.core.signals import Lowpass, near, white_noise_density
+
+#: Where each IMU's white noise is measured (Hz): above the motion the low-pass keeps, below
+#: the internal filters of MEMS parts.
+NOISE_BAND_HZ = (10.0, 20.0)
 
 
 @dataclass(frozen=True)
@@ -65,3 +81,196 @@ def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray
     full[:, 0:own, :] = rows
     full[:, :, 0:own] = rows.transpose(0, 2, 1)
     return full
+
+
+def noise_density(both: np.ndarray, rate: float) -> tuple[float, float]:
+    """White-noise densities of the gyro and the accelerometer (columns 0-2 and 3-5)."""
+    density = white_noise_density(both, rate, NOISE_BAND_HZ)
+    return float(np.sqrt(np.mean(density[:3] ** 2))), float(np.sqrt(np.mean(density[3:] ** 2)))
+
+
+#: Column of the packed upper triangle of each entry of a symmetric 3x3 matrix (row-major).
+_FROM_UPPER = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]]).ravel()
+#: Entries of ``[v]x`` off its diagonal: (row, column, sign, component of v).
+_SKEW_ENTRIES = (
+    (0, 1, -1, 2),
+    (0, 2, 1, 1),
+    (1, 0, 1, 2),
+    (1, 2, -1, 0),
+    (2, 0, -1, 1),
+    (2, 1, 1, 0),
+)
+
+
+def upper_symmetric_products(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (n, 6) = the upper triangle (row-major: 00 01 02 11 12 22) of
+    ``[a]x[b]x + [b]x[a]x = a b^T + b a^T - 2 (a . b) I`` for stacks (n, 3); with ``a = b``
+    twice ``[a]x^2``. Element by element: no (n, 3, 3) stacks of small products."""
+    dot = np.einsum("ni,ni->n", a, b)
+    k = 0
+    for r in range(3):
+        for c in range(r, 3):
+            np.multiply(a[:, r], b[:, c], out=out[:, k])
+            out[:, k] += a[:, c] * b[:, r]
+            if r == c:
+                out[:, k] -= 2.0 * dot
+            k += 1
+
+
+def vec_of_sum(upper: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (n, 9) = the column-major vec of ``S + [v]x`` (``A t = (t^T x I) vec A``), with
+    ``S`` symmetric given by its upper triangle (n, 6) and ``v`` (n, 3): one column at a time,
+    straight into ``out``."""
+    for r in range(3):
+        out[:, 4 * r] = upper[:, _FROM_UPPER[4 * r]]  # the diagonal: [v]x has none
+    for r, c, sign, component in _SKEW_ENTRIES:
+        (np.add if sign > 0 else np.subtract)(
+            upper[:, _FROM_UPPER[3 * r + c]], v[:, component], out=out[:, r + 3 * c]
+        )
+
+
+#: The base's terms the low-pass filters: [w, f], [dw, df], ddw, the symmetric 3x3 terms by
+#: their upper triangles, [w]x^2 and [dw]x[w]x + [w]x[dw]x (halved: the sum of a, b and b, a),
+#: and the tilt terms.
+_TERMS = Layout(("w_f", 6), ("dw_df", 6), ("ddw", 3), ("ww", 6), ("dw_w", 6), ("q", 4))
+
+
+def _base_terms(values: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """The terms of the base's side of the equations side by side (:data:`_TERMS`), each column
+    contiguous (as the low-pass takes them), from the base spline's values and derivatives."""
+    T = _TERMS
+    terms = np.empty((T.size, len(values))).T
+    terms[:, T["w_f"]], terms[:, T["dw_df"]], terms[:, T["ddw"]] = values, first, second[:, 0:3]
+    w_raw, dw_raw, f_raw = values[:, 0:3], first[:, 0:3], values[:, 3:6]
+    upper_symmetric_products(w_raw, w_raw, terms[:, T["ww"]])
+    terms[:, T["ww"]] *= 0.5
+    upper_symmetric_products(dw_raw, w_raw, terms[:, T["dw_w"]])
+    # the tilt terms of a mount leaning with the specific force (model.tilt_columns):
+    # [f_y f_z, f_y^2, f_x f_z, f_x^2]
+    q = T["q"].start
+    for k, (i, j) in enumerate(((1, 2), (1, 1), (0, 2), (0, 0))):
+        np.multiply(f_raw[:, i], f_raw[:, j], out=terms[:, q + k])
+    return terms
+
+
+def _base_columns(rows: np.ndarray, X: np.ndarray) -> None:
+    """The base's parts of x_g and x_a (in that order, from column 0 of ``X``) from the
+    low-passed terms; the time columns ``u`` are the caller's."""
+    T, B_g, n_g = _TERMS, GYRO_BASE, GYRO_BASE.size
+
+    def accel(name: str) -> slice:  # x_a's base part, after x_g's in X
+        return ACCEL_BASE.shifted(name, n_g)
+
+    w, f = rows[:, T["w_f"]][:, 0:3], rows[:, T["w_f"]][:, 3:6]
+    dw, df, ddw = rows[:, T["dw_df"]][:, 0:3], rows[:, T["dw_df"]][:, 3:6], rows[:, T["ddw"]]
+    X[:, B_g["w_B"]], X[:, B_g["dw_B"]], X[:, B_g["one"]] = w, dw, 1.0
+    X[:, accel("f_B")], X[:, accel("df_B")], X[:, accel("one")] = f, df, 1.0
+    X[:, accel("tilt_terms")] = rows[:, T["q"]]
+    # vec A = vec([w]x^2 + [dw]x) (column-major), from the symmetric part's upper triangle and
+    # the skew part (eq. 12); vec dA likewise from ([dw]x[w]x + [w]x[dw]x) and [ddw]x
+    vec_of_sum(rows[:, T["ww"]], dw, X[:, accel("vec_A")])
+    vec_of_sum(rows[:, T["dw_w"]], ddw, X[:, accel("vec_dA")])
+
+
+def _window_moments(
+    X: np.ndarray,
+    spans: list[tuple[int, float, float]],
+    at: list[tuple[int, int]],
+    names: list[str],
+    covered: dict[str, np.ndarray],
+) -> dict[str, list[WindowMoments]]:
+    """Each window's moments, one Gram matrix of the block's columns per window: the base's
+    block shared, each sensor's own rows."""
+    n_g, n_a = GYRO_BASE.size, ACCEL_BASE.size
+    out: dict[str, list[WindowMoments]] = {name: [] for name in names}
+    for (number, start, end), (i0, n_win) in zip(spans, at, strict=True):
+        Xw = X[i0 : i0 + n_win]
+        G = Xw.T @ Xw
+        shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
+        valid_base = bool(covered[""][i0 : i0 + n_win].all())
+        for k, name in enumerate(names):
+            gyro = slice(n_g + n_a + GYRO_OWN * k, n_g + n_a + GYRO_OWN * (k + 1))  # [w_I, f_I]
+            f_I = GYRO_DATA.shifted("f_I", gyro.start)
+            rows_g = np.hstack([G[gyro, gyro], G[gyro, :n_g]])  # [w_I, f_I]^T x_g
+            rows_a = np.hstack([G[f_I, f_I], G[f_I, n_g : n_g + n_a]])  # f_I^T x_a
+            valid = valid_base and bool(covered[name][i0 : i0 + n_win].all())
+            out[name].append(
+                WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win)
+            )
+    return out
+
+
+def reduce_block(
+    spans: list[tuple[int, float, float]],
+    rate: float,
+    window_s: float,
+    lp: Lowpass,
+    n_pad: int,
+    n_block: int,
+    n_after: int,
+    base_name: str,
+    samples: dict[str, tuple[float, np.ndarray, np.ndarray, np.ndarray]],
+) -> dict[str, list[WindowMoments]]:
+    """Condition a block of consecutive windows once (per IMU its clock offset, stamps in s,
+    ``[gyro, accel]`` and the stamps of saturated readings in ``samples``) and reduce each
+    window, for every sensor, to its moments. A window within the low-pass's length of a
+    saturated reading is not valid."""
+    reach = lp.reach_s
+    block_start = spans[0][1]
+    grid = block_start + np.arange(-n_pad, n_block + n_after) / rate
+    _, t_b, both_b, saturated_b = samples[base_name]
+    base = Spline(t_b, both_b, rate)
+    # one zero-phase low-pass for every term of every equation (linear filters commute);
+    # the symmetric 3x3 terms are filtered by their upper triangles
+    rows = lp(_base_terms(*base(grid, 2)))[n_pad : n_pad + n_block]
+    t_rows = grid[n_pad : n_pad + n_block]
+    # every data vector of the block side by side, so that each window's moments are one
+    # Gram matrix: the base's part of x_g, of x_a, then each sensor's [w_I, f_I]; each
+    # column written once into X
+    names = [name for name in samples if name != base_name]
+    n_base = GYRO_BASE.size + ACCEL_BASE.size
+    X = np.empty((n_block, n_base + GYRO_OWN * len(names)))
+    _base_columns(rows, X)
+    at = [
+        (round((start - block_start) * rate), round((end - start) * rate))
+        for _, start, end in spans
+    ]
+    u_g, u_a = GYRO_BASE.index("u"), GYRO_BASE.size + ACCEL_BASE.index("u")
+    X[:, u_g] = 0.0
+    for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
+        X[i0 : i0 + n_win, u_g] = (t_rows[i0 : i0 + n_win] - start) / window_s
+    X[:, u_a] = X[:, u_g]
+    # where each stream has data (no gap) and reads the motion (no saturated reading)
+    covered = {"": base.covered(t_rows) & ~near(t_rows, saturated_b, reach)}
+    for k, name in enumerate(names):
+        tau, t_s, both_s, saturated_s = samples[name]
+        # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
+        sensor = Spline(t_s, both_s, rate, smooth=lp)
+        own = n_base + GYRO_OWN * k  # the sensor's [w_I, f_I], as x_g starts
+        X[:, own : own + GYRO_OWN] = sensor(t_rows + tau)[0]
+        covered[name] = sensor.covered(t_rows + tau) & ~near(t_rows + tau, saturated_s, reach)
+    return _window_moments(X, spans, at, names, covered)
+
+
+#: Fewest samples of an IMU in a block for its windows there to be reduced.
+MIN_SPAN_SAMPLES = 8
+
+
+def unused_window(number: int, start: float, end: float) -> WindowMoments:
+    """A window of an IMU that has no samples there (it stopped): kept in the count, not used."""
+    dim_g, dim_a = GYRO_BASE.size, ACCEL_BASE.size
+    shared = base_moments(np.zeros((dim_g, dim_g)), np.zeros((dim_a, dim_a)))
+    info = WindowInfo(
+        start, end, 0.0, float("inf"), False, np.full(3, np.inf), np.zeros(3, dtype=bool), False
+    )
+    return WindowMoments(
+        number,
+        start,
+        end,
+        False,
+        shared,
+        np.zeros((6, 6 + dim_g)),
+        np.zeros((3, 3 + dim_a)),
+        0,
+        info,
+    )

@@ -23,8 +23,7 @@ from imucal_cli.core.model import (
     KNOT,
     N_PARAMETERS,
     ROTATION,
-    SENSOR_ERRORS,
-    TILT,
+    START_FREE,
     TRANSLATION,
     Point,
     accel_coefficients,
@@ -479,9 +478,7 @@ class Problem:
         the extrinsics and the clock free."""
         R = kabsch_rotation(self.S_g, self.samples_per_window)
         scale_g, scale_a = (s * np.sqrt(self.gain) for s in self.sigma)
-        free = np.ones(N_PARAMETERS, dtype=bool)
-        free[TILT] = False
-        free[SENSOR_ERRORS] = False
+        free = START_FREE.copy()
         point = Point(R, self.settings.translation_prior.copy(), 0.0)
         return Fit(point, np.zeros((self.n_knots, KNOT.size)), free, scale_g, scale_a)
 

@@ -210,3 +210,35 @@ def missing_axes(estimate: Any, stop: Any) -> list[str]:
         if translation[k] > stop.max_translation_std_m or not estimate.translation_observable[k]
     ]
     return out
+
+
+def imu_notes(
+    topic: str,
+    is_base: bool,
+    saturation: Any,
+    scales: tuple[float, float],
+    silences: list[list[float | None]],
+) -> list[str]:
+    """What an estimate says of one of its IMUs: where it saturates, and where it stopped
+    while the others went on."""
+    notes = [
+        f"{topic}: the {triad_name} saturates at {triad.level * scale:.4g} {unit} "
+        f"({triad.readings} readings there): the windows that hold one are not used"
+        for triad, triad_name, unit, scale, saturates in zip(
+            saturation.triads,
+            ("gyro", "accelerometer"),
+            ("rad/s", "m/s^2"),
+            scales,
+            saturation.saturated(scales),
+            strict=True,
+        )
+        if saturates
+    ]
+    for start, end in silences:
+        notes.append(
+            f"{topic} sent nothing from {start:.1f} s"
+            + (f" to {end:.1f} s" if end is not None else " to the end of the log")
+            + " while the other IMUs went on: the windows there are not used for "
+            + ("any sensor" if is_base else "this sensor")
+        )
+    return notes

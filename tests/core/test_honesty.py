@@ -11,13 +11,13 @@ from conftest import lidar_error
 
 from imucal_cli.api import DriveStreams, calibrate_streams
 from imucal_cli.config import parse_config
+from imucal_cli.core.boot import UnitsError
 from imucal_cli.core.signals import (
     Lowpass,
     derivative_noise_variance,
     white_noise_density,
     white_noise_std,
 )
-from imucal_cli.core.streaming import UnitsError
 from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S, time_offset_shown
 from imucal_cli.errors import ConfigError, ImucalError
 from imucal_cli.outputs import calibration_document

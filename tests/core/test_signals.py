@@ -43,8 +43,9 @@ def test_lowpass_decimated_is_every_step_th_sample(n, step):
     """Kept every ``step``-th sample, the low-pass gives what the full filter gives there: to
     its response at the new Nyquist frequency (white noise in, the worst case, and a smooth
     signal, whose only content there is what the transform's wrap-around leaves)."""
+    from imucal_cli.core.resample import ALIAS_GAIN
+    from imucal_cli.core.resample import decimation as _decimation
     from imucal_cli.core.signals import Lowpass
-    from imucal_cli.core.streaming import ALIAS_GAIN, _decimation
 
     lowpass = Lowpass(5.0, 200.0 * step / 2, 4, 40.0 * step / 2)
     assert _decimation(lowpass, 100.0) == step
@@ -62,8 +63,8 @@ def test_lowpass_decimated_is_every_step_th_sample(n, step):
 
 def test_no_decimation_where_the_response_would_alias():
     """A low-pass that passes content near the new Nyquist frequency is not decimated."""
+    from imucal_cli.core.resample import decimation as _decimation
     from imucal_cli.core.signals import Lowpass
-    from imucal_cli.core.streaming import _decimation
 
     assert _decimation(Lowpass(20.0, 200.0, 4, 40.0), 100.0) == 1
     assert _decimation(Lowpass(5.0, 150.0, 4, 40.0), 100.0) == 1

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from imucal_cli.config import parse_config
+from imucal_cli.core.estimates import estimates
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.sim import DriveOptions, simulate_drive
 from imucal_cli.types import DriveStreams
@@ -32,7 +33,8 @@ def test_live_feed_gives_an_estimate_after_every_window_and_the_batch_result():
     )
     batch = make_calibrator(config)
     feed(batch, streams)
-    expected = batch.finish()
+    batch.finish()
+    expected = estimates(batch)
 
     live = StreamingCalibrator(list(make_calibrator(config).sensors.values()), block_windows=1)
     all_streams = {"base": streams.base, **streams.sensors}
@@ -45,9 +47,10 @@ def test_live_feed_gives_an_estimate_after_every_window_and_the_batch_result():
         if live.add(name, s.t_ns[i : i + 1], s.gyro[i : i + 1], s.accel[i : i + 1]):
             seen += 1
             if seen == 2:  # an estimate already, after two windows
-                early = live.estimates()
+                early = estimates(live)
                 assert all(e.status == "ok" for e in early.values())
-    final = live.finish()
+    live.finish()
+    final = estimates(live)
     assert seen >= 3
     for name, estimate in expected.items():
         std = np.sqrt(np.diag(estimate.covariance))
@@ -87,7 +90,9 @@ def test_a_live_feed_may_reuse_its_buffers_after_each_add():
             t, g, a = buffers[name]
             t[:n], g[:n], a[:n] = s.t_ns[part], s.gyro[part], s.accel[part]
             reused.add(name, t[:n], g[:n], a[:n])
-    expected, got = fresh.finish(), reused.finish()
+    fresh.finish()
+    reused.finish()
+    expected, got = estimates(fresh), estimates(reused)
     for name, estimate in expected.items():
         assert (
             got[name].T_base_imu.as_matrix().tobytes() == estimate.T_base_imu.as_matrix().tobytes()
@@ -99,7 +104,7 @@ def test_natural_cubic_spline_interpolates_and_matches_the_b_spline_away_from_th
     have died out (a few samples in) it is the not-a-knot B-spline, values and derivatives."""
     from scipy.interpolate import make_interp_spline
 
-    from imucal_cli.core.streaming import _NaturalCubic
+    from imucal_cli.core.resample import NaturalCubic as _NaturalCubic
 
     rng = np.random.default_rng(5)
     t = np.arange(2000) / 200.0 + rng.normal(0.0, 2e-5, 2000)  # jittered stamps
@@ -116,9 +121,10 @@ def test_symmetric_terms_filtered_by_their_upper_triangles_are_the_full_matrices
     ``[dw]x[w]x + [w]x[dw]x`` formed element by element are those of the matrix products, and
     vec of (such a term low-passed by its upper triangle, plus a skew part) is vec of the whole
     matrix low-passed, plus that skew part."""
+    from imucal_cli.core.moments import upper_symmetric_products as _upper_symmetric_products
+    from imucal_cli.core.moments import vec_of_sum as _vec_of_sum
     from imucal_cli.core.signals import Lowpass
     from imucal_cli.core.so3 import skew, skew_squared
-    from imucal_cli.core.streaming import _upper_symmetric_products, _vec_of_sum
 
     rng = np.random.default_rng(7)
     w, dw = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
@@ -172,7 +178,7 @@ def test_windows_that_hold_a_saturated_reading_are_not_used(monkeypatch):
     ]
     assert 0 < sum(hit) < len(after)
     assert [w.valid for w in after] == [b.valid and not h for b, h in zip(before, hit, strict=True)]
-    estimate = calibrators[1].estimates()[name]
+    estimate = estimates(calibrators[1])[name]
     topic = config.sensors[0].imu_topic
     assert any(
         w.startswith(f"{topic}: the gyro saturates at {level:.4g} rad/s") for w in estimate.warnings
@@ -218,7 +224,7 @@ def test_dropped_samples_are_put_back_on_a_cubic_exactly_and_gaps_are_left():
     """A cubic sampled at 200 Hz with single, double and triple drops and one long gap: every
     dropped sample comes back on the cubic to rounding (the fill is Lagrange's cubic through
     two samples each side), at its stamp on the period's grid; the long gap stays a gap."""
-    from imucal_cli.core.streaming import GAP_PERIODS, filled
+    from imucal_cli.core.resample import GAP_PERIODS, filled
 
     period = 0.005
     k = np.arange(2000)
