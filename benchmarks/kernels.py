@@ -8,8 +8,8 @@ rounds of many calls, and the largest difference of the two results:
   the 100 Hz grid;
 - the symmetric products ``[a]x[b]x + [b]x[a]x`` of the base's terms (``core.moments.
   upper_symmetric_products``, element by element) against ``einsum`` of the (n, 3, 3) stacks;
-- MCAP chunks read and decoded in groups of ``GROUP_BYTES`` against one chunk at a time, on the
-  1 h log of :mod:`throughput` (built there and cached).
+- MCAP chunks read, decoded and calibrated in groups of ``GROUP_BYTES`` against one chunk at a
+  time (``imucal_cli.calibrate`` of the 1 h log of :mod:`throughput`, built there and cached).
 
 Run: ``python benchmarks/kernels.py [--repeat 5]``.
 """
@@ -95,26 +95,32 @@ def groups_row(repeat: int) -> tuple[str, float, float, float]:
     sys.path.insert(0, str(HERE))
     from throughput import build
 
-    from imucal_cli.config import load_config
+    import imucal_cli
     from imucal_cli.io import mcap_log
-    from imucal_cli.reading import ImuBatches
 
     log, config = build("1h", "mcap")
-    topics = load_config(config).imu_names()
     grouped = mcap_log.GROUP_BYTES
+    found = {}
 
-    def read(group_bytes: int) -> float:
+    def calibrate(group_bytes: int) -> None:
         mcap_log.GROUP_BYTES = group_bytes
         try:
-            return sum(float(stamps[-1]) for _, stamps, *_ in ImuBatches(log, topics) if len(stamps))
+            cal = imucal_cli.calibrate(log, config)
         finally:
             mcap_log.GROUP_BYTES = grouped
+        found[group_bytes] = np.array(
+            [cal.T_base_lidar(n).as_matrix() for n in sorted(cal.estimates)]
+        )
 
+    own, other = (
+        least(lambda: calibrate(grouped), 1, repeat),
+        least(lambda: calibrate(1), 1, repeat),
+    )
     return (
-        f"the 1 h MCAP read and decoded: groups of {grouped >> 20} MiB / one chunk at a time",
-        least(lambda: read(grouped), 1, repeat),
-        least(lambda: read(1), 1, repeat),
-        abs(read(grouped) - read(1)),
+        f"the 1 h MCAP calibrated: chunks in groups of {grouped >> 20} MiB / one at a time",
+        own,
+        other,
+        float(np.abs(found[grouped] - found[1]).max()),
     )
 
 
