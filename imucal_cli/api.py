@@ -23,7 +23,13 @@ from imucal_cli import pipeline
 from imucal_cli.calibration import Calibration, Reading
 from imucal_cli.config import Config
 from imucal_cli.errors import InputError
-from imucal_cli.pipeline import DriveStreams, calibrate_streams, lost_summary
+from imucal_cli.pipeline import (
+    DriveStreams,
+    calibrate_streams,
+    lost_summary,
+    recording_config,
+    wait_for_log,
+)
 from imucal_cli.types import Transform
 
 __all__ = [
@@ -39,7 +45,9 @@ __all__ = [
     "load_config",
     "load_transforms",
     "lost_summary",
+    "recording_config",
     "segments",
+    "wait_for_log",
     "write_document",
     "write_report",
 ]

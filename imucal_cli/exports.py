@@ -445,3 +445,55 @@ FORMATS = {
     "kalibr": ExportFormat("a Kalibr IMU chain", lambda ex, p: {"main": kalibr(ex)}, None, False),
     "json": ExportFormat("4x4 matrices", lambda ex, p: {"main": json_matrices(ex)}),
 }
+
+
+def parse_transform(text: str) -> Transform:
+    """A transform given on the command line: a YAML/JSON file, or seven numbers."""
+    from pathlib import Path
+
+    from imucal_cli.documents import load_document
+
+    path = Path(text)
+    try:
+        if path.is_file():
+            return Transform.from_dict(load_document(path), str(path), "")
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ConfigError as exc:
+        raise InputError(str(exc)) from None
+    except ValueError:
+        values = []
+    if len(values) != 7:
+        raise InputError(f"--parent-transform {text!r}: expected a file or 'x y z qx qy qz qw'")
+    try:
+        return Transform.from_dict(
+            {"translation": values[:3], "rotation": values[3:]}, "--parent-transform", ""
+        )
+    except ConfigError as exc:
+        raise InputError(str(exc)) from None
+
+
+def _written_by_export(path: Any) -> bool:
+    """Whether ``path`` is a launch file an earlier ``export`` wrote (its mark in its head)."""
+    try:
+        with path.open("rb") as handle:
+            return LAUNCH_MARK.encode() in handle.read(4096)
+    except OSError:
+        return False
+
+
+def export_targets(out: Any, fmt: str) -> dict[str, Any]:
+    """Where each file of ``fmt`` goes: ``out`` (a Path, ``-o``), and a launch file beside it as
+    its stem's, which replaces only a launch file an earlier export wrote."""
+    suffix = FORMATS[fmt].launch_suffix
+    if out is None:
+        return {}
+    targets = {"main": out}
+    if suffix is not None:
+        targets["launch"] = out.with_name((out.name.split(".")[0] or out.name) + suffix)
+    launch = targets.get("launch")
+    if launch is not None and launch.exists() and not _written_by_export(launch):
+        raise InputError(
+            f"{launch}: exists, and imucal export did not write it: not replaced (the launch "
+            "file goes beside -o OUT as its stem's): move it, or name another OUT"
+        )
+    return targets

@@ -538,3 +538,68 @@ def _estimate_now(calibrator: StreamingCalibrator, config: Config) -> Calibratio
     return _calibration(
         calibrator, config, _first_stamp(calibrator), None, estimates, followed=True
     )
+
+
+#: Follow mode without a deadline: how long a log that does not exist yet is waited for (s).
+WAIT_FOR_LOG_S = 30.0
+
+
+def wait_for_log(log: Path, limit: float, waiting: Callable[[], None]) -> None:
+    """Follow mode started beside a recorder: wait until ``limit`` (monotonic s) for the log
+    to appear (a rosbag2 folder: its storage file), ``waiting()`` told once if it must."""
+
+    def present() -> bool:
+        if log.is_dir():
+            return any(log.glob("*.mcap")) or any(log.glob("*.db3"))
+        return log.exists()
+
+    if present():
+        return
+    waiting()
+    while not present():
+        if time.monotonic() > limit:
+            raise InputError(f"{log}: no such file or directory (waited for it to be created)")
+        time.sleep(0.1)
+
+
+def recording_config(path: Path, log: Path, limit: float, urdf: Path | None) -> tuple[Config, str]:
+    """Follow mode's config, and a note for the user ("" for none). One that leaves transforms
+    out is read against the recording's /tf_static and the URDF (``urdf``, else its
+    /robot_description) as soon as they hold them and the IMUs' first messages (until
+    ``limit``, monotonic s); an error in the URDF itself is said at once. A base pose left out
+    is taken from the recording where it reads now, else the config's default (said)."""
+    from imucal_cli.config import load_config, read_config
+    from imucal_cli.errors import ConfigError
+    from imucal_cli.frames import (
+        MAX_URDF_BYTES,
+        FrameTree,
+        leaves_out,
+        leaves_out_transforms,
+        read_urdf,
+    )
+    from imucal_cli.priors import load_config_for
+
+    try:
+        config = load_config(path)
+        if not leaves_out(read_config(path)):
+            return config, ""
+        try:  # the base IMU's pose alone left out: the recording's tree, where it reads now
+            return load_config_for(path, log, urdf), ""
+        except ImucalError as exc:
+            why = f"no base.T_base_imu from the recording yet ({exc})"
+            return config, f"{log}: {why}: the config's default is used"
+    except ConfigError as exc:
+        if not leaves_out_transforms(exc):
+            raise
+    if urdf is not None:
+        from imucal_cli.documents import read_capped
+
+        text = read_capped(urdf, MAX_URDF_BYTES, "a URDF").decode("utf-8", errors="replace")
+        read_urdf(text, FrameTree(), str(urdf))  # (not a URDF: said now, not at --timeout)
+    while True:
+        try:
+            return load_config_for(path, log, urdf), ""
+        except ImucalError:
+            if time.monotonic() > limit:
+                raise
+            time.sleep(0.5)

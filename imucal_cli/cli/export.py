@@ -3,67 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
 from imucal_cli.cli import options
 from imucal_cli.cli.app import PANEL_EXPORT, command, err
-from imucal_cli.errors import ConfigError, InputError
-from imucal_cli.exports import FORMATS, LAUNCH_MARK
-
-
-def _parse_transform(text: str) -> Any:
-    """A transform given on the command line: a YAML/JSON file, or seven numbers."""
-    from imucal_cli.documents import load_document
-    from imucal_cli.types import Transform
-
-    path = Path(text)
-    try:
-        if path.is_file():
-            return Transform.from_dict(load_document(path), str(path), "")
-        values = [float(v) for v in text.replace(",", " ").split()]
-    except ConfigError as exc:
-        raise InputError(str(exc)) from None
-    except ValueError:
-        values = []
-    if len(values) != 7:
-        raise InputError(f"--parent-transform {text!r}: expected a file or 'x y z qx qy qz qw'")
-    try:
-        return Transform.from_dict(
-            {"translation": values[:3], "rotation": values[3:]}, "--parent-transform", ""
-        )
-    except ConfigError as exc:
-        raise InputError(str(exc)) from None
-
-
-def _written_by_export(path: Path) -> bool:
-    """Whether ``path`` is a launch file an earlier ``export`` wrote (its mark in its head)."""
-    try:
-        with path.open("rb") as handle:
-            return LAUNCH_MARK.encode() in handle.read(4096)
-    except OSError:
-        return False
-
-
-def _targets(out: Path | None, fmt: str, inputs: list[Path | None]) -> dict[str, Path]:
-    """Where each file goes: ``-o``, and a launch file beside it as its stem's; checked."""
-    suffix = FORMATS[fmt].launch_suffix
-    if out is None:
-        return {}
-    targets = {"main": out}
-    if suffix is not None:
-        targets["launch"] = out.with_name((out.name.split(".")[0] or out.name) + suffix)
-    launch = targets.get("launch")
-    if launch is not None and launch.exists() and not _written_by_export(launch):
-        raise InputError(
-            f"{launch}: exists, and imucal export did not write it: not replaced (the launch "
-            "file goes beside -o OUT as its stem's): move it, or name another OUT"
-        )
-    names = {"main": "-o", "launch": "the launch file"}
-    options.guard({names[key]: path for key, path in targets.items()}, inputs)
-    return targets
-
+from imucal_cli.errors import InputError
+from imucal_cli.exports import FORMATS, export_targets, parse_transform
 
 Extrinsics = Annotated[
     Path, typer.Argument(help="What `imucal calibrate -o` wrote (YAML or JSON).", exists=True)
@@ -127,9 +74,11 @@ def export(
     options.needs(
         "--parent-transform", parent_transform, "--parent FRAME (the frame it places)", parent
     )
-    T_base_parent = _parse_transform(parent_transform) if parent_transform is not None else None
+    T_base_parent = parse_transform(parent_transform) if parent_transform is not None else None
     inputs = [extrinsics, Path(parent_transform) if parent_transform is not None else None]
-    targets = _targets(out, fmt, inputs)
+    targets = export_targets(out, fmt)
+    names = {"main": "-o", "launch": "the launch file"}
+    options.guard({names[key]: path for key, path in targets.items()}, inputs)
     document = load_document(extrinsics)
     files = api.export(document, fmt, parent, str(extrinsics), T_base_parent, allow_not_ok)
     if out is None:

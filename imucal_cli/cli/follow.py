@@ -14,12 +14,9 @@ import typer
 
 from imucal_cli.cli import render
 from imucal_cli.cli.app import EXIT_CHECK_FAILED, err, interrupted
-from imucal_cli.errors import InputError
 
 #: After how long without news of the recording the wait is said (s of wall time).
 FOLLOW_STALL_S = 30.0
-#: Without --timeout: how long a log that does not exist yet is waited for (s).
-WAIT_FOR_LOG_S = 30.0
 
 
 def follow_table(log: Path, windows: int, calibration: Any) -> Any:
@@ -52,69 +49,6 @@ def _waiting_table(log: Path, state: dict[str, Any]) -> Any:
     for name, s in state["sensors"].items():
         table.add_row(name, f"{s['samples']:,}", str(s["windows"]), s["waiting_for"])
     return table
-
-
-def _wait_for(log: Path, limit: float) -> None:
-    """Started beside a recorder: wait until ``limit`` (monotonic s) for the log to appear, a
-    rosbag2 folder for its storage file."""
-
-    def present() -> bool:
-        if log.is_dir():
-            return any(log.glob("*.mcap")) or any(log.glob("*.db3"))
-        return log.exists()
-
-    if present():
-        return
-    err(f"imucal: waiting for {log} to be created")
-    while not present():
-        if time.monotonic() > limit:
-            raise InputError(f"{log}: no such file or directory (waited for it to be created)")
-        time.sleep(0.1)
-
-
-def _follow_config(config_path: Path, log: Path, limit: float, urdf: Path | None) -> Any:
-    """The config; one that leaves transforms out (the base IMU's pose too) is read against the
-    recording's /tf_static and the URDF (``urdf``, else its /robot_description) as soon as they
-    hold them and the IMUs' first messages (until ``limit``, monotonic s): an error in the URDF
-    itself is said at once."""
-    from imucal_cli.api import load_config
-    from imucal_cli.documents import load_document
-    from imucal_cli.errors import ConfigError, ImucalError
-    from imucal_cli.frames import (
-        MAX_URDF_BYTES,
-        FrameTree,
-        leaves_out,
-        leaves_out_transforms,
-        read_urdf,
-    )
-
-    try:
-        config = load_config(config_path)
-        if not leaves_out(load_document(config_path)):
-            return config
-        try:  # the base IMU's pose alone left out: the recording's tree, where it reads now
-            return load_config(config_path, log, urdf)
-        except ImucalError as exc:
-            err(
-                f"imucal: note: {log}: no base.T_base_imu from the recording yet ({exc}): the "
-                "config's default is used"
-            )
-            return config
-    except ConfigError as exc:
-        if not leaves_out_transforms(exc):
-            raise
-    if urdf is not None:
-        from imucal_cli.documents import read_capped
-
-        text = read_capped(urdf, MAX_URDF_BYTES, "a URDF").decode("utf-8", errors="replace")
-        read_urdf(text, FrameTree(), str(urdf))  # (not a URDF: said now, not at --timeout)
-    while True:
-        try:
-            return load_config(config_path, log, urdf)
-        except ImucalError:
-            if time.monotonic() > limit:
-                raise
-            time.sleep(0.5)
 
 
 class _View:
@@ -196,12 +130,15 @@ def follow_log(
     """calibrate --follow, shown and written; exit codes as the SPEC says."""
     from imucal_cli import api
     from imucal_cli.documents import write_document
+    from imucal_cli.pipeline import WAIT_FOR_LOG_S
 
     deadline = None if timeout is None else time.monotonic() + timeout
     # the log, and the tree of a config that leaves transforms out: waited for within --timeout
     limit = deadline if deadline is not None else time.monotonic() + WAIT_FOR_LOG_S
-    _wait_for(log, limit)
-    config = _follow_config(config_path, log, limit, urdf)
+    api.wait_for_log(log, limit, lambda: err(f"imucal: waiting for {log} to be created"))
+    config, note = api.recording_config(config_path, log, limit, urdf)
+    if note:
+        err(f"imucal: note: {note}")
     view = _View(log, as_json, deadline)
     if view.live is not None:
         view.live.start()
