@@ -82,10 +82,6 @@ class ImuStream:
         """Time from the first to the last sample in seconds."""
         return float(self.t_ns[-1] - self.t_ns[0]) * 1e-9 if len(self) > 1 else 0.0
 
-    def select(self, index: np.ndarray | slice) -> ImuStream:
-        """A new stream with the samples picked by ``index`` (mask, indices or slice)."""
-        return ImuStream(self.t_ns[index], self.gyro[index], self.accel[index], self.frame_id)
-
 
 def rpy_to_rotation(rpy_rad: np.ndarray) -> Rotation:
     """ROS RPY (roll, pitch, yaw in rad) to a rotation ``Rz(yaw) Ry(pitch) Rx(roll)``."""

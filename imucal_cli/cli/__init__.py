@@ -1,13 +1,11 @@
 """The ``imucal`` command line: each command parses its options, calls :mod:`imucal_cli.api`
-and renders or writes what it returns (a module per group of commands)."""
-
-from importlib import import_module
+and renders or writes what it returns (a module per group of commands, imported here in the
+order their commands are shown)."""
 
 from imucal_cli.cli.app import app, main
 
-#: The command modules, in the order their commands are shown.
-COMMANDS = ("logs", "calibration", "export", "fleet", "simulate")
-for _name in COMMANDS:
-    import_module(f"imucal_cli.cli.{_name}")
+# isort: off
+from imucal_cli.cli import logs, calibration, export, fleet, simulate  # noqa: F401
+# isort: on
 
 __all__ = ["app", "main"]
