@@ -16,7 +16,7 @@ without knowing where the DOTs are:
 The recordings are the dataset's own CSVs (SampleTimeFine in us, gyro in deg/s), converted
 as the rig's log was: rows of all-zero motion dropped, the span every DOT covers, gyro to
 rad/s. Each log is written as MCAP beside the others in a temporary folder and calibrated
-with ``calibrate_log`` and the rig's config (every DOT declared consumer grade), as a user
+with ``imucal_cli.calibrate`` and the rig's config (every DOT declared consumer grade), as a user
 would.
 
 Run: ``python benchmarks/dot_plate.py DATASET`` where DATASET is a checkout of

@@ -1,7 +1,8 @@
 """What imucal says of the real two-IMU rigs (``../shared/realdata/multi_imu``); prints tables.
 
-For each rig: the whole run calibrated as a user would (``calibrate_log``, the rig's config with
-both IMUs declared consumer MEMS parts, SPEC "IMU grades"), against its truth; then the run
+For each rig: the whole run calibrated as a user would (``imucal_cli.calibrate``, the rig's
+config with both IMUs declared consumer MEMS parts, SPEC "IMU grades"), against its truth; then
+the run
 split in time into parts of equal length, each calibrated alone, and every two parts compared:
 the difference of their estimates (rotation about the base axes, translation) against the
 combined statistical std (``sqrt(var_a + var_b)`` per axis: what more driving shrinks, so what

@@ -11,7 +11,7 @@ from imucal_cli.cli import app
 from imucal_cli.documents import to_plain
 
 
-def test_calibrate_log_equals_the_cli(tmp_path):
+def test_the_api_calibration_equals_the_cli(tmp_path):
     log, config = SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml"
     out = tmp_path / "e.yaml"
     assert (

@@ -1,4 +1,5 @@
-"""What the container readers share: topics, losses, the reader interface, the read-ahead."""
+"""What the container readers share: topics, losses, the reader interface, bounded
+decompression."""
 
 from __future__ import annotations
 

@@ -34,9 +34,9 @@ from imucal_cli.io.formats import MCAP_MAGIC
 from imucal_cli.io.imu_msg import RawBatch, gather
 
 MAGIC = MCAP_MAGIC
-#: Decompressed bytes of chunks decoded together: fewer, larger gathers. The 1 h MCAP of
-#: benchmarks/throughput.py (1 MiB chunks) read and decoded in 2.0 s one chunk at a time,
-#: 1.5-1.9 s in groups of 2 MiB and 2.0-2.4 s in groups of 16 MiB (docs/performance.md).
+#: Decompressed bytes of chunks decoded together: fewer, larger batches for the calibrator,
+#: whose cost is per batch (the 1 h MCAP calibrated in 0.86 of the CPU time of one chunk at a
+#: time: benchmarks/kernels.py, docs/performance.md).
 GROUP_BYTES = 2 << 20
 _RECORD = struct.Struct("<BQ")  # opcode, length
 _FOOTER_OP, _SCHEMA_OP, _CHANNEL_OP = 0x02, 0x03, 0x04
