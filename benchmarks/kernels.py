@@ -8,6 +8,7 @@ rounds of many calls, and the largest difference of the two results:
   the 100 Hz grid;
 - the symmetric products ``[a]x[b]x + [b]x[a]x`` of the base's terms (``core.moments.
   upper_symmetric_products``, element by element) against ``einsum`` of the (n, 3, 3) stacks;
+- the low-pass's real transforms through ``numpy.fft`` against ``scipy.fft`` (both pocketfft);
 - MCAP chunks read, decoded and calibrated in groups of ``GROUP_BYTES`` against one chunk at a
   time (``imucal_cli.calibrate`` of the 1 h log of :mod:`throughput`, built there and cached).
 
@@ -91,6 +92,28 @@ def products_row(repeat: int) -> tuple[str, float, float, float]:
     )
 
 
+def fft_row(repeat: int) -> tuple[str, float, float, float]:
+    """The low-pass's transforms as ``core.signals.Lowpass`` makes them (numpy's pocketfft,
+    the decimated inverse) against scipy's, on the base's 33 terms of a block."""
+    from scipy import fft
+
+    x = np.random.default_rng(2).standard_normal((33, 7200))
+
+    def own():
+        return np.fft.irfft(np.fft.rfft(x, axis=1)[:, :1801], n=3600, axis=1)
+
+    def library():
+        return fft.irfft(fft.rfft(x, axis=1)[:, :1801], n=3600, axis=1)
+
+    difference = float(np.abs(own() - library()).max())
+    return (
+        "the low-pass's transforms of a block, 33 x 7,200 (numpy.fft / scipy.fft)",
+        least(own, 100, repeat),
+        least(library, 100, repeat),
+        difference,
+    )
+
+
 def groups_row(repeat: int) -> tuple[str, float, float, float]:
     sys.path.insert(0, str(HERE))
     from throughput import build
@@ -130,7 +153,7 @@ def main() -> None:
     args = parser.parse_args()
     print("| kernel | own CPU ms | library CPU ms | own / library | largest difference |")
     print("|---|---|---|---|---|")
-    for row in (spline_row, products_row, groups_row):
+    for row in (spline_row, products_row, fft_row, groups_row):
         name, own, other, difference = row(args.repeat)
         print(
             f"| {name} | {own * 1e3:.3f} | {other * 1e3:.3f} | {own / other:.2f} | "
