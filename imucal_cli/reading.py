@@ -143,20 +143,13 @@ def _clipped(values: np.ndarray, floor: float) -> np.ndarray:
     return out
 
 
-def _all_within(
-    gyro: np.ndarray, accel: np.ndarray, gyro_max: float, accel_max: float, strict: bool = False
-) -> bool:
-    """Whether every value lies within the bounds (and is finite: a NaN anywhere makes the
-    whole-array extremes NaN, and the comparisons False)."""
-    extremes = (float(gyro.min()), float(gyro.max()), float(accel.min()), float(accel.max()))
-    bounds = (-gyro_max, gyro_max, -accel_max, accel_max)
+def _within(extremes: tuple[float, ...], gyro_max: float, accel_max: float, strict: bool) -> bool:
+    """Whether a batch's ``(gyro min, max, accel min, max)`` lie within the bounds (and are
+    finite: a NaN anywhere makes the whole-array extremes NaN, and the comparisons False)."""
+    g_lo, g_hi, a_lo, a_hi = extremes
     if strict:
-        return bool(extremes[0] > bounds[0] and extremes[1] < bounds[1]) and bool(
-            extremes[2] > bounds[2] and extremes[3] < bounds[3]
-        )
-    return bool(extremes[0] >= bounds[0] and extremes[1] <= bounds[1]) and bool(
-        extremes[2] >= bounds[2] and extremes[3] <= bounds[3]
-    )
+        return bool(-gyro_max < g_lo and g_hi < gyro_max and -accel_max < a_lo and a_hi < accel_max)
+    return bool(-gyro_max <= g_lo and g_hi <= gyro_max and -accel_max <= a_lo and a_hi <= accel_max)
 
 
 class ImuBatches:
@@ -209,12 +202,13 @@ class ImuBatches:
             narrow or bool(np.abs(np.diff(stamps)).max() <= jump)
         ) and low >= reached_before - jump
         quiet = narrow and low >= reached_before - jump  # nothing leaps, nothing falls behind
-        values_ok = _all_within(gyro, accel, SATURATION_GYRO_RADPS, SATURATION_ACCEL_MPS2, True)
+        extremes = (float(gyro.min()), float(gyro.max()), float(accel.min()), float(accel.max()))
+        values_ok = _within(extremes, SATURATION_GYRO_RADPS, SATURATION_ACCEL_MPS2, strict=True)
         # values past the saturation floors but plausible, stamps quiet (a lively sensor):
         # only a clipped run could be dropped, and there is none in the usual case
         if (values_ok and stamps_ok) or (
             quiet
-            and _all_within(gyro, accel, IMPLAUSIBLE_GYRO_RADPS, IMPLAUSIBLE_ACCEL_MPS2)
+            and _within(extremes, IMPLAUSIBLE_GYRO_RADPS, IMPLAUSIBLE_ACCEL_MPS2, strict=False)
             and not _clipped(gyro, SATURATION_GYRO_RADPS).any()
             and not _clipped(accel, SATURATION_ACCEL_MPS2).any()
         ):
