@@ -473,19 +473,11 @@ def _lost(address: str, exc: Exception) -> str:
 def _shared_config(path: str) -> Config | None:
     """The config every log of the run shares, or None where it leaves a transform out (the
     base IMU's pose included): each log's own ``/tf_static`` (or ``/robot_description``) then
-    gives it, as ``calibrate`` takes it (SPEC)."""
-    from imucal_cli.config import load_config
-    from imucal_cli.documents import load_document
-    from imucal_cli.errors import ConfigError
-    from imucal_cli.frames import leaves_out, leaves_out_transforms
+    gives it, as ``calibrate`` takes it (SPEC). An invalid one is said here, once."""
+    from imucal_cli.priors import config_alone
 
-    try:
-        config = load_config(path)  # (an invalid one: said here, once)
-    except ConfigError as exc:
-        if leaves_out_transforms(exc):
-            return None
-        raise
-    return None if leaves_out(load_document(path)) else config
+    config, partial = config_alone(path)
+    return None if partial else config
 
 
 def plan_tasks(

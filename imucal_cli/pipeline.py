@@ -568,29 +568,18 @@ def recording_config(path: Path, log: Path, limit: float, urdf: Path | None) -> 
     /robot_description) as soon as they hold them and the IMUs' first messages (until
     ``limit``, monotonic s); an error in the URDF itself is said at once. A base pose left out
     is taken from the recording where it reads now, else the config's default (said)."""
-    from imucal_cli.config import load_config, read_config
-    from imucal_cli.errors import ConfigError
-    from imucal_cli.frames import (
-        MAX_URDF_BYTES,
-        FrameTree,
-        leaves_out,
-        leaves_out_transforms,
-        read_urdf,
-    )
-    from imucal_cli.priors import load_config_for
+    from imucal_cli.frames import MAX_URDF_BYTES, FrameTree, read_urdf
+    from imucal_cli.priors import config_alone, load_config_for
 
-    try:
-        config = load_config(path)
-        if not leaves_out(read_config(path)):
-            return config, ""
-        try:  # the base IMU's pose alone left out: the recording's tree, where it reads now
+    config, partial = config_alone(path)
+    if config is not None and not partial:
+        return config, ""
+    if config is not None:  # the base IMU's pose alone left out: the recording's, where it reads
+        try:
             return load_config_for(path, log, urdf), ""
         except ImucalError as exc:
             why = f"no base.T_base_imu from the recording yet ({exc})"
             return config, f"{log}: {why}: the config's default is used"
-    except ConfigError as exc:
-        if not leaves_out_transforms(exc):
-            raise
     if urdf is not None:
         from imucal_cli.documents import read_capped
 

@@ -10,7 +10,22 @@ from pathlib import Path
 
 from imucal_cli.config import Config, parse_config, read_config
 from imucal_cli.errors import ConfigError
-from imucal_cli.frames import complete_from_log
+from imucal_cli.frames import complete_from_log, leaves_out, leaves_out_transforms
+
+
+def config_alone(path: str | Path) -> tuple[Config | None, bool]:
+    """The config as its file alone gives it (the file read once), and whether it leaves a
+    transform out for a log's tree to supply (the base IMU's pose included): None where the
+    file alone gives none (a sensor's transforms left out). Any other problem: its
+    :class:`ConfigError`."""
+    data = read_config(path)
+    try:
+        config = parse_config(data, str(path))
+    except ConfigError as exc:
+        if leaves_out_transforms(exc):
+            return None, True
+        raise
+    return config, leaves_out(data)
 
 
 def load_config_for(path: str | Path, log: str | Path, urdf: str | Path | None = None) -> Config:
