@@ -26,6 +26,7 @@ from imucal_cli.errors import InputError
 from imucal_cli.pipeline import (
     DriveStreams,
     calibrate_streams,
+    follow,
     lost_summary,
     recording_config,
     wait_for_log,
@@ -114,29 +115,6 @@ def biases(
 ) -> dict[str, Any]:
     """The SPEC's ``biases`` document of ``log``."""
     return pipeline.biases(log, _config(config, log, urdf), progress=progress)
-
-
-def follow(
-    log: str | Path,
-    config: Config,
-    *,
-    on_window: Callable[[Calibration, int], None] | None = None,
-    on_waiting: Callable[[dict[str, Any]], None] | None = None,
-    stop: Callable[[], bool] = lambda: False,
-    until_converged: bool = False,
-    workers: int = 1,
-) -> tuple[Calibration, bool]:
-    """Follow a log still being written (:func:`imucal_cli.pipeline.follow`): the last
-    calibration, and whether a Ctrl-C ended it."""
-    return pipeline.follow(
-        log,
-        config,
-        on_window=on_window,
-        on_waiting=on_waiting,
-        stop=stop,
-        until_converged=until_converged,
-        workers=workers,
-    )
 
 
 def export(

@@ -113,7 +113,7 @@ def calibrate_streams(streams: DriveStreams, config: Config) -> Calibration:
     """Calibrate every sensor from streams in memory (a simulated drive, say)."""
     calibrator = make_calibrator(config)
     feed(calibrator, streams)
-    calibrator.process(final=True)
+    calibrator.finish()
     return _solved(calibrator, config, streams.t0_ns, None)
 
 
