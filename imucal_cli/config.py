@@ -87,6 +87,8 @@ class SegmentsConfig:
 class CalibrationConfig:
     resample_hz: float = 100.0
     max_time_offset_s: float = 0.1
+    max_clock_drift_ppm: float = 200.0  # 0: one offset for the whole log
+    epoch_s: float = 300.0  # the timeline's slice
     consistency_alpha: float = 0.001  # false-alarm rate of each model-consistency check
 
 
@@ -152,7 +154,12 @@ SECTIONS = {
     "stop": StopConfig,
 }
 #: Keys whose value may be zero (every other number must be positive), and keys with choices.
-MAY_BE_ZERO = {"rotation_floor_deg", "translation_floor_m", "max_time_offset_s"}
+MAY_BE_ZERO = {
+    "rotation_floor_deg",
+    "translation_floor_m",
+    "max_time_offset_s",
+    "max_clock_drift_ppm",
+}
 CHOICES = {
     "accel_units": ("auto", "mps2", "g"),
     "gyro_units": ("auto", "radps", "dps"),
@@ -171,6 +178,8 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "max_translation_std_m": (0.0, 10.0, "m"),
     "resample_hz": (10.0, 1000.0, "Hz: the fit low-passes at 5 Hz; more only costs memory"),
     "max_time_offset_s": (0.0, 1.0, "s: clocks further apart are another clock, not an offset"),
+    "max_clock_drift_ppm": (0.0, 10000.0, "ppm: crystals drift 10-100 ppm"),
+    "epoch_s": (10.0, 86400.0, "s"),
     "translation_bound_m": (0.0, 10.0, "m"),
     "rotation_bound_deg": (0.0, 180.0, "deg"),
     "rotation_floor_deg": (0.0, 90.0, "deg"),

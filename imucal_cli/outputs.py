@@ -358,9 +358,13 @@ def _sensor_document(
         },
         "covariance": _covariance(est.covariance),
         "translation_observable": [bool(v) for v in est.translation_observable],
-        "time_offset_s": est.time_offset_s,
+        # at t0 (the grid's origin is t_ref): the drift carries the offset there
+        "time_offset_s": est.time_offset_s
+        + (est.clock_drift or 0.0) * (result.t0_ns - result.t_ref_ns) * 1e-9,
         "time_offset_std_s": est.time_offset_std_s,
         "time_offset_observable": bool(est.time_offset_observable),
+        "clock_drift_ppm": None if est.clock_drift is None else 1e6 * est.clock_drift,
+        "clock_drift_std_ppm": None if est.clock_drift_std is None else 1e6 * est.clock_drift_std,
         "checks": to_plain(est.checks),
         "accel_intrinsics": to_plain(est.accel_intrinsics) if est.accel_intrinsics else None,
         "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,

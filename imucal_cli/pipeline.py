@@ -33,6 +33,7 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
     return CalibrationOptions(
         resample_hz=config.calibration.resample_hz,
         max_time_offset_s=config.calibration.max_time_offset_s,
+        max_clock_drift_ppm=config.calibration.max_clock_drift_ppm,
         window_s=config.segments.window_s,
         max_rotation_std_deg=config.segments.max_rotation_std_deg,
         translation_bound_m=sensor.translation_bound_m,

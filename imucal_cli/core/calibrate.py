@@ -44,6 +44,7 @@ from imucal_cli.types import Transform
 class CalibrationOptions:
     resample_hz: float = 100.0
     max_time_offset_s: float = 0.1
+    max_clock_drift_ppm: float = 200.0  # 0: the offset is one for the whole log
     window_s: float = 10.0
     max_rotation_std_deg: float = 1.0
     translation_bound_m: float = 0.3
@@ -98,6 +99,10 @@ class SensorEstimate:
     #: The statistical part of ``covariance``: what more driving shrinks (SPEC
     #: ``statistical_std``); the total adds failed checks, the box and the floors.
     statistical_covariance: np.ndarray | None = None
+    #: The rate of the clock offset (s/s; ``time_offset_s`` is at the grid's origin) and its
+    #: std, where estimated and shown (:mod:`.clock`).
+    clock_drift: float | None = None
+    clock_drift_std: float | None = None
 
     @property
     def statistical_rotation_std_deg(self) -> np.ndarray | None:

@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.core.calibrate import ClockEvidence, SensorEstimate, solve, unobservable
-from imucal_cli.core.status import imu_notes, unsolved_sentence
+from imucal_cli.core.clock import ClockTrack
+from imucal_cli.core.status import drift_sentence, imu_notes, step_sentence, unsolved_sentence
 from imucal_cli.core.streaming import StreamingCalibrator
 from imucal_cli.types import Transform
 
@@ -54,7 +55,39 @@ def estimate(calibrator: StreamingCalibrator, name: str) -> SensorEstimate:
         *imu_notes(*_imu(c, c.base_name)),
         *imu_notes(*_imu(c, name)),
     ]
-    return replace(found, T_base_imu=T, warnings=notes + found.warnings)
+    found = replace(found, T_base_imu=T, warnings=notes + found.warnings)
+    track = c.clocks.get(name)
+    if track is None or found.covariance is None:
+        return found
+    return _with_drift(found, track)
+
+
+def _with_drift(found: SensorEstimate, track: ClockTrack) -> SensorEstimate:
+    """The estimate with its clock's drift, where the drive shows it, and its steps; where the
+    windows were resampled along the track, the offset (at the grid's origin) is the track's."""
+    fit = track.fit()
+    if fit is None:
+        return found
+    warnings = [step_sentence(step) for step in track.steps]
+    offset, offset_std = found.time_offset_s, found.time_offset_std_s
+    if track.followed:
+        offset = float(fit.at(np.zeros(1))[0])
+        offset_std = float(np.sqrt(fit.var_at(np.zeros(1))[0]))
+    drift = drift_std = None
+    notes = list(found.notes)
+    if fit.shown:
+        drift, drift_std = fit.drift, float(np.sqrt(fit.drift_var))
+        last = offset + drift * fit.span + sum(step.size_s for step in track.steps)
+        notes += [drift_sentence(drift, drift_std, offset, last, track.followed)]
+    return replace(
+        found,
+        time_offset_s=offset,
+        time_offset_std_s=offset_std,
+        clock_drift=drift,
+        clock_drift_std=drift_std,
+        warnings=[*found.warnings, *warnings],
+        notes=[note for note in notes if note],
+    )
 
 
 def _imu(c: StreamingCalibrator, imu: str) -> tuple[Any, ...]:

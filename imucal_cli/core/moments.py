@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from imucal_cli.core.clock import Offset, window_offsets
 from imucal_cli.core.model import (
     ACCEL_BASE,
     ACCEL_DATA,
@@ -209,12 +210,14 @@ def reduce_block(
     n_block: int,
     n_after: int,
     base_name: str,
-    samples: dict[str, tuple[float, np.ndarray, np.ndarray, np.ndarray]],
+    samples: dict[str, tuple[Offset, np.ndarray, np.ndarray, np.ndarray]],
+    measured: dict[str, list[tuple[float, float] | None]] | None = None,
 ) -> dict[str, list[WindowMoments]]:
-    """Condition a block of consecutive windows once (per IMU its clock offset, stamps in s,
-    ``[gyro, accel]`` and the stamps of saturated readings in ``samples``) and reduce each
-    window, for every sensor, to its moments. A window within the low-pass's length of a
-    saturated reading is not valid."""
+    """Condition a block of consecutive windows once (per IMU its clock offset as a function
+    of the grid's times, stamps in s, ``[gyro, accel]`` and the stamps of saturated
+    readings in ``samples``) and reduce each window, for every sensor, to its moments. A window
+    within the low-pass's length of a saturated reading is not valid. Sensors named in
+    ``measured`` get each window's offset beyond theirs there (:func:`~.clock.window_offsets`)."""
     reach = lp.reach_s
     block_start = spans[0][1]
     grid = block_start + np.arange(-n_pad, n_block + n_after) / rate
@@ -247,8 +250,15 @@ def reduce_block(
         # the sensor's samples are low-passed at their own rate (with the anti-alias filter)
         sensor = Spline(t_s, both_s, rate, smooth=lp)
         own = n_base + GYRO_OWN * k  # the sensor's [w_I, f_I], as x_g starts
-        X[:, own : own + GYRO_OWN] = sensor(t_rows + tau)[0]
-        covered[name] = sensor.covered(t_rows + tau) & ~near(t_rows + tau, saturated_s, reach)
+        at_s = t_rows + tau(t_rows)
+        X[:, own : own + GYRO_OWN] = sensor(at_s)[0]
+        covered[name] = sensor.covered(at_s) & ~near(at_s, saturated_s, reach)
+        if measured is not None and name in measured:
+            B_g = GYRO_BASE
+            valid = covered[name] & covered[""]
+            w_B, dw_B = X[:, B_g["w_B"]], X[:, B_g["dw_B"]]
+            gain = lp.white_noise_gain()
+            measured[name] = window_offsets(w_B, dw_B, X[:, own : own + 3], valid, at, gain)
     return _window_moments(X, spans, at, names, covered)
 
 

@@ -137,10 +137,16 @@ class Lowpass:
         """Variance of the filtered output of unit white noise: ``sum h^2`` of the zero-phase
         impulse response. An estimate's covariance computed from filtered residuals, as if they
         were independent, must be divided by this to be honest."""
-        n = int(40 * self.rate_hz / self.cutoff_hz) | 1
-        impulse = np.zeros(n)
-        impulse[n // 2] = 1.0
-        return float(np.sum(self(impulse) ** 2))
+        return _white_noise_gain(self)
+
+
+@lru_cache(maxsize=16)
+def _white_noise_gain(lowpass: Lowpass) -> float:
+    """:meth:`Lowpass.white_noise_gain` (kept: every block's clock measurement asks it)."""
+    n = int(40 * lowpass.rate_hz / lowpass.cutoff_hz) | 1
+    impulse = np.zeros(n)
+    impulse[n // 2] = 1.0
+    return float(np.sum(lowpass(impulse) ** 2))
 
 
 def _even_power(ratio: np.ndarray, order: int) -> np.ndarray:

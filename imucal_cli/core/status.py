@@ -242,3 +242,22 @@ def imu_notes(
             + ("any sensor" if is_base else "this sensor")
         )
     return notes
+
+
+def drift_sentence(drift: float, std: float, first: float, last: float, followed: bool) -> str:
+    """A note on a clock that drifts from the base's (s/s, its std), with its offset at the
+    grid's origin and a span later (s); none where it does not drift beyond 3 std."""
+    if not followed or abs(drift) <= 3.0 * std:
+        return ""
+    return (
+        f"clock drifts {1e6 * drift:+.1f} +- {1e6 * std:.1f} ppm against the base's (offset "
+        f"{1e3 * first:+.2f} ms at the start, {1e3 * last:+.2f} ms at the end): followed"
+    )
+
+
+def step_sentence(step: Any) -> str:
+    """A warning on a clock that stepped (a :class:`~.clock.Step`)."""
+    return (
+        f"clock stepped by {1e3 * step.size_s:+.1f} +- {1e3 * step.std_s:.1f} ms at "
+        f"{step.at_s:.0f} s (re-synchronised?): followed; the windows around it not used"
+    )

@@ -23,6 +23,7 @@ from imucal_cli.core.calibrate import (
     CalibrationOptions,
 )
 from imucal_cli.core.checks import Check
+from imucal_cli.core.clock import GROUP_WINDOWS, ClockTrack, Offset, constant
 from imucal_cli.core.moments import (
     MIN_SPAN_SAMPLES,
     WindowMoments,
@@ -170,6 +171,11 @@ class StreamingCalibrator:
         self.next_window = 0
         self.windows: dict[str, list[WindowMoments]] = {name: [] for name in self.sensors}
         self.tau0: dict[str, float] = {}
+        #: Each sensor's clock offset followed through the drive (where its drift is estimated).
+        self.clocks: dict[str, ClockTrack] = {}
+        #: Per sensor, windows a step of its clock may lie in (made unusable once reduced).
+        self._unused: dict[str, set[int]] = {}
+        self._final = False
         #: Each sensor's clock offset as the boot's correlation placed it (None: not estimated).
         self.time_offsets: dict[str, TimeOffset | None] = {}
         #: Per IMU, the factors (gyro, accelerometer) that made its samples SI, from the boot on.
@@ -328,6 +334,11 @@ class StreamingCalibrator:
         self.given_checks, self.dw_noise_var = booted.given_checks, booted.dw_noise_var
         self.time_offsets = booted.time_offsets
         self.tau0 = {name: booted.tau0(name) for name in self.sensors}
+        for name, setup in self.sensors.items():
+            offset = booted.time_offsets.get(name)
+            if offset is not None and offset.shown and setup.options.max_clock_drift_ppm > 0:
+                drift = 1e-6 * setup.options.max_clock_drift_ppm
+                self.clocks[name] = ClockTrack(self.tau0[name], drift)
         return True
 
     def process(self, final: bool = False, whole_blocks: bool = True) -> int:
@@ -336,6 +347,7 @@ class StreamingCalibrator:
         follower that caught up with the recording), the windows covered so far are reduced
         in a block that is not whole."""
         need = self.block_windows if whole_blocks else 1
+        self._final = final  # (the log ended: each clock's last group joins its line at once)
         if self.t_ref_ns is None or not self._boot(final):
             if final:  # (the boot found no stretch to read: no window either)
                 raise TooLittleData(self._too_little(self._covered_until()))
@@ -356,7 +368,7 @@ class StreamingCalibrator:
                     if final:
                         # (with the padding after it that every other window has: the
                         # filters, each of its own samples, part at their ends)
-                        end = min(end, covered - self.max_offset - PAD_S)
+                        end = min(end, covered - self._reach(end) - PAD_S)
                         if end - start >= self.window_s / 2:
                             spans.append((number, start, end))
                             partial = end < start + self.window_s
@@ -367,7 +379,7 @@ class StreamingCalibrator:
             self._reduce(spans)
             self.next_window += len(spans)
             count += len(spans)
-            keep_from = spans[-1][1] + self.window_s - PAD_S - self.max_offset - 1.0
+            keep_from = spans[-1][1] + self.window_s - PAD_S - self._reach(spans[-1][2]) - 1.0
             assert self.t_ref_ns is not None
             for buffer in self.buffers.values():
                 buffer.drop_before(self.t_ref_ns + int(keep_from * 1e9))
@@ -390,7 +402,14 @@ class StreamingCalibrator:
         """Seconds from the origin every IMU must cover before window ``number`` is reduced:
         its end, the padding, the clock offset and (while reading) the reordering slack."""
         end = self._grid_start + (number + 1) * self.window_s
-        return end + PAD_S + self.max_offset + (0.0 if final else self.reorder_s)
+        return end + PAD_S + self._reach(end) + (0.0 if final else self.reorder_s)
+
+    def _reach(self, t: float) -> float:
+        """How far (s) a sensor's samples may lie from the base's at ``t``: the offset
+        searched, or a followed clock's offset where it drifted further."""
+        at = np.array([t])
+        offsets = [abs(float(c.predictor(at)(at)[0])) for c in self.clocks.values()]
+        return max([self.max_offset, *offsets])
 
     def _skip_empty(self) -> None:
         """Move the next window past a stretch where some IMU has no data at all (a long gap,
@@ -411,37 +430,87 @@ class StreamingCalibrator:
             self.next_window = int((ready - self._grid_start) // self.window_s)
 
     def _reduce(self, spans: list[tuple[int, float, float]]) -> None:
-        """Condition a block of consecutive windows once and reduce each to its moments."""
+        """Condition a block of consecutive windows once and reduce each to its moments; a
+        followed clock's offsets measured, and the block conditioned again where they show
+        the offsets it was resampled at off (:meth:`_corrected`)."""
         block_start, block_end = spans[0][1], spans[-1][2]
         n_pad = round(PAD_S * self.rate)
         n_block = round((block_end - block_start) * self.rate)
-        last = self._covered_until() - self.max_offset - 2.0 / self.rate  # never extrapolate
+        last = self._covered_until() - self._reach(block_end) - 2.0 / self.rate  # no extrapolating
         n_after = int(np.clip(np.floor((last - block_end) * self.rate), 0, n_pad))
         # the samples the grid needs (as in reduce_block), with a margin
         grid_first, grid_last = block_start + np.array([-n_pad, n_block + n_after - 1]) / self.rate
-        first_s, last_s = grid_first - 3.0 / self.rate - 0.1, grid_last + 3.0 / self.rate + 0.1
+        ends = np.array([block_start, block_end])
+        offsets = {name: constant(self.tau0[name]) for name in self.sensors}
+        offsets.update({name: track.predictor(ends) for name, track in self.clocks.items()})
         samples = {}
-        for name, tau in [
-            (self.base_name, 0.0),
-            *((name, self.tau0[name]) for name in self.sensors),
-        ]:
+        for name in (self.base_name, *self.sensors):
+            tau = offsets.get(name, constant(0.0))
+            grid = np.array([grid_first, grid_last])
+            first_s, last_s = grid + tau(grid) + np.array([-1, 1]) * (3.0 / self.rate + 0.1)
             t, both = self.buffers[name].cleaned()
             t = self._seconds(t)  # sorted (cleaned): the samples in the span are a slice
-            a, b = (
-                int(np.searchsorted(t, first_s + tau, side="left")),
-                int(np.searchsorted(t, last_s + tau, side="right")),
-            )
+            a = int(np.searchsorted(t, first_s, side="left"))
+            b = int(np.searchsorted(t, last_s, side="right"))
             if b - a >= MIN_SPAN_SAMPLES:  # an IMU that stopped has none: its windows are not used
-                saturated = self._saturated(name, first_s + tau - self.lowpass.reach_s)
+                saturated = self._saturated(name, first_s - self.lowpass.reach_s)
                 samples[name] = (tau, t[a:b], both[a:b], saturated)
         args = (spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after)
-        has_base = self.base_name in samples
-        reduced = reduce_block(*args, self.base_name, samples) if has_base else {}
+        reduced: dict[str, list[WindowMoments]] = {}
+        if self.base_name in samples:
+            measured: dict[str, list[tuple[float, float] | None]] = {n: [] for n in self.clocks}
+            reduced = reduce_block(*args, self.base_name, samples, measured)
+            again = self._corrected(spans, samples, measured)
+            if again:
+                redone = reduce_block(*args, self.base_name, {**samples, **again})
+                reduced.update({name: redone[name] for name in again if name in redone})
         for name in self.sensors:
             self.windows[name].extend(
                 reduced.get(name)
                 or [unused_window(number, start, end) for number, start, end in spans]
             )
+            self._not_used(name)
+
+    def _not_used(self, name: str) -> None:
+        """The windows of sensor ``name`` a step of its clock may lie in made unusable (they
+        are among the last three groups')."""
+        unused = self._unused.pop(name, set())
+        for window in self.windows[name][-3 * GROUP_WINDOWS :]:
+            if window.valid and window.number in unused:
+                window.valid, window.info = False, None  # (its observability again)
+
+    def _corrected(
+        self,
+        spans: list[tuple[int, float, float]],
+        samples: dict[str, tuple[Offset, np.ndarray, np.ndarray, np.ndarray]],
+        measured: dict[str, list[tuple[float, float] | None]],
+    ) -> dict[str, tuple[Offset, np.ndarray, np.ndarray, np.ndarray]]:
+        """Each followed clock's windows measured into its track (a step of the clock found
+        first: the windows it may lie in are not used), and the sensors whose block the track
+        now places off the offsets it was resampled at (by its 3 std and
+        :data:`~.clock.MIN_CORRECTION_S`), with the track's offsets."""
+        again = {}
+        for name, found in measured.items():
+            if name not in samples:
+                continue
+            tau, track = samples[name][0], self.clocks[name]
+            windows = [(span, m) for span, m in zip(spans, found, strict=False) if m is not None]
+            times = np.array([0.5 * (start + end) for (_, start, end), _ in windows])
+            rows = [
+                (number, start, float(t), float(at) + delta, variance)
+                for t, at, ((number, start, _), (delta, variance)) in zip(
+                    times, tau(times), windows, strict=True
+                )
+            ]
+            unused = track.measure(rows) + (track.flush() if self._final else [])
+            if unused:  # and the windows after it reduced before it was found
+                unused += range(min(unused), spans[0][0])
+            self._unused.setdefault(name, set()).update(unused)
+            all_times = np.array([0.5 * (start + end) for _, start, end in spans])
+            corrected = track.correction(all_times, tau(all_times))
+            if corrected is not None:
+                again[name] = (corrected, *samples[name][1:])
+        return again
 
     def _saturated(self, name: str, from_s: float) -> np.ndarray:
         """The stamps (s) from ``from_s`` on where IMU ``name`` read its full scale (either
@@ -487,6 +556,9 @@ class StreamingCalibrator:
                 + ", ".join(n for n, b in self.buffers.items() if b.first_ns is None)
             )
         self.process(final=True)
+        for name, track in self.clocks.items():  # the last group's measurements
+            self._unused.setdefault(name, set()).update(track.flush())
+            self._not_used(name)
         self.finished = True
 
     def window_infos(self, name: str) -> list[WindowInfo]:

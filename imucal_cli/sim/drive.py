@@ -43,6 +43,9 @@ class DriveOptions:
     noise_scale: float = 1.0
     time_offsets_s: tuple[float, ...] | None = None  # per sensor; None: drawn uniformly
     max_time_offset_s: float = 0.005  # range of the drawn offsets
+    clock_drifts_ppm: tuple[float, ...] | None = None  # per sensor (or one for all); None: 0
+    #: Per sensor, the steps of its clock: (at s, by s) each (a clock re-synchronised).
+    clock_steps: tuple[tuple[tuple[float, float], ...], ...] = ()
     base_model: ImuErrorModel = TACTICAL_BASE
     lidar_model: ImuErrorModel = MEMS_LIDAR
     lidar_rate_hz: float | None = None  # None: the model's rate
@@ -256,13 +259,18 @@ class SimulatedDrive:
         tracks = later if isinstance(later, BiasTrack) else BiasTrack(self, later)
 
         sensors: dict[str, Any] = {}
-        for mount in self.mounts:
+        drifts = self.options.clock_drifts_ppm or (0.0,)
+        for k, mount in enumerate(self.mounts):
             sensors[mount.name] = {
                 "imu_topic": mount.imu_topic,
                 "T_base_lidar": mount.T_base_lidar.to_dict(),
                 "T_base_imu": mount.T_base_imu.to_dict(),
                 "T_imu_lidar": mount.T_imu_lidar.to_dict(),
                 "time_offset_s": self.time_offsets_s[mount.name],
+                "clock_drift_ppm": float(drifts[k % len(drifts)]),
+                "clock_steps": [list(step) for step in self.options.clock_steps[k]]
+                if k < len(self.options.clock_steps)
+                else [],
                 **tracks.summary(mount.name),
             }
         pairs = {
@@ -405,8 +413,12 @@ def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive
         else:
             offset = float(o.time_offsets_s[k if len(o.time_offsets_s) > 1 else 0])
         offsets[mount.name] = offset
+        drift = 0.0 if not o.clock_drifts_ppm else o.clock_drifts_ppm[k % len(o.clock_drifts_ppm)]
         model = replace(
-            grade_errors(o.lidar_model, o.lidar_grade).scaled(o.noise_scale), time_offset_s=offset
+            grade_errors(o.lidar_model, o.lidar_grade).scaled(o.noise_scale),
+            time_offset_s=offset,
+            clock_drift_ppm=drift,
+            clock_steps=o.clock_steps[k] if k < len(o.clock_steps) else (),
         )
         model = model if o.lidar_rate_hz is None else replace(model, rate_hz=o.lidar_rate_hz)
         samplers[mount.name] = ImuSampler(

@@ -47,7 +47,9 @@ class ImuErrorModel:
     gyro_bias_random_walk: float  # rad/s/sqrt(s)
     accel_bias_random_walk: float  # m/s^2/sqrt(s)
     rate_hz: float = 100.0
-    time_offset_s: float = 0.0  # stamp minus true measurement time
+    time_offset_s: float = 0.0  # stamp minus true measurement time, at the drive's start
+    clock_drift_ppm: float = 0.0  # its rate: the offset grows by 1e-6 of the time since
+    clock_steps: tuple[tuple[float, float], ...] = ()  # (at s, by s): the clock re-synchronised
     jitter_s: float = 0.0  # white stamp noise (std)
     drop_fraction: float = 0.0  # messages lost at random
     latency_s: float = 0.002  # true time to log (receive) time
@@ -227,10 +229,10 @@ class ImuSampler:
     made), its bias walks carried from one piece to the next.
 
     Samples are taken at ``t_k = phase + k / rate`` (true time, seconds from the trajectory
-    start) with a random phase; stamps are ``t0_ns + (t_k + time_offset + jitter)``. The
-    deterministic errors (axis errors, g-sensitivity, vibration) are drawn from a generator of
-    their own, so a model without them leaves every other draw as it was. One piece draws what
-    one pass over the whole span drew, in the same order.
+    start) with a random phase; stamps are ``t0_ns + (t_k + time_offset + 1e-6 drift t_k +
+    jitter)``. The deterministic errors (axis errors, g-sensitivity, vibration) are drawn from
+    a generator of their own, so a model without them leaves every other draw as it was. One
+    piece draws what one pass over the whole span drew, in the same order.
     """
 
     def __init__(
@@ -315,7 +317,9 @@ class ImuSampler:
 
         gyro, accel = _published(model, gyro, accel)
 
-        stamp_s = t_true + model.time_offset_s
+        stamp_s = t_true + model.time_offset_s + 1e-6 * model.clock_drift_ppm * t_true
+        for at_s, by_s in model.clock_steps:
+            stamp_s = stamp_s + np.where(t_true >= at_s, by_s, 0.0)
         if model.jitter_s > 0:
             stamp_s = stamp_s + rng.normal(0.0, model.jitter_s, n)
         keep = np.ones(n, dtype=bool)
