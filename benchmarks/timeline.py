@@ -4,12 +4,15 @@ Clocks that drift: every lidar IMU's clock drifts from the base's by a rate draw
 +-150 ppm (either sign) with an offset at the start drawn within +-50 ms, on urban, aggressive
 and highway drives of four lidars, several seeds; in every other drive one lidar's clock also
 steps (re-synchronised) by +-5 to +-30 ms at a random time between 30% and 80% of the drive.
-Per scenario:
+In two drives of three, one or two lidars' mounts are knocked once or twice (0.3-3 deg,
+5-30 mm, at random times). Per scenario:
 
 - statuses; ``ok`` sensors with an axis of ``T_base_lidar`` beyond 4 reported std (must be 0);
   the share of axes inside 3 std (goal: at least 95%);
 - the drift: how many sensors report one, how many of those lie within 3 of their std, the
   largest error over std; the offset at t0 likewise;
+- the knocks: found (the time within two windows), their sizes (the turn's angle and the
+  lidar's shift) within 3 std of the poses either side, and moves said where there was none;
 - the steps: found (within two windows of the truth, the size within 3 std), missed, and
   steps said where there was none;
 - the same drives with the drift not estimated (``max_clock_drift_ppm: 0``): what a single
@@ -56,6 +59,40 @@ def steps(seed: int, duration_s: float) -> tuple[tuple[tuple[float, float], ...]
     return tuple(out)
 
 
+KNOCK_DEG = (0.3, 3.0)
+KNOCK_M = (0.005, 0.030)
+
+
+def knocks(seed: int, duration_s: float) -> tuple[tuple[Any, ...], ...]:
+    """In two drives of three, one or two lidars' mounts knocked once or twice each (a turn
+    of 0.3-3 deg about a random axis, a shift of 5-30 mm in a random direction) at random
+    times between 15% and 85% of the drive, at least 30 s apart."""
+    rng = np.random.default_rng(3000 + seed)
+    out: list[tuple[Any, ...]] = [(), (), (), ()]
+    if seed % 3 == 0:
+        return tuple(out)
+    for sensor in rng.choice(4, int(rng.integers(1, 3)), replace=False):
+        times: list[float] = []
+        while len(times) < int(rng.integers(1, 3)):
+            at = float(rng.uniform(0.15, 0.85) * duration_s)
+            if all(abs(at - t) >= 30.0 for t in times):
+                times.append(at)
+        out[int(sensor)] = tuple(
+            (
+                at,
+                tuple(np.radians(rng.uniform(*KNOCK_DEG)) * _unit(rng)),
+                tuple(rng.uniform(*KNOCK_M) * _unit(rng)),
+            )
+            for at in sorted(times)
+        )
+    return tuple(out)
+
+
+def _unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
 def run_case(args: tuple[str, int, bool]) -> list[dict[str, Any]]:
     """One drive calibrated: a row per lidar."""
     from imucal_cli.sim.scenarios import SCENARIOS as DURATIONS
@@ -68,6 +105,7 @@ def run_case(args: tuple[str, int, bool]) -> list[dict[str, Any]]:
         max_time_offset_s=OFFSET_S,
         clock_drifts_ppm=drifts(seed),
         clock_steps=steps(seed, DURATIONS[scenario]),
+        knocks=knocks(seed, DURATIONS[scenario]),
     )
     drive = simulate_drive(options)
 
@@ -108,9 +146,64 @@ def run_case(args: tuple[str, int, bool]) -> list[dict[str, Any]]:
                     for true_at, _ in true_steps
                 ),
                 "false_steps": max(0, len(found) - len(true_steps)),
+                **_moves(cal, name, s, truth[name], mount),
             }
         )
     return rows
+
+
+def _moves(cal: Any, name: str, s: dict[str, Any], truth: dict[str, Any], mount: Any) -> dict:
+    """The knocks found (the time within two windows) and their sizes against the truth's,
+    over the std of the poses either side; the moves said where there was no knock."""
+    from imucal_cli.core.so3 import rotation_angle_deg
+    from imucal_cli.types import Transform
+
+    true = truth["moved"]
+    poses = [Transform.from_dict(m["before"]["T_base_lidar"], "t", "t") for m in true]
+    poses.append(mount.T_base_lidar)
+    said = s["moved"]
+    after_std = (max(s["rotation_std_deg"] or [np.inf]), max(s["translation_std_m"] or [np.inf]))
+    found, size_ratios = 0, []
+    for k, knock in enumerate(true):
+        near = [m for m in said if abs(m["at_s"] - knock["at_s"]) <= STEP_TIME_S]
+        if not near:
+            continue
+        found += 1
+        m = near[0]
+        angle = rotation_angle_deg(poses[k].rotation, poses[k + 1].rotation)
+        shift = float(np.linalg.norm(poses[k + 1].translation - poses[k].translation))
+        std_r = np.hypot(max(m["before"]["rotation_std_deg"]), after_std[0])
+        std_t = np.hypot(max(m["before"]["translation_std_m"]), after_std[1])
+        size_ratios += [
+            abs(m["rotation_deg"] - angle) / std_r,
+            abs(m["translation_m"] - shift) / std_t,
+        ]
+    return {
+        "knocks": len(true),
+        "knocks_found": found,
+        "size_ratios": size_ratios,
+        "false_moves": max(0, len(said) - found),
+        "knocked_log": bool(true),
+    }
+
+
+def knock_table(rows: list[dict[str, Any]]) -> None:
+    print("\n### mounts knocked\n")
+    print(
+        "| scenario | knocks | found (time within 2 windows) | sizes within 3 std | worst size "
+        "err/std | moves said where none (lidars) | lidars without a knock |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for scenario in dict.fromkeys(r["scenario"] for r in rows):
+        mine = [r for r in rows if r["scenario"] == scenario]
+        ratios = [v for r in mine for v in r["size_ratios"]]
+        print(
+            f"| {scenario} | {sum(r['knocks'] for r in mine)} "
+            f"| {sum(r['knocks_found'] for r in mine)} "
+            f"| {sum(v <= 3 for v in ratios)} / {len(ratios)} "
+            f"| {max(ratios, default=float('nan')):.2f} | {sum(r['false_moves'] for r in mine)} "
+            f"| {sum(not r['knocks'] for r in mine)} |"
+        )
 
 
 def table(rows: list[dict[str, Any]], title: str) -> None:
@@ -163,6 +256,7 @@ def main() -> None:
         f"({time.perf_counter() - start:.0f} s)."
     )
     table(followed, "drift followed (the default, max_clock_drift_ppm: 200)")
+    knock_table(followed)
     table(one_offset, "one offset for the log (max_clock_drift_ppm: 0)")
 
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from imucal_cli.core.grades import GRADES
 from imucal_cli.core.so3 import rotation_angle_deg
+from imucal_cli.core.status import move_sentence
 from imucal_cli.documents import to_plain
 from imucal_cli.frames import config_sources
 from imucal_cli.version import version
@@ -324,6 +325,34 @@ def calibration_document(
     )
 
 
+MOVE_KEYS = ("at_s", "at_std_s", "rotation_deg", "translation_m")
+
+
+def _moved(result: Calibration, sensor: Any) -> list[dict[str, Any]]:
+    """Where the sensor's mount moved (SPEC ``moved``): when (s since t0), how far its lidar
+    turned and shifted, and its pose before."""
+    T_imu_lidar = sensor.T_imu_lidar
+    offset = (result.t_ref_ns - result.t0_ns) * 1e-9
+    out = []
+    for move in result.estimates[sensor.name].moves:
+        before = move.T_base_imu_before * T_imu_lidar
+        after = move.T_base_imu_after * T_imu_lidar
+        out.append(
+            {
+                "at_s": move.at_s + offset,
+                "at_std_s": move.at_std_s,
+                "rotation_deg": rotation_angle_deg(before.rotation, after.rotation),
+                "translation_m": float(np.linalg.norm(after.translation - before.translation)),
+                "before": {
+                    "T_base_lidar": before.to_dict(),
+                    "rotation_std_deg": [float(v) for v in move.rotation_std_deg],
+                    "translation_std_m": [float(v) for v in move.translation_std_m],
+                },
+            }
+        )
+    return out
+
+
 def _sensor_document(
     result: Calibration, sensor: Any, counts: Mapping[str, Mapping[str, int]]
 ) -> dict[str, Any]:
@@ -332,11 +361,13 @@ def _sensor_document(
     base_warnings = [
         f"base: {w}" for w in read_warnings(config.base.topic, counts.get(config.base.topic, {}))
     ]
+    moved = _moved(result, sensor)
     return {
         "status": est.status,
         "warnings": [  # what reading dropped first: it is the cause of what the fit says
             *base_warnings,
             *read_warnings(sensor.imu_topic, counts.get(sensor.imu_topic, {})),
+            *(move_sentence(*(m[k] for k in MOVE_KEYS)) for m in moved),
             *est.warnings,
         ],
         "notes": list(est.notes),
@@ -365,6 +396,7 @@ def _sensor_document(
         "time_offset_observable": bool(est.time_offset_observable),
         "clock_drift_ppm": None if est.clock_drift is None else 1e6 * est.clock_drift,
         "clock_drift_std_ppm": None if est.clock_drift_std is None else 1e6 * est.clock_drift_std,
+        "moved": moved,
         "checks": to_plain(est.checks),
         "accel_intrinsics": to_plain(est.accel_intrinsics) if est.accel_intrinsics else None,
         "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,

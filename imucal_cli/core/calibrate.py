@@ -16,6 +16,7 @@ turns the figures into the status and the sentences.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ from imucal_cli.core import checks, status
 from imucal_cli.core.grades import GRADES, error_prior_std
 from imucal_cli.core.model import ACCEL_ROTATION, KNOT, ROTATION, TIME_OFFSET, TRANSLATION
 from imucal_cli.core.moments import WindowMoments
+from imucal_cli.core.moves import MIN_SIDE_WINDOWS, find_moves
 from imucal_cli.core.segments import OBSERVABLE_FRACTION_OF_BOUND, WindowInfo
 from imucal_cli.core.signals import LOWPASS_HZ, Lowpass
 from imucal_cli.core.so3 import skew
@@ -103,6 +105,9 @@ class SensorEstimate:
     #: std, where estimated and shown (:mod:`.clock`).
     clock_drift: float | None = None
     clock_drift_std: float | None = None
+    #: Where the mount moved during the log, in time order (:func:`mount_moves`); the estimate
+    #: is of the windows after the last.
+    moves: list[MountMove] = field(default_factory=list)
 
     @property
     def statistical_rotation_std_deg(self) -> np.ndarray | None:
@@ -137,6 +142,80 @@ class SensorEstimate:
         J = np.eye(6)
         J[TRANSLATION, ROTATION] = -skew(lever)  # d(R t_IL) = [dtheta]x R t_IL = -[R t_IL]x dtheta
         return J @ self.covariance @ J.T
+
+
+@dataclass(frozen=True)
+class MountMove:
+    """A move of the mount: when (s, grid clock) with its std, the pose before it
+    (``T_base_imu``, from the base IMU, with its statistical std about the base axes) and how
+    far it moved to the pose after it."""
+
+    at_s: float
+    at_std_s: float
+    T_base_imu_before: Transform
+    rotation_std_deg: np.ndarray
+    translation_std_m: np.ndarray
+    T_base_imu_after: Transform
+    first_window: int  # the number of the first window after it (the one it lies in: not used)
+
+
+def mount_moves(
+    windows: list[WindowMoments],
+    prior: Transform,
+    options: CalibrationOptions,
+    clock: ClockEvidence,
+    sigma: tuple[float, float],
+    lowpass: Lowpass,
+    dw_noise_var: float = 0.0,
+) -> list[MountMove]:
+    """Where the mount moved during the log (:func:`.moves.find_moves`, at the configured
+    false-alarm rate), each with the poses of the windows either side; none searched where
+    the clock is not followed (``max_clock_drift_ppm: 0``)."""
+    if options.max_clock_drift_ppm <= 0:  # one offset for the log: a drifting clock would
+        return []  # look like a mount that moves, window by window
+    problem = _problem(windows, prior, options, sigma, lowpass, dw_noise_var)
+    if len(problem.used) < 2 * MIN_SIDE_WINDOWS + 1:
+        return []
+    fit = _first_fit(problem, options, clock)
+    # the IMUs' own errors the drive shows, shared by every pose: left out, the poses of
+    # stretches of different driving differ by what they alias into the extrinsics
+    prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
+    fit = _own_errors(problem, fit, options, prior_std)[0]
+
+    def refit(mask: np.ndarray) -> Fit:
+        return problem.fit(fit, fit.free, window_weights=mask.astype(float))
+
+    found = find_moves(problem, fit, options.consistency_alpha, refit)
+    edges = [-1, *(m.within for m in found), len(problem.used)]
+    fits = []
+    bound = OBSERVABLE_FRACTION_OF_BOUND * options.translation_bound_m
+    for a, b in pairwise(edges):  # the windows between two moves
+        mask = np.zeros(len(problem.used), dtype=bool)
+        mask[a + 1 : b] = True
+        stretch = refit(mask)
+        weak = stretch.free[TRANSLATION] & (stretch.std()[TRANSLATION] >= bound)
+        if weak.any():  # a lever-arm axis the stretch does not determine: kept at the prior
+            free = stretch.free.copy()
+            free[TRANSLATION] &= ~weak
+            t = np.where(weak, problem.settings.translation_prior, stretch.point.t)
+            start = replace(stretch, point=replace(stretch.point, t=t))
+            stretch = problem.fit(start, free, window_weights=mask.astype(float))
+        fits.append(stretch)
+    out = []
+    for move, before, after in zip(found, fits[:-1], fits[1:], strict=True):
+        std = np.where(before.free, before.std(), options.translation_bound_m)
+        out.append(
+            MountMove(
+                move.at_s,
+                move.at_std_s,
+                Transform(before.point.R, before.point.t),
+                np.degrees(np.sqrt(np.clip(np.diag(before.rotation_covariance_base()), 0, None))),
+                std[TRANSLATION],
+                Transform(after.point.R, after.point.t),
+                int(problem.used[move.within].number) + 1,
+            )
+        )
+    return out
 
 
 def unobservable(prior: Transform, windows: list[WindowInfo], tau: float) -> SensorEstimate:

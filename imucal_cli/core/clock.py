@@ -33,6 +33,9 @@ def constant(value: float) -> Offset:
     return lambda t: np.full(np.shape(t), value)
 
 
+#: An offset off by more than this (s) is resampled again: the solve refines one offset for the
+#: log only to first order.
+MAX_LEVEL_S = 3e-3
 #: A step of the clock is said where a new piece of the line stands off the last by this many
 #: of the step's std and :data:`MIN_STEP_S`.
 STEP_STD = 5.0
@@ -295,24 +298,38 @@ class ClockTrack:
 
     def predictor(self, t_block: np.ndarray) -> Offset:
         """The offsets to resample a block (its times ``t_block``, s) at, as a function of
-        time fixed now: the line once it stood off ``tau0`` by more than its 3 std and
-        :data:`MIN_CORRECTION_S` somewhere in a block (a drift, a clock that stepped), else
+        time fixed now: the line, once the clock is seen to change (:meth:`changes`), else
         ``tau0``."""
-        if self.followed and (fit := self.fit()) is not None:
+        fit = self.fit()
+        if fit is not None and (self.followed or self.changes(fit, t_block)):
+            self.followed = True
             return fit.at
-        return self.correction(t_block, np.full(np.shape(t_block), self.tau0)) or constant(
-            self.tau0
-        )
+        return constant(self.tau0)
+
+    def changes(self, fit: ClockFit, t: np.ndarray) -> bool:
+        """Whether the clock's offset changes, beyond what the fit's one offset (the solver's
+        to refine) takes: a step, a drift beyond 3 std that moves the offset by
+        :data:`MIN_CORRECTION_S` over the measurements, or the line off ``tau0`` at ``t`` by
+        more than :data:`MAX_LEVEL_S`."""
+        drift_std = float(np.sqrt(fit.drift_var))
+        drifts = abs(fit.drift) > 3.0 * drift_std and abs(fit.drift) * fit.span > MIN_CORRECTION_S
+        level = np.abs(fit.at(np.asarray(t, dtype=np.float64)) - self.tau0) > MAX_LEVEL_S
+        return bool(self.steps) or drifts or bool(np.any(level))
 
     def correction(self, t: np.ndarray, used: np.ndarray) -> Offset | None:
-        """The line, as a function of time fixed now, where it stands off the offsets ``used``
-        at times ``t`` by more than its 3 std and :data:`MIN_CORRECTION_S`; else None."""
+        """The line, as a function of time fixed now, where the clock changes
+        (:meth:`changes`) and the line stands off the offsets ``used`` at times ``t`` beyond a
+        level (the solver's one offset takes that) by more than its 3 std and
+        :data:`MIN_CORRECTION_S`, or by :data:`MAX_LEVEL_S`; else None."""
         fit = self.fit()
-        if fit is None:
+        if fit is None or not (self.followed or self.changes(fit, t)):
             return None
         t = np.asarray(t, dtype=np.float64)
-        off = np.abs(fit.at(t) - used) > np.maximum(3.0 * np.sqrt(fit.var_at(t)), MIN_CORRECTION_S)
-        if not np.any(off):
+        off = fit.at(t) - used
+        shape = np.abs(off - off.mean()) > np.maximum(
+            3.0 * np.sqrt(fit.var_at(t)), MIN_CORRECTION_S
+        )
+        if not (np.any(shape) or np.any(np.abs(off) > MAX_LEVEL_S)):
             return None
         self.followed = True
         return fit.at

@@ -9,9 +9,21 @@ from typing import Any
 
 import numpy as np
 
-from imucal_cli.core.calibrate import ClockEvidence, SensorEstimate, solve, unobservable
+from imucal_cli.core.calibrate import (
+    ClockEvidence,
+    SensorEstimate,
+    mount_moves,
+    solve,
+    unobservable,
+)
 from imucal_cli.core.clock import ClockTrack
-from imucal_cli.core.status import drift_sentence, imu_notes, step_sentence, unsolved_sentence
+from imucal_cli.core.moments import WindowMoments
+from imucal_cli.core.status import (
+    drift_sentence,
+    imu_notes,
+    step_sentence,
+    unsolved_sentence,
+)
 from imucal_cli.core.streaming import StreamingCalibrator
 from imucal_cli.types import Transform
 
@@ -33,17 +45,13 @@ def estimate(calibrator: StreamingCalibrator, name: str) -> SensorEstimate:
         clock = ClockEvidence(
             tau0, offset is None or offset.shown, offset.reason if offset is not None else ""
         )
+        track = c.clocks.get(name)
+        line = track.fit() if track is not None and track.followed else None
+        for w in windows:  # the track's offset beyond the one each was resampled at
+            middle = np.array([0.5 * (w.start_s + w.end_s)])
+            w.shift_s = 0.0 if line is None else float(line.at(middle)[0]) - w.offset_s
         try:
-            found = solve(
-                windows,
-                setup.prior_T_base_imu,
-                setup.options,
-                clock,
-                c.sigma[name],
-                c.lowpass,
-                dw_noise_var=c.dw_noise_var,
-                given=c.given_checks,
-            )
+            found = _solved(c, name, windows, clock)
         except np.linalg.LinAlgError as exc:  # the solver's to say, never the log's fault
             found = unobservable(setup.prior_T_base_imu, infos, tau0)
             found = replace(found, warnings=[unsolved_sentence(str(exc))])
@@ -59,10 +67,81 @@ def estimate(calibrator: StreamingCalibrator, name: str) -> SensorEstimate:
     track = c.clocks.get(name)
     if track is None or found.covariance is None:
         return found
-    return _with_drift(found, track)
+    since = found.moves[-1].first_window if found.moves else 0
+    used = [w for w in windows if w.info is not None and w.info.selected and w.number >= since]
+    return _with_drift(found, track, used, tau0)
 
 
-def _with_drift(found: SensorEstimate, track: ClockTrack) -> SensorEstimate:
+def _solved(
+    c: StreamingCalibrator, name: str, windows: list[WindowMoments], clock: ClockEvidence
+) -> SensorEstimate:
+    """The estimate of the windows after the mount's last move (every window where it did
+    not move), with the moves (:func:`~.calibrate.mount_moves`) where a rigid pose each side
+    explains the data."""
+    setup = c.sensors[name]
+    args = (setup.prior_T_base_imu, setup.options, clock, c.sigma[name], c.lowpass)
+    moves = mount_moves(windows, *args, c.dw_noise_var)
+    found = solve(
+        [w for w in windows if not moves or w.number >= moves[-1].first_window],
+        *args,
+        dw_noise_var=c.dw_noise_var,
+        given=c.given_checks,
+    )
+    # a move is said only where a rigid pose each side explains the data: every stretch
+    # between the moves consistent on its own (else what moved is not the mount: a model
+    # the data break, which one estimate of every window says)
+    starts = [0, *(m.first_window for m in moves)]
+    stretches = [
+        [w for w in windows if start <= w.number < move.first_window - 1]
+        for start, move in zip(starts, moves, strict=False)
+    ]
+    if moves and (
+        found.status == "inconsistent"
+        or any(_inconsistent(stretch, c, name, clock) for stretch in stretches)
+    ):
+        moves = []
+        found = solve(windows, *args, dw_noise_var=c.dw_noise_var, given=c.given_checks)
+    shift = c.t_base_baseimu  # (from the base IMU's position back to B's origin)
+    moves = [
+        replace(
+            m,
+            T_base_imu_before=Transform(
+                m.T_base_imu_before.rotation, m.T_base_imu_before.translation + shift
+            ),
+            T_base_imu_after=Transform(
+                m.T_base_imu_after.rotation, m.T_base_imu_after.translation + shift
+            ),
+        )
+        for m in moves
+    ]
+    return replace(found, moves=moves)
+
+
+def _inconsistent(
+    windows: list[WindowMoments], c: StreamingCalibrator, name: str, clock: ClockEvidence
+) -> bool:
+    """Whether the windows fail a model-consistency check, estimated on their own."""
+    if not any(w.info is not None and w.info.selected for w in windows):
+        return False
+    setup = c.sensors[name]
+    try:
+        found = solve(
+            windows,
+            setup.prior_T_base_imu,
+            setup.options,
+            clock,
+            c.sigma[name],
+            c.lowpass,
+            dw_noise_var=c.dw_noise_var,
+        )
+    except np.linalg.LinAlgError:
+        return True
+    return found.status == "inconsistent"
+
+
+def _with_drift(
+    found: SensorEstimate, track: ClockTrack, windows: list[WindowMoments], tau0: float
+) -> SensorEstimate:
     """The estimate with its clock's drift, where the drive shows it, and its steps; where the
     windows were resampled along the track, the offset (at the grid's origin) is the track's."""
     fit = track.fit()
@@ -70,9 +149,13 @@ def _with_drift(found: SensorEstimate, track: ClockTrack) -> SensorEstimate:
         return found
     warnings = [step_sentence(step) for step in track.steps]
     offset, offset_std = found.time_offset_s, found.time_offset_std_s
-    if track.followed:
-        offset = float(fit.at(np.zeros(1))[0])
-        offset_std = float(np.sqrt(fit.var_at(np.zeros(1))[0]))
+    if track.followed and found.time_offset_observable and windows:
+        # the track, at the level the solve placed (its one offset is beyond the track's)
+        offset = float(fit.at(np.zeros(1))[0]) + found.time_offset_s - tau0
+        middle = float(np.mean([0.5 * (w.start_s + w.end_s) for w in windows]))
+        offset_std = float(
+            np.sqrt((found.time_offset_std_s or 0.0) ** 2 + middle**2 * fit.drift_var)
+        )
     drift = drift_std = None
     notes = list(found.notes)
     if fit.shown:

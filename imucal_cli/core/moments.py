@@ -54,6 +54,8 @@ class WindowMoments:
     rows_accel: np.ndarray  # (3, 33): f_I^T x_a
     samples: int
     info: WindowInfo | None = None  # observability, filled in (in bulk) when first needed
+    offset_s: float = 0.0  # the sensor's clock offset it was resampled at (its middle)
+    shift_s: float = 0.0  # the clock's track there beyond ``offset_s`` (the solve takes it)
 
 
 _UPPER = {"gyro": np.triu_indices(GYRO_BASE.size), "accel": np.triu_indices(ACCEL_BASE.size)}

@@ -345,6 +345,10 @@ class Problem:
             dw_noise_var,
         )
         self.numbers = np.array([w.number for w in used])
+        #: Each window's clock offset beyond the one it was resampled at, where its clock was
+        #: followed (:mod:`.clock`); None: none.
+        shifts = np.array([w.shift_s for w in used])
+        self.shifts = shifts if np.any(shifts) else None
         self.n_knots = int(max(w.number for w in windows)) + 2
         self.S_g = assemble_moments(used, "gyro")  # (K, 14, 14): small
         self.starts = range(0, len(used), SOLVE_CHUNK)
@@ -432,8 +436,8 @@ class Problem:
             return self._last[1]
         bj, bk = knots[self.numbers], knots[self.numbers + 1]
         gyro, accel = KNOT["gyro_bias"], KNOT["accel_bias"]
-        Cg = gyro_coefficients(point, bj[:, gyro], bk[:, gyro])
-        Ca = accel_coefficients(point, bj[:, accel], bk[:, accel])
+        Cg = gyro_coefficients(point, bj[:, gyro], bk[:, gyro], self.shifts)
+        Ca = accel_coefficients(point, bj[:, accel], bk[:, accel], self.shifts)
         Dg, Da = gyro_derivatives(point), accel_derivatives(point)
         parts_a = [
             window_equations(Da, S_a, Ca[a : a + SOLVE_CHUNK])

@@ -261,3 +261,12 @@ def step_sentence(step: Any) -> str:
         f"clock stepped by {1e3 * step.size_s:+.1f} +- {1e3 * step.std_s:.1f} ms at "
         f"{step.at_s:.0f} s (re-synchronised?): followed; the windows around it not used"
     )
+
+
+def move_sentence(at_s: float, at_std_s: float, rotation_deg: float, translation_m: float) -> str:
+    """A warning on a mount that moved during the log."""
+    return (
+        f"the mount moved at {at_s:.0f} +- {at_std_s:.0f} s by {rotation_deg:.2f} deg and "
+        f"{1e3 * translation_m:.1f} mm (a knock? a loose bracket?): its pose and status are of "
+        "the data after it"
+    )

@@ -464,6 +464,10 @@ class StreamingCalibrator:
             if again:
                 redone = reduce_block(*args, self.base_name, {**samples, **again})
                 reduced.update({name: redone[name] for name in again if name in redone})
+            for name, windows in reduced.items():  # the offsets they were resampled at
+                tau = (again.get(name) or samples[name])[0]
+                for w in windows:
+                    w.offset_s = float(tau(np.array([0.5 * (w.start_s + w.end_s)]))[0])
         for name in self.sensors:
             self.windows[name].extend(
                 reduced.get(name)

@@ -23,7 +23,7 @@ from imucal_cli.sim.rig import DEFAULT_MOUNTS, WHEEL_MOUNTS, LidarMount, cad_pri
 from imucal_cli.sim.scenarios import SCENARIOS, VehicleDynamics, make_scenario
 from imucal_cli.sim.trajectory import Trajectory
 from imucal_cli.sim.writers import TopicData
-from imucal_cli.types import GRAVITY_MPS2, DriveStreams, ImuStream, Transform
+from imucal_cli.types import GRAVITY_MPS2, DriveStreams, ImuStream, Transform, rotation_type
 
 BASE_TOPIC = "/gnss/imu"
 BASE_FRAME = "base_link"
@@ -46,6 +46,9 @@ class DriveOptions:
     clock_drifts_ppm: tuple[float, ...] | None = None  # per sensor (or one for all); None: 0
     #: Per sensor, the steps of its clock: (at s, by s) each (a clock re-synchronised).
     clock_steps: tuple[tuple[tuple[float, float], ...], ...] = ()
+    #: Per sensor, where its mount moved (a knock): (at s, a turn about the base axes as a
+    #: rotation vector (rad, 3), a shift in B (m, 3)) each; the truth is the last pose.
+    knocks: tuple[tuple[tuple[float, tuple[float, ...], tuple[float, ...]], ...], ...] = ()
     base_model: ImuErrorModel = TACTICAL_BASE
     lidar_model: ImuErrorModel = MEMS_LIDAR
     lidar_rate_hz: float | None = None  # None: the model's rate
@@ -191,6 +194,8 @@ class SimulatedDrive:
     sensors: dict[str, SimulatedImu]
     time_offsets_s: dict[str, float]
     priors: dict[str, Transform]
+    #: Per sensor whose mount moved: its T_base_lidar before each move (the first: at the start).
+    befores: dict[str, list[Transform]] = field(default_factory=dict)
 
     def streams(self) -> DriveStreams:
         """What the drive's log holds, as :func:`imucal_cli.api.calibrate_streams` takes it."""
@@ -252,6 +257,15 @@ class SimulatedDrive:
             ]
         return "\n".join([*lines, "</robot>", ""])
 
+    def _moved(self, k: int, name: str) -> list[dict[str, Any]]:
+        """Sensor ``k``'s knocks in the truth: when, and its pose before."""
+        knocks = sorted(self.options.knocks[k]) if k < len(self.options.knocks) else []
+        befores = self.befores.get(name, [])
+        return [
+            {"at_s": float(at_s), "before": {"T_base_lidar": before.to_dict()}}
+            for (at_s, _, _), before in zip(knocks, befores, strict=False)
+        ]
+
     def truth_document(self, later: Sequence[SimulatedDrive] | BiasTrack = ()) -> dict[str, Any]:
         """The SPEC truth file, plus ``T_base_imu``, time offsets and the true biases (with
         ``later``, the pieces that follow this one: :func:`drive_pieces`; or their
@@ -270,6 +284,16 @@ class SimulatedDrive:
                 "clock_drift_ppm": float(drifts[k % len(drifts)]),
                 "clock_steps": [list(step) for step in self.options.clock_steps[k]]
                 if k < len(self.options.clock_steps)
+                else [],
+                "moved": [
+                    {"at_s": float(at_s), "before": {"T_base_lidar": before.to_dict()}}
+                    for (at_s, _, _), before in zip(
+                        sorted(self.options.knocks[k]),
+                        self.befores.get(mount.name, []),
+                        strict=False,
+                    )
+                ]
+                if k < len(self.options.knocks)
                 else [],
                 **tracks.summary(mount.name),
             }
@@ -388,7 +412,8 @@ def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive
     IMUs' samples of its span, their bias walks carried on. The first piece draws what
     :func:`simulate_drive` of it alone would."""
     o = _checked(options or DriveOptions())
-    mounts = o.mounts[: o.sensors]
+    mounts = list(o.mounts[: o.sensors])
+    befores: dict[str, list[Transform]] = {}
 
     trajectory = make_scenario(o.scenario, o.duration_s, seed=o.seed, dynamics=o.dynamics)
     edges = [*np.arange(trajectory.t_start_s, trajectory.t_end_s, PIECE_S)[1:].tolist()]
@@ -413,14 +438,8 @@ def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive
         else:
             offset = float(o.time_offsets_s[k if len(o.time_offsets_s) > 1 else 0])
         offsets[mount.name] = offset
-        drift = 0.0 if not o.clock_drifts_ppm else o.clock_drifts_ppm[k % len(o.clock_drifts_ppm)]
-        model = replace(
-            grade_errors(o.lidar_model, o.lidar_grade).scaled(o.noise_scale),
-            time_offset_s=offset,
-            clock_drift_ppm=drift,
-            clock_steps=o.clock_steps[k] if k < len(o.clock_steps) else (),
-        )
-        model = model if o.lidar_rate_hz is None else replace(model, rate_hz=o.lidar_rate_hz)
+        model = _lidar_model(o, k, offset)
+        moves = knocked(mount.T_base_imu, o.knocks[k] if k < len(o.knocks) else ())
         samplers[mount.name] = ImuSampler(
             trajectory,
             mount.T_base_imu,
@@ -429,13 +448,44 @@ def drive_pieces(options: DriveOptions | None = None) -> Iterator[SimulatedDrive
             o.t0_ns,
             mount.imu_frame,
             o.mount_tilt_rad_per_mps2,
+            moves,
         )
         firsts[mount.name] = samplers[mount.name].sample(*spans[0])
         prior = cad_prior(mount.T_base_imu, rng)
+        if moves:  # the truth: the pose it has now
+            befores[mount.name] = [mount.T_base_lidar, *(p * mount.T_imu_lidar for _, p in moves)]
+            mounts[k] = replace(mount, T_base_lidar=moves[-1][1] * mount.T_imu_lidar)
         priors[mount.name] = Transform(
             prior.rotation, prior.translation + np.asarray(o.prior_offset_m)
         )
-    yield SimulatedDrive(o, trajectory, mounts, base_piece, firsts, offsets, priors)
+    final = tuple(mounts)
+    yield SimulatedDrive(o, trajectory, final, base_piece, firsts, offsets, priors, befores)
     for span in spans[1:]:
         piece = {name: sampler.sample(*span) for name, sampler in samplers.items()}
-        yield SimulatedDrive(o, trajectory, mounts, base.sample(*span), piece, offsets, priors)
+        base_span = base.sample(*span)
+        yield SimulatedDrive(o, trajectory, final, base_span, piece, offsets, priors, befores)
+
+
+def _lidar_model(o: DriveOptions, k: int, offset: float) -> ImuErrorModel:
+    """Lidar ``k``'s IMU: the options' model and grade, its clock's offset, drift and steps."""
+    drift = 0.0 if not o.clock_drifts_ppm else o.clock_drifts_ppm[k % len(o.clock_drifts_ppm)]
+    model = replace(
+        grade_errors(o.lidar_model, o.lidar_grade).scaled(o.noise_scale),
+        time_offset_s=offset,
+        clock_drift_ppm=drift,
+        clock_steps=o.clock_steps[k] if k < len(o.clock_steps) else (),
+    )
+    return model if o.lidar_rate_hz is None else replace(model, rate_hz=o.lidar_rate_hz)
+
+
+def knocked(
+    T_base_imu: Transform, knocks: tuple[tuple[float, tuple[float, ...], tuple[float, ...]], ...]
+) -> tuple[tuple[float, Transform], ...]:
+    """The poses an IMU's mount has from each knock on: each turns it about the base axes by
+    a rotation vector and shifts it, from the pose before."""
+    poses, pose = [], T_base_imu
+    for at_s, turn, shift in sorted(knocks):
+        rotation = rotation_type().from_rotvec(np.asarray(turn, dtype=float)) * pose.rotation
+        pose = Transform(rotation, pose.translation + np.asarray(shift, dtype=float))
+        poses.append((float(at_s), pose))
+    return tuple(poses)

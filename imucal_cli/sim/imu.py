@@ -244,8 +244,11 @@ class ImuSampler:
         t0_ns: int,
         frame_id: str,
         tilt_rad_per_mps2: tuple[float, float] = (0.0, 0.0),
+        moves: tuple[tuple[float, Transform], ...] = (),
     ) -> None:
         self.trajectory, self.T_base_imu, self.model, self.rng = trajectory, T_base_imu, model, rng
+        #: Where the mount moved (a knock): from each time (s, true), the pose it has.
+        self.moves = moves
         self.t0_ns, self.frame_id, self.tilt = t0_ns, frame_id, tilt_rad_per_mps2
         self.period = 1.0 / model.rate_hz
         self.phase = rng.uniform(0.0, self.period)
@@ -276,6 +279,12 @@ class ImuSampler:
         mount's vibration and its axes' errors in."""
         model = self.model
         gyro, accel = ideal_imu(self.trajectory, self.T_base_imu, t_true, self.tilt)
+        for at_s, pose in self.moves:  # (in order: each from its time on)
+            after = t_true >= at_s
+            if after.any():
+                gyro[after], accel[after] = ideal_imu(
+                    self.trajectory, pose, t_true[after], self.tilt
+                )
         if self.vibration is not None:
             # a mount resonance, sampled at the output's instants as a real IMU samples it
             # (no anti-alias filter): what lies above Nyquist folds back
