@@ -159,7 +159,11 @@ class MountMove:
     first_window: int  # the number of the first window after it (the one it lies in: not used)
 
 
-def mount_moves(
+#: A solve's start: the problem, the joint fit with the IMUs' own errors, and those errors.
+Start = tuple[Problem, Fit, dict[str, dict[str, Any]]]
+
+
+def started(
     windows: list[WindowMoments],
     prior: Transform,
     options: CalibrationOptions,
@@ -167,20 +171,25 @@ def mount_moves(
     sigma: tuple[float, float],
     lowpass: Lowpass,
     dw_noise_var: float = 0.0,
-) -> list[MountMove]:
-    """Where the mount moved during the log (:func:`.moves.find_moves`, at the configured
-    false-alarm rate), each with the poses of the windows either side; none searched where
-    the clock is not followed (``max_clock_drift_ppm: 0``)."""
-    if options.max_clock_drift_ppm <= 0:  # one offset for the log: a drifting clock would
-        return []  # look like a mount that moves, window by window
+) -> Start:
+    """The joint fit of the extrinsics and the clock (:func:`_first_fit`) with the IMUs' own
+    errors the drive shows (:func:`_own_errors`)."""
     problem = _problem(windows, prior, options, sigma, lowpass, dw_noise_var)
-    if len(problem.used) < 2 * MIN_SIDE_WINDOWS + 1:
-        return []
     fit = _first_fit(problem, options, clock)
-    # the IMUs' own errors the drive shows, shared by every pose: left out, the poses of
-    # stretches of different driving differ by what they alias into the extrinsics
     prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
-    fit = _own_errors(problem, fit, options, prior_std)[0]
+    fit, own = _own_errors(problem, fit, options, prior_std)
+    return problem, fit, own
+
+
+def mount_moves(start: Start, options: CalibrationOptions) -> list[MountMove]:
+    """Where the mount moved during the log (:func:`.moves.find_moves`, at the configured
+    false-alarm rate), each with the poses of the windows either side, from the fit with the
+    IMUs' own errors (``start``: shared by every pose; left out, stretches of different
+    driving differ by what those errors alias into the extrinsics); none searched where the
+    clock is not followed (``max_clock_drift_ppm: 0``)."""
+    problem, fit, _ = start
+    if options.max_clock_drift_ppm <= 0 or len(problem.used) < 2 * MIN_SIDE_WINDOWS + 1:
+        return []  # (one offset for the log: a drifting clock would look like a mount moving)
 
     def refit(mask: np.ndarray) -> Fit:
         return problem.fit(fit, fit.free, window_weights=mask.astype(float))
@@ -198,8 +207,8 @@ def mount_moves(
             free = stretch.free.copy()
             free[TRANSLATION] &= ~weak
             t = np.where(weak, problem.settings.translation_prior, stretch.point.t)
-            start = replace(stretch, point=replace(stretch.point, t=t))
-            stretch = problem.fit(start, free, window_weights=mask.astype(float))
+            held = replace(stretch, point=replace(stretch.point, t=t))
+            stretch = problem.fit(held, free, window_weights=mask.astype(float))
         fits.append(stretch)
     out = []
     for move, before, after in zip(found, fits[:-1], fits[1:], strict=True):
@@ -337,17 +346,17 @@ def solve(
     lowpass: Lowpass,
     dw_noise_var: float = 0.0,
     given: tuple[checks.Check, ...] = (),
+    start: Start | None = None,
 ) -> SensorEstimate:
-    """The estimate from the selected windows' moments, with its checks and honest covariance:
-    the joint fit (:func:`_first_fit`), the sensor's own errors where the drive shows them,
-    the rigid mount (failing, the tilt joins the model), the clock, the rotation agreement and
-    the residual levels, then the covariance (:func:`.uncertainty.uncertainty`). ``given``:
-    checks made before (the base IMU's gravity), counted as the others."""
-    problem = _problem(windows, prior, options, sigma, lowpass, dw_noise_var)
+    """The estimate from the selected windows' moments, its checks and honest covariance: the
+    fit with the IMUs' own errors (``start``, else :func:`started`), the rigid mount, the clock,
+    the rotation agreement, the residual levels, the covariance (:mod:`.uncertainty`).
+    ``given``: checks made before (the base IMU's gravity), counted as the others."""
+    if start is None:
+        start = started(windows, prior, options, clock, sigma, lowpass, dw_noise_var)
+    problem, fit, own = start
     alpha = options.consistency_alpha
-    fit = _first_fit(problem, options, clock)
     prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
-    fit, own = _own_errors(problem, fit, options, prior_std)
     scale = checks.base_scale(own[checks.BASE_SCALE[0]], fit)
     rigid, tilted = checks.rigid_mount(problem, fit, alpha)
     if not rigid.passed and _keeps_lever_arm(fit, tilted, options):

@@ -14,6 +14,7 @@ from imucal_cli.core.calibrate import (
     SensorEstimate,
     mount_moves,
     solve,
+    started,
     unobservable,
 )
 from imucal_cli.core.clock import ClockTrack
@@ -80,27 +81,31 @@ def _solved(
     explains the data."""
     setup = c.sensors[name]
     args = (setup.prior_T_base_imu, setup.options, clock, c.sigma[name], c.lowpass)
-    moves = mount_moves(windows, *args, c.dw_noise_var)
+    start = started(windows, *args, c.dw_noise_var)
+    moves = mount_moves(start, setup.options)
     found = solve(
         [w for w in windows if not moves or w.number >= moves[-1].first_window],
         *args,
         dw_noise_var=c.dw_noise_var,
         given=c.given_checks,
+        start=None if moves else start,
     )
     # a move is said only where a rigid pose each side explains the data: every stretch
     # between the moves consistent on its own (else what moved is not the mount: a model
     # the data break, which one estimate of every window says)
     starts = [0, *(m.first_window for m in moves)]
     stretches = [
-        [w for w in windows if start <= w.number < move.first_window - 1]
-        for start, move in zip(starts, moves, strict=False)
+        [w for w in windows if first <= w.number < move.first_window - 1]
+        for first, move in zip(starts, moves, strict=False)
     ]
     if moves and (
         found.status == "inconsistent"
         or any(_inconsistent(stretch, c, name, clock) for stretch in stretches)
     ):
         moves = []
-        found = solve(windows, *args, dw_noise_var=c.dw_noise_var, given=c.given_checks)
+        found = solve(
+            windows, *args, dw_noise_var=c.dw_noise_var, given=c.given_checks, start=start
+        )
     shift = c.t_base_baseimu  # (from the base IMU's position back to B's origin)
     moves = [
         replace(
