@@ -197,19 +197,10 @@ def mount_moves(start: Start, options: CalibrationOptions) -> list[MountMove]:
     found = find_moves(problem, fit, options.consistency_alpha, refit)
     edges = [-1, *(m.within for m in found), len(problem.used)]
     fits = []
-    bound = OBSERVABLE_FRACTION_OF_BOUND * options.translation_bound_m
     for a, b in pairwise(edges):  # the windows between two moves
-        mask = np.zeros(len(problem.used), dtype=bool)
-        mask[a + 1 : b] = True
-        stretch = refit(mask)
-        weak = stretch.free[TRANSLATION] & (stretch.std()[TRANSLATION] >= bound)
-        if weak.any():  # a lever-arm axis the stretch does not determine: kept at the prior
-            free = stretch.free.copy()
-            free[TRANSLATION] &= ~weak
-            t = np.where(weak, problem.settings.translation_prior, stretch.point.t)
-            held = replace(stretch, point=replace(stretch.point, t=t))
-            stretch = problem.fit(held, free, window_weights=mask.astype(float))
-        fits.append(stretch)
+        weights = np.zeros(len(problem.used))
+        weights[a + 1 : b] = 1.0
+        fits.append(_weak_at_prior(problem, refit(weights > 0), options, weights))
     out = []
     for move, before, after in zip(found, fits[:-1], fits[1:], strict=True):
         std = np.where(before.free, before.std(), options.translation_bound_m)
@@ -288,15 +279,22 @@ def _first_fit(problem: Problem, options: CalibrationOptions, clock: ClockEviden
     except np.linalg.LinAlgError:  # the lever arm's information, noise taken off, is not positive
         start.free[TRANSLATION] = False
         fit = problem.fit(start, start.free, estimate_scale=True)
+    return _weak_at_prior(problem, fit, options)
+
+
+def _weak_at_prior(
+    problem: Problem, fit: Fit, options: CalibrationOptions, weights: np.ndarray | None = None
+) -> Fit:
+    """``fit`` (of the windows ``weights`` keeps) with the translation axes it does not
+    determine (std over a third of the box) kept at the prior, fitted again."""
     bound = OBSERVABLE_FRACTION_OF_BOUND * options.translation_bound_m
     weak = fit.free[TRANSLATION] & (fit.std()[TRANSLATION] >= bound)
-    if weak.any():
-        free = fit.free.copy()
-        free[TRANSLATION] &= ~weak
-        prior_t = problem.settings.translation_prior
-        t = np.where(weak, prior_t, fit.point.t)
-        fit = problem.fit(replace(fit, point=replace(fit.point, t=t)), free)
-    return fit
+    if not weak.any():
+        return fit
+    free = fit.free.copy()
+    free[TRANSLATION] &= ~weak
+    t = np.where(weak, problem.settings.translation_prior, fit.point.t)
+    return problem.fit(replace(fit, point=replace(fit.point, t=t)), free, window_weights=weights)
 
 
 def _own_errors(

@@ -160,6 +160,7 @@ class ClockTrack:
     steps: list[Step] = field(default_factory=list)
     #: Whether windows were resampled at anything but ``tau0``.
     followed: bool = False
+    _fitted: tuple[ClockFit | None] | None = field(default=None, repr=False, compare=False)
     #: This group's windows measured so far (:data:`GROUP_WINDOWS`).
     group: list[Row] = field(default_factory=list)
     #: Windows measured but not in the line yet, ``(number, start s, t s, offset s,
@@ -171,6 +172,7 @@ class ClockTrack:
         w = 1.0 / variance
         self.pieces[-1][1][:] += w * np.array([1.0, t, t * t, offset, t * offset, offset**2])
         self.count += 1
+        self._fitted = None
 
     def measure(self, rows: list[Row]) -> list[int]:
         """Windows' measurements ``(number, start s, t s, offset s, variance)`` as they are
@@ -239,7 +241,13 @@ class ClockTrack:
         return trial
 
     def fit(self) -> ClockFit | None:
-        """The line through the measurements; None before two (or with no drift followed)."""
+        """The line through the measurements; None before two (or with no drift followed).
+        Kept until a measurement or a piece is added: the schedule asks it at every batch."""
+        if self._fitted is None:
+            self._fitted = (self._fit(),)
+        return self._fitted[0]
+
+    def _fit(self) -> ClockFit | None:
         if self.count < 2 or self.max_drift <= 0:
             return None
         sums = np.array([s for _, s in self.pieces if s[0] > 0])
@@ -295,6 +303,7 @@ class ClockTrack:
     def new_piece(self, at_s: float) -> None:
         """What follows ``at_s`` is a new piece of the line (the clock stepped there)."""
         self.pieces.append((at_s, np.zeros(6)))
+        self._fitted = None
 
     def predictor(self, t_block: np.ndarray) -> Offset:
         """The offsets to resample a block (its times ``t_block``, s) at, as a function of

@@ -56,8 +56,7 @@ def estimate(calibrator: StreamingCalibrator, name: str) -> SensorEstimate:
         except np.linalg.LinAlgError as exc:  # the solver's to say, never the log's fault
             found = unobservable(setup.prior_T_base_imu, infos, tau0)
             found = replace(found, warnings=[unsolved_sentence(str(exc))])
-    T = found.T_base_imu  # from the base IMU's position back to B's origin
-    T = Transform(T.rotation, T.translation + c.t_base_baseimu)
+    T = _in_b(c, found.T_base_imu)
     notes = [  # the units converted on the way, then each IMU's saturation and silences
         *(f"base: {w}" for w in c.unit_warnings.get(c.base_name, [])),
         *c.unit_warnings.get(name, []),
@@ -106,20 +105,20 @@ def _solved(
         found = solve(
             windows, *args, dw_noise_var=c.dw_noise_var, given=c.given_checks, start=start
         )
-    shift = c.t_base_baseimu  # (from the base IMU's position back to B's origin)
     moves = [
         replace(
             m,
-            T_base_imu_before=Transform(
-                m.T_base_imu_before.rotation, m.T_base_imu_before.translation + shift
-            ),
-            T_base_imu_after=Transform(
-                m.T_base_imu_after.rotation, m.T_base_imu_after.translation + shift
-            ),
+            T_base_imu_before=_in_b(c, m.T_base_imu_before),
+            T_base_imu_after=_in_b(c, m.T_base_imu_after),
         )
         for m in moves
     ]
     return replace(found, moves=moves)
+
+
+def _in_b(c: StreamingCalibrator, T_base_imu: Transform) -> Transform:
+    """A pose the solve made from the base IMU's position, from B's origin."""
+    return Transform(T_base_imu.rotation, T_base_imu.translation + c.t_base_baseimu)
 
 
 def _inconsistent(
