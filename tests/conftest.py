@@ -37,6 +37,13 @@ def ideal_drive():
     )
 
 
+def log_name(fmt: str, stem: str = "drive") -> str:
+    """A log's file (or rosbag2 folder) name in format ``fmt``, by the formats' table."""
+    from imucal_cli.io.formats import FORMATS
+
+    return stem + (FORMATS[fmt].suffix or "")
+
+
 def lidar_error(drive, result, name):
     """A lidar's ``T_base_lidar`` error against the simulated truth (rotation about the base
     axes, rad, then xyz, m) and the reported std of each axis (None without a covariance)."""

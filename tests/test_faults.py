@@ -9,6 +9,7 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from conftest import log_name
 from recorder import with_terminal_sigint
 from typer.testing import CliRunner
 
@@ -18,13 +19,6 @@ from imucal_cli.reading import read_imu
 from imucal_cli.sim.writers import FORMATS, write_imu_log
 
 runner = CliRunner()
-NAMES = {
-    "mcap": "d.mcap",
-    "mcap-ros1": "d.mcap",
-    "rosbag2-sqlite3": "d",
-    "rosbag2-mcap": "d",
-    "rosbag1": "d.bag",
-}
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +28,7 @@ def logs(tmp_path_factory, short_drive):
     out = {}
     for fmt in FORMATS:
         (root / fmt).mkdir()
-        log = write_imu_log(root / fmt / NAMES[fmt], fmt, short_drive.topics())
+        log = write_imu_log(root / fmt / log_name(fmt, "d"), fmt, short_drive.topics())
         topics = list(short_drive.topics())
         out[fmt] = (log, topics, read_imu(log, topics))
     return out
@@ -219,7 +213,7 @@ def test_non_finite_and_clipped_samples_are_dropped_and_counted(tmp_path, short_
     gyro[1000:1006, 1] = 4.3633  # 250 deg/s: a part at the end of its range, six samples
     accel[1500:1503, 0] = -2 * 9.80665  # a +-2 g part, three samples
     topics[name] = TopicData(_with(data.stream, gyro, accel), data.log_time_ns)
-    log = write_imu_log(tmp_path / NAMES[fmt], fmt, topics)
+    log = write_imu_log(tmp_path / log_name(fmt, "d"), fmt, topics)
     from imucal_cli.reading import ImuBatches
 
     reader = ImuBatches(log, list(topics))

@@ -9,22 +9,15 @@ import sys
 import numpy as np
 import pytest
 import yaml
-from conftest import without_summary
+from conftest import log_name, without_summary
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
 from imucal_cli.config import load_config
+from imucal_cli.io.formats import FORMATS
 from imucal_cli.reading import read_imu
 
 runner = CliRunner()
-
-OUT_NAMES = {
-    "mcap": "drive.mcap",
-    "mcap-ros1": "drive.mcap",
-    "rosbag2-sqlite3": "drive",
-    "rosbag2-mcap": "drive",
-    "rosbag1": "drive.bag",
-}
 
 
 def assert_bad_input(result, *needles):
@@ -36,9 +29,9 @@ def assert_bad_input(result, *needles):
         assert needle in lines[0], lines[0]
 
 
-@pytest.mark.parametrize("fmt", sorted(OUT_NAMES))
+@pytest.mark.parametrize("fmt", sorted(FORMATS))
 def test_simulate_then_inspect_every_format(tmp_path, fmt):
-    out = tmp_path / OUT_NAMES[fmt]
+    out = tmp_path / log_name(fmt)
     result = runner.invoke(
         app,
         [

@@ -61,6 +61,21 @@ def _rows(out):
         return list(csv.DictReader(handle))
 
 
+def _knocked_reference(folder, yaw_deg: float) -> str:
+    """``folder/reference.yaml``: ``folder/last.yaml`` with its first sensor's lidar turned by
+    ``yaw_deg`` about z (a knock since that calibration); returns that sensor's name."""
+    reference = yaml.safe_load((folder / "last.yaml").read_text())
+    moved = next(iter(reference["sensors"]))
+    T = Transform.from_dict(reference["sensors"][moved]["T_base_lidar"])
+    turned = Transform.from_rpy(np.radians([0.0, 0.0, yaw_deg]), np.zeros(3)) * T
+    reference["sensors"][moved]["T_base_lidar"] = {
+        "translation": list(turned.translation),
+        "rotation": list(turned.quaternion_xyzw),
+    }
+    write_document(folder / "reference.yaml", reference)
+    return moved
+
+
 def test_jobs_and_dask_cluster_give_identical_results(fleet, tmp_path):
     pytest.importorskip("dask.distributed")
     from dask.distributed import LocalCluster
@@ -117,15 +132,7 @@ def test_reference_flags_sensors_that_moved(fleet, tmp_path):
         ],
     )
     assert first.exit_code == 0
-    reference = yaml.safe_load((tmp_path / "last.yaml").read_text())
-    moved = next(iter(reference["sensors"]))
-    T = Transform.from_dict(reference["sensors"][moved]["T_base_lidar"])
-    bumped = Transform.from_rpy(np.radians([0.0, 0.0, 1.0]), np.zeros(3)) * T  # knocked by 1 deg
-    reference["sensors"][moved]["T_base_lidar"] = {
-        "translation": list(bumped.translation),
-        "rotation": list(bumped.quaternion_xyzw),
-    }
-    write_document(tmp_path / "reference.yaml", reference)
+    moved = _knocked_reference(tmp_path, 1.0)
     result = runner.invoke(
         app,
         [
@@ -338,17 +345,7 @@ def test_reference_without_thresholds_flags_a_move_past_three_combined_std(fleet
         ).exit_code
         == 0
     )
-    reference = yaml.safe_load((tmp_path / "last.yaml").read_text())
-    moved = next(iter(reference["sensors"]))
-    T = Transform.from_dict(reference["sensors"][moved]["T_base_lidar"])
-    bumped = (
-        Transform.from_rpy(np.radians([0.0, 0.0, 0.47]), np.zeros(3)) * T
-    )  # the issue's 0.47 deg
-    reference["sensors"][moved]["T_base_lidar"] = {
-        "translation": list(bumped.translation),
-        "rotation": list(bumped.quaternion_xyzw),
-    }
-    write_document(tmp_path / "reference.yaml", reference)
+    moved = _knocked_reference(tmp_path, 0.47)  # the issue's 0.47 deg
     result = runner.invoke(
         app,
         [
