@@ -627,7 +627,7 @@ def test_mcap_message_index_pointing_past_its_chunk_loses_that_chunk_only(logs):
     bad = _copy(log, "mcap-index-past-end")
     data = bytearray(bad.read_bytes())
     with McapLog(bad) as reader:
-        chunk = reader._summary.chunk_indexes[2]
+        chunk = list(reader._chunks)[2]
     at = next(iter(chunk.message_index_offsets.values()))
     assert data[at] == 0x07  # a message index record: op, length, channel, then its entries
     (nbytes,) = struct.unpack_from("<I", data, at + 1 + 8 + 2)

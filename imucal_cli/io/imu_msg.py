@@ -27,15 +27,8 @@ IMU_MSGTYPE = "sensor_msgs/msg/Imu"
 _TAIL = 8 * (4 + 9 + 3 + 9 + 3 + 9)
 _GYRO_AFTER_FRAME = 8 * (4 + 9)
 _ACCEL_AFTER_GYRO = 8 * (3 + 9)  # each triad is gathered on its own: 48 bytes, not 120
-_CDR_HEAD = np.dtype(
-    [
-        ("encapsulation", "<u2"),
-        ("options", "<u2"),
-        ("sec", "<i4"),
-        ("nsec", "<u4"),
-        ("frame_len", "<u4"),
-    ]
-)
+_CDR_NAMES = ["encapsulation", "options", "sec", "nsec", "frame_len"]
+_CDR_HEAD = np.dtype({"names": _CDR_NAMES, "formats": ["<u2", "<u2", "<i4", "<u4", "<u4"]})
 _ROS1_HEAD = np.dtype([("seq", "<u4"), ("sec", "<u4"), ("nsec", "<u4"), ("frame_len", "<u4")])
 #: How many messages of a batch have their frame id read (evenly spread, the first included).
 FRAME_ID_SAMPLES = 64

@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import os
 import struct
+import sys
 import time
 from array import array
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from io import BytesIO
 from pathlib import Path
-from typing import BinaryIO
+from typing import BinaryIO, ClassVar
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
@@ -55,8 +56,33 @@ REPAIR = "`mcap recover FILE -o FIXED.mcap` rewrites what is readable"
 MESSAGE_HEAD = 2 + 4 + 8 + 8  # a Message record's channel id, sequence, log and publish times
 
 
-def _encoding(channel: Channel) -> str:
-    return "ros1" if channel.message_encoding == "ros1" else channel.message_encoding
+class ChunkTable:
+    """The summary's chunk indexes as arrays, in file order, each a ``ChunkIndex`` again as it
+    is read: the ``mcap`` library's objects take about 750 bytes a chunk (20 MB for a day of
+    1 MB chunks), and reading holds them while the whole log is read."""
+
+    FIELDS: ClassVar[tuple[str, ...]] = ("chunk_length", "chunk_start_offset", "compressed_size")
+    FIELDS += ("message_end_time", "message_index_length", "message_start_time")
+    FIELDS += ("uncompressed_size",)
+
+    def __init__(self, indexes: Sequence[ChunkIndex]) -> None:
+        ordered = sorted(indexes, key=lambda i: i.chunk_start_offset)
+        rows = [[getattr(i, f) for f in self.FIELDS] for i in ordered]
+        self.values = np.array(rows, dtype=np.uint64).reshape(-1, len(self.FIELDS))
+        self.compressions = [sys.intern(i.compression) for i in ordered]
+        self.channels = sorted({c for i in ordered for c in i.message_index_offsets})
+        rows = [[i.message_index_offsets.get(c, -1) for c in self.channels] for i in ordered]
+        self.offsets = np.array(rows, dtype=np.int64).reshape(len(ordered), len(self.channels))
+
+    def column(self, name: str) -> np.ndarray:
+        return self.values[:, self.FIELDS.index(name)].astype(np.int64)
+
+    def __iter__(self) -> Iterator[ChunkIndex]:
+        for row, compression in enumerate(self.compressions):  # (ints made as they are read)
+            fields = dict(zip(self.FIELDS, self.values[row].tolist(), strict=True))
+            offsets = self.offsets[row].tolist()
+            found = {c: o for c, o in zip(self.channels, offsets, strict=True) if o >= 0}
+            yield ChunkIndex(**fields, compression=compression, message_index_offsets=found)
 
 
 class McapLog(LogReader):
@@ -68,6 +94,7 @@ class McapLog(LogReader):
         if self._file.read(len(MAGIC)) != MAGIC:
             self._file.close()
             raise self.error("not an MCAP file (bad magic bytes)")
+        self._chunks = ChunkTable(())
         self._summary = self._usable_summary()
         self._scanned: tuple[dict[int, Channel], dict[int, Schema], dict[int, int]] | None = None
 
@@ -83,19 +110,17 @@ class McapLog(LogReader):
             return None
         if summary is None or not summary.chunk_indexes:
             return None
-        size, end = os.fstat(self._file.fileno()).st_size, 0
-        for index in sorted(summary.chunk_indexes, key=lambda i: i.chunk_start_offset):
-            if not index.message_index_offsets and index.uncompressed_size > 0:
-                return None
-            if any(c not in summary.channels for c in index.message_index_offsets):
-                return None
-            # each chunk once and inside the file: what a read decompresses is bounded by the file
-            if (
-                index.chunk_start_offset < max(end, len(MAGIC))
-                or index.chunk_start_offset + index.chunk_length > size
-            ):
-                return None
-            end = index.chunk_start_offset + index.chunk_length
+        table = ChunkTable(summary.chunk_indexes)
+        summary.chunk_indexes.clear()  # (the table holds what reading needs)
+        start, size = table.column("chunk_start_offset"), table.column("uncompressed_size")
+        end = start + table.column("chunk_length")
+        indexed = np.all((table.offsets >= 0).any(axis=1) | (size == 0))
+        # each chunk once and inside the file: what a read decompresses is bounded by the file
+        placed = start[0] >= len(MAGIC) and np.all(start[1:] >= end[:-1])
+        placed = placed and end[-1] <= os.fstat(self._file.fileno()).st_size
+        if not (indexed and placed and set(table.channels) <= summary.channels.keys()):
+            return None
+        self._chunks = table
         return summary
 
     # ----------------------------------------------------------------- topics
@@ -106,7 +131,7 @@ class McapLog(LogReader):
             s = self._summary
             counts = dict(s.statistics.channel_message_counts) if s.statistics is not None else {}
             try:
-                for index in s.chunk_indexes if not counts else ():
+                for index in self._chunks if not counts else ():
                     for channel_id, entries in self._message_indexes(
                         index, set(index.message_index_offsets)
                     ).items():
@@ -119,10 +144,9 @@ class McapLog(LogReader):
             schemas: dict[int, Schema] = {}
             counts = {}
             for data, at in self._walk(channels, schemas, note=True):
-                for channel_id, n in zip(
-                    *np.unique(gather(data, at + 9, 2, "<u2"), return_counts=True), strict=True
-                ):
-                    counts[int(channel_id)] = counts.get(int(channel_id), 0) + int(n)
+                ids, n = np.unique(gather(data, at + 9, 2, "<u2"), return_counts=True)
+                for channel_id, k in zip(ids.tolist(), n.tolist(), strict=True):
+                    counts[channel_id] = counts.get(channel_id, 0) + k
             lost = [x for x in self.losses if x.lost]
             if not channels and lost:
                 raise self.error(f"no channel could be read: {lost[0].reason}")
@@ -138,7 +162,7 @@ class McapLog(LogReader):
                 out[channel.topic].count if channel.topic in out else 0
             )
             out[channel.topic] = TopicInfo(
-                channel.topic, schema.name if schema else "", count, _encoding(channel)
+                channel.topic, schema.name if schema else "", count, channel.message_encoding
             )
         return out
 
@@ -151,11 +175,9 @@ class McapLog(LogReader):
             for data, at in self._walk(channels, {}, note=False):
                 yield from _channel_batches(data, at, channels, wanted)
             return
-        ids = {c: (ch.topic, _encoding(ch)) for c, ch in self._summary.channels.items()}
+        ids = {c: (ch.topic, ch.message_encoding) for c, ch in self._summary.channels.items()}
         ids = {c: found for c, found in ids.items() if found[0] in wanted}
-        chunks = sorted(self._summary.chunk_indexes, key=lambda i: i.chunk_start_offset)
-
-        for group in _groups(chunks, set(ids)):
+        for group in _groups(iter(self._chunks), set(ids)):
             yield from interleaved(self._chunk_batches(*self._group(group, set(ids)), ids))
 
     def follow(
@@ -424,14 +446,13 @@ def _channel_batches(
         if channel is None or channel.topic not in wanted:
             continue
         mine = at[of == channel_id]
-        length = gather(data, mine + 1, 8, "<u8").ravel().astype(np.int64)
+        size = gather(data, mine + 1, 8, "<u8").ravel().astype(np.int64) - 22
         log_times = gather(data, mine + 15, 8, "<u8").ravel().astype(np.int64)
-        yield RawBatch(
-            channel.topic, _encoding(channel), data, mine + _MESSAGE_HEADER, length - 22, log_times
-        )
+        topic, encoding = channel.topic, channel.message_encoding
+        yield RawBatch(topic, encoding, data, mine + _MESSAGE_HEADER, size, log_times)
 
 
-def _groups(chunks: list[ChunkIndex], channel_ids: set[int]) -> Iterator[list[ChunkIndex]]:
+def _groups(chunks: Iterator[ChunkIndex], channel_ids: set[int]) -> Iterator[list[ChunkIndex]]:
     """The chunks holding a wanted channel, in groups of about :data:`GROUP_BYTES` decompressed."""
     group: list[ChunkIndex] = []
     size = 0

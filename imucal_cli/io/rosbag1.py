@@ -12,14 +12,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from imucal_cli.io.base import (
-    Batcher,
-    LogReader,
-    Loss,
-    TopicInfo,
-    decompress,
-    interleaved,
-)
+from imucal_cli.io.base import Batcher, LogReader, Loss, TopicInfo, decompress, interleaved
 from imucal_cli.io.formats import ROSBAG1_MAGIC
 from imucal_cli.io.imu_msg import RawBatch, gather
 

@@ -235,3 +235,20 @@ def test_an_empty_message_record_is_passed_over_not_the_end_of_the_walk(tmp_path
     with open_log(hostile) as reader:
         reader.topics()
         assert not any(loss.lost for loss in reader.losses)
+
+
+def test_the_chunk_table_gives_back_every_chunk_index_the_mcap_library_reads():
+    """The summary's chunk indexes held as arrays come back, row by row, as the ``mcap``
+    library's own ``ChunkIndex`` records (every field, in file order), at a fraction of their
+    memory."""
+    from mcap.reader import make_reader
+
+    from imucal_cli.io.mcap_log import ChunkTable
+
+    log = Path(__file__).resolve().parents[2] / "sample_data" / "urban.mcap"
+    with log.open("rb") as handle:
+        indexes = make_reader(handle).get_summary().chunk_indexes
+    ordered = sorted(indexes, key=lambda index: index.chunk_start_offset)
+    table = ChunkTable(indexes)
+    assert len(ordered) > 1 and list(table) == ordered
+    assert table.values.nbytes + table.offsets.nbytes < 160 * len(ordered)
