@@ -353,6 +353,30 @@ def _moved(result: Calibration, sensor: Any) -> list[dict[str, Any]]:
     return out
 
 
+def _timeline(result: Calibration, sensor: Any) -> list[dict[str, Any]]:
+    """The sensor estimated alone per epoch (SPEC ``timeline``): the span of the epoch's windows
+    (s since t0), the lidar's pose (``T_base_lidar``) with its std, and the clock offset over
+    the epoch."""
+    offset = (result.t_ref_ns - result.t0_ns) * 1e-9
+    out = []
+    for epoch in result.estimates[sensor.name].timeline:
+        lidar = epoch.T_base_imu * sensor.T_imu_lidar
+        pose = lidar.to_dict()
+        out.append(
+            {
+                "start_s": epoch.start_s + offset,
+                "end_s": epoch.end_s + offset,
+                "windows": epoch.windows,
+                "rpy_deg": pose["rpy_deg"],
+                "translation": pose["translation"],
+                "rotation_std_deg": [float(v) for v in epoch.rotation_std_deg],
+                "translation_std_m": [float(v) for v in epoch.translation_std_m],
+                "time_offset_s": epoch.time_offset_s,
+            }
+        )
+    return out
+
+
 def _sensor_document(
     result: Calibration, sensor: Any, counts: Mapping[str, Mapping[str, int]]
 ) -> dict[str, Any]:
@@ -397,14 +421,15 @@ def _sensor_document(
         "clock_drift_ppm": None if est.clock_drift is None else 1e6 * est.clock_drift,
         "clock_drift_std_ppm": None if est.clock_drift_std is None else 1e6 * est.clock_drift_std,
         "moved": moved,
+        "timeline": _timeline(result, sensor),
         "checks": to_plain(est.checks),
         "accel_intrinsics": to_plain(est.accel_intrinsics) if est.accel_intrinsics else None,
         "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,
         "gyro_bias_radps": est.gyro_bias,
         "accel_bias_mps2": est.accel_bias,
         "segments": {
-            "total": len(est.windows),
-            "selected": sum(w.selected for w in est.windows),
+            "total": sum(w.count for w in est.windows),
+            "selected": sum(w.used for w in est.windows),
         },
         "residual_rms": {"gyro_radps": est.residual_rms_gyro, "accel_mps2": est.residual_rms_accel},
     }

@@ -35,6 +35,7 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
         max_time_offset_s=config.calibration.max_time_offset_s,
         max_clock_drift_ppm=config.calibration.max_clock_drift_ppm,
         window_s=config.segments.window_s,
+        epoch_s=config.calibration.epoch_s,
         max_rotation_std_deg=config.segments.max_rotation_std_deg,
         translation_bound_m=sensor.translation_bound_m,
         rotation_bound_deg=sensor.rotation_bound_deg,
@@ -53,10 +54,14 @@ def options_for(config: Config, sensor: SensorConfig) -> CalibrationOptions:
 
 
 def make_calibrator(
-    config: Config, block_windows: int | None = None, reorder_s: float | None = None
+    config: Config,
+    block_windows: int | None = None,
+    reorder_s: float | None = None,
+    keep_rows: bool = False,
 ) -> StreamingCalibrator:
     """A streaming calibrator for every sensor of the config; feed it ``"base"`` and sensor names
-    (``block_windows=1``: every window reduced as soon as the data cover it, for live use)."""
+    (``block_windows=1``: every window reduced as soon as the data cover it, for live use;
+    ``keep_rows``: every window's observability kept, as ``segments`` lists it)."""
     extra: dict[str, Any] = {} if block_windows is None else {"block_windows": block_windows}
     if reorder_s is not None:
         extra["reorder_s"] = reorder_s
@@ -77,6 +82,7 @@ def make_calibrator(
         base_units=(config.base.gyro_units, config.base.accel_units),
         base_label=(config.base.topic, "base"),
         base_pose=config.base.T_base_imu,
+        keep_rows=keep_rows,
         **extra,
     )
 
@@ -299,14 +305,15 @@ def _streamed(
     progress: Progress | None,
     on_window: Callable[[int], None] | None,
     stop: Callable[[], bool] | None,
+    keep_rows: bool = False,
 ) -> tuple[StreamingCalibrator, int | None, Reading]:
     """The log's IMU topics through a calibrator, every window reduced, nothing solved."""
     reader = ImuBatches(Path(log), config.imu_names())
-    calibrator = make_calibrator(config)
+    calibrator = make_calibrator(config, keep_rows=keep_rows)
     told = [0]
 
     def after() -> None:
-        reduced = min(len(w) for w in calibrator.windows.values())
+        reduced = calibrator.reduced
         if on_window is not None and reduced > told[0]:
             told[0] = reduced
             on_window(reduced)
@@ -355,7 +362,7 @@ def segments(
     """:func:`calibrate` without the solve: every window's observability
     (:meth:`Calibration.segments_document`), no estimate."""
     with blas_threads(workers):
-        calibrator, t0_ns, reading = _streamed(log, config, progress, on_window, stop)
+        calibrator, t0_ns, reading = _streamed(log, config, progress, on_window, stop, True)
         return _calibration(calibrator, config, t0_ns, reading, {})
 
 
@@ -430,7 +437,7 @@ class _Follower:
         if self.calibrator.t_ref_ns is not None:
             with np.errstate(all="ignore"):
                 self.calibrator.process(whole_blocks=False)
-        reduced = min(len(w) for w in self.calibrator.windows.values())
+        reduced = self.calibrator.reduced
         if reduced > self.windows:
             self.windows = reduced
             latest = _estimate_now(self.calibrator, self.config)

@@ -10,6 +10,8 @@ Figures (matplotlib, Agg backend; the optional extra ``imucal[report]``):
   selected windows shaded, paper Figs. 9b-10b;
 - ``residuals.png``: per sensor, the gyro and specific-force residual RMS of the fit in every
   window used (eqs. 10 and 11), against the noise the data imply;
+- ``timeline.png``: per sensor, each epoch's estimate (the sensor alone in ``epoch_s`` of the
+  log) less the log's, with its std, and where the mount moved;
 - ``std.png``: the standard deviation of every estimated axis (rotation and translation);
 - ``vehicle.png``: top and side view of the vehicle: the base frame and every IMU and lidar at
   its estimated pose, the CAD prior beside it.
@@ -409,7 +411,66 @@ def _sensor_notes(name: str, sensor: Mapping[str, Any]) -> str:
 
 
 #: The figures :func:`write_report` draws into its folder, beside ``report.html``.
-FIGURES = ("biases.png", "windows.png", "residuals.png", "std.png", "vehicle.png")
+def timeline_figure(plt: Any, sensors: Mapping[str, Mapping[str, Any]], path: Path) -> Path:
+    """Per sensor (the calibrate document's): each epoch's lidar pose less the log's (the pose
+    after the last move), rotation (deg, roll pitch yaw) and translation (mm), with one std,
+    over time; where the mount moved, a line at the time with its std shaded."""
+    fig, axes = plt.subplots(
+        len(sensors), 2, figsize=(13, 2.6 * len(sensors)), sharex=True, squeeze=False
+    )
+    for row, (name, sensor) in zip(axes, sensors.items(), strict=True):
+        epochs = sensor.get("timeline") or []
+        final = sensor["T_base_lidar"]
+        for ax, key, std_key, unit, scale, labels in (
+            (row[0], "rpy_deg", "rotation_std_deg", "deg", 1.0, ("roll", "pitch", "yaw")),
+            (row[1], "translation", "translation_std_m", "mm", 1000.0, AXES),
+        ):
+            if not epochs:
+                not_observable(ax)
+                continue
+            middle = np.array([(e["start_s"] + e["end_s"]) / 2 for e in epochs])
+            half = np.array([(e["end_s"] - e["start_s"]) / 2 for e in epochs])
+            values = np.array([e[key] for e in epochs])
+            delta = values - np.array(final[key])
+            if key == "rpy_deg":
+                delta = (delta + 180.0) % 360.0 - 180.0
+            std = np.array([e[std_key] for e in epochs]) * scale
+            for axis in range(3):
+                ax.errorbar(
+                    middle + (axis - 1) * 0.08 * half,
+                    delta[:, axis] * scale,
+                    yerr=std[:, axis],
+                    xerr=half if axis == 1 else None,
+                    fmt="o",
+                    ms=3,
+                    capsize=2,
+                    color=COLOURS[axis],
+                    label=labels[axis],
+                )
+            for move in sensor.get("moved") or []:
+                at, at_std = move["at_s"], move["at_std_s"]
+                ax.axvspan(at - at_std, at + at_std, color="tab:orange", alpha=0.25)
+                ax.axvline(at, color="tab:orange", lw=1.5, label="mount moved")
+            ax.axhline(0.0, color="black", lw=0.8)
+            ax.set_ylabel(f"epoch - log ({unit})")
+            ax.grid(alpha=0.3)
+            _legend(ax)
+        row[0].set_title(f"{name}: rotation of each epoch less the log's", fontsize=10)
+        row[1].set_title(f"{name}: translation of each epoch less the log's", fontsize=10)
+    for ax in axes[-1]:
+        ax.set_xlabel("time since the log's first IMU stamp (s)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+FIGURES = (
+    "biases.png",
+    "windows.png",
+    "residuals.png",
+    "timeline.png",
+    "std.png",
+    "vehicle.png",
+)
 
 
 def write_report(out_dir: Path, calibration: Calibration, progress: Any = None) -> list[Path]:
@@ -436,6 +497,19 @@ def write_report(out_dir: Path, calibration: Calibration, progress: Any = None) 
             out_dir.rmdir()
 
 
+def _poses(result: Calibration) -> dict[str, dict[str, Transform]]:
+    """Per sensor, what the vehicle figure draws: the IMU and the lidar as estimated, the IMU's
+    prior."""
+    return {
+        s.name: {
+            "imu": result.estimates[s.name].T_base_imu,
+            "lidar": result.T_base_lidar(s.name),
+            "prior_imu": s.prior_T_base_imu,
+        }
+        for s in result.config.sensors
+    }
+
+
 def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> list[Path]:
     """:func:`write_report`'s figures and page, drawn into ``out_dir``."""
     from imucal_cli.documents import write_text_atomic
@@ -448,14 +522,7 @@ def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> li
     stds = {
         n: (s["rotation_std_deg"], s["translation_std_m"]) for n, s in document["sensors"].items()
     }
-    poses = {
-        s.name: {
-            "imu": estimates[s.name].T_base_imu,
-            "lidar": result.T_base_lidar(s.name),
-            "prior_imu": s.prior_T_base_imu,
-        }
-        for s in config.sensors
-    }
+    poses = _poses(result)
     drawings = [
         (
             lambda: bias_figure(plt, estimates, offset, out_dir / "biases.png"),
@@ -475,6 +542,11 @@ def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> li
         (
             lambda: residual_figure(plt, estimates, offset, out_dir / "residuals.png"),
             "Residual RMS of the fit in every window used, against the noise.",
+        ),
+        (
+            lambda: timeline_figure(plt, document["sensors"], out_dir / "timeline.png"),
+            "Each epoch's estimate (the sensor alone in calibration.epoch_s of the log) less the "
+            "log's, with one std; where the mount moved, its time and std shaded.",
         ),
         (
             lambda: std_figure(plt, stds, out_dir / "std.png"),

@@ -48,6 +48,7 @@ def test_report_for_the_sample_drive(tmp_path, monkeypatch):
         "biases.png",
         "windows.png",
         "residuals.png",
+        "timeline.png",
         "std.png",
         "vehicle.png",
         "report.html",

@@ -33,7 +33,7 @@ def follow_table(log: Path, windows: int, calibration: Any) -> Any:
             e.status,
             render.fmt(e.rotation_std_deg, 4),
             render.fmt(std_t, 2),
-            f"{sum(w.selected for w in e.windows)}/{len(e.windows)}",
+            f"{sum(w.used for w in e.windows)}/{sum(w.count for w in e.windows)}",
             "; ".join(m.split(":")[0] for m in calibration.missing(name)) or "-",
         )
     return table

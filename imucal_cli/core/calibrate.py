@@ -37,6 +37,7 @@ from imucal_cli.core.solver import (
     Problem,
     Settings,
 )
+from imucal_cli.core.timeline import Epoch
 from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S
 from imucal_cli.core.uncertainty import uncertainty
 from imucal_cli.types import Transform
@@ -48,6 +49,7 @@ class CalibrationOptions:
     max_time_offset_s: float = 0.1
     max_clock_drift_ppm: float = 200.0  # 0: the offset is one for the whole log
     window_s: float = 10.0
+    epoch_s: float = 300.0  # the timeline's slice (:mod:`.timeline`)
     max_rotation_std_deg: float = 1.0
     translation_bound_m: float = 0.3
     rotation_bound_deg: float = 20.0  # how far the estimate may turn from the prior (a check)
@@ -108,6 +110,8 @@ class SensorEstimate:
     #: Where the mount moved during the log, in time order (:func:`mount_moves`); the estimate
     #: is of the windows after the last.
     moves: list[MountMove] = field(default_factory=list)
+    #: The sensor estimated alone in each epoch that held motion (:mod:`.timeline`).
+    timeline: list[Epoch] = field(default_factory=list)
 
     @property
     def statistical_rotation_std_deg(self) -> np.ndarray | None:
@@ -174,7 +178,7 @@ def started(
 ) -> Start:
     """The joint fit of the extrinsics and the clock (:func:`_first_fit`) with the IMUs' own
     errors the drive shows (:func:`_own_errors`)."""
-    problem = _problem(windows, prior, options, sigma, lowpass, dw_noise_var)
+    problem = make_problem(windows, prior, options, sigma, lowpass, dw_noise_var)
     fit = _first_fit(problem, options, clock)
     prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
     fit, own = _own_errors(problem, fit, options, prior_std)
@@ -212,7 +216,7 @@ def mount_moves(start: Start, options: CalibrationOptions) -> list[MountMove]:
                 np.degrees(np.sqrt(np.clip(np.diag(before.rotation_covariance_base()), 0, None))),
                 std[TRANSLATION],
                 Transform(after.point.R, after.point.t),
-                int(problem.used[move.within].number) + 1,
+                int(problem.used[move.within].number + problem.used[move.within].span),
             )
         )
     return out
@@ -249,7 +253,7 @@ class ClockEvidence:
     reason: str = ""  # why not
 
 
-def _problem(
+def make_problem(
     windows: list[WindowMoments],
     prior: Transform,
     options: CalibrationOptions,
@@ -428,7 +432,7 @@ def _estimate(
         gyro_bias_std=bias_std[gyro] if bias_std is not None else None,
         accel_bias=fit.knots[last, accel].copy(),
         accel_bias_std=bias_std[accel] if bias_std is not None else None,
-        bias_knots_s=np.arange(problem.n_knots) * problem.settings.biases.spacing_s,
+        bias_knots_s=problem.knot_numbers * problem.settings.biases.spacing_s,
         gyro_bias_knots=fit.knots[:, gyro].copy(),
         accel_bias_knots=fit.knots[:, accel].copy(),
         windows=[w.info for w in windows if w.info is not None],

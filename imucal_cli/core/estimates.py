@@ -12,6 +12,7 @@ import numpy as np
 from imucal_cli.core.calibrate import (
     ClockEvidence,
     SensorEstimate,
+    make_problem,
     mount_moves,
     solve,
     started,
@@ -82,26 +83,23 @@ def _solved(
     args = (setup.prior_T_base_imu, setup.options, clock, c.sigma[name], c.lowpass)
     start = started(windows, *args, c.dw_noise_var)
     moves = mount_moves(start, setup.options)
-    found = solve(
-        [w for w in windows if not moves or w.number >= moves[-1].first_window],
-        *args,
-        dw_noise_var=c.dw_noise_var,
-        given=c.given_checks,
-        start=None if moves else start,
-    )
+    now = [w for w in windows if not moves or w.number >= moves[-1].first_window]
+    # the fit of the pose the vehicle has now: the windows after the last move
+    last = started(now, *args, c.dw_noise_var) if moves else start
+    found = solve(now, *args, dw_noise_var=c.dw_noise_var, given=c.given_checks, start=last)
     # a move is said only where a rigid pose each side explains the data: every stretch
     # between the moves consistent on its own (else what moved is not the mount: a model
     # the data break, which one estimate of every window says)
     starts = [0, *(m.first_window for m in moves)]
     stretches = [
-        [w for w in windows if first <= w.number < move.first_window - 1]
+        [w for w in windows if first <= w.number and w.number + w.span < move.first_window]
         for first, move in zip(starts, moves, strict=False)
     ]
     if moves and (
         found.status == "inconsistent"
         or any(_inconsistent(stretch, c, name, clock) for stretch in stretches)
     ):
-        moves = []
+        moves, last = [], start
         found = solve(
             windows, *args, dw_noise_var=c.dw_noise_var, given=c.given_checks, start=start
         )
@@ -113,7 +111,18 @@ def _solved(
         )
         for m in moves
     ]
-    return replace(found, moves=moves)
+    opts = setup.options
+    timeline = c.epochs[
+        name
+    ].timeline(
+        windows,
+        last[:2],  # (the IMUs' own errors of the pose now: a blend of poses would bias them)
+        lambda part: make_problem(part, *args[:2], *args[3:], c.dw_noise_var),
+        opts.epoch_s,
+        opts.translation_bound_m,
+    )
+    timeline = [replace(e, T_base_imu=_in_b(c, e.T_base_imu)) for e in timeline]
+    return replace(found, moves=moves, timeline=timeline)
 
 
 def _in_b(c: StreamingCalibrator, T_base_imu: Transform) -> Transform:

@@ -56,6 +56,12 @@ class WindowMoments:
     info: WindowInfo | None = None  # observability, filled in (in bulk) when first needed
     offset_s: float = 0.0  # the sensor's clock offset it was resampled at (its middle)
     shift_s: float = 0.0  # the clock's track there beyond ``offset_s`` (the solve takes it)
+    #: Window numbers it covers from ``number`` on (its bias knots: at ``number`` and
+    #: ``number + span``), and how many windows it stands for: more than one where old windows
+    #: were merged (:func:`merged`).
+    span: int = 1
+    count: int = 1
+    left_out: int = 0  # of those, windows not used (no data, a gap, too little motion)
 
 
 _UPPER = {"gyro": np.triu_indices(GYRO_BASE.size), "accel": np.triu_indices(ACCEL_BASE.size)}
@@ -266,6 +272,84 @@ def reduce_block(
 
 #: Fewest samples of an IMU in a block for its windows there to be reduced.
 MIN_SPAN_SAMPLES = 8
+
+
+def _moved_data(layout: Layout, shift_s: float, alpha: float, beta: float) -> np.ndarray:
+    """``M`` with ``x' = M x`` the data vector of a window resampled ``shift_s`` later on the
+    base's clock (``C(dtau + s) x = C(dtau) M x``: the base's terms less ``s`` times their
+    derivatives) and its time column ``u' = alpha u + beta`` (a longer stretch's)."""
+    M = np.eye(layout.size)
+    pairs = (("w_B", "dw_B"),) if "w_B" in layout.slices else (("f_B", "df_B"), ("vec_A", "vec_dA"))
+    for term, derivative in pairs:
+        M[layout[term], layout[derivative]] = -shift_s * np.eye(
+            layout[term].stop - layout[term].start
+        )
+    u, one = layout.index("u"), layout.index("one")
+    M[u, u], M[u, one] = alpha, beta
+    return M
+
+
+def used(window: WindowMoments) -> bool:
+    """Whether the window's moments enter the estimate: it has data, no gap, and its motion
+    selected it (a merged stretch, whose observability is computed when first needed, is of
+    selected windows only)."""
+    if not (window.valid and window.samples):
+        return False
+    return window.info.selected if window.info is not None else window.count > 1
+
+
+def merged(
+    windows: Sequence[WindowMoments], shifts_s: np.ndarray, offset_s: float
+) -> WindowMoments:
+    """Consecutive windows as one: the sum of their moments, each moved to the clock offset the
+    track gives it (``shifts_s`` beyond the one it was resampled at) and its time column to the
+    whole stretch's, so that the stretch has one linear bias between two knots. Exact: the cost
+    of the merged moments is the sum of the windows' with the biases so constrained. Windows not
+    used (``valid`` False or not selected) are counted and add nothing."""
+    first, last = windows[0], windows[-1]
+    span = last.number + last.span - first.number
+    totals = []
+    for which, layout, own in (("gyro", GYRO_DATA, GYRO_OWN), ("accel", ACCEL_DATA, ACCEL_OWN)):
+        total = np.zeros((layout.size, layout.size))
+        for w, shift in zip(windows, shifts_s, strict=True):
+            if used(w):
+                M = _moved_data(layout, shift, w.span / span, (w.number - first.number) / span)
+                total += M @ assemble_moments([w], which)[0] @ M.T
+        totals.append((total, own))
+    (S_g, own_g), (S_a, own_a) = totals
+    kept = [w for w in windows if used(w)]
+    count = sum(w.count for w in windows)
+    left_out = sum(w.left_out if used(w) else w.count for w in windows)
+    info = None  # (its observability: computed when first needed, as a window's)
+    if not kept:
+        info = WindowInfo(
+            first.start_s,
+            last.end_s,
+            0.0,
+            float("inf"),
+            False,
+            np.full(3, np.inf),
+            np.zeros(3, dtype=bool),
+            False,
+            count,
+            count,
+        )
+    return WindowMoments(
+        first.number,
+        first.start_s,
+        last.end_s,
+        bool(kept),
+        base_moments(S_g[own_g:, own_g:], S_a[own_a:, own_a:]),
+        S_g[:own_g].copy(),
+        S_a[:own_a].copy(),
+        sum(w.samples for w in kept),
+        info,
+        offset_s,
+        0.0,
+        span,
+        count,
+        left_out,
+    )
 
 
 def unused_window(number: int, start: float, end: float) -> WindowMoments:

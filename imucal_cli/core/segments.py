@@ -43,6 +43,13 @@ class WindowInfo:
     translation_std_m: np.ndarray  # (3,) CRLB std per axis from this window alone (inf: none)
     translation_observable: np.ndarray  # (3,) bool
     valid: bool  # False when the window holds a gap in either stream
+    count: int = 1  # windows it stands for (old windows merged: memory flat in time)...
+    left_out: int = 0  # ... of which not used
+
+    @property
+    def used(self) -> int:
+        """How many windows it stands for enter the estimate."""
+        return self.count - self.left_out if self.selected else 0
 
 
 def _std_from_information(info: np.ndarray) -> np.ndarray:

@@ -93,20 +93,31 @@ class BiasModel:
     prior_stds: tuple[float, float]  # gyro (rad/s), accelerometer (m/s^2)
 
 
-def bias_prior(n_knots: int, biases: BiasModel) -> np.ndarray:
-    """Information of each bias component's random walk between knots plus a weak absolute
-    prior, in LAPACK's upper banded storage (``BAND + 1`` rows, ``KNOT.size n_knots``
-    columns, knots in the order of :data:`KNOT`)."""
-    width = KNOT.size
+def bias_prior(gaps_s: np.ndarray, biases: BiasModel) -> np.ndarray:
+    """Information of each bias component's random walk between knots (``gaps_s`` apart: one
+    fewer than the knots) plus a weak absolute prior, in LAPACK's upper banded storage
+    (``BAND + 1`` rows, ``KNOT.size n_knots`` columns, knots in the order of :data:`KNOT`)."""
+    width, n_knots = KNOT.size, len(gaps_s) + 1
     band = np.zeros((BAND + 1, width * n_knots))
     for c in range(width):
         walk, prior_std = biases.walks[c // 3], biases.prior_stds[c // 3]
-        info = 1.0 / (walk**2 * biases.spacing_s)
-        diagonal = np.full(n_knots, 2.0 * info)  # sum of d^T d: 1 at the ends, 2 inside
-        diagonal[[0, -1]] = info if n_knots > 1 else 0.0
+        info = 1.0 / (walk**2 * np.asarray(gaps_s, dtype=float))
+        diagonal = np.zeros(n_knots)  # sum of d^T d: 1 at the ends, 2 inside (equal gaps)
+        diagonal[:-1] += info
+        diagonal[1:] += info
         band[BAND, c::width] = diagonal + 1.0 / prior_std**2
         band[BAND - width, width + c :: width] = -info  # between neighbouring knots
     return band
+
+
+def knot_numbers(windows: list[WindowMoments]) -> np.ndarray:
+    """The window numbers where the biases have knots: every window's start and end from the
+    first window's on (none before it: a stretch after a move is as cheap as a log of its own),
+    but within a stretch of merged windows (:func:`~.moments.merged`: one line between its
+    ends)."""
+    every = np.arange(min(w.number for w in windows), max(w.number + w.span for w in windows) + 1)
+    inside = [np.arange(w.number + 1, w.number + w.span) for w in windows if w.span > 1]
+    return np.setdiff1d(every, np.concatenate(inside)) if inside else every
 
 
 def _weighted_sum(w: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -317,9 +328,11 @@ def _spd_inverse(S: np.ndarray) -> np.ndarray:
     """The inverse of a symmetric positive-definite matrix through its Cholesky factor:
     ``L^-T L^-1``, whose diagonal is a sum of squares. ``np.linalg.inv`` of an ill-conditioned
     information matrix (a short drive, many globals free) gave variances below zero."""
-    from scipy.linalg import solve_triangular
+    from scipy.linalg.lapack import dtrtri
 
-    L_inv = solve_triangular(spd_cholesky(S), np.eye(len(S)), lower=True)
+    L_inv, info = dtrtri(spd_cholesky(S), lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"triangular inverse failed (info {info})")
     return L_inv.T @ L_inv
 
 
@@ -344,12 +357,14 @@ class Problem:
             sigma,
             dw_noise_var,
         )
-        self.numbers = np.array([w.number for w in used])
+        #: Where each window's biases are: its knot, then the next.
+        self.knot_numbers = knot_numbers(windows)
+        self.numbers = np.searchsorted(self.knot_numbers, [w.number for w in used])
         #: Each window's clock offset beyond the one it was resampled at, where its clock was
         #: followed (:mod:`.clock`); None: none.
         shifts = np.array([w.shift_s for w in used])
         self.shifts = shifts if np.any(shifts) else None
-        self.n_knots = int(max(w.number for w in windows)) + 2
+        self.n_knots = len(self.knot_numbers)
         self.S_g = assemble_moments(used, "gyro")  # (K, 14, 14): small
         self.starts = range(0, len(used), SOLVE_CHUNK)
         # the accelerometer's moments, stacked once where they are small, else a chunk at a time
@@ -359,7 +374,8 @@ class Problem:
         self.samples = float(self.samples_per_window.sum())
         self.gain = lowpass.white_noise_gain()
         self._floors_and_signal()
-        self.prior_band = bias_prior(self.n_knots, settings.biases)
+        gaps = np.diff(self.knot_numbers) * settings.biases.spacing_s
+        self.prior_band = bias_prior(gaps, settings.biases)
         self._layout_biases()
         self._last: tuple[bytes, Linearisation] | None = None
 

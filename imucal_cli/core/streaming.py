@@ -28,8 +28,10 @@ from imucal_cli.core.moments import (
     MIN_SPAN_SAMPLES,
     WindowMoments,
     assemble_moments,
+    merged,
     reduce_block,
     unused_window,
+    used,
 )
 from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
 from imucal_cli.core.signals import (
@@ -37,6 +39,7 @@ from imucal_cli.core.signals import (
     Saturation,
     TooLittleData,
 )
+from imucal_cli.core.timeline import EpochCache, epoch_of
 from imucal_cli.core.timing import TimeOffset
 from imucal_cli.types import Transform
 
@@ -58,6 +61,13 @@ BLOCK_WINDOWS = 6
 STOPPED_S = 30.0
 #: Windows whose observability is computed together (bounds scratch memory).
 INFO_CHUNK = 128
+#: The newest windows of each sensor are kept as they were reduced (a move of the mount, a
+#: step of its clock and the last epochs are seen at full resolution)...
+FULL_WINDOWS = 180
+#: ... and at most this many in all (windows, or older windows merged: :func:`~.moments.merged`,
+#: the shortest neighbours of one epoch first, then of neighbouring epochs): what a sensor
+#: keeps is bounded however long the log (about an hour of 10 s windows).
+MAX_UNITS = 400
 
 
 @dataclass(frozen=True)
@@ -155,6 +165,7 @@ class StreamingCalibrator:
         base_units: tuple[str, str] = ("auto", "auto"),
         base_label: tuple[str, str] = ("", ""),
         base_pose: Transform | None = None,
+        keep_rows: bool = False,
     ) -> None:
         if not sensors:
             raise ValueError("no sensors")
@@ -162,17 +173,20 @@ class StreamingCalibrator:
         self.sensors = {s.name: s for s in sensors}
         self.base_name = base_name
         opts = sensors[0].options
-        self.rate = opts.resample_hz
-        self.window_s = opts.window_s
+        self.rate, self.window_s = opts.resample_hz, opts.window_s
         self.max_offset = max(s.options.max_time_offset_s for s in sensors)
         self.lowpass = Lowpass(opts.lowpass_hz, self.rate)
         self.buffers = {base_name: _Buffer(), **{name: _Buffer() for name in self.sensors}}
         self.t_ref_ns: int | None = None
-        self.next_window = 0
+        self.next_window, self.reduced = 0, 0  # (windows reduced so far, merged or not)
         self.windows: dict[str, list[WindowMoments]] = {name: [] for name in self.sensors}
+        #: Where every window's observability is kept (``segments``): the merged ones'.
+        self.rows = {name: list[WindowInfo]() for name in self.sensors} if keep_rows else None
         self.tau0: dict[str, float] = {}
         #: Each sensor's clock offset followed through the drive (where its drift is estimated).
         self.clocks: dict[str, ClockTrack] = {}
+        #: Each sensor's timeline, the epochs solved so far (:mod:`.timeline`).
+        self.epochs = {name: EpochCache() for name in self.sensors}
         #: Per sensor, windows a step of its clock may lie in (made unusable once reduced).
         self._unused: dict[str, set[int]] = {}
         self._final = False
@@ -474,6 +488,41 @@ class StreamingCalibrator:
                 or [unused_window(number, start, end) for number, start, end in spans]
             )
             self._not_used(name)
+            self._merge(name)
+        self.reduced += len(spans)
+
+    def _merge(self, name: str) -> None:
+        """Sensor ``name``'s oldest windows merged in pairs (:func:`~.moments.merged`) until it
+        keeps :data:`MAX_UNITS`: of the neighbours beyond the newest :data:`FULL_WINDOWS`,
+        those that stand for the fewest windows, both used or both not and in one epoch where
+        any such are, the oldest first; each moved to its clock's track as followed now."""
+        windows = self.windows[name]
+        if len(windows) <= MAX_UNITS:
+            return
+        self.moments(name)  # (their observability: which are used)
+        track = self.clocks.get(name)
+        line = track.fit() if track is not None and track.followed else None
+        epoch_s = self.sensors[name].options.epoch_s
+        while len(windows) > MAX_UNITS:
+            old = windows[: len(windows) - FULL_WINDOWS]
+            kept = np.array([used(w) for w in old])
+            epochs = np.array([epoch_of(w, epoch_s) for w in old])
+            cost = np.array([w.count for w in old], dtype=float)
+            cost = cost[:-1] + cost[1:]
+            cost[kept[:-1] != kept[1:]] += 1e6  # (used with not used: only where none is left)
+            cost[epochs[:-1] != epochs[1:]] += 1e9  # (across epochs: likewise)
+            i = int(np.argmin(cost))
+            pair = windows[i : i + 2]
+            if self.rows is not None:
+                self.rows[name] += [w.info for w in pair if w.count == 1 and w.info is not None]
+            middles = np.array([0.5 * (w.start_s + w.end_s) for w in pair])
+            middle = np.array([0.5 * (pair[0].start_s + pair[1].end_s)])
+            if line is None:
+                shifts, offset = np.zeros(2), pair[0].offset_s
+            else:
+                shifts = line.at(middles) - np.array([w.offset_s for w in pair])
+                offset = float(line.at(middle)[0])
+            windows[i : i + 2] = [merged(pair, shifts, offset)]
 
     def _not_used(self, name: str) -> None:
         """The windows of sensor ``name`` a step of its clock may lie in made unusable (they
@@ -547,6 +596,8 @@ class StreamingCalibrator:
                 self.dw_noise_var,
             )
             for window, info in zip(part, infos, strict=True):
+                if window.count > 1:
+                    info = replace(info, count=window.count, left_out=window.left_out)
                 window.info = info
         return windows
 
@@ -566,7 +617,13 @@ class StreamingCalibrator:
         self.finished = True
 
     def window_infos(self, name: str) -> list[WindowInfo]:
-        return [w.info for w in self.moments(name) if w.info is not None]
+        """Sensor ``name``'s windows' observability: of every window where its rows are kept,
+        else of what is kept (old windows merged: each stands for its windows)."""
+        kept = [w.info for w in self.moments(name) if w.info is not None]
+        if self.rows is None:
+            return kept
+        alone = [info for info in kept if info.count == 1]
+        return sorted(self.rows[name] + alone, key=lambda info: info.start_s)
 
     def duplicates(self, imu: str) -> int:
         return self.buffers[imu].duplicates

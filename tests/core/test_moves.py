@@ -3,6 +3,8 @@ lidar mount is knocked."""
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
@@ -95,3 +97,74 @@ def test_a_knocked_mount_is_said_with_when_how_far_and_the_pose_it_has_now(knock
     assert np.all(np.abs(error) <= 4 * std)
     assert any(w.startswith("the mount moved at") for w in s["warnings"])
     assert document[other]["moved"] == [] and document[other]["status"] == "ok"
+
+
+def _epochs_60(document):
+    document.setdefault("calibration", {})["epoch_s"] = 60.0
+
+
+def test_the_timeline_shows_the_pose_before_the_knock_and_the_pose_after_it(knocked):
+    """With ``calibration.epoch_s: 60`` the timeline has an epoch a minute, in time order; each
+    wholly before the knock holds the pose before (within 4 of its std), each wholly after the
+    pose now, and the lidar that was not knocked its one pose in every epoch."""
+    from imucal_cli.api import calibrate_streams
+    from imucal_cli.core.so3 import rotation_angle_deg
+    from imucal_cli.types import Transform
+
+    cal = calibrate_streams(knocked.streams(), knocked.config(_epochs_60))
+    document = cal.document()["sensors"]
+    truth = knocked.truth_document()["sensors"]
+    name, other = (m.name for m in knocked.mounts)
+    before = Transform.from_dict(truth[name]["moved"][0]["before"]["T_base_lidar"], "", "")
+    poses = {
+        name: (before, knocked.mounts[0].T_base_lidar),
+        other: (knocked.mounts[1].T_base_lidar,) * 2,
+    }
+    for sensor, (then, now) in poses.items():
+        epochs = document[sensor]["timeline"]
+        assert len(epochs) >= 4
+        assert all(a["end_s"] <= b["start_s"] for a, b in pairwise(epochs))
+        for epoch in epochs:
+            if epoch["start_s"] < 165.0 < epoch["end_s"]:
+                continue  # (it holds both poses)
+            truth_pose = then if epoch["end_s"] <= 165.0 else now
+            pose = Transform.from_dict(
+                {"translation": epoch["translation"], "rpy_deg": epoch["rpy_deg"]}, "", ""
+            )
+            turned = rotation_angle_deg(pose.rotation, truth_pose.rotation)
+            assert turned <= 4 * max(epoch["rotation_std_deg"]), (sensor, epoch)
+            error = np.abs(pose.translation - truth_pose.translation)
+            assert np.all(error <= 4 * np.array(epoch["translation_std_m"])), (sensor, epoch)
+
+
+def test_following_says_the_move_within_two_epochs_and_goes_on_with_the_new_pose(knocked):
+    """Fed as it is recorded (the follow mode's state, an update every 20 s of data), the knock
+    at 165 s is said by two epochs (60 s each) after it, and from then on the pose given is
+    the one the mount has now (within 4 std)."""
+    from imucal_cli.core.so3 import rotation_angle_deg
+    from imucal_cli.pipeline import _Follower
+
+    seen = []
+    state = _Follower(
+        knocked.config(_epochs_60), lambda cal, _: seen.append(cal), None, lambda: False, False
+    )
+    streams = {"base": knocked.streams().base, **knocked.streams().sensors}
+    start = min(int(s.t_ns[0]) for s in streams.values())
+    name = knocked.mounts[0].name
+    said_at = None
+    for edge_s in np.arange(20.0, 301.0, 20.0):
+        for imu, stream in streams.items():
+            a, b = np.searchsorted(
+                stream.t_ns, [start + (edge_s - 20.0) * 1e9, start + edge_s * 1e9]
+            )
+            state.sink(imu, stream.t_ns[a:b], stream.gyro[a:b], stream.accel[a:b])
+        state.caught_up()
+        moved = state.latest.document()["sensors"][name]["moved"] if state.latest else []
+        if moved and said_at is None:
+            said_at = edge_s
+        if said_at is not None:
+            est = state.latest.estimates[name]
+            now = knocked.mounts[0].T_base_imu
+            turned = rotation_angle_deg(est.T_base_imu.rotation, now.rotation)
+            assert turned <= 4 * max(state.latest.document()["sensors"][name]["rotation_std_deg"])
+    assert said_at is not None and said_at <= 165.0 + 2 * 60.0

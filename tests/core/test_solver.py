@@ -62,20 +62,25 @@ def test_thebounded_step_is_the_free_minimiser_inside_the_box_and_the_box_s_own_
         assert np.all(gradient[at_lower] >= -1e-8) and np.all(gradient[at_upper] <= 1e-8)
 
 
-def test_the_bias_prior_in_banded_storage_is_the_random_walk_information():
+@pytest.mark.parametrize("gaps", [np.full(6, 10.0), np.array([10.0, 40.0, 10.0, 80.0, 20.0, 10.0])])
+def test_the_bias_prior_in_banded_storage_is_the_random_walk_information(gaps):
     """The biases' prior, held as LAPACK's upper banded storage, is per component the random
-    walk's information ``d^T d / (walk^2 dt)`` plus ``I / prior^2`` (knot order [gyro, accel]),
-    and the banded product is the dense one; the banded Cholesky solves it."""
+    walk's information ``sum_i d_i^T d_i / (walk^2 dt_i)`` plus ``I / prior^2`` (knot order
+    [gyro, accel]), with knots evenly spaced or not (merged windows: one gap over several), and
+    the banded product is the dense one; the banded Cholesky solves it."""
     from scipy.linalg import cho_solve_banded, cholesky_banded
 
-    n_knots, dt, walks, priors = 7, 10.0, (0.002, 0.01), (0.005, 1.0)
-    band = bias_prior(n_knots, BiasModel(dt, walks, priors))
+    walks, priors = (0.002, 0.01), (0.005, 1.0)
+    n_knots = len(gaps) + 1
+    band = bias_prior(gaps, BiasModel(10.0, walks, priors))
     d = np.diff(np.eye(n_knots), axis=0)  # (K - 1, K) differences between neighbouring knots
     dense = np.zeros((KNOT.size * n_knots, KNOT.size * n_knots))
     for c in range(KNOT.size):
         walk, prior = walks[c // 3], priors[c // 3]
         idx = np.arange(c, KNOT.size * n_knots, KNOT.size)
-        dense[np.ix_(idx, idx)] = d.T @ d / (walk**2 * dt) + np.eye(n_knots) / prior**2
+        dense[np.ix_(idx, idx)] = (
+            d.T @ np.diag(1.0 / (walk**2 * gaps)) @ d + np.eye(n_knots) / prior**2
+        )
     rebuilt = np.zeros_like(dense)
     for i in range(len(dense)):
         for j in range(i, min(len(dense), i + BAND + 1)):
@@ -96,7 +101,7 @@ def test_the_half_solve_gives_the_schur_complement_of_the_biases():
 
     rng = np.random.default_rng(5)
     n_knots = 9
-    band = bias_prior(n_knots, BiasModel(10.0, (0.002, 0.01), (0.005, 1.0)))
+    band = bias_prior(np.full(n_knots - 1, 10.0), BiasModel(10.0, (0.002, 0.01), (0.005, 1.0)))
     n = KNOT.size * n_knots
     for d in range(1, BAND + 1):  # a window's coupling between knots, on top of the prior
         band[BAND - d, d:] += 0.1 * rng.normal(size=n - d) / (1 + d)

@@ -1,0 +1,154 @@
+"""Old windows merged so that what a sensor keeps is bounded in the log's length."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imucal_cli.core.model import (
+    ACCEL_DATA,
+    GYRO_DATA,
+    KNOT,
+    SENSOR_ERRORS,
+    Point,
+    accel_coefficients,
+    gyro_coefficients,
+)
+from imucal_cli.core.moments import WindowMoments, assemble_moments, base_moments, merged
+from imucal_cli.core.segments import WindowInfo
+from imucal_cli.types import rotation_type
+
+
+def _window(rng, number: int, span: int = 1, samples: int = 500) -> WindowMoments:
+    """A window of random data vectors (the ``one`` and ``u`` columns as a window's: 1, and
+    the time across its ``span`` windows)."""
+    moments = []
+    for layout in (GYRO_DATA, ACCEL_DATA):
+        X = rng.normal(size=(samples, layout.size))
+        X[:, layout.index("one")] = 1.0
+        X[:, layout.index("u")] = (np.arange(samples) + 0.5) / samples
+        moments.append(X.T @ X)
+    S_g, S_a = moments
+    info = WindowInfo(
+        10.0 * number, 10.0 * (number + span), 1.0, 0.1, True, np.ones(3), np.ones(3, bool), True
+    )
+    return WindowMoments(
+        number,
+        10.0 * number,
+        10.0 * (number + span),
+        True,
+        base_moments(S_g[6:, 6:], S_a[3:, 3:]),
+        S_g[:6].copy(),
+        S_a[:3].copy(),
+        samples,
+        info,
+        span=span,
+        count=span,
+    )
+
+
+def _cost(window: WindowMoments, point: Point, knots: np.ndarray, shift: float) -> float:
+    """The window's gyro and accelerometer cost ``tr(C S C^T)`` with its biases at the knots
+    of its ends (window numbers) and its clock ``shift`` beyond the point's."""
+    j, k = knots[window.number], knots[window.number + window.span]
+    g, a = KNOT["gyro_bias"], KNOT["accel_bias"]
+    shifts = np.array([shift])
+    Cg = gyro_coefficients(point, j[None, g], k[None, g], shifts)
+    Ca = accel_coefficients(point, j[None, a], k[None, a], shifts)
+    S_g, S_a = assemble_moments([window], "gyro"), assemble_moments([window], "accel")
+    return float(np.trace(Cg[0] @ S_g[0] @ Cg[0].T) + np.trace(Ca[0] @ S_a[0] @ Ca[0].T))
+
+
+@pytest.mark.parametrize("spans", [(1, 1), (1, 1, 1, 1), (2, 1, 3)])
+def test_merged_windows_cost_what_the_windows_cost_with_one_bias_line_and_their_shifts(spans):
+    """Merging is exact: where the biases are one line over the stretch (its knots between the
+    stretch's ends on that line), the merged moments' cost at any point equals the sum of the
+    windows' costs, each with the clock shift it was moved by (the model's ``dtau`` columns
+    are the base's terms' derivatives) -- to round-off."""
+    rng = np.random.default_rng(sum(spans))
+    numbers = np.cumsum((0, *spans[:-1])) + 3
+    windows = [_window(rng, int(n), s) for n, s in zip(numbers, spans, strict=True)]
+    shifts = rng.normal(scale=2e-3, size=len(windows))
+    whole = merged(windows, shifts, offset_s=0.01)
+    assert (whole.number, whole.span, whole.count) == (3, sum(spans), sum(spans))
+    assert whole.samples == sum(w.samples for w in windows)
+    point = Point(
+        rotation_type().from_rotvec(rng.normal(size=3)),
+        rng.normal(size=3),
+        3e-3,
+        rng.normal(size=2) * 1e-3,
+        rng.normal(size=SENSOR_ERRORS.stop - SENSOR_ERRORS.start) * 1e-2,
+    )
+    first, last = rng.normal(size=KNOT.size), rng.normal(size=KNOT.size)
+    n_knots = 3 + sum(spans) + 1
+    fraction = (np.arange(n_knots) - 3) / sum(spans)
+    knots = first + fraction[:, None] * (last - first)  # one line from the stretch's start
+    parts = sum(_cost(w, point, knots, s) for w, s in zip(windows, shifts, strict=True))
+    np.testing.assert_allclose(_cost(whole, point, knots, 0.0), parts, rtol=1e-10)
+
+
+def test_windows_not_used_add_nothing_and_are_counted():
+    """A window left out (not selected) is counted in the merged stretch and adds no moments."""
+    rng = np.random.default_rng(2)
+    a, b, c = (_window(rng, n) for n in (0, 1, 2))
+    b.info = WindowInfo(10.0, 20.0, 0.0, 9.0, False, np.ones(3), np.ones(3, bool), True)
+    whole = merged([a, b, c], np.zeros(3), 0.0)
+    without = merged([a, c], np.zeros(2), 0.0)
+    assert whole.count == 3 and whole.samples == a.samples + c.samples
+    assert (whole.span, without.span) == (3, 3)  # the stretch of numbers 0-2 either way
+    for which in ("gyro", "accel"):
+        np.testing.assert_array_equal(
+            assemble_moments([whole], which), assemble_moments([without], which)
+        )
+
+
+def test_a_noise_free_drive_kept_in_few_units_is_the_drive_kept_whole(monkeypatch, ideal_drive):
+    """An ideal drive (biases constant: one line over any stretch holds them exactly) with
+    every window beyond the newest two merged into at most five units gives the extrinsics of
+    its windows kept whole, to round-off, and counts every window."""
+    from imucal_cli.core import streaming
+    from imucal_cli.pipeline import calibrate_streams
+
+    def short_windows(document):
+        document.setdefault("segments", {})["window_s"] = 2.0
+
+    config = ideal_drive.config(short_windows)
+    whole = calibrate_streams(ideal_drive.streams(), config)
+    monkeypatch.setattr(streaming, "FULL_WINDOWS", 2)
+    monkeypatch.setattr(streaming, "MAX_UNITS", 5)
+    kept = calibrate_streams(ideal_drive.streams(), config)
+    for mount in ideal_drive.mounts:
+        name = mount.name
+        assert len(kept.windows[name]) == 5 < len(whole.windows[name])
+        counted = [sum(w.count for w in r.estimates[name].windows) for r in (kept, whole)]
+        assert counted[0] == counted[1] == len(whole.windows[name])
+        a, b = kept.T_base_lidar(name), whole.T_base_lidar(name)
+        assert (a.rotation * b.rotation.inv()).magnitude() < 1e-9
+        np.testing.assert_allclose(a.translation, b.translation, rtol=0, atol=1e-8)
+        assert kept.estimates[name].status == whole.estimates[name].status == "ok"
+
+
+def test_segments_keep_every_window_s_row_while_the_estimate_keeps_few(monkeypatch, ideal_drive):
+    """Where the rows are asked for (``segments``), every window is listed in time order, one
+    row each, although the calibrator keeps at most five units; without, the units are listed,
+    each with the windows it stands for."""
+    from imucal_cli.core import streaming
+    from imucal_cli.pipeline import feed, make_calibrator
+
+    def short_windows(document):
+        document.setdefault("segments", {})["window_s"] = 2.0
+
+    monkeypatch.setattr(streaming, "FULL_WINDOWS", 2)
+    monkeypatch.setattr(streaming, "MAX_UNITS", 5)
+    config = ideal_drive.config(short_windows)
+    listed = {}
+    for keep_rows in (True, False):
+        calibrator = make_calibrator(config, keep_rows=keep_rows)
+        feed(calibrator, ideal_drive.streams())
+        calibrator.finish()
+        listed[keep_rows] = calibrator.window_infos(config.sensors[0].name)
+    rows, units = listed[True], listed[False]
+    assert len(rows) == sum(info.count for info in units) > len(units) == 5
+    assert all(info.count == 1 for info in rows)
+    starts = [info.start_s for info in rows]
+    np.testing.assert_allclose(np.diff(starts), 2.0, rtol=1e-9)
