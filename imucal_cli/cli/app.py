@@ -126,11 +126,21 @@ def handles_errors(function: Callable[P, R]) -> Callable[P, R]:
 
 def interrupted(exc: BaseException | None = None) -> typer.Exit:
     """The exit of a Ctrl-C (130) or a SIGTERM (143, :class:`Terminated`), said on stderr."""
+    _handled_interrupt()
     if isinstance(exc, Terminated) or (exc is None and _Process.terminated):
         err("imucal: terminated")
         return typer.Exit(EXIT_TERMINATED)
     err("imucal: interrupted")
     return typer.Exit(EXIT_INTERRUPTED)
+
+
+def _handled_interrupt() -> None:
+    """Clear CPython's mark of a Ctrl-C not handled. A KeyboardInterrupt that passed through an
+    ``exec`` of a string (a library making a function while it is imported, say) marks the
+    interpreter, which then kills itself with SIGINT at exit (status -2, not 130) however the
+    exception was handled; an ``exec`` of a string that completes clears the mark
+    (``run_eval_code_obj`` in CPython's ``Python/pythonrun.c``)."""
+    exec("")
 
 
 def _terminate(number: int, frame: Any) -> None:

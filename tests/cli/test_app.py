@@ -259,3 +259,27 @@ def test_no_help_page_shows_a_bool_metavar():
         result = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "200"})
         assert result.exit_code == 0, (command, result.output)
         assert "--help" in result.stdout and "<bool>" not in result.stdout, command
+
+
+def test_a_ctrl_c_that_passed_through_a_library_s_exec_still_exits_130(tmp_path):
+    """A KeyboardInterrupt raised inside an ``exec`` of a string (as a library that makes its
+    functions while it is imported) marks CPython's interpreter, which then killed a program run
+    with ``-m`` (as ``imucal`` is) with SIGINT at exit (-2) although the CLI had handled it: the
+    exit a Ctrl-C landing in the first second of a run got about one time in six. Handled as
+    the CLI handles it, the exit is 130."""
+    import subprocess
+    import sys
+
+    (tmp_path / "interrupted_main.py").write_text(
+        "import sys\n"
+        "from imucal_cli.cli.app import interrupted\n"
+        "try:\n"
+        "    exec('raise KeyboardInterrupt')\n"
+        "except KeyboardInterrupt as exc:\n"
+        "    sys.exit(interrupted(exc).exit_code)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-m", "interrupted_main"], cwd=tmp_path, capture_output=True, timeout=60
+    )
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.strip() == b"imucal: interrupted"
