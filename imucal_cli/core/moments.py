@@ -318,6 +318,7 @@ def merged(
         totals.append((total, own))
     (S_g, own_g), (S_a, own_a) = totals
     kept = [w for w in windows if used(w)]
+    whole = all(w.valid for w in windows)  # (no gap in any: what was not used lacked motion)
     count = sum(w.count for w in windows)
     left_out = sum(w.left_out if used(w) else w.count for w in windows)
     info = None  # (its observability: computed when first needed, as a window's)
@@ -330,7 +331,7 @@ def merged(
             False,
             np.full(3, np.inf),
             np.zeros(3, dtype=bool),
-            False,
+            whole,
             count,
             count,
         )
@@ -338,7 +339,7 @@ def merged(
         first.number,
         first.start_s,
         last.end_s,
-        bool(kept),
+        bool(kept) or whole,
         base_moments(S_g[own_g:, own_g:], S_a[own_a:, own_a:]),
         S_g[:own_g].copy(),
         S_a[:own_a].copy(),

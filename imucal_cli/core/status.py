@@ -32,15 +32,16 @@ def status(
 
 def unobservable_reason(windows: Sequence[WindowInfo]) -> str:
     """Why no window was selected: gaps in the data (dropped or missing samples), or motion."""
-    broken = sum(not w.valid for w in windows)
-    if windows and broken == len(windows):
+    broken = sum(w.count for w in windows if not w.valid)  # (old windows merged: each counts)
+    total = sum(w.count for w in windows)
+    if windows and broken == total:
         return (
             f"every window ({broken}) has a gap in the data (samples missing or dropped): "
             "the prior is returned"
         )
     if broken:
         return (
-            f"no window carried enough motion ({broken} of {len(windows)} have a gap in the "
+            f"no window carried enough motion ({broken} of {total} have a gap in the "
             "data): the prior is returned"
         )
     return "no window carried enough motion: the prior is returned"

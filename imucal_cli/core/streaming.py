@@ -509,7 +509,8 @@ class StreamingCalibrator:
             epochs = np.array([epoch_of(w, epoch_s) for w in old])
             cost = np.array([w.count for w in old], dtype=float)
             cost = cost[:-1] + cost[1:]
-            cost[kept[:-1] != kept[1:]] += 1e6  # (used with not used: only where none is left)
+            whole = np.array([w.valid for w in old])  # (no gap: unused for want of motion)
+            cost[(kept[:-1] != kept[1:]) | (whole[:-1] != whole[1:])] += 1e6  # (last resorts)
             cost[epochs[:-1] != epochs[1:]] += 1e9  # (across epochs: likewise)
             i = int(np.argmin(cost))
             pair = windows[i : i + 2]

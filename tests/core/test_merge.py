@@ -152,3 +152,27 @@ def test_segments_keep_every_window_s_row_while_the_estimate_keeps_few(monkeypat
     assert all(info.count == 1 for info in rows)
     starts = [info.start_s for info in rows]
     np.testing.assert_allclose(np.diff(starts), 2.0, rtol=1e-9)
+
+
+def test_windows_merged_for_want_of_motion_are_not_called_gaps():
+    """Windows left out for want of motion, merged, stay windows without a gap: the sentence of
+    a sensor none of whose windows moved enough counts every window, and a gap only where there
+    was one."""
+    from imucal_cli.core.status import unobservable_reason
+
+    rng = np.random.default_rng(4)
+    still = []
+    for number in range(4):
+        w = _window(rng, number)
+        w.info = WindowInfo(
+            10.0 * number, 10.0 * number + 10, 0.0, 9.0, False, np.ones(3), np.ones(3, bool), True
+        )
+        still.append(w)
+    gap = _window(rng, 4)
+    gap.valid = False
+    gap.info = WindowInfo(40.0, 50.0, 0.0, 9.0, False, np.ones(3), np.ones(3, bool), False)
+    stretch = merged(still, np.zeros(4), 0.0)
+    assert stretch.valid and stretch.info is not None and stretch.info.count == 4
+    sentence = unobservable_reason([stretch.info, gap.info])
+    assert sentence.startswith("no window carried enough motion (1 of 5 have a gap")
+    assert not merged([*still, gap], np.zeros(5), 0.0).valid
