@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from imucal_cli.core.grades import GRADES
+from imucal_cli.core.segments import window_counts
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.core.status import move_sentence
 from imucal_cli.documents import to_plain
@@ -427,10 +428,7 @@ def _sensor_document(
         "gyro_intrinsics": to_plain(est.gyro_intrinsics) if est.gyro_intrinsics else None,
         "gyro_bias_radps": est.gyro_bias,
         "accel_bias_mps2": est.accel_bias,
-        "segments": {
-            "total": sum(w.count for w in est.windows),
-            "selected": sum(w.used for w in est.windows),
-        },
+        "segments": dict(zip(("selected", "total"), window_counts(est.windows), strict=True)),
         "residual_rms": {"gyro_radps": est.residual_rms_gyro, "accel_mps2": est.residual_rms_accel},
     }
 

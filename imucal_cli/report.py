@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from imucal_cli.core.segments import window_counts
 from imucal_cli.errors import InputError
 from imucal_cli.types import Transform
 
@@ -134,7 +135,7 @@ def windows_figure(
         ax.set_yscale("log")
         ax.set_ylabel("rotation std (deg, eq. 19)")
         ax.set_title(
-            f"{name}: windows ({sum(w.selected for w in infos)} of {len(infos)} selected)",
+            "{}: windows ({} of {} selected)".format(name, *window_counts(infos)),
             fontsize=10,
         )
         _legend(ax)

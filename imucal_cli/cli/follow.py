@@ -14,6 +14,7 @@ import typer
 
 from imucal_cli.cli import render
 from imucal_cli.cli.app import EXIT_CHECK_FAILED, err, interrupted
+from imucal_cli.core.segments import window_counts
 
 #: After how long without news of the recording the wait is said (s of wall time).
 FOLLOW_STALL_S = 30.0
@@ -33,7 +34,7 @@ def follow_table(log: Path, windows: int, calibration: Any) -> Any:
             e.status,
             render.fmt(e.rotation_std_deg, 4),
             render.fmt(std_t, 2),
-            f"{sum(w.used for w in e.windows)}/{sum(w.count for w in e.windows)}",
+            "{}/{}".format(*window_counts(e.windows)),
             "; ".join(m.split(":")[0] for m in calibration.missing(name)) or "-",
         )
     return table

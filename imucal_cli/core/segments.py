@@ -20,6 +20,7 @@ box (:data:`OBSERVABLE_FRACTION_OF_BOUND`), i.e. the data, not the box, decides 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,12 @@ class WindowInfo:
     def used(self) -> int:
         """How many windows it stands for enter the estimate."""
         return self.count - self.left_out if self.selected else 0
+
+
+def window_counts(infos: Sequence[WindowInfo]) -> tuple[int, int]:
+    """How many windows the estimate used, and how many there were (old windows merged:
+    each stretch stands for its windows)."""
+    return sum(info.used for info in infos), sum(info.count for info in infos)
 
 
 def _std_from_information(info: np.ndarray) -> np.ndarray:
