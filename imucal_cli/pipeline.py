@@ -362,7 +362,9 @@ def segments(
     """:func:`calibrate` without the solve: every window's observability
     (:meth:`Calibration.segments_document`), no estimate."""
     with blas_threads(workers):
-        calibrator, t0_ns, reading = _streamed(log, config, progress, on_window, stop, True)
+        calibrator, t0_ns, reading = _streamed(
+            log, config, progress, on_window, stop, keep_rows=True
+        )
         return _calibration(calibrator, config, t0_ns, reading, {})
 
 

@@ -40,6 +40,7 @@ def estimate(calibrator: StreamingCalibrator, name: str) -> SensorEstimate:
     c = calibrator
     setup, windows = c.sensors[name], c.moments(name)
     tau0, offset = c.tau0.get(name, 0.0), c.time_offsets.get(name)
+    track = c.clocks.get(name)
     infos = [w.info for w in windows if w.info is not None]
     if not any(info.selected for info in infos):
         found = unobservable(setup.prior_T_base_imu, infos, tau0)
@@ -47,7 +48,6 @@ def estimate(calibrator: StreamingCalibrator, name: str) -> SensorEstimate:
         clock = ClockEvidence(
             tau0, offset is None or offset.shown, offset.reason if offset is not None else ""
         )
-        track = c.clocks.get(name)
         line = track.fit() if track is not None and track.followed else None
         for w in windows:  # the track's offset beyond the one each was resampled at
             middle = np.array([0.5 * (w.start_s + w.end_s)])
@@ -65,7 +65,6 @@ def estimate(calibrator: StreamingCalibrator, name: str) -> SensorEstimate:
         *imu_notes(*_imu(c, name)),
     ]
     found = replace(found, T_base_imu=T, warnings=notes + found.warnings)
-    track = c.clocks.get(name)
     if track is None or found.covariance is None:
         return found
     since = found.moves[-1].first_window if found.moves else 0
@@ -111,10 +110,8 @@ def _solved(
         )
         for m in moves
     ]
-    opts = setup.options
-    timeline = c.epochs[
-        name
-    ].timeline(
+    opts, epochs = setup.options, c.epochs[name]
+    timeline = epochs.timeline(
         windows,
         last[:2],  # (the IMUs' own errors of the pose now: a blend of poses would bias them)
         lambda part: make_problem(part, *args[:2], *args[3:], c.dw_noise_var),

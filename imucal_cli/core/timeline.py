@@ -67,11 +67,9 @@ def epoch_estimate(
     free[SENSOR_ERRORS] = False
     free[TILT] = False
     # the log's biases over the epoch, where its knots are the epoch's
-    at = np.searchsorted(log.knot_numbers, problem.knot_numbers + first)
-    if np.all(at < log.n_knots) and np.array_equal(
-        log.knot_numbers[np.minimum(at, log.n_knots - 1)], problem.knot_numbers + first
-    ):
-        knots = fit.knots[at]
+    wanted = problem.knot_numbers + first
+    if np.isin(wanted, log.knot_numbers).all():
+        knots = fit.knots[np.searchsorted(log.knot_numbers, wanted)]
     else:
         knots = np.zeros((problem.n_knots, fit.knots.shape[1]))
     begin = Fit(fit.point, knots.copy(), free, fit.scale_g, fit.scale_a)
