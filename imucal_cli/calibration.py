@@ -3,7 +3,7 @@ made from (:func:`imucal_cli.api.calibrate`, ``follow``, ``batch`` and the CLI a
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -41,7 +41,7 @@ class Calibration:
     config: Config
     estimates: dict[str, SensorEstimate]
     #: Per sensor, every window's observability (what ``segments`` reports).
-    windows: Mapping[str, list[WindowInfo]] = field(default_factory=dict)
+    windows: Mapping[str, Sequence[WindowInfo]] = field(default_factory=dict)
     #: The first IMU stamp (ns): the origin of the documents' and the report's times.
     t0_ns: int = 0
     #: The origin of the window grid (ns).
@@ -97,8 +97,10 @@ class Calibration:
             document["converged"] = self.converged
         return document
 
-    def segments_document(self) -> dict[str, Any]:
-        """The SPEC's segments document (what ``imucal segments -o`` writes)."""
+    def segments_document(self, streamed: bool = False) -> dict[str, Any]:
+        """The SPEC's segments document (what ``imucal segments -o`` writes); ``streamed``: each
+        sensor's windows made as :func:`~imucal_cli.documents.write_document` writes them, a
+        chunk at a time (a day-long log's are never held whole)."""
         from imucal_cli.outputs import segments_document
 
-        return segments_document(self)
+        return segments_document(self, streamed)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import tempfile
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -139,15 +141,109 @@ def to_plain(value: Any) -> Any:
     return value
 
 
+class Rows:
+    """A list of mappings in a document, made as it is written: ``chunks()`` yields lists of its
+    items, so a document of a day's windows is never held whole (:func:`dump_chunks`).
+    ``length``: how many items there are."""
+
+    def __init__(self, length: int, chunks: Callable[[], Iterator[list[Any]]]) -> None:
+        self.length, self.chunks = length, chunks
+
+    def __iter__(self) -> Iterator[Any]:
+        for chunk in self.chunks():
+            yield from chunk
+
+
 def dumps(document: Any, as_json: bool) -> str:
     """Serialise a document as JSON (indented) or YAML: block style, a collection of scalars
     only in flow style, keys in their order."""
-    plain = to_plain(document)
+    return "".join(dump_chunks(document, as_json))
+
+
+def _dumps(plain: Any, as_json: bool) -> str:
     if as_json:
         return json.dumps(plain, indent=2) + "\n"
     # libyaml's emitter where PyYAML has it: the same text, three times as fast
     dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
     return yaml.dump(plain, Dumper=dumper, sort_keys=False, default_flow_style=None, width=100)
+
+
+_HOLE = "@imucal-rows-{}@"
+_HOLES = {
+    False: re.compile(
+        r"^(?P<indent> *)(?P<key>[A-Za-z_]\w*): \['@imucal-rows-(?P<k>\d+)@'\]\n", re.M
+    ),
+    True: re.compile(r"\[\n(?P<indent> *)\"@imucal-rows-(?P<k>\d+)@\"\n *\]", re.M),
+}
+
+
+def dump_chunks(document: Any, as_json: bool) -> Iterator[str]:
+    """:func:`dumps`' text in pieces, each :class:`Rows` of the document written a chunk at a
+    time: the same text as the document with lists in their place. (A :class:`Rows` is
+    written so only as a mapping's value under a plain key; elsewhere it is made a list.)"""
+    rows: list[Rows] = []
+
+    def hole(value: Any) -> Any:
+        if isinstance(value, Rows):
+            rows.append(value)
+            return [_HOLE.format(len(rows) - 1)]
+        if isinstance(value, dict):
+            return {k: hole(v) for k, v in value.items()}
+        return [hole(v) for v in value] if isinstance(value, list) else value
+
+    text = _dumps(hole(to_plain(document)), as_json)
+    holes = list(_HOLES[as_json].finditer(text))
+    if len(holes) != len(rows):  # (a Rows in a list or under a key YAML writes otherwise)
+        yield _dumps(to_plain(_listed(document)), as_json)
+        return
+    done = 0
+    for match in holes:
+        yield text[done : match.start()]
+        done = match.end()
+        lazy, indent = rows[int(match["k"])], match["indent"]
+        if as_json:
+            yield "[\n" if lazy.length else "[]"
+            if lazy.length:
+                yield from _json_items(lazy, indent)
+                yield "\n" + indent[:-2] + "]"
+        else:
+            yield f"{indent}{match['key']}:{'' if lazy.length else ' []'}\n"
+            if lazy.length:
+                yield from _yaml_items(lazy, len(indent) // 2)
+    yield text[done:]
+
+
+def _listed(value: Any) -> Any:
+    if isinstance(value, Rows):
+        return [_listed(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _listed(v) for k, v in value.items()}
+    return [_listed(v) for v in value] if isinstance(value, list) else value
+
+
+def _json_items(lazy: Rows, indent: str) -> Iterator[str]:
+    # (json indents by depth alone: an item dumped alone, each line moved in, is the same text)
+    between = ""
+    for chunk in lazy.chunks():
+        if chunk:
+            yield between + ",\n".join(
+                indent + json.dumps(to_plain(item), indent=2).replace("\n", "\n" + indent)
+                for item in chunk
+            )
+            between = ",\n"
+
+
+def _yaml_items(lazy: Rows, depth: int) -> Iterator[str]:
+    # (a YAML line's wrapping depends on its column: each chunk is dumped at the list's depth,
+    # under keys of one line each, which are then taken off)
+    for chunk in lazy.chunks():
+        if not all(isinstance(item, dict) for item in chunk):  # (YAML writes scalars in flow)
+            raise TypeError("a Rows holds mappings")
+        nested: Any = to_plain(chunk)
+        for _ in range(depth + 1):
+            nested = {"k": nested}
+        text = _dumps(nested, as_json=False)
+        yield text.split("\n", depth + 1)[depth + 1]
 
 
 def write_document(path: str | Path, document: Any) -> None:
@@ -160,12 +256,12 @@ def write_document(path: str | Path, document: Any) -> None:
     suffix = path.suffix.lower()
     if suffix not in {".yaml", ".yml", ".json"}:
         raise InputError(f"{path}: output must end in .yaml, .yml or .json")
-    write_text_atomic(path, dumps(document, as_json=suffix == ".json"))
+    write_chunks_atomic(path, dump_chunks(document, as_json=suffix == ".json"))
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
     """Write text to ``path`` through a temporary file and a rename."""
-    write_bytes_atomic(path, text.encode("utf-8"))
+    write_chunks_atomic(path, [text])
 
 
 def _umask() -> int:
@@ -175,6 +271,12 @@ def _umask() -> int:
 
 
 def write_bytes_atomic(path: str | Path, data: bytes) -> None:
+    write_chunks_atomic(path, [data])
+
+
+def write_chunks_atomic(path: str | Path, chunks: Iterable[str | bytes]) -> None:
+    """Write the text or bytes ``chunks`` make, one after the other, to ``path`` through a
+    temporary file and a rename (the file appears whole or not at all)."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
@@ -186,7 +288,8 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> None:
     try:
         os.chmod(tmp_name, 0o666 & ~_umask())  # mkstemp makes 0600; use the usual mode
         with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
+            for chunk in chunks:
+                handle.write(chunk.encode("utf-8") if isinstance(chunk, str) else chunk)
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp_name, path)

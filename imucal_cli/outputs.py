@@ -4,14 +4,14 @@ them."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from itertools import combinations
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from imucal_cli.core.grades import GRADES
-from imucal_cli.core.segments import window_counts
+from imucal_cli.core.segments import WindowInfo, window_counts
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.core.status import move_sentence
 from imucal_cli.documents import to_plain
@@ -34,7 +34,7 @@ class Calibration(Protocol):
     @property
     def estimates(self) -> dict[str, Any]: ...
     @property
-    def windows(self) -> Mapping[str, list[Any]]: ...
+    def windows(self) -> Mapping[str, Sequence[Any]]: ...
     @property
     def t0_ns(self) -> int: ...
     @property
@@ -125,33 +125,34 @@ def biases_document(
     )
 
 
-def segments_document(calibration: Calibration) -> dict[str, Any]:
+#: Windows made into a document's rows at a time, as ``segments`` writes them.
+ROWS_CHUNK = 1000
+
+
+def segments_document(calibration: Calibration, streamed: bool = False) -> dict[str, Any]:
+    """The SPEC's segments document; ``streamed``: each sensor's windows a
+    :class:`~imucal_cli.documents.Rows` made as it is written (a day's windows are never a
+    document in memory)."""
+    from imucal_cli.documents import Rows
+
     config = calibration.config
     offset = (calibration.t_ref_ns - calibration.t0_ns) * 1e-9
     sensors: dict[str, Any] = {}
     for sensor in config.sensors:
         windows = calibration.windows[sensor.name]
+        used, total = window_counts(windows)
+
+        def chunks(windows: Sequence[WindowInfo] = windows) -> Iterator[list[dict[str, Any]]]:
+            for a in range(0, len(windows), 1000):
+                yield [
+                    _window_row(offset, windows[k]) for k in range(a, min(a + 1000, len(windows)))
+                ]
+
         sensors[sensor.name] = {
-            "total": len(windows),
-            "selected": sum(w.selected for w in windows),
+            "total": total,
+            "selected": used,
             "time_offset_s": calibration.time_offsets_s.get(sensor.name, 0.0),
-            "windows": [
-                {
-                    "start_s": offset + w.start_s,
-                    "end_s": offset + w.end_s,
-                    "min_singular_value": w.min_singular_value,
-                    "rotation_std_deg": w.rotation_std_deg
-                    if np.isfinite(w.rotation_std_deg)
-                    else None,
-                    "selected": w.selected,
-                    "translation_observable": w.translation_observable,
-                    "translation_std_m": [
-                        v if np.isfinite(v) else None for v in w.translation_std_m
-                    ],
-                    **({} if w.valid else {"gap": True}),
-                }
-                for w in windows
-            ],
+            "windows": Rows(len(windows), chunks) if streamed else list(Rows(len(windows), chunks)),
         }
     return to_plain(
         {
@@ -160,6 +161,21 @@ def segments_document(calibration: Calibration) -> dict[str, Any]:
             "window_s": config.segments.window_s,
             "max_rotation_std_deg": config.segments.max_rotation_std_deg,
             "sensors": sensors,
+        }
+    )
+
+
+def _window_row(offset: float, w: WindowInfo) -> dict[str, Any]:
+    return to_plain(
+        {
+            "start_s": offset + w.start_s,
+            "end_s": offset + w.end_s,
+            "min_singular_value": w.min_singular_value,
+            "rotation_std_deg": w.rotation_std_deg if np.isfinite(w.rotation_std_deg) else None,
+            "selected": w.selected,
+            "translation_observable": w.translation_observable,
+            "translation_std_m": [v if np.isfinite(v) else None for v in w.translation_std_m],
+            **({} if w.valid else {"gap": True}),
         }
     )
 

@@ -1,5 +1,5 @@
-"""Documents are written by libyaml's emitter where PyYAML has it, from nodes made without
-PyYAML's representer: the same text as PyYAML's."""
+"""Documents are written as PyYAML (and json) write them: libyaml's emitter where PyYAML has
+it, lists of rows a chunk at a time."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from imucal_cli.api import calibrate, segments
-from imucal_cli.documents import dumps, to_plain
+from imucal_cli.documents import Rows, dumps, to_plain
 
 
 def test_the_written_yaml_is_pure_pythons_text():
@@ -57,3 +57,67 @@ def test_any_plain_document_is_written_as_pyyamls_representer_writes_it(document
         to_plain(document), Dumper=dumper, sort_keys=False, default_flow_style=None, width=100
     )
     assert dumps(document, as_json=False) == expected
+
+
+def _rows(items, size):
+    """``items`` as a :class:`Rows` of chunks of ``size``."""
+    return Rows(len(items), lambda: (items[a : a + size] for a in range(0, len(items), size)))
+
+
+_KEYS = st.text("abz_019", min_size=1, max_size=12).filter(lambda k: not k[0].isdigit())
+
+
+@st.composite
+def _with_rows(draw, document=_DOCUMENTS):
+    """A document some of whose lists (at any depth, in a mapping or a list) are :class:`Rows`
+    of random chunks; and the same document with lists."""
+    if draw(st.booleans()):
+        items = draw(st.lists(st.dictionaries(st.text(), _DOCUMENTS, max_size=3), max_size=5))
+        return _rows(items, draw(st.integers(1, 3))), items
+    value = draw(document)
+    if isinstance(value, dict) or draw(st.booleans()):
+        keys = draw(st.lists(_KEYS | st.text(max_size=4), max_size=4, unique=True))
+        pairs = [draw(_with_rows()) for _ in keys]
+        return (
+            {k: lazy for k, (lazy, _) in zip(keys, pairs, strict=True)},
+            {k: listed for k, (_, listed) in zip(keys, pairs, strict=True)},
+        )
+    if isinstance(value, list) and value:
+        pairs = [draw(_with_rows()) for _ in value]
+        return [lazy for lazy, _ in pairs], [listed for _, listed in pairs]
+    return value, value
+
+
+@given(_KEYS, _with_rows())
+@settings(max_examples=300, deadline=None)
+def test_rows_are_written_as_the_lists_they_stand_for(key, documents):
+    """A document with lists made as they are written (:class:`Rows`) is the same text, YAML and
+    JSON, as the document with the lists: wherever they lie, in chunks of any size."""
+    lazy, listed = ({key: documents[0]}, {key: documents[1]})
+    for as_json in (False, True):
+        assert dumps(lazy, as_json) == dumps(listed, as_json)
+
+
+def test_a_long_segments_document_is_written_as_its_windows_come(tmp_path, monkeypatch):
+    """``segments`` writes each sensor's windows a chunk at a time: the file is the document's
+    text, YAML and JSON, for a drive whose windows were merged as it went."""
+    from imucal_cli import outputs
+    from imucal_cli.core import streaming
+    from imucal_cli.documents import load_document, write_document
+
+    monkeypatch.setattr(streaming, "FULL_WINDOWS", 2)
+    monkeypatch.setattr(streaming, "MAX_UNITS", 5)
+    monkeypatch.setattr(outputs, "ROWS_CHUNK", 7)
+    config = load_document(SAMPLE_DATA / "aggressive.config.yaml")
+    config["segments"]["window_s"] = 2.0
+    write_document(tmp_path / "config.yaml", config)
+    run = segments(SAMPLE_DATA / "aggressive.mcap", tmp_path / "config.yaml")
+    listed = run.segments_document()
+    for sensor in listed["sensors"].values():  # (every window, in time order)
+        starts = [w["start_s"] for w in sensor["windows"]]
+        assert len(starts) == sensor["total"] > 30 and starts == sorted(starts)
+    monkeypatch.setattr(Rows, "__iter__", None)  # (no list is made of them: written by chunks)
+    for suffix in (".yaml", ".json"):
+        write_document(tmp_path / f"windows{suffix}", run.segments_document(streamed=True))
+        written = (tmp_path / f"windows{suffix}").read_text()
+        assert written == dumps(listed, as_json=suffix == ".json")

@@ -3,6 +3,7 @@ renders or writes its document."""
 
 from __future__ import annotations
 
+from itertools import islice
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -70,33 +71,49 @@ def biases(
 
 
 def _window_row(w: dict[str, Any]) -> tuple[str, ...]:
+    # (padded to the widest each column takes: the blocks of a long log's table line up)
     selected = "no: gap in the data" if w.get("gap") else "no: too little motion"
     return (
-        f"{w['start_s']:.1f}",
-        f"{w['end_s']:.1f}",
+        f"{w['start_s']:8.1f}",
+        f"{w['end_s']:8.1f}",
         f"{w['min_singular_value']:.4g}",
         "inf" if w["rotation_std_deg"] is None else f"{w['rotation_std_deg']:.4f}",
-        "yes" if w["selected"] else selected,
+        f"{'yes' if w['selected'] else selected:>21}",
         " ".join("y" if v else "n" for v in w["translation_observable"]),
     )
+
+
+#: Windows a table of ``segments`` shows at a time (a day's log has 8,640 a sensor: shown in
+#: blocks, each held only while it is drawn).
+TABLE_ROWS = 1000
 
 
 def _render_segments(document: dict[str, Any]) -> None:
     columns = ("start s", "end s", "min singular value 1/rad^2", "rotation std deg", "selected")
     for name, sensor in document["sensors"].items():
-        render.table(
+        title = (
             f"{name}: {sensor['selected']} of {sensor['total']} windows selected (rotation std "
-            f"< {document['max_rotation_std_deg']:g} deg)",
-            (*columns, "translation observable x y z"),
-            map(_window_row, sensor["windows"]),
-            right=(*columns, "translation observable x y z"),
+            f"< {document['max_rotation_std_deg']:g} deg)"
         )
+        rows, shown = map(_window_row, sensor["windows"]), 0
+        block = list(islice(rows, TABLE_ROWS))
+        while True:  # (the first block, empty or not, under the sensor's title)
+            render.table(
+                f"{name}, windows {shown + 1}-{shown + len(block)}" if shown else title,
+                (*columns, "translation observable x y z"),
+                block,
+                right=(*columns, "translation observable x y z"),
+            )
+            shown += len(block)
+            block = list(islice(rows, TABLE_ROWS))
+            if not block:
+                break
 
 
 def _read(log: Path, config: Path, urdf: Path | None, run: Any) -> Any:
     """``run(log, config, progress=...)`` with a bar, and what reading noted said."""
     cfg = _config(log, config, urdf)
-    with render.progress(f"reading {log}") as progress:
+    with render.progress(f"reading {log.name}") as progress:
         calibration = run(log, cfg, progress=progress)
     render.note_losses(log, calibration.reading.losses)
     render.note_read(log, calibration.reading.counts)
@@ -117,7 +134,7 @@ def segments(
 
     options.guard({"-o": out}, [log, config, urdf])
     calibration = _read(log, config, urdf, api.segments)
-    render.emit(calibration.segments_document(), out, as_json, _render_segments)
+    render.emit(calibration.segments_document(streamed=True), out, as_json, _render_segments)
 
 
 def _sensor_row(name: str, s: dict[str, Any]) -> tuple[Any, ...]:

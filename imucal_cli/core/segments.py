@@ -59,6 +59,69 @@ def window_counts(infos: Sequence[WindowInfo]) -> tuple[int, int]:
     return sum(info.used for info in infos), sum(info.count for info in infos)
 
 
+#: One window's observability as :class:`WindowRows` keeps it (69 bytes).
+ROW = np.dtype(
+    [
+        ("start_s", "f8"),
+        ("end_s", "f8"),
+        ("min_singular_value", "f8"),
+        ("rotation_std_deg", "f8"),
+        ("translation_std_m", "f8", 3),
+        ("selected", "?"),
+        ("translation_observable", "?", 3),
+        ("valid", "?"),
+        ("count", "i4"),
+        ("left_out", "i4"),
+    ]
+)
+
+
+class WindowRows(Sequence[WindowInfo]):
+    """Windows' observability as a table (``segments`` keeps every window of a day: 69 bytes
+    each rather than a :class:`WindowInfo` and its two arrays), read back as
+    :class:`WindowInfo` s."""
+
+    def __init__(self, rows: np.ndarray | None = None) -> None:
+        self._rows = np.zeros(64, ROW) if rows is None else rows
+        self._size = 0 if rows is None else len(rows)
+
+    def extend(self, infos: Sequence[WindowInfo]) -> None:
+        if self._size + len(infos) > len(self._rows):
+            grown = np.zeros(2 * (self._size + len(infos)), ROW)
+            grown[: self._size] = self._rows[: self._size]
+            self._rows = grown
+        for k, info in enumerate(infos, start=self._size):
+            self._rows[k] = tuple(getattr(info, name) for name in ROW.names or ())
+        self._size += len(infos)
+
+    def sorted(self, more: Sequence[WindowInfo] = ()) -> WindowRows:
+        """These rows and ``more`` in the order of their start."""
+        both = WindowRows(self._rows[: self._size].copy())
+        both.extend(more)
+        rows = both._rows[: both._size]
+        return WindowRows(rows[np.argsort(rows["start_s"], kind="stable")])
+
+    def __len__(self) -> int:
+        return self._size
+
+    def __getitem__(self, k: int) -> WindowInfo:  # type: ignore[override]
+        if not -self._size <= k < self._size:
+            raise IndexError(k)
+        row = self._rows[k % self._size]
+        return WindowInfo(
+            start_s=float(row["start_s"]),
+            end_s=float(row["end_s"]),
+            min_singular_value=float(row["min_singular_value"]),
+            rotation_std_deg=float(row["rotation_std_deg"]),
+            selected=bool(row["selected"]),
+            translation_std_m=row["translation_std_m"].copy(),
+            translation_observable=row["translation_observable"].copy(),
+            valid=bool(row["valid"]),
+            count=int(row["count"]),
+            left_out=int(row["left_out"]),
+        )
+
+
 def _std_from_information(info: np.ndarray) -> np.ndarray:
     """Standard deviations from a 3x3 information matrix, or a stack of them (..., 3, 3);
     infinite where it is singular."""

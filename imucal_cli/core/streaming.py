@@ -33,7 +33,7 @@ from imucal_cli.core.moments import (
     unused_window,
     used,
 )
-from imucal_cli.core.segments import WindowInfo, window_infos_from_moments
+from imucal_cli.core.segments import WindowInfo, WindowRows, window_infos_from_moments
 from imucal_cli.core.signals import (
     Lowpass,
     Saturation,
@@ -181,7 +181,7 @@ class StreamingCalibrator:
         self.next_window, self.reduced = 0, 0  # (windows reduced so far, merged or not)
         self.windows: dict[str, list[WindowMoments]] = {name: [] for name in self.sensors}
         #: Where every window's observability is kept (``segments``): the merged ones'.
-        self.rows = {name: list[WindowInfo]() for name in self.sensors} if keep_rows else None
+        self.rows = {name: WindowRows() for name in self.sensors} if keep_rows else None
         self.tau0: dict[str, float] = {}
         #: Each sensor's clock offset followed through the drive (where its drift is estimated).
         self.clocks: dict[str, ClockTrack] = {}
@@ -308,6 +308,13 @@ class StreamingCalibrator:
         """Whether IMU ``name`` is silent now while the others go on."""
         silences = self.silences.get(name)
         return bool(silences) and silences[-1][1] is None  # type: ignore[index]
+
+    def starting(self) -> tuple[float, float, bool]:
+        """Before the start (the boot): seconds of data read from the grid's origin, seconds the
+        next attempt needs, and whether an attempt found too little motion already."""
+        read = self._covered_until() - self._grid_start if self.t_ref_ns is not None else 0.0
+        needs = self._boot_horizon_s + PAD_S + self.max_offset
+        return max(read, 0.0), needs, self._boot_horizon_s > BOOT_S
 
     def _boot(self, final: bool) -> bool:
         """Once enough data is buffered: each IMU's units and noise, each sensor's clock offset
@@ -515,7 +522,9 @@ class StreamingCalibrator:
             i = int(np.argmin(cost))
             pair = windows[i : i + 2]
             if self.rows is not None:
-                self.rows[name] += [w.info for w in pair if w.count == 1 and w.info is not None]
+                self.rows[name].extend(
+                    [w.info for w in pair if w.count == 1 and w.info is not None]
+                )
             middles = np.array([0.5 * (w.start_s + w.end_s) for w in pair])
             middle = np.array([0.5 * (pair[0].start_s + pair[1].end_s)])
             if line is None:
@@ -617,14 +626,13 @@ class StreamingCalibrator:
             self._not_used(name)
         self.finished = True
 
-    def window_infos(self, name: str) -> list[WindowInfo]:
+    def window_infos(self, name: str) -> Sequence[WindowInfo]:
         """Sensor ``name``'s windows' observability: of every window where its rows are kept,
         else of what is kept (old windows merged: each stands for its windows)."""
         kept = [w.info for w in self.moments(name) if w.info is not None]
         if self.rows is None:
             return kept
-        alone = [info for info in kept if info.count == 1]
-        return sorted(self.rows[name] + alone, key=lambda info: info.start_s)
+        return self.rows[name].sorted([info for info in kept if info.count == 1])
 
     def duplicates(self, imu: str) -> int:
         return self.buffers[imu].duplicates

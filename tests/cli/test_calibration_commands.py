@@ -205,6 +205,23 @@ def test_segments_report(tmp_path):
     assert runner.invoke(app, ["segments", str(LOG), "-c", str(CONFIG)]).exit_code == 0
 
 
+def test_segments_table_shows_a_long_log_in_blocks(monkeypatch):
+    """The terminal's table of windows is drawn a block at a time (a day's log has thousands):
+    every window once, in order, each block under a title that says which windows it holds."""
+    from imucal_cli.cli import calibration
+
+    monkeypatch.setattr(calibration, "TABLE_ROWS", 3)
+    result = runner.invoke(app, ["segments", str(LOG), "-c", str(CONFIG)])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(runner.invoke(app, ["segments", str(LOG), "-c", str(CONFIG), "--json"]).stdout)
+    name = next(iter(doc["sensors"]))
+    titles = [line.strip() for line in result.stdout.splitlines() if line.strip().startswith(name)]
+    assert titles[1:3] == [f"{name}, windows 4-6", f"{name}, windows 7-8"]
+    starts = [float(line.split("│")[1]) for line in result.stdout.splitlines() if "│" in line]
+    expected = [w["start_s"] for s in doc["sensors"].values() for w in s["windows"]]
+    np.testing.assert_allclose(starts, expected, atol=0.05)
+
+
 def test_biases_report():
     result = runner.invoke(
         app,
