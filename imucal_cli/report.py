@@ -221,7 +221,20 @@ def std_figure(plt: Any, stds: Mapping[str, tuple[Any, Any]], path: Path) -> Pat
         _legend(ax)
         for i, name in enumerate(names):  # (an unobservable sensor has no std: said so)
             if stds[name][0] is None:
-                ax.text(i, 0.5, "not observable", ha="center", transform=ax.get_xaxis_transform())
+                ax.text(
+                    i,
+                    0.5,
+                    "not observable",
+                    ha="center",
+                    va="center",
+                    rotation=90,
+                    transform=ax.get_xaxis_transform(),
+                )
+        if all(stds[n][0] is None for n in names):  # (no std at all: no scale to show)
+            ax.set_ylim(0.0, 1.0)
+            ax.set_yticks([])
+        else:
+            ax.set_ylim(bottom=0.0)  # (a std is never negative)
     fig.tight_layout()
     return _save(fig, path)
 
@@ -243,7 +256,10 @@ def _draw_axes(ax: Any, T: Any, i: int, j: int, length: float, style: str, alpha
 
 def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path) -> Path:
     """Top (x-y) and side (x-z) view of the whole vehicle, then a close-up per sensor (top view):
-    the base frame, each IMU and lidar as estimated (solid), the IMU's CAD prior (dashed)."""
+    the base frame, each lidar as estimated (solid) against the lidar its CAD prior places
+    (``prior_T_base_imu * T_imu_lidar``, dashed: like against like, so a mount turned 180 deg
+    inside its housing, as an Ouster's IMU is, looks as it is); the close-ups add the IMU and
+    its prior."""
     from matplotlib.lines import Line2D
 
     n = len(poses)
@@ -262,7 +278,7 @@ def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path)
     legend = [
         Line2D([], [], color="black", marker="o", ls="", label="IMU, estimated"),
         Line2D([], [], color="black", marker="s", ls="", label="lidar, estimated"),
-        Line2D([], [], color="grey", marker="x", ls="--", label="IMU, CAD prior (dashed axes)"),
+        Line2D([], [], color="grey", marker="x", ls="--", label="CAD prior (dashed axes)"),
         Line2D([], [], color="tab:red", label="x axis"),
         Line2D([], [], color="tab:green", label="y axis"),
         Line2D([], [], color="tab:blue", label="z axis"),
@@ -284,11 +300,11 @@ def _whole_vehicle(
     base_len: float,
     sensor_len: float,
 ) -> None:
-    """The base frame and every lidar (the IMU's prior dashed) on axes ``i``, ``j``."""
+    """The base frame and every lidar (its prior dashed) on axes ``i``, ``j``."""
     _draw_axes(ax, Transform.identity(), i, j, base_len, "-", 1.0)
     ax.annotate("base", (0, 0), textcoords="offset points", xytext=(4, -14), fontsize=9)
     for name, p in poses.items():
-        _draw_axes(ax, p["prior_imu"], i, j, sensor_len, "--", 0.6)
+        _draw_axes(ax, p["prior_lidar"], i, j, sensor_len, "--", 0.6)
         _draw_axes(ax, p["lidar"], i, j, sensor_len, "-", 1.0)
         at = p["lidar"].translation
         ax.plot(at[i], at[j], "s", color="black", ms=4)
@@ -305,9 +321,10 @@ def _whole_vehicle(
 
 
 def _close_up(ax: Any, name: str, p: Mapping[str, Any], close: float) -> None:
-    """One sensor from above: its IMU's prior, its IMU and its lidar."""
+    """One sensor from above: its IMU and its lidar, each beside its prior."""
     for key, style, alpha, marker, colour in (
         ("prior_imu", "--", 0.6, "x", "grey"),
+        ("prior_lidar", "--", 0.6, "x", "grey"),
         ("imu", "-", 1.0, "o", "black"),
         ("lidar", "-", 1.0, "s", "black"),
     ):
@@ -499,13 +516,14 @@ def write_report(out_dir: Path, calibration: Calibration, progress: Any = None) 
 
 
 def _poses(result: Calibration) -> dict[str, dict[str, Transform]]:
-    """Per sensor, what the vehicle figure draws: the IMU and the lidar as estimated, the IMU's
-    prior."""
+    """Per sensor, what the vehicle figure draws: the IMU and the lidar as estimated, and as
+    the CAD prior places them."""
     return {
         s.name: {
             "imu": result.estimates[s.name].T_base_imu,
             "lidar": result.T_base_lidar(s.name),
             "prior_imu": s.prior_T_base_imu,
+            "prior_lidar": s.prior_T_base_imu * s.T_imu_lidar,
         }
         for s in result.config.sensors
     }
@@ -555,8 +573,8 @@ def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> li
         ),
         (
             lambda: vehicle_figure(plt, poses, out_dir / "vehicle.png"),
-            "Top and side view: base frame, IMUs and lidars as estimated (solid), CAD prior "
-            "(dashed).",
+            "Top and side view: base frame and lidars as estimated (solid) and as the CAD prior "
+            "places them (dashed); close-ups add each IMU and its prior.",
         ),
     ]
     figures = []

@@ -165,3 +165,53 @@ def test_a_report_ended_midway_leaves_nothing_of_it(tmp_path, monkeypatch):
     assert "cannot write the report: No space left on device" in result.stderr
     assert result.stderr.count("\n") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == []  # no report, no partial, no -o
+
+
+def test_the_vehicle_figure_sets_each_lidar_beside_its_own_prior(tmp_path, monkeypatch):
+    """The whole-vehicle views compare like with like: each lidar as estimated (solid) against
+    the lidar its CAD prior places (dashed), not against the IMU's prior, which on the sample's
+    Ouster-style mounts (the IMU turned 180 deg about z in the housing) points the other way
+    and made a right result look 180 deg off."""
+    from imucal_cli import report
+    from imucal_cli.api import calibrate
+    from imucal_cli.core.so3 import rotation_angle_deg
+
+    calibration = calibrate(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
+    drawn = []
+    real = report._draw_axes
+    monkeypatch.setattr(
+        report,
+        "_draw_axes",
+        lambda ax, T, i, j, *rest: drawn.append((T, rest[1])) or real(ax, T, i, j, *rest),
+    )
+    poses = report._poses(calibration)
+    report.vehicle_figure(report.pyplot(), poses, tmp_path / "vehicle.png")
+    per_view = 1 + 2 * len(poses)  # (the base, then each sensor: its prior, then its lidar)
+    for view in (drawn[:per_view], drawn[per_view : 2 * per_view]):
+        for (prior, dashed), (lidar, solid), sensor in zip(
+            view[1::2], view[2::2], poses.values(), strict=True
+        ):
+            assert (dashed, solid) == ("--", "-") and lidar is sensor["lidar"]
+            assert rotation_angle_deg(prior.rotation, lidar.rotation) < 10.0
+            assert rotation_angle_deg(sensor["prior_imu"].rotation, lidar.rotation) > 170.0
+
+
+def test_the_std_figure_of_an_unobservable_sensor_has_no_negative_std(tmp_path, monkeypatch):
+    """A sensor without a std is said "not observable" in its place; the axes start at 0 (a
+    std is never negative) and, where no sensor has one, show no scale at all."""
+    import numpy as np
+
+    from imucal_cli import report
+
+    figures = []
+    monkeypatch.setattr(report, "_save", lambda fig, path: figures.append(fig) or path)
+    plt = report.pyplot()
+    some = {"a": (np.array([0.01, 0.02, 0.03]), np.array([0.001, 0.002, 0.003])), "b": (None, None)}
+    for stds in (some, {"b": (None, None)}):
+        report.std_figure(plt, stds, tmp_path / "std.png")
+    for fig, stds in zip(figures, (some, {"b": (None, None)}), strict=True):
+        for ax in fig.axes:
+            assert ax.get_ylim()[0] == 0.0
+            assert [t.get_text() for t in ax.texts] == ["not observable"]
+            assert (len(ax.get_yticks()) == 0) == (stds is not some)
+        plt.close(fig)
