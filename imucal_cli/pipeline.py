@@ -22,7 +22,7 @@ from imucal_cli.core.calibrate import CalibrationOptions
 from imucal_cli.core.estimates import estimates as solved_estimates
 from imucal_cli.core.grades import GRADES
 from imucal_cli.core.status import every_axis_missing
-from imucal_cli.core.streaming import BOOT_S, SensorSetup, StreamingCalibrator
+from imucal_cli.core.streaming import BOOT_RETRY_S, SensorSetup, StreamingCalibrator
 from imucal_cli.errors import ImucalError, InputError
 from imucal_cli.io.base import Loss
 from imucal_cli.reading import ImuBatches
@@ -509,13 +509,17 @@ def waiting(
     """Per sensor before its first estimate: samples seen, windows reduced, what it waits for
     and the axes it lacks (all of them), in words that say what driving supplies them."""
     booted = bool(calibrator.tau0)
+    read_s, needs_s, tried = calibrator.starting()
     out: dict[str, Any] = {"base_samples": samples.get("base", 0), "sensors": {}}
     for sensor in config.sensors:
         windows = len(calibrator.windows.get(sensor.name, []))
-        if not booted:
+        if not booted and not tried:  # (data, not motion: the start reads its first seconds)
+            what = f"data: starting, {read_s:.0f} of {needs_s:.0f} s read"
+        elif not booted:
             what = (
-                "motion that places the clock offsets: turns and changes of speed (the start "
-                f"reads the first {BOOT_S:g} s of driving, and waits for such motion)"
+                f"motion that places the clock offsets: turns and changes of speed (the first "
+                f"{needs_s - BOOT_RETRY_S:.0f} s held too little; tried again every "
+                f"{BOOT_RETRY_S:g} s)"
             )
         elif not windows:
             what = f"the first window: {config.segments.window_s:g} s of data after the start"

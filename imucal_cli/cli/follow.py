@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import typer
 
 from imucal_cli.cli import render
@@ -20,24 +21,67 @@ from imucal_cli.core.segments import window_counts
 FOLLOW_STALL_S = 30.0
 
 
-def follow_table(log: Path, windows: int, calibration: Any) -> Any:
-    """The live table: per sensor its status, std per axis, windows used and what it lacks."""
-    from rich.table import Table
-
-    table = Table(title=f"following {log}: {windows} windows")
-    for column in ("sensor", "status", "std rpy deg", "std xyz mm", "windows used", "missing"):
-        table.add_column(column)
+def follow_table(log: Path, windows: int, calibration: Any, width: int = 1 << 16) -> Any:
+    """The live view: per sensor its status, the estimate (``T_base_lidar``), its statistical
+    std (what ``stop:`` tests: what more driving shrinks) against the targets, the windows used
+    and what it lacks; stacked where ``width`` is too narrow for a table."""
+    stop = calibration.config.stop
+    rows = []
     for name, e in calibration.estimates.items():
-        std_t = None if e.translation_std_m is None else [1000 * v for v in e.translation_std_m]
-        table.add_row(
-            name,
-            e.status,
-            render.fmt(e.rotation_std_deg, 4),
-            render.fmt(std_t, 2),
-            "{}/{}".format(*window_counts(e.windows)),
-            "; ".join(m.split(":")[0] for m in calibration.missing(name)) or "-",
+        T = calibration.T_base_lidar(name)
+        rotation, translation = e.statistical_rotation_std_deg, e.statistical_translation_std_m
+        rows.append(
+            (
+                name,
+                e.status,
+                render.fmt(T.translation, 4),
+                render.fmt(np.degrees(T.rpy_rad), 3),
+                render.fmt(rotation, 4),
+                render.fmt(None if translation is None else 1000 * translation, 2),
+                "{}/{}".format(*window_counts(e.windows)),
+                " ".join(_axis(m) for m in calibration.missing(name)) or "-",
+            )
         )
-    return table
+    columns = (
+        "sensor",
+        "status",
+        "xyz m",
+        "rpy deg",
+        f"std rpy deg (stop {stop.max_rotation_std_deg:g})",
+        f"std xyz mm (stop {1000 * stop.max_translation_std_m:g})",
+        "windows used",
+        "missing axes",
+    )
+    return render.fitted(f"following {log}: {windows} windows", columns, rows, width)
+
+
+def estimate_line(calibration: Any, name: str) -> dict[str, Any]:
+    """What a JSON line of the follow view says of sensor ``name``."""
+    e, T = calibration.estimates[name], calibration.T_base_lidar(name)
+    return {
+        "status": e.status,
+        "T_base_lidar": {"translation": T.translation, "rpy_deg": np.degrees(T.rpy_rad)},
+        "statistical_std": None
+        if e.statistical_covariance is None
+        else {
+            "rotation_deg": e.statistical_rotation_std_deg,
+            "translation_m": e.statistical_translation_std_m,
+        },
+        "rotation_std_deg": e.rotation_std_deg,
+        "translation_std_m": e.translation_std_m,
+        "windows": "{}/{}".format(*window_counts(e.windows)),
+        "missing": calibration.missing(name),
+    }
+
+
+def _axis(missing: str) -> str:
+    """A missing axis in short: ``roll``, ``pitch``, ``yaw``, ``tx``, ``ty``, ``tz``."""
+    name = missing.split(":")[0]
+    return name[name.find("(") + 1 : -1] if "(" in name else "t" + name.split()[-1]
+
+
+def _mm(values: Any) -> Any:
+    return None if values is None else [1000 * v for v in values]
 
 
 def _waiting_table(log: Path, state: dict[str, Any]) -> Any:
@@ -71,24 +115,22 @@ class _View:
 
         self.heard = time.monotonic()
         if self.as_json:
-            sensors = {
-                name: {
-                    "status": e.status,
-                    "rotation_std_deg": e.rotation_std_deg,
-                    "translation_std_m": e.translation_std_m,
-                    "missing": calibration.missing(name),
-                }
-                for name, e in calibration.estimates.items()
-            }
+            sensors = {name: estimate_line(calibration, name) for name in calibration.estimates}
             typer.echo(json.dumps(to_plain({"windows": windows, "sensors": sensors})))
         elif self.live is not None:
-            self.live.update(follow_table(self.log, windows, calibration), refresh=True)
+            width = self.live.console.width
+            self.live.update(follow_table(self.log, windows, calibration, width), refresh=True)
         else:
-            said = (
-                f"{n} {e.status} ({len(calibration.missing(n))} axes missing)"
-                for n, e in calibration.estimates.items()
-            )
-            err(f"imucal: {windows} windows: " + ", ".join(said))
+            for name in calibration.estimates:
+                line = estimate_line(calibration, name)
+                T, std = line["T_base_lidar"], line["statistical_std"] or {}
+                missing = " ".join(_axis(m) for m in line["missing"]) or "none"
+                err(
+                    f"imucal: {windows} windows: {name} {line['status']} xyz "
+                    f"{render.fmt(T['translation'], 4)} m rpy {render.fmt(T['rpy_deg'], 3)} deg, "
+                    f"statistical std {render.fmt(std.get('rotation_deg'), 4)} deg "
+                    f"{render.fmt(_mm(std.get('translation_m')), 2)} mm; missing: {missing}"
+                )
 
     def waiting(self, state: dict[str, Any]) -> None:  # before the first estimate
         from imucal_cli.documents import to_plain

@@ -40,8 +40,7 @@ def aggressive():
 def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does(
     aggressive, tmp_path, layout
 ):
-    config = tmp_path / "c.yaml"
-    write_document(config, aggressive.config_document())
+    config = _config(aggressive, tmp_path / "c.yaml")  # (stop: the follow lines' targets)
     if layout == "mcap":
         path = target = tmp_path / "live.mcap"
     else:  # a rosbag2 folder being recorded: its mcap storage file, no metadata.yaml yet
@@ -66,6 +65,7 @@ def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does
     recorder.join(60)
     updates = [json.loads(line) for line in result.stdout.splitlines()]
     assert len(updates) >= 2 and updates[-1]["windows"] >= updates[0]["windows"]
+    _shows_the_estimate_against_stop(updates)
     followed = yaml.safe_load((tmp_path / "f.yaml").read_text())
     batch = calibrate(target, config).document()
     for name, s in batch["sensors"].items():
@@ -83,6 +83,32 @@ def test_following_a_recording_ends_where_the_batch_calibration_of_the_file_does
             d_r,
             s["rotation_std_deg"],
         )
+
+
+def _shows_the_estimate_against_stop(updates):
+    """Each JSON line of an estimate shows it (``T_base_lidar``) with its statistical std, no
+    larger than the total, and lists as missing exactly the axes whose statistical std is over
+    the ``stop:`` targets (what ``--until-converged`` tests)."""
+    estimated = [
+        u for u in updates if u["windows"] and "T_base_lidar" in next(iter(u["sensors"].values()))
+    ]
+    assert estimated
+    for update in estimated:
+        for sensor in update["sensors"].values():
+            assert (
+                len(sensor["T_base_lidar"]["translation"])
+                == len(sensor["T_base_lidar"]["rpy_deg"])
+                == 3
+            )
+            std = sensor["statistical_std"]
+            if std is None:
+                continue
+            assert np.all(
+                np.array(std["rotation_deg"]) <= np.array(sensor["rotation_std_deg"]) + 1e-12
+            )
+            over = sum(v > STOP["max_rotation_std_deg"] for v in std["rotation_deg"])
+            said = [m for m in sensor["missing"] if "deg, target" in m]
+            assert len(said) == over
 
 
 def test_following_a_rosbag2_recording_to_sqlite3_ends_where_the_batch_calibration_does(
@@ -149,6 +175,12 @@ def test_until_converged_exits_0_before_the_writer_is_done_on_an_aggressive_driv
     assert still_writing
     document = yaml.safe_load((tmp_path / "f.yaml").read_text())
     assert document["converged"] is True
+    # (on stderr, not a terminal: a line per sensor and update, the estimate and the
+    # statistical std shown, not only the status)
+    said = [line for line in result.stderr.splitlines() if " windows: " in line]
+    assert said and all(" xyz [" in line and "statistical std [" in line for line in said)
+    last = [line for line in said if said[-1].split(" windows: ")[0] in line]
+    assert len(last) == len(document["sensors"])
     for s in document["sensors"].values():
         assert s["status"] == "ok" and not s["missing"]
         assert (
@@ -222,6 +254,7 @@ def test_the_live_table_shows_status_std_windows_and_what_is_missing():
     from conftest import SAMPLE_DATA
     from rich.console import Console
 
+    from imucal_cli.cli import render
     from imucal_cli.cli.follow import follow_table
 
     run = calibrate(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
@@ -229,16 +262,17 @@ def test_the_live_table_shows_status_std_windows_and_what_is_missing():
         max_rotation_std_deg=0.001, max_translation_std_m=0.0001
     )  # out of reach
     run = replace(run, config=replace(run.config, stop=stop))
-    console = Console(width=200, record=True)
-    console.print(follow_table(Path("live.mcap"), 7, run))
-    text = console.export_text()
-    assert "following live.mcap: 7 windows" in text
-    for name, estimate in run.estimates.items():
-        assert (
-            name in text
-            and f"{sum(w.selected for w in estimate.windows)}/{len(estimate.windows)}" in text
-        )
-    assert "rotation z (yaw)" in text and "translation x" in text
+    for width in (200, 80):  # (a table where it fits, each sensor stacked where it does not)
+        console = Console(width=width, record=True)
+        console.print(follow_table(Path("live.mcap"), 7, run, width))
+        text = console.export_text()
+        assert "following live.mcap: 7 windows" in text and "…" not in text
+        for name, estimate in run.estimates.items():
+            T = run.T_base_lidar(name)
+            assert name in text and render.fmt(T.translation, 4) in text
+            assert render.fmt(estimate.statistical_rotation_std_deg, 4) in text
+            assert f"{sum(w.selected for w in estimate.windows)}/{len(estimate.windows)}" in text
+        assert "roll pitch yaw tx ty tz" in text and "std rpy deg (stop 0.001)" in text
 
 
 @pytest.mark.parametrize(
@@ -391,7 +425,7 @@ def test_follow_talks_from_the_first_data_and_stops_when_the_recording_ends(aggr
     assert first["windows"] == 0
     assert first["base_samples"] + sum(s["samples"] for s in first["sensors"].values()) > 0
     for sensor in first["sensors"].values():
-        assert sensor["status"] == "waiting" and "clock offsets" in sensor["waiting_for"]
+        assert sensor["status"] == "waiting" and "data: starting" in sensor["waiting_for"]
     recorder.finished.wait(120)
     ended = time.monotonic()
     _, stderr = process.communicate(timeout=60)
@@ -471,3 +505,47 @@ def test_a_recording_that_stalls_is_said_with_how_long_it_has_waited(
     argv = ["calibrate", str(log), "-c", str(config), "--follow", "--timeout", "4"]
     result = CliRunner().invoke(app, argv)
     assert re.search(r"nothing new for \d+ s; still waiting", result.stderr), result.stderr
+
+
+def test_follow_waits_for_data_while_it_starts_and_asks_for_motion_only_when_it_lacks(tmp_path):
+    """Before the start (its first 60 s of data) follow said it waited for "motion that places
+    the clock offsets" on a slalom from the first second, and a driver would start weaving for
+    nothing: it says how much of the start it has read; only once an attempt found too little
+    motion does it ask for turns and changes of speed."""
+    from imucal_cli.config import parse_config
+    from imucal_cli.pipeline import feed, make_calibrator, waiting
+
+    said = {}
+    for scenario in ("aggressive", "stationary"):
+        drive = simulate_drive(DriveOptions(scenario=scenario, duration_s=90.0, seed=3))
+        config = parse_config(drive.config_document(), "c.yaml")
+        streams = drive.streams()
+        for until_s in (20.0, 90.0):
+            calibrator = make_calibrator(config)
+            feed(calibrator, _until(streams, until_s))
+            said[scenario, until_s] = {
+                s["waiting_for"] for s in waiting(calibrator, config, {})["sensors"].values()
+            }
+    (early,) = said["aggressive", 20.0]
+    assert early.startswith("data: starting, ") and early.endswith(" s read")
+    read, needs = (float(x) for x in early.split("starting, ")[1].split(" s read")[0].split(" of "))
+    assert 15 <= read <= 21 and needs == pytest.approx(62, abs=1)
+    assert said["stationary", 20.0] == said["aggressive", 20.0]
+    (late,) = said["stationary", 90.0]
+    assert late.startswith("motion that places the clock offsets: turns and changes of speed")
+    assert all("motion" not in what for what in said["aggressive", 90.0])
+
+
+def _until(streams, until_s):
+    """``streams`` from their start up to ``until_s``."""
+    from dataclasses import replace
+
+    def cut(stream):
+        keep = stream.t_ns < stream.t_ns[0] + int(until_s * 1e9)
+        return replace(
+            stream, t_ns=stream.t_ns[keep], gyro=stream.gyro[keep], accel=stream.accel[keep]
+        )
+
+    return replace(
+        streams, base=cut(streams.base), sensors={k: cut(v) for k, v in streams.sensors.items()}
+    )
