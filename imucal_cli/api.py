@@ -142,16 +142,44 @@ def evaluate(
     max_rotation_deg: float | None = None,
     max_translation_m: float | None = None,
     allow_missing: bool = False,
+    max_time_offset_s: float | None = None,
 ) -> dict[str, Any]:
     """The SPEC's evaluate document of a calibrate output (or any document with ``sensors:
     NAME: T_base_lidar``) against a truth, each a file or the document itself
-    (``cal.document()``); ``document["pass"]`` is the verdict."""
+    (``cal.document()``); ``document["pass"]`` is the verdict. Clock offsets are compared where
+    both give ``time_offset_s``."""
+    from imucal_cli.documents import load_document
     from imucal_cli.outputs import evaluate_document
 
-    estimates, truths = load_transforms(estimate), load_transforms(truth)
+    documents = [p if isinstance(p, Mapping) else load_document(p) for p in (estimate, truth)]
+    names = [str(p) if not isinstance(p, Mapping) else "<document>" for p in (estimate, truth)]
+    estimates, truths = (load_transforms(d, name=n) for d, n in zip(documents, names, strict=True))
     if not set(estimates) & set(truths):
         raise InputError(f"{estimate}: no sensor in common with {truth}")
-    return evaluate_document(estimates, truths, max_rotation_deg, max_translation_m, allow_missing)
+    offsets = [_time_offsets(d, n) for d, n in zip(documents, names, strict=True)]
+    return evaluate_document(
+        estimates,
+        truths,
+        max_rotation_deg,
+        max_translation_m,
+        allow_missing,
+        (offsets[0], offsets[1]),
+        max_time_offset_s,
+    )
+
+
+def _time_offsets(document: Mapping[str, Any], name: str) -> dict[str, float]:
+    """Each sensor's ``time_offset_s`` where the document gives one (a number, else the key is
+    refused by name)."""
+    out = {}
+    for sensor, fields in document["sensors"].items():
+        value = fields.get("time_offset_s")
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
+            raise InputError(f"{name}: sensors.{sensor}.time_offset_s: not a number: {value!r}")
+        out[str(sensor)] = float(value)
+    return out
 
 
 def write_report(
@@ -173,16 +201,16 @@ def write_document(path: str | Path, document: Any) -> None:
 
 
 def load_transforms(
-    path: str | Path | Mapping[str, Any], key: str = "T_base_lidar"
+    path: str | Path | Mapping[str, Any], key: str = "T_base_lidar", name: str | None = None
 ) -> dict[str, Transform]:
     """``key`` of every sensor of a calibrate output or truth (``sensors: NAME: key``), a file
-    or the document itself; :class:`InputError` naming the file and the key path when one is
-    missing or malformed."""
+    or the document itself (called ``name`` in messages); :class:`InputError` naming the file
+    and the key path when one is missing or malformed."""
     from imucal_cli.documents import load_document
     from imucal_cli.errors import ConfigError
 
     document = path if isinstance(path, Mapping) else load_document(path)
-    path = "<document>" if isinstance(path, Mapping) else path
+    path = name or ("<document>" if isinstance(path, Mapping) else path)
     if not isinstance(document, dict) or not isinstance(document.get("sensors"), dict):
         raise InputError(f"{path}: expected a mapping with 'sensors'")
     out = {}

@@ -287,7 +287,7 @@ def kalibr(ex: Extrinsics) -> str:
         lines += [f"imu{k}:", f"  # {s.name}", "  T_i_b:"]
         lines += _matrix_rows(s.T_base_imu.inverse().as_matrix(), "    ")
         offset = (
-            f"{_f(-s.time_offset_s)}"
+            f"{_f(0.0 - s.time_offset_s)}"  # (0.0, not -0.0, where it is 0)
             if s.time_offset_observable
             else "0.0  # not observable from the drive: not estimated"
         )

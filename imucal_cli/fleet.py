@@ -609,9 +609,11 @@ def check_batch_outputs(
     check_outputs(outputs, every_input)
     existing = [path for path in outputs.values() if path.exists()]
     if existing and not force:
+        named = ", ".join(str(path) for path in existing[:3])
+        more = f" and {len(existing) - 3} more" if len(existing) > 3 else ""
         raise InputError(
-            f"{existing[0]}: exists (an earlier batch's output?): give a new --out-dir, or --force "
-            "to replace "
+            f"{named}{more}: {'exists' if len(existing) == 1 else 'exist'} (an earlier batch's "
+            f"output?): give a new --out-dir, or --force to replace "
             f"{'it' if len(existing) == 1 else f'these {len(existing)} files'}"
         )
 
@@ -772,6 +774,8 @@ def evaluate_junit(document: dict[str, Any], estimate: str, truth: str) -> str:
     """JUnit XML of an ``evaluate`` document: a case per sensor and pair, failing with the
     threshold and the measured value; every case carries its errors in ``system-out``; a
     sensor in one file only is a failed case (an error when ``--allow-missing`` was not given)."""
+    from imucal_cli.outputs import THRESHOLDS, over_thresholds
+
     limits = document["thresholds"]
     allowed = document["pass"] or not (
         document["missing"]["estimate_only"] or document["missing"]["truth_only"]
@@ -779,17 +783,12 @@ def evaluate_junit(document: dict[str, Any], estimate: str, truth: str) -> str:
     cases, failures = [], 0
     for group in ("sensors", "pairs"):
         for name, row in document[group].items():
-            values = (
-                f"rotation_error_deg {row['rotation_error_deg']:.6g}, "
-                f"translation_error_m {row['translation_error_m']:.6g}"
+            values = ", ".join(
+                f"{error} {row[error]:.6g}" for _, error in THRESHOLDS if row.get(error) is not None
             )
             over = [
                 f"{value} {row[value]:.6g} > {key} {limits[key]:g}"
-                for key, value in (
-                    ("max_rotation_deg", "rotation_error_deg"),
-                    ("max_translation_m", "translation_error_m"),
-                )
-                if limits[key] is not None and row[value] > limits[key]
+                for key, value in over_thresholds(row, limits)
             ]
             failures += bool(over)
             body = f"<failure message={quoteattr('; '.join(over))}/>" if over else ""

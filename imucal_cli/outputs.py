@@ -473,21 +473,48 @@ def transform_errors(estimate: Transform, truth: Transform) -> dict[str, Any]:
     }
 
 
+#: Each threshold of ``evaluate`` and the error it bounds (the clock offset's by its size).
+THRESHOLDS = (
+    ("max_rotation_deg", "rotation_error_deg"),
+    ("max_translation_m", "translation_error_m"),
+    ("max_time_offset_s", "time_offset_error_s"),
+)
+
+
+def over_thresholds(row: Mapping[str, Any], limits: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """The (threshold, error) pairs of an evaluate row whose error exceeds its threshold."""
+    return [
+        (limit, error)
+        for limit, error in THRESHOLDS
+        if limits.get(limit) is not None
+        and row.get(error) is not None
+        and abs(row[error]) > limits[limit]
+    ]
+
+
 def evaluate_document(
     estimates: Mapping[str, Transform],
     truths: Mapping[str, Transform],
     max_rotation_deg: float | None,
     max_translation_m: float | None,
     allow_missing: bool = False,
+    offsets: tuple[Mapping[str, float], Mapping[str, float]] = ({}, {}),
+    max_time_offset_s: float | None = None,
 ) -> dict[str, Any]:
     """Every sensor present in both, and every pair ``T_a_b = T_base_a^-1 T_base_b``. A sensor
-    in one file and not the other fails the evaluation unless ``allow_missing``."""
+    in one file and not the other fails the evaluation unless ``allow_missing``. ``offsets``:
+    each side's clock offsets (s), compared where both have the sensor's."""
     names = sorted(set(estimates) & set(truths))
     missing = {
         "estimate_only": sorted(set(estimates) - set(truths)),
         "truth_only": sorted(set(truths) - set(estimates)),
     }
-    sensors = {n: transform_errors(estimates[n], truths[n]) for n in names}
+    sensors = {}
+    for n in names:
+        both = n in offsets[0] and n in offsets[1]
+        sensors[n] = transform_errors(estimates[n], truths[n]) | {
+            "time_offset_error_s": offsets[0][n] - offsets[1][n] if both else None
+        }
     pairs = {}
     for a, b in combinations(names, 2):
         errors = transform_errors(
@@ -495,22 +522,21 @@ def evaluate_document(
         )
         del errors["translation_error_xyz_m"]
         pairs[f"{a}/{b}"] = errors
+    thresholds = {
+        "max_rotation_deg": max_rotation_deg,
+        "max_translation_m": max_translation_m,
+        "max_time_offset_s": max_time_offset_s,
+    }
     rows = list(sensors.values()) + list(pairs.values())
     passed = bool(names) and (
         allow_missing or not (missing["estimate_only"] or missing["truth_only"])
     )
-    if max_rotation_deg is not None:
-        passed &= all(r["rotation_error_deg"] <= max_rotation_deg for r in rows)
-    if max_translation_m is not None:
-        passed &= all(r["translation_error_m"] <= max_translation_m for r in rows)
+    passed &= not any(over_thresholds(row, thresholds) for row in rows)
     return to_plain(
         {
             "sensors": sensors,
             "pairs": pairs,
-            "thresholds": {
-                "max_rotation_deg": max_rotation_deg,
-                "max_translation_m": max_translation_m,
-            },
+            "thresholds": thresholds,
             "missing": missing,
             "pass": passed,
         }

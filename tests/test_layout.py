@@ -144,3 +144,25 @@ def test_no_process_wide_setting_is_made_for_speed():
     for path in PACKAGE.rglob("*.py"):
         found = [word for word in banned if word in path.read_text()]
         assert not found, (path.name, found)
+
+
+def test_the_readme_s_table_lists_every_option_of_every_command():
+    """The README's command table is where a user looks first: every command has a row, and the
+    row names each of its options (long or short), so none is found only by ``-h``."""
+    import re
+
+    import typer
+
+    from imucal_cli.cli import app
+
+    readme = (PACKAGE.parent / "README.md").read_text()
+    rows = {m[1]: m[0] for m in re.finditer(r"^\| `imucal ([a-z-]+) .*$", readme, re.M)}
+    for name, command in typer.main.get_command(app).commands.items():  # type: ignore[attr-defined]
+        assert name in rows, f"no README row for {name}"
+        for param in command.params:
+            flags = [f for f in param.opts if f.startswith("-") and f != "--help"]
+            if flags:
+                assert any(re.search(rf"{re.escape(f)}(?![\w-])", rows[name]) for f in flags), (
+                    name,
+                    flags,
+                )

@@ -56,12 +56,17 @@ class _Group(typer.core.TyperGroup):
     def get_help_option(self, ctx: Any) -> Any:
         return _flag(super().get_help_option(ctx))
 
+    def get_params(self, ctx: Any) -> list[Any]:
+        # (Typer's completion options are flags, shown as this program's flags are)
+        return [_flag(p) if getattr(p, "is_flag", False) else p for p in super().get_params(ctx)]
+
 
 app = typer.Typer(
     cls=_Group,
     name="imucal",
     help="Calibrate the extrinsics of every lidar on a vehicle from raw IMU signals alone.",
-    add_completion=False,
+    add_completion=True,  # (--install-completion, --show-completion: bash, zsh, fish)
+    context_settings={"help_option_names": ["-h", "--help"]},
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     rich_markup_mode="rich",
@@ -91,10 +96,23 @@ def command(panel: str, name: str | None = None) -> Callable[[Callable[P, R]], C
     (:func:`handles_errors`)."""
 
     def register(function: Callable[P, R]) -> Callable[P, R]:
-        app.command(name, cls=Command, rich_help_panel=panel)(handles_errors(function))
+        app.command(name, cls=Command, rich_help_panel=panel, help=_paragraphs(function.__doc__))(
+            handles_errors(function)
+        )
         return function
 
     return register
+
+
+def _paragraphs(doc: str | None) -> str | None:
+    """A docstring as help: its paragraphs' lines joined (the source's line breaks are not the
+    terminal's), paragraphs apart."""
+    import inspect
+
+    if doc is None:
+        return None
+    paragraphs = inspect.cleandoc(doc).split("\n\n")
+    return "\n\n".join(" ".join(p.split()) for p in paragraphs)
 
 
 def err(text: str) -> None:

@@ -60,7 +60,7 @@ def biases(
 
     options.guard({"-o": out}, [log, config, urdf])
     cfg = _config(log, config, urdf)
-    with render.progress(f"reading {log}") as progress:
+    with render.progress(f"reading {log.name}") as progress:
         document = api.biases(log, cfg, progress=progress)
     render.note_losses(log, document["losses"])
     render.emit(document, out, as_json, lambda doc: _render_biases(log, doc))
@@ -216,7 +216,7 @@ RequireObservable = Annotated[
     typer.Option(
         "--require-observable",
         metavar="",
-        help="Exit 1 unless every sensor is fully observable (status ok).",
+        help="Exit 1 unless every sensor is ok (partial, inconsistent and unobservable fail).",
     ),
 ]
 Quiet = Annotated[
@@ -271,26 +271,24 @@ def calibrate(
     if (out is not None or as_json) and not quiet:
         render.status_lines(document)
     if require_observable and not calibration.all_ok:
-        weak = [n for n, e in calibration.estimates.items() if e.status != "ok"]
-        err(f"imucal: not fully observable: {', '.join(weak)}")
+        weak = [f"{n} {e.status}" for n, e in calibration.estimates.items() if e.status != "ok"]
+        err(f"imucal: --require-observable: not every sensor is ok: {', '.join(weak)}")
         raise typer.Exit(EXIT_CHECK_FAILED)
 
 
 def _over(row: dict[str, Any], limits: dict[str, Any]) -> list[str]:
     """The thresholds a row of an evaluate document exceeds, named."""
+    from imucal_cli.outputs import over_thresholds
+
     return [
         f"{key.removeprefix('max_').replace('_', ' ')} > {limits[key]:g}"
-        for key, value in (
-            ("max_rotation_deg", "rotation_error_deg"),
-            ("max_translation_m", "translation_error_m"),
-        )
-        if limits[key] is not None and row[value] > limits[key]
+        for key, _ in over_thresholds(row, limits)
     ]
 
 
 def _render_evaluation(estimate: Path, truth: Path, doc: dict[str, Any]) -> None:
     rows = {**doc["sensors"], **doc["pairs"]}
-    numbers = ("rotation error deg", "translation error m", "eq. 20 m")
+    numbers = ("rotation error deg", "translation error m", "eq. 20 m", "time offset error ms")
     shown = render.table(
         f"{estimate} vs {truth}",
         ("sensor / pair", *numbers, "over"),
@@ -299,6 +297,9 @@ def _render_evaluation(estimate: Path, truth: Path, doc: dict[str, Any]) -> None
                 name,
                 *(f"{r[key]:.4f}" for key in ("rotation_error_deg", "translation_error_m")),
                 f"{r['translation_error_eq20_m']:.4f}",
+                "-"
+                if r.get("time_offset_error_s") is None
+                else f"{r['time_offset_error_s'] * 1e3:.3f}",
                 ", ".join(_over(r, doc["thresholds"])) or "-",
             )
             for name, r in rows.items()
@@ -326,6 +327,15 @@ def evaluate(
     max_translation_m: options.MaxTranslation = None,
     out: options.Out = None,
     as_json: options.Json = False,
+    max_time_offset_s: Annotated[
+        float | None,
+        typer.Option(
+            "--max-time-offset-s",
+            min=0.0,
+            help="Pass threshold on each sensor's clock offset error (s), where the truth has "
+            "time_offset_s.",
+        ),
+    ] = None,
     allow_missing: Annotated[
         bool,
         typer.Option(
@@ -340,7 +350,9 @@ def evaluate(
     from imucal_cli.fleet import evaluate_junit
 
     options.guard({"-o": out, "--junit": junit}, [estimate, truth])
-    document = api.evaluate(estimate, truth, max_rotation_deg, max_translation_m, allow_missing)
+    document = api.evaluate(
+        estimate, truth, max_rotation_deg, max_translation_m, allow_missing, max_time_offset_s
+    )
     for side, names in document["missing"].items():
         where = estimate if side == "estimate_only" else truth
         for name in names:

@@ -51,7 +51,7 @@ def inspect(
     from imucal_cli.outputs import inspect_document
 
     options.guard({"-o": out}, [log])
-    with render.progress(f"reading {log}") as progress:
+    with render.progress(f"reading {log.name}") as progress:
         summary = summarize_log(log, progress)
     render.note_losses(log, summary.losses)
     render.emit(inspect_document(summary), out, as_json, _render_inspect)

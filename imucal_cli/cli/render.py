@@ -26,29 +26,30 @@ def console() -> Any:
 
 @contextmanager
 def progress(description: str, unit: str = "messages") -> Iterator[Callable[..., None]]:
-    """A bar with the total and the time left on stderr when it is a terminal (a counter while
-    the total is not known); nothing otherwise. The callback takes ``(count, total)``."""
+    """A bar with the count, the total and the time left on stderr when it is a terminal (what
+    it waits for while the total is not known); nothing otherwise. The callback takes
+    ``(count, total)``."""
     if not sys.stderr.isatty():
         yield lambda count=None, total=None: None
         return
     from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
+    from rich.progress import BarColumn, Progress, ProgressColumn, TextColumn
+    from rich.table import Column
+    from rich.text import Text
+
+    class Count(ProgressColumn):
+        """``12,345 of 67,890 messages, 0:00:03 left``; before the first batch, what is being
+        done."""
+
+        def render(self, task: Any) -> Text:
+            said = count_text(task.completed, task.total, task.time_remaining, unit)
+            return Text(said, style="progress.download")
 
     bar = Progress(
-        TextColumn("{task.description}", markup=False),  # a path, as it is
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn(unit),
-        TimeElapsedColumn(),
-        TextColumn("left"),
-        TimeRemainingColumn(),
+        # (a path, as it is; the columns of numbers keep their width where it is narrow)
+        TextColumn("{task.description}", markup=False, table_column=Column(ratio=1)),
+        BarColumn(bar_width=16),
+        Count(),
         console=Console(stderr=True),
         transient=True,
     )
@@ -60,6 +61,19 @@ def progress(description: str, unit: str = "messages") -> Iterator[Callable[...,
         bar.stop()
 
 
+def count_text(done: float, total: float | None, left: float | None, unit: str) -> str:
+    """What the progress bar says: ``12,345 of 67,890 messages, 0:00:03 left``; before the
+    total is known (the log being opened), that; once all is read, that."""
+    from datetime import timedelta
+
+    if total is None:
+        return "opening the log"
+    if done >= total:
+        return f"all {int(total):,} {unit} read"
+    time_left = "" if left is None else f", {timedelta(seconds=int(left))} left"
+    return f"{int(done):,} of {int(total):,} {unit}{time_left}"
+
+
 def table(
     title: str,
     columns: Sequence[str],
@@ -68,30 +82,63 @@ def table(
     no_wrap: Iterable[str] = (),
 ) -> Any:
     """A rich table on stdout, the ``right`` columns right-justified (numbers); returns the
-    console (for what follows the table)."""
+    console (for what follows the table). Where the terminal is too narrow for it
+    (:func:`fitted`), each row is stacked instead: no value is ever cut."""
+    shown = console()
+    shown.print(fitted(title, columns, rows, shown.width, right, no_wrap))
+    return shown
+
+
+def fitted(
+    title: str,
+    columns: Sequence[str],
+    rows: Iterable[Sequence[Any]],
+    width: int,
+    right: Iterable[str] = (),
+    no_wrap: Iterable[str] = (),
+) -> Any:
+    """A table of ``rows`` that fits ``width`` columns, its cells wrapped between words; where
+    even that does not fit (rich would then cut numbers short, ``[4.348…``), each row stacked
+    as lines of ``column  value`` under its first cell."""
+    from rich.console import Console, Group
+    from rich.measure import Measurement
     from rich.table import Table
+    from rich.text import Text
 
     out = Table(title=printable(title))
     right, no_wrap = set(right), set(no_wrap)
     for column in columns:
         out.add_column(
-            column, justify="right" if column in right else "left", no_wrap=column in no_wrap
+            column,
+            justify="right" if column in right else "left",
+            no_wrap=column in no_wrap,
+            overflow="fold",  # (never an ellipsis in place of digits)
         )
-    for row in rows:
-        out.add_row(*(printable(cell) if isinstance(cell, str) else cell for cell in row))
-    shown = console()
-    shown.print(out)
-    return shown
+    kept = [[printable(cell) if isinstance(cell, str) else cell for cell in row] for row in rows]
+    for row in kept:
+        out.add_row(*row)
+    wide = Console(width=1 << 16)
+    if Measurement.get(wide, wide.options, out).minimum <= width:
+        return out
+    label = max(len(column) for column in columns[1:]) if len(columns) > 1 else 0
+    lines = [Text(printable(title), style="bold")]
+    for row in kept:
+        lines.append(Text.assemble(row[0] if isinstance(row[0], Text) else str(row[0])))
+        for column, cell in zip(columns[1:], row[1:], strict=True):
+            value = cell if isinstance(cell, Text) else Text(str(cell))
+            lines.append(Text.assemble(f"  {column:<{label}}  ", value))
+    return Group(*lines)
 
 
 def emit(document: dict[str, Any], out: Path | None, as_json: bool, render: Any) -> None:
     """Write ``document`` to ``out`` (YAML/JSON by suffix), or print JSON, or render it."""
-    from imucal_cli.documents import dumps, write_document
+    from imucal_cli.documents import dump_chunks, write_document
 
     if out is not None:
         write_document(out, document)
     elif as_json:
-        typer.echo(dumps(document, as_json=True), nl=False)
+        for text in dump_chunks(document, as_json=True):
+            typer.echo(text, nl=False)
     else:
         render(document)
 

@@ -133,7 +133,7 @@ def simulate(
         time_offsets_s=tuple(time_offset_s) if time_offset_s else None,
         lidar_rate_hz=lidar_rate_hz,
     )
-    with render.progress(f"writing {out}") as progress:
+    with render.progress(f"writing {out.name}") as progress:
         written = simulate_files(
             out, fmt, drive, errors, (lidar_grade, base_grade), tf_static, force, progress
         )

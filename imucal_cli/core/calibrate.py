@@ -393,7 +393,7 @@ def solve(
         spread,
         observable,
         clock,
-        clock_placed,
+        clock_placed and options.max_time_offset_s > 0,  # (0: not estimated, not observed)
         warnings,
         found,
         own,

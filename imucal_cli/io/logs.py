@@ -15,15 +15,8 @@ from imucal_cli.io.mcap_log import McapLog
 from imucal_cli.io.rosbag1 import Ros1Log
 from imucal_cli.io.rosbag2 import Rosbag2Log, SqliteRecording
 
-__all__ = [
-    "IMU_MSGTYPE",
-    "LogReader",
-    "Loss",
-    "TopicInfo",
-    "check_topics",
-    "open_log",
-    "open_recording",
-]
+__all__ = ["IMU_MSGTYPE", "LogReader", "Loss", "TopicInfo"]  # (the readers' words, re-exported)
+__all__ += ["check_topics", "open_log", "open_recording"]
 
 
 #: The reader of each container (:data:`imucal_cli.io.formats.FORMATS`); a rosbag2 folder is

@@ -157,10 +157,8 @@ class McapLog(LogReader):
         channels, schemas, counts = self._channels()
         out: dict[str, TopicInfo] = {}
         for channel_id, channel in channels.items():
-            schema = schemas.get(channel.schema_id)
-            count = counts.get(channel_id, 0) + (
-                out[channel.topic].count if channel.topic in out else 0
-            )
+            schema, before = schemas.get(channel.schema_id), out.get(channel.topic)
+            count = counts.get(channel_id, 0) + (before.count if before else 0)
             out[channel.topic] = TopicInfo(
                 channel.topic, schema.name if schema else "", count, channel.message_encoding
             )
@@ -216,7 +214,7 @@ class McapLog(LogReader):
         their bodies parsed by the library. A record cut off ends the walk (a :class:`Loss`
         where ``note``); a chunk cut off gives what decompresses of it. With ``stop`` (a file
         still being written), a record cut off is waited for until ``stop()`` says."""
-        pos, messages, last_ns = len(MAGIC), 0, None
+        pos, messages, last_ns, in_cut = len(MAGIC), 0, None, -1
         try:
             while True:
                 opcode, length, data = self._record_at(pos, stop is not None) or (-1, 0, b"")
@@ -238,10 +236,14 @@ class McapLog(LogReader):
                     last_ns = int(gather(inner, found + 15, 8, "<u8")[-1, 0])
                     yield inner, found
                 if cut:
+                    in_cut = len(found)
                     break
                 pos += 9 + length
             if note and pos < (size := os.fstat(self._file.fileno()).st_size):
                 why = f"the file is cut off after {messages} messages; what follows is lost"
+                if in_cut >= 0:  # (the file ends in a chunk, what decodes of it read: the rest)
+                    why = f"the chunk from byte {pos} is cut off after {in_cut} of its messages"
+                    pos, size = size, pos + 9 + length
                 self.losses.append(Loss(f"{why}; {REPAIR}", pos, size - pos, last_ns, None))
         except Exception as exc:
             if note:

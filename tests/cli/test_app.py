@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 import yaml
-from conftest import log_name, without_summary
+from conftest import SAMPLE_DATA, log_name, without_summary
 from typer.testing import CliRunner
 
 from imucal_cli.cli import app
@@ -99,10 +99,13 @@ def test_inspect_lists_as_losses_only_what_was_lost(tmp_path, short_drive):
     result = runner.invoke(app, ["inspect", str(cut), "--json"])
     assert result.exit_code == 0, result.output
     (loss,) = json.loads(result.stdout)["losses"]
-    assert loss["reason"].startswith(f"not read from byte {loss['offset']} ")
-    assert "cut off" in loss["reason"] and loss["offset"] + loss["bytes"] == cut.stat().st_size
-    counts = json.loads(result.stdout)["topics"]["/gnss/imu"]["count"]
-    assert 0 < counts < len(short_drive.base.stream)
+    # (cut inside a chunk: what decodes of it is read, and the loss is named from the byte
+    # where reading stopped, the file's end: not "from" the chunk's first byte)
+    assert loss["reason"].startswith(f"not read from byte {cut.stat().st_size} ")
+    assert loss["offset"] == cut.stat().st_size and loss["bytes"] > 0
+    assert "the chunk from byte" in loss["reason"] and "is cut off after" in loss["reason"]
+    counts = json.loads(result.stdout)["topics"]
+    assert 0 < counts["/gnss/imu"]["count"] < len(short_drive.base.stream)
     config = tmp_path / "config.yaml"
     config.write_text(yaml.safe_dump(short_drive.config_document()))
     result = runner.invoke(app, ["biases", str(cut), "-c", str(config), "--json"])
@@ -229,6 +232,26 @@ def test_the_console_entry_point_ends_with_the_command_s_code_and_its_outputs_wh
     assert bad.returncode == 2 and b"missing.yaml" in bad.stderr and b"Traceback" not in bad.stderr
 
 
+def test_help_has_its_short_flag_and_shell_completion_and_flows_as_prose(monkeypatch):
+    """``-h`` is ``--help`` on every page; ``--show-completion`` prints a script for the shell
+    asked for; the commands' help is prose, not the docstrings' line breaks (``init``'s
+    "the transforms in its / /tf_static" broke mid-sentence)."""
+    top = runner.invoke(app, ["-h"], env={"COLUMNS": "200"})
+    assert (
+        top.exit_code == 0
+        and top.stdout == runner.invoke(app, ["--help"], env={"COLUMNS": "200"}).stdout
+    )
+    assert "--install-completion" in top.stdout
+    assert "the transforms in its /tf_static, a commented placeholder" in top.stdout
+    assert "rotation std, selected or not." in top.stdout
+    calibrate = runner.invoke(app, ["calibrate", "-h"], env={"COLUMNS": "200"})
+    assert calibrate.exit_code == 0 and "--follow" in calibrate.stdout
+    # (the shell named, as Typer's own tests do: a test has no shell to detect)
+    monkeypatch.setenv("_TYPER_COMPLETE_TEST_DISABLE_SHELL_DETECTION", "1")
+    script = runner.invoke(app, ["--show-completion", "bash"], prog_name="imucal")
+    assert script.exit_code == 0 and "complete " in script.stdout and "COMP_WORDS" in script.stdout
+
+
 def test_plain_flags_show_no_metavar_in_help():
     for command in ("calibrate", "inspect", "evaluate"):
         result = runner.invoke(app, [command, "--help"], env={"COLUMNS": "200"})
@@ -283,3 +306,40 @@ def test_a_ctrl_c_that_passed_through_a_library_s_exec_still_exits_130(tmp_path)
     )
     assert done.returncode == 130, done.stderr
     assert done.stderr.strip() == b"imucal: interrupted"
+
+
+def test_tables_never_cut_a_digit_at_80_columns(monkeypatch):
+    """At 80 columns rich cut the result table's numbers short (``[4.348…``, ``-43.99…``,
+    ``front_…``): every value the table holds is printed whole, the table stacked where it
+    does not fit, and left a table where it does."""
+    from rich.console import Console
+
+    from imucal_cli.cli import render
+
+    monkeypatch.setattr(render, "console", lambda: Console(width=80, highlight=False, markup=False))
+    log, config = SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml"
+    result = runner.invoke(app, ["calibrate", str(log), "-c", str(config)])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(
+        runner.invoke(app, ["calibrate", str(log), "-c", str(config), "--json"]).stdout
+    )
+    assert "…" not in result.stdout and max(map(len, result.stdout.splitlines())) <= 80
+    for name, sensor in doc["sensors"].items():
+        assert name in result.stdout
+        for values, digits in (
+            (sensor["T_base_lidar"]["translation"], 4),
+            (sensor["T_base_lidar"]["rpy_deg"], 3),
+        ):
+            assert render.fmt(values, digits) in result.stdout
+    narrow = render.fitted("t", ("a", "b"), [("1.5", "2.5")], 80)
+    assert type(narrow).__name__ == "Table"  # (a table that fits stays one)
+
+
+def test_the_progress_bar_says_its_count_or_what_it_waits_for():
+    """The bar said ``0/? messages`` until the first batch: the summary's count is shown as
+    soon as it is known; before, what is being done."""
+    from imucal_cli.cli.render import count_text
+
+    assert count_text(0, None, None, "messages") == "opening the log"
+    assert count_text(12345, 67890, 3.4, "messages") == "12,345 of 67,890 messages, 0:00:03 left"
+    assert count_text(67890, 67890, 0.0, "messages") == "all 67,890 messages read"

@@ -71,6 +71,7 @@ def test_evaluate_passes_and_fails_on_thresholds(estimate_path, tmp_path):
     assert doc["pass"] is True and doc["thresholds"] == {
         "max_rotation_deg": None,
         "max_translation_m": None,
+        "max_time_offset_s": None,
     }
     for row in list(doc["sensors"].values()) + list(doc["pairs"].values()):
         assert row["rotation_error_deg"] < 0.05 and row["translation_error_m"] < 0.02
@@ -103,6 +104,45 @@ def test_evaluate_passes_and_fails_on_thresholds(estimate_path, tmp_path):
         ],
     )
     assert result.exit_code == 0
+
+
+def test_evaluate_compares_clock_offsets_where_the_truth_has_them(estimate_path, tmp_path):
+    """Truth files carry ``time_offset_s``: ``time_offset_error_s`` is the estimate's less the
+    truth's (null where the truth has none), and ``--max-time-offset-s`` fails a sensor whose
+    error is larger, in the document, the table and JUnit."""
+    estimate, truth = yaml.safe_load(estimate_path.read_text()), yaml.safe_load(TRUTH.read_text())
+    result = runner.invoke(app, ["evaluate", str(estimate_path), str(TRUTH), "--json"])
+    doc = json.loads(result.stdout)
+    for name, row in doc["sensors"].items():
+        expected = (
+            estimate["sensors"][name]["time_offset_s"] - truth["sensors"][name]["time_offset_s"]
+        )
+        assert row["time_offset_error_s"] == pytest.approx(expected, rel=1e-12, abs=0)
+    assert all("time_offset_error_s" not in row for row in doc["pairs"].values())
+    worst = max(abs(row["time_offset_error_s"]) for row in doc["sensors"].values())
+    junit = tmp_path / "e.xml"
+    args = ["evaluate", str(estimate_path), str(TRUTH), "--junit", str(junit)]
+    result = runner.invoke(app, [*args, "--max-time-offset-s", str(worst / 2)])
+    assert result.exit_code == 1 and "time offset s >" in result.stdout
+    assert "time_offset_error_s" in junit.read_text() and "max_time_offset_s" in junit.read_text()
+    assert runner.invoke(app, [*args, "--max-time-offset-s", str(2 * worst)]).exit_code == 0
+    for sensor in truth["sensors"].values():
+        del sensor["time_offset_s"]
+    (tmp_path / "truth.yaml").write_text(yaml.safe_dump(truth))
+    no_offsets = runner.invoke(
+        app,
+        [
+            "evaluate",
+            str(estimate_path),
+            str(tmp_path / "truth.yaml"),
+            "--json",
+            "--max-time-offset-s",
+            "0",
+        ],
+    )
+    assert no_offsets.exit_code == 0, no_offsets.output
+    rows = json.loads(no_offsets.stdout)["sensors"].values()
+    assert all(row["time_offset_error_s"] is None for row in rows)
 
 
 def test_evaluate_against_itself_is_zero(estimate_path):
@@ -159,7 +199,9 @@ def test_calibrate_require_observable(tmp_path):
             str(tmp_path / "r.json"),
         ],
     )
-    assert result.exit_code == 1 and "not fully observable" in result.stderr
+    assert result.exit_code == 1 and "not every sensor is ok" in result.stderr
+    for name in doc["sensors"]:  # (each named with its status: not all are unobservable)
+        assert f"{name} unobservable" in result.stderr
     assert (tmp_path / "r.json").exists()  # the result is written; the check fails
 
 
@@ -430,3 +472,31 @@ def test_an_ok_drive_with_the_default_grades_has_no_warnings_and_says_its_notes_
     )
     assert batch.exit_code == 0, batch.output
     assert "estimated with" not in (tmp_path / "b" / "summary.csv").read_text()
+
+
+def test_a_clock_offset_not_estimated_is_not_called_observable(tmp_path):
+    """With ``max_time_offset_s: 0`` no offset is estimated: the document says it is not
+    observable (the SPEC: "kept at 0 (or not estimated)") and Kalibr's ``time_offset`` is 0.0,
+    never ``-0.0``."""
+    from imucal_cli.documents import load_document, write_document
+
+    config = load_document(CONFIG)
+    config["calibration"]["max_time_offset_s"] = 0.0
+    write_document(tmp_path / "config.yaml", config)
+    out = tmp_path / "estimate.json"
+    result = runner.invoke(
+        app, ["calibrate", str(LOG), "-c", str(tmp_path / "config.yaml"), "-o", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    doc = json.loads(out.read_text())
+    assert all(s["time_offset_s"] == 0.0 for s in doc["sensors"].values())
+    assert not any(s["time_offset_observable"] for s in doc["sensors"].values())
+    result = runner.invoke(app, ["export", str(out), "-f", "kalibr", "--allow-not-ok"])
+    assert result.exit_code == 0, result.output
+    offsets = [
+        line.split(":", 1)[1].strip()
+        for line in result.stdout.splitlines()
+        if "time_offset:" in line
+    ]
+    assert len(offsets) == len(doc["sensors"]) + 1
+    assert all(offset.startswith("0.0") for offset in offsets)

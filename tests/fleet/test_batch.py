@@ -818,3 +818,20 @@ def test_a_batch_with_a_config_that_leaves_transforms_out_reads_each_logs_tf(tmp
     assert {r["status"] for r in by_log["a.mcap"]} == {"ok"}
     (failed,) = by_log["b.mcap"]
     assert failed["status"] == "failed" and "T_imu_lidar: missing required key" in failed["error"]
+
+
+def test_a_used_out_dir_is_refused_naming_every_file_it_would_replace(fleet, tmp_path):
+    """Outputs of an earlier batch are not replaced without --force; the message names the
+    files (up to three, then a count), not one of them."""
+    root, logs = fleet
+    out = tmp_path / "out"
+    out.mkdir()
+    taken = [out / "d1.yaml", out / "d2.yaml", out / "summary.csv", out / "summary.json"]
+    for path in taken:
+        path.write_text("earlier\n")
+    result = _run(root, logs[:2], out)
+    assert result.exit_code == 2, result.output
+    message = " ".join(result.stderr.split())
+    assert "these 4 files" in message and "and 1 more" in message
+    assert sum(str(path) in message for path in taken) == 3
+    assert all(path.read_text() == "earlier\n" for path in taken)
