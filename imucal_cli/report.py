@@ -22,7 +22,7 @@ from __future__ import annotations
 import base64
 import html
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -96,6 +96,37 @@ def bias_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: P
             _legend(ax)
     for ax in axes[-1]:
         ax.set_xlabel("time since the log's first IMU stamp (s)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def excitation_figure(plt: Any, windows: Sequence[Any], offset_s: float, path: Path) -> Path:
+    """The drive's excitation window by window, from the base IMU: its rate's RMS and its
+    specific force's spread (the turns and the changes of speed that make the extrinsics
+    observable), the windows selected shaded. Speed is not drawn: no IMU measures it."""
+    fig, (rate, accel) = plt.subplots(2, 1, figsize=(13, 4.2), sharex=True)
+    middle = [0.5 * (w.start_s + w.end_s) + offset_s for w in windows]
+    rate.plot(middle, [np.degrees(w.rate_rms_radps) for w in windows], "o-", ms=3)
+    accel.plot(middle, [w.accel_std_mps2 for w in windows], "o-", ms=3, color="tab:purple")
+    rate.set_ylabel("rate RMS (deg/s)")
+    accel.set_ylabel("specific force std (m/s^2)")
+    for ax in (rate, accel):
+        for i, w in enumerate(w for w in windows if w.selected):
+            ax.axvspan(
+                w.start_s + offset_s,
+                w.end_s + offset_s,
+                color="tab:green",
+                alpha=0.12,
+                label=None if i else "selected window",
+            )
+        ax.set_ylim(bottom=0.0)
+        ax.grid(alpha=0.3)
+    if any(w.selected for w in windows):
+        _legend(rate)
+    rate.set_title(
+        "Excitation per window (base IMU): turning, and accelerating or braking", fontsize=10
+    )
+    accel.set_xlabel("time since the log's first IMU stamp (s)")
     fig.tight_layout()
     return _save(fig, path)
 
@@ -340,46 +371,66 @@ def _close_up(ax: Any, name: str, p: Mapping[str, Any], close: float) -> None:
     ax.grid(alpha=0.3)
 
 
-def html_page(title: str, document: Mapping[str, Any], figures: list[tuple[Path, str]]) -> str:
-    """One self-contained page: the result table and every figure (embedded as data URIs)."""
-    rows = []
-    for name, s in document["sensors"].items():
-        T = s["T_base_lidar"]
-        std_r = s["rotation_std_deg"]
-        std_t = s["translation_std_m"]
-        rows.append(
-            "<tr>"
-            + "".join(
-                f"<td>{html.escape(str(v))}</td>"
-                for v in (
-                    name,
-                    s["status"],
-                    ", ".join(f"{v:.4f}" for v in T["translation"]),
-                    ", ".join(f"{v:.3f}" for v in T["rpy_deg"]),
-                    "-" if std_t is None else ", ".join(f"{1000 * v:.2f}" for v in std_t),
-                    "-" if std_r is None else ", ".join(f"{v:.4f}" for v in std_r),
-                    f"{1000 * s['time_offset_s']:.2f}"
-                    if s["time_offset_observable"] and s["status"] != "unobservable"
-                    else "not shown",
-                    f"{s['segments']['selected']}/{s['segments']['total']}",
-                )
-            )
-            + "</tr>"
-        )
-    head = "".join(
-        f"<th>{h}</th>"
-        for h in (
+def html_page(
+    title: str,
+    document: Mapping[str, Any],
+    figures: list[tuple[Path, str]],
+    extra: Mapping[str, Mapping[str, Any]] | None = None,
+) -> str:
+    """One self-contained page: the summary of every sensor, the pairs, where each prior came
+    from, what to drive next, why each sensor has its status, then every figure (embedded as
+    data URIs). ``extra``, per sensor, what the document does not hold: its pose less the CAD
+    prior's, its grades, what to drive next (:func:`_extra`)."""
+    extra = extra or {}
+    sensors = document["sensors"]
+    summary = _table(
+        (
             "sensor",
             "status",
             "xyz (m)",
             "rpy (deg)",
-            "std xyz (mm)",
-            "std rpy (deg)",
+            "&Delta; prior: angle (deg)",
+            "&Delta; prior: xyz (mm)",
+            "std rpy (deg): total / statistical",
+            "std xyz (mm): total / statistical",
             "time offset (ms)",
+            "clock drift (ppm)",
+            "moved",
             "windows",
-        )
+        ),
+        [_summary_row(name, s, extra.get(name, {})) for name, s in sensors.items()],
     )
-    notes = "".join(_sensor_notes(name, s) for name, s in document["sensors"].items())
+    pairs = _table(
+        ("pair", "xyz (m)", "rpy (deg)"),
+        [
+            (pair, _numbers(T["translation"], 4), _numbers(T["rpy_deg"], 3))
+            for pair, T in document.get("pairs", {}).items()
+        ],
+    )
+    provenance = _table(
+        ("sensor", "T_imu_lidar", "prior_T_base_imu", "base.T_base_imu", "grade", "base grade"),
+        [
+            (
+                name,
+                *(
+                    s.get("priors", {}).get(k, "config")
+                    for k in ("T_imu_lidar", "prior_T_base_imu", "base.T_base_imu")
+                ),
+                extra.get(name, {}).get("grade", "-"),
+                extra.get(name, {}).get("base_grade", "-"),
+            )
+            for name, s in sensors.items()
+        ],
+    )
+    drive = (
+        "".join(
+            f"<h3>{html.escape(name)}</h3>" + _what_to_drive(sensors[name]["status"], missing)
+            for name in sensors
+            if (missing := extra.get(name, {}).get("missing"))
+        )
+        or "<p>Nothing: every axis of every sensor is within the config's stop: targets.</p>"
+    )
+    notes = "".join(_sensor_notes(name, s) for name, s in sensors.items())
     images = "".join(
         f'<figure><img alt="{html.escape(path.name)}" '
         f'src="data:image/png;base64,{base64.b64encode(path.read_bytes()).decode()}"/>'
@@ -389,14 +440,87 @@ def html_page(title: str, document: Mapping[str, Any], figures: list[tuple[Path,
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>body{{font-family:sans-serif;max-width:1500px;margin:auto;padding:1em}}
-table{{border-collapse:collapse}}
+table{{border-collapse:collapse;margin:0.5em 0}}
 td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}img{{max-width:100%}}
+td.ok{{color:#060}}td.partial{{color:#a60}}td.inconsistent,td.unobservable{{color:#b00}}
 figure{{margin:2em 0}}</style></head>
 <body><h1>{html.escape(title)}</h1>
-<p>T_{html.escape(str(document["base_frame"]))}_lidar per sensor
-(imucal {html.escape(str(document["imucal_version"]))}).</p>
-<table><tr>{head}</tr>{"".join(rows)}</table>{notes}{images}</body></html>
+<p>T_{html.escape(str(document["base_frame"]))}_lidar per sensor from
+{html.escape(str(document.get("log", "")))}
+(imucal {html.escape(str(document["imucal_version"]))}). &Delta; prior: the estimate less
+the lidar the CAD prior places (prior_T_base_imu &middot; T_imu_lidar). Total std: what to
+gate accuracy on; statistical: what the data alone determine, what more driving shrinks
+(stop: tests it).</p>
+<h2>Summary</h2>{summary}
+<h2>Pairs</h2>{pairs}
+<h2>Where each prior came from</h2>{provenance}
+<h2>What to drive next</h2>{drive}
+{notes}{images}</body></html>
 """
+
+
+def _what_to_drive(status: str, missing: list[str]) -> str:
+    """The driving that supplies each missing axis; none for a sensor whose data contradict
+    the model (more of the same driving does not mend that)."""
+    if status == "inconsistent":
+        return (
+            "<p>No driving mends it: the data contradict the rigid-mount model (its warnings "
+            "below say how), and its std is inflated for that.</p>"
+        )
+    return "<ul>" + "".join(f"<li>{html.escape(m)}</li>" for m in missing) + "</ul>"
+
+
+def _table(head: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """An HTML table; the head as given (entities allowed), the cells escaped; a ``status``
+    cell is coloured by its class."""
+    cells = "".join(
+        "<tr>"
+        + "".join(
+            f'<td class="{html.escape(str(v))}">{html.escape(str(v))}</td>'
+            if v in ("ok", "partial", "inconsistent", "unobservable")
+            else f"<td>{html.escape(str(v))}</td>"
+            for v in row
+        )
+        + "</tr>"
+        for row in rows
+    )
+    return f"<table><tr>{''.join(f'<th>{h}</th>' for h in head)}</tr>{cells}</table>"
+
+
+def _numbers(values: Any, digits: int, scale: float = 1.0) -> str:
+    return "-" if values is None else ", ".join(f"{scale * v:.{digits}f}" for v in values)
+
+
+def _summary_row(name: str, s: Mapping[str, Any], extra: Mapping[str, Any]) -> tuple[str, ...]:
+    T, statistical = s["T_base_lidar"], s.get("statistical_std") or {}
+    offset_std = s.get("time_offset_std_s")
+    offset = (
+        f"{1000 * s['time_offset_s']:.2f}"
+        + ("" if offset_std is None else f" \u00b1 {1000 * offset_std:.2f}")
+        if s["time_offset_observable"] and s["status"] != "unobservable"
+        else ("not shown" if extra.get("offset_estimated", True) else "not estimated")
+    )
+    prior = s["status"] != "unobservable" and "prior_angle_deg" in extra  # (else: the prior)
+    drift, drift_std = s.get("clock_drift_ppm"), s.get("clock_drift_std_ppm")
+    moves = s.get("moved") or []
+    return (
+        name,
+        s["status"],
+        _numbers(T["translation"], 4),
+        _numbers(T["rpy_deg"], 3),
+        f"{extra['prior_angle_deg']:.3f}" if prior else "- (the prior)",
+        _numbers(extra["prior_shift_m"], 1, 1000.0) if prior else "-",
+        f"{_numbers(s['rotation_std_deg'], 4)} / {_numbers(statistical.get('rotation_deg'), 4)}",
+        f"{_numbers(s['translation_std_m'], 2, 1000.0)} / "
+        f"{_numbers(statistical.get('translation_m'), 2, 1000.0)}",
+        offset,
+        "-"
+        if drift is None
+        else f"{drift:.1f}" + ("" if drift_std is None else f" \u00b1 {drift_std:.1f}"),
+        ", ".join(f"at {m['at_s']:.0f} s" for m in moves if "at_s" in m)
+        or ("yes" if moves else "no"),
+        f"{s['segments']['selected']}/{s['segments']['total']}",
+    )
 
 
 def _sensor_notes(name: str, sensor: Mapping[str, Any]) -> str:
@@ -529,6 +653,27 @@ def _poses(result: Calibration) -> dict[str, dict[str, Transform]]:
     }
 
 
+def _extra(result: Calibration) -> dict[str, dict[str, Any]]:
+    """Per sensor, what the page shows beside the document: the lidar's pose less the one its
+    CAD prior places (the angle between them, the shift in the base frame), the grades, and
+    what to drive next (the axes whose statistical std is over the stop: targets)."""
+    from imucal_cli.core.so3 import rotation_angle_deg
+    from imucal_cli.core.status import missing_axes
+
+    out = {}
+    for s in result.config.sensors:
+        estimate, prior = result.T_base_lidar(s.name), s.prior_T_base_imu * s.T_imu_lidar
+        out[s.name] = {
+            "prior_angle_deg": rotation_angle_deg(prior.rotation, estimate.rotation),
+            "prior_shift_m": estimate.translation - prior.translation,
+            "grade": s.grade,
+            "base_grade": result.config.base.grade,
+            "missing": missing_axes(result.estimates[s.name], result.config.stop),
+            "offset_estimated": result.config.calibration.max_time_offset_s > 0,
+        }
+    return out
+
+
 def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> list[Path]:
     """:func:`write_report`'s figures and page, drawn into ``out_dir``."""
     from imucal_cli.documents import write_text_atomic
@@ -543,6 +688,13 @@ def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> li
     }
     poses = _poses(result)
     drawings = [
+        (
+            lambda: excitation_figure(
+                plt, next(iter(estimates.values())).windows, offset, out_dir / "excitation.png"
+            ),
+            "The drive's excitation in each window (the base IMU's): what makes the extrinsics "
+            "observable. Speed is not shown: no IMU measures it.",
+        ),
         (
             lambda: bias_figure(plt, estimates, offset, out_dir / "biases.png"),
             "Relative biases of every sensor at each knot of the joint fit.",
@@ -583,5 +735,6 @@ def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> li
         if progress is not None:
             progress(k, len(drawings))
     page = out_dir / "report.html"
-    write_text_atomic(page, html_page(f"imucal calibration report: {log.name}", document, figures))
+    title = f"imucal calibration report: {log.name}"
+    write_text_atomic(page, html_page(title, document, figures, _extra(result)))
     return [p for p, _ in figures] + [page]

@@ -45,6 +45,7 @@ def test_report_for_the_sample_drive(tmp_path, monkeypatch):
     opened = opens.read_text().splitlines()
     assert len(opened) == 1  # the report draws from the calibration: no second read of the log
     expected = {
+        "excitation.png",
         "biases.png",
         "windows.png",
         "residuals.png",
@@ -62,7 +63,7 @@ def test_report_for_the_sample_drive(tmp_path, monkeypatch):
         p.startswith(b"\x89PNG\r\n\x1a\n") for p in pngs
     )
     for name in names:  # the result table: every sensor with its status and estimate
-        row = re.search(rf"<tr><td>{name}</td><td>(\w+)</td><td>([^<]+)</td>", page)
+        row = re.search(rf'<tr><td>{name}</td><td class="\w+">(\w+)</td><td>([^<]+)</td>', page)
         assert row and row.group(1) == document["sensors"][name]["status"]
         assert row.group(2) == ", ".join(
             f"{v:.4f}" for v in document["sensors"][name]["T_base_lidar"]["translation"]
@@ -215,3 +216,64 @@ def test_the_std_figure_of_an_unobservable_sensor_has_no_negative_std(tmp_path, 
             assert [t.get_text() for t in ax.texts] == ["not observable"]
             assert (len(ax.get_yticks()) == 0) == (stds is not some)
         plt.close(fig)
+
+
+def test_the_page_answers_the_next_question(tmp_path):
+    """The report's page is the one an engineer keeps open: per sensor the estimate less the
+    lidar its CAD prior places, the total and the statistical std, the clock's offset and
+    drift, the moves; the pairs; where each prior came from and the grades; and what to drive
+    next where an axis is short of the stop: targets."""
+    import html as html_module
+
+    from imucal_cli.api import calibrate
+    from imucal_cli.core.so3 import rotation_angle_deg
+    from imucal_cli.documents import load_document, write_document
+    from imucal_cli.report import write_report
+
+    config = load_document(SAMPLE_DATA / "aggressive.config.yaml")
+    config["stop"] = {"max_rotation_std_deg": 0.001, "max_translation_std_m": 0.0001}  # unmet
+    write_document(tmp_path / "c.yaml", config)
+    cal = calibrate(SAMPLE_DATA / "aggressive.mcap", tmp_path / "c.yaml")
+    write_report(tmp_path / "report", cal)
+    page = html_module.unescape((tmp_path / "report" / "report.html").read_text())
+    for heading in ("Summary", "Pairs", "Where each prior came from", "What to drive next"):
+        assert f"<h2>{heading}</h2>" in page
+    document = cal.document()
+    for s in cal.config.sensors:
+        prior = s.prior_T_base_imu * s.T_imu_lidar
+        angle = rotation_angle_deg(prior.rotation, cal.T_base_lidar(s.name).rotation)
+        assert f"<td>{angle:.3f}</td>" in page  # (the CAD prior's lidar, not its IMU: not 180)
+        assert angle < 10.0
+        statistical = document["sensors"][s.name]["statistical_std"]["rotation_deg"]
+        assert ", ".join(f"{v:.4f}" for v in statistical) in page
+        assert f"<td>{s.grade}</td>" in page
+    for pair in document["pairs"]:
+        assert f"<td>{pair}</td>" in page
+    assert "<td>tf_static</td>" in page  # (the sample's base pose: from its /tf_static)
+    assert "rotation z (yaw)" in page.split("What to drive next")[1]
+
+
+def test_the_summary_says_the_prior_and_the_driving_as_they_are(tmp_path):
+    """An unobservable sensor's pose is the prior's: no difference from it is shown (0.000 read
+    as a measurement); an offset the config does not estimate is "not estimated", not "not
+    shown"; an inconsistent sensor is not told to drive more (it would not mend it)."""
+    import yaml
+
+    from imucal_cli.report import _summary_row, _what_to_drive
+
+    sensor = yaml.safe_load((SAMPLE_DATA / "aggressive.truth.yaml").read_text())["sensors"]
+    s = {
+        "T_base_lidar": next(iter(sensor.values()))["T_base_lidar"],
+        "status": "unobservable",
+        "rotation_std_deg": None,
+        "translation_std_m": None,
+        "time_offset_s": 0.0,
+        "time_offset_observable": False,
+        "segments": {"selected": 0, "total": 6},
+    }
+    extra = {"prior_angle_deg": 0.0, "prior_shift_m": [0.0, 0.0, 0.0], "offset_estimated": False}
+    row = _summary_row("a", s, extra)
+    assert "- (the prior)" in row and "0.000" not in row and "not estimated" in row
+    missing = ["rotation z (yaw): turns in both directions (std 0.1 deg, target 0.02)"]
+    assert "turns in both directions" in _what_to_drive("partial", missing)
+    assert "turns" not in _what_to_drive("inconsistent", missing)

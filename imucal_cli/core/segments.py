@@ -46,6 +46,10 @@ class WindowInfo:
     valid: bool  # False when the window holds a gap in either stream
     count: int = 1  # windows it stands for (old windows merged: memory flat in time)...
     left_out: int = 0  # ... of which not used
+    #: The drive's excitation there, from the base IMU: its rate's RMS (rad/s) and its specific
+    #: force's std about the window's mean (m/s^2: the vehicle's accelerations and turns).
+    rate_rms_radps: float = float("nan")
+    accel_std_mps2: float = float("nan")
 
     @property
     def used(self) -> int:
@@ -59,7 +63,7 @@ def window_counts(infos: Sequence[WindowInfo]) -> tuple[int, int]:
     return sum(info.used for info in infos), sum(info.count for info in infos)
 
 
-#: One window's observability as :class:`WindowRows` keeps it (69 bytes).
+#: One window's observability as :class:`WindowRows` keeps it (85 bytes).
 ROW = np.dtype(
     [
         ("start_s", "f8"),
@@ -72,12 +76,14 @@ ROW = np.dtype(
         ("valid", "?"),
         ("count", "i4"),
         ("left_out", "i4"),
+        ("rate_rms_radps", "f8"),
+        ("accel_std_mps2", "f8"),
     ]
 )
 
 
 class WindowRows(Sequence[WindowInfo]):
-    """Windows' observability as a table (``segments`` keeps every window of a day: 69 bytes
+    """Windows' observability as a table (``segments`` keeps every window of a day: 85 bytes
     each rather than a :class:`WindowInfo` and its two arrays), read back as
     :class:`WindowInfo` s."""
 
@@ -119,6 +125,8 @@ class WindowRows(Sequence[WindowInfo]):
             valid=bool(row["valid"]),
             count=int(row["count"]),
             left_out=int(row["left_out"]),
+            rate_rms_radps=float(row["rate_rms_radps"]),
+            accel_std_mps2=float(row["accel_std_mps2"]),
         )
 
 
@@ -187,6 +195,12 @@ def window_infos_from_moments(
         np.einsum("kjala->kjl", C_A) - n * 2.0 * dw_noise_var * np.eye(3)
     ) / accel_noise_std**2
     t_stds = _std_from_information(t_info)
+    w_B, f_B = GYRO_DATA["w_B"], ACCEL_DATA["f_B"]
+    with np.errstate(invalid="ignore", divide="ignore"):  # (a window without samples: nan)
+        rate_rms = np.sqrt(np.einsum("kii->k", S_gyro[:, w_B, w_B]) / n[:, 0, 0])
+        mean_f = S_accel[:, f_B, one_a] / n[:, 0]
+        f_var = np.einsum("kii->k", S_accel[:, f_B, f_B]) / n[:, 0, 0] - (mean_f**2).sum(axis=1)
+        accel_std = np.sqrt(np.clip(f_var, 0.0, None))
     out = []
     for k, (start, end, valid) in enumerate(spans):
         t_std = t_stds[k].copy()
@@ -200,6 +214,8 @@ def window_infos_from_moments(
                 translation_std_m=t_std,
                 translation_observable=t_std < OBSERVABLE_FRACTION_OF_BOUND * translation_bound_m,
                 valid=bool(valid),
+                rate_rms_radps=float(rate_rms[k]),
+                accel_std_mps2=float(accel_std[k]),
             )
         )
     return out

@@ -195,3 +195,27 @@ def test_a_short_gap_is_bridged_and_a_long_one_is_said_in_the_table(tmp_path):
     ]  # three dropped messages bridged
     assert not any(w.get("gap") for w in short)
     assert sum(bool(w.get("gap")) for w in long) == 1  # 40 messages (200 ms): a gap, one window
+
+
+def test_each_window_says_the_drive_s_excitation_there():
+    """A window's excitation (the report's excitation figure) is the base IMU's rate RMS and
+    its specific force's std about the window's mean: the same as the raw samples' over the
+    window, to the parts in 10^4 by which the resampled, low-passed signals of the moments
+    differ from them (the raw gyro's white noise is 2.6e-3 rad/s against 0.25 rad/s)."""
+    from conftest import SAMPLE_DATA
+
+    from imucal_cli.api import calibrate
+    from imucal_cli.reading import read_imu
+
+    log = SAMPLE_DATA / "aggressive.mcap"
+    cal = calibrate(log, SAMPLE_DATA / "aggressive.config.yaml")
+    stream = read_imu(log, [cal.config.base.topic])[cal.config.base.topic].stream
+    t = (stream.t_ns - cal.t_ref_ns) * 1e-9
+    for name, estimate in cal.estimates.items():
+        assert estimate.windows, name
+        for w in estimate.windows:
+            inside = (t >= w.start_s) & (t < w.end_s)
+            rms = np.sqrt((stream.gyro[inside] ** 2).sum(axis=1).mean())
+            spread = np.sqrt(stream.accel[inside].var(axis=0).sum())
+            assert w.rate_rms_radps == pytest.approx(rms, rel=1e-3)
+            assert w.accel_std_mps2 == pytest.approx(spread, rel=1e-3)
