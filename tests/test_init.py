@@ -173,3 +173,39 @@ def test_a_log_cannot_write_keys_into_inits_config_nor_escapes_onto_the_terminal
         assert sensor["lidar_frame"] == f"{name}_lidar"
         prior = sensor["prior_T_base_imu"]  # from the tree, not from the frame's name
         assert prior["translation"] != [9, 9, 9]
+
+
+def test_check_config_with_the_log_marks_each_key_the_log_supplied(tmp_path):
+    """``check-config --log`` fills in what the config leaves out from the log's /tf_static:
+    each such key's line says so (the YAML reads as the config it is), and a note on stderr
+    names each key, for --json too; the keys the config gives are not marked."""
+    import yaml
+    from conftest import SAMPLE_DATA
+    from typer.testing import CliRunner
+
+    from imucal_cli.cli import app
+    from imucal_cli.documents import load_document, write_document
+
+    runner = CliRunner()
+    config = load_document(SAMPLE_DATA / "aggressive.config.yaml")
+    first, second = list(config["sensors"])
+    del config["sensors"][first]["T_imu_lidar"], config["sensors"][first]["prior_T_base_imu"]
+    write_document(tmp_path / "c.yaml", config)
+    args = ["check-config", str(tmp_path / "c.yaml"), "--log", str(SAMPLE_DATA / "aggressive.mcap")]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    marked = [line.strip() for line in result.stdout.splitlines() if "# from" in line]
+    assert marked == [
+        "T_base_imu:  # from tf_static",
+        "T_imu_lidar:  # from tf_static",
+        "prior_T_base_imu:  # from tf_static",
+    ]
+    filled = yaml.safe_load(result.stdout)
+    assert filled["sensors"][second]["T_imu_lidar"]["rpy_deg"] == pytest.approx(
+        config["sensors"][second]["T_imu_lidar"]["rpy_deg"]
+    )
+    for key in (f"sensors.{first}.T_imu_lidar", f"sensors.{first}.prior_T_base_imu"):
+        assert f"{key}: from" in result.stderr
+    assert f"sensors.{second}" not in result.stderr
+    as_json = runner.invoke(app, [*args, "--json"])
+    assert as_json.exit_code == 0 and f"sensors.{first}.T_imu_lidar: from" in as_json.stderr

@@ -130,4 +130,29 @@ def check_config(
     from imucal_cli.documents import dumps
 
     options.needs("--urdf", urdf, "--log (the IMUs' frames are in the log)", log)
-    typer.echo(dumps(load_config(config, log, urdf).to_dict(), as_json=as_json), nl=False)
+    loaded = load_config(config, log, urdf)
+    text = dumps(loaded.to_dict(), as_json=as_json)
+    taken = {  # (the keys the log supplied: marked, the config's own left as they are)
+        (key if key.startswith("base.") else f"sensors.{name}.{key}"): source
+        for name, sources in loaded.priors.items()
+        for key, source in sources.items()
+        if source != "config"
+    }
+    for key, source in sorted(taken.items()):
+        err(f"imucal: note: {key}: from {log}'s {source} (the config leaves it out)")
+    if not as_json:  # (YAML: each such key's line says so)
+        for key, source in taken.items():
+            *where, leaf = key.split(".")
+            text = _mark(text, where, leaf, source)
+    typer.echo(text, nl=False)
+
+
+def _mark(text: str, where: list[str], key: str, source: str) -> str:
+    """``text`` (a config's YAML) with the line of ``key`` under ``where`` (``["base"]`` or
+    ``["sensors", NAME]``) saying where its value came from."""
+    head = "base:\n" if where == ["base"] else f"\n  {where[-1]}:\n"
+    line = f"\n{'  ' * len(where)}{key}:\n"
+    found = text.find(line, max(text.find(head), 0))
+    if found < 0:
+        return text
+    return text[:found] + f"{line[:-1]}  # from {source}\n" + text[found + len(line) :]
