@@ -371,6 +371,23 @@ def _close_up(ax: Any, name: str, p: Mapping[str, Any], close: float) -> None:
     ax.grid(alpha=0.3)
 
 
+#: The summary table's columns.
+SUMMARY = (
+    "sensor",
+    "status",
+    "xyz (m)",
+    "rpy (deg)",
+    "&Delta; prior: angle (deg)",
+    "&Delta; prior: xyz (mm)",
+    "std rpy (deg): total / statistical",
+    "std xyz (mm): total / statistical",
+    "time offset (ms)",
+    "clock drift (ppm)",
+    "moved",
+    "windows",
+)
+
+
 def html_page(
     title: str,
     document: Mapping[str, Any],
@@ -381,56 +398,7 @@ def html_page(
     from, what to drive next, why each sensor has its status, then every figure (embedded as
     data URIs). ``extra``, per sensor, what the document does not hold: its pose less the CAD
     prior's, its grades, what to drive next (:func:`_extra`)."""
-    extra = extra or {}
-    sensors = document["sensors"]
-    summary = _table(
-        (
-            "sensor",
-            "status",
-            "xyz (m)",
-            "rpy (deg)",
-            "&Delta; prior: angle (deg)",
-            "&Delta; prior: xyz (mm)",
-            "std rpy (deg): total / statistical",
-            "std xyz (mm): total / statistical",
-            "time offset (ms)",
-            "clock drift (ppm)",
-            "moved",
-            "windows",
-        ),
-        [_summary_row(name, s, extra.get(name, {})) for name, s in sensors.items()],
-    )
-    pairs = _table(
-        ("pair", "xyz (m)", "rpy (deg)"),
-        [
-            (pair, _numbers(T["translation"], 4), _numbers(T["rpy_deg"], 3))
-            for pair, T in document.get("pairs", {}).items()
-        ],
-    )
-    provenance = _table(
-        ("sensor", "T_imu_lidar", "prior_T_base_imu", "base.T_base_imu", "grade", "base grade"),
-        [
-            (
-                name,
-                *(
-                    s.get("priors", {}).get(k, "config")
-                    for k in ("T_imu_lidar", "prior_T_base_imu", "base.T_base_imu")
-                ),
-                extra.get(name, {}).get("grade", "-"),
-                extra.get(name, {}).get("base_grade", "-"),
-            )
-            for name, s in sensors.items()
-        ],
-    )
-    drive = (
-        "".join(
-            f"<h3>{html.escape(name)}</h3>" + _what_to_drive(sensors[name]["status"], missing)
-            for name in sensors
-            if (missing := extra.get(name, {}).get("missing"))
-        )
-        or "<p>Nothing: every axis of every sensor is within the config's stop: targets.</p>"
-    )
-    notes = "".join(_sensor_notes(name, s) for name, s in sensors.items())
+    notes = "".join(_sensor_notes(name, s) for name, s in document["sensors"].items())
     images = "".join(
         f'<figure><img alt="{html.escape(path.name)}" '
         f'src="data:image/png;base64,{base64.b64encode(path.read_bytes()).decode()}"/>'
@@ -451,12 +419,45 @@ figure{{margin:2em 0}}</style></head>
 the lidar the CAD prior places (prior_T_base_imu &middot; T_imu_lidar). Total std: what to
 gate accuracy on; statistical: what the data alone determine, what more driving shrinks
 (stop: tests it).</p>
-<h2>Summary</h2>{summary}
-<h2>Pairs</h2>{pairs}
-<h2>Where each prior came from</h2>{provenance}
-<h2>What to drive next</h2>{drive}
+{_sections(document, extra or {})}
 {notes}{images}</body></html>
 """
+
+
+def _sections(document: Mapping[str, Any], extra: Mapping[str, Mapping[str, Any]]) -> str:
+    """The page's tables: the summary, the pairs, where each prior came from, what to drive."""
+    sensors = document["sensors"]
+    summary = [_summary_row(name, s, extra.get(name, {})) for name, s in sensors.items()]
+    pairs = [
+        (pair, _numbers(T["translation"], 4), _numbers(T["rpy_deg"], 3))
+        for pair, T in document.get("pairs", {}).items()
+    ]
+    keys = ("T_imu_lidar", "prior_T_base_imu", "base.T_base_imu")
+    provenance = [
+        (
+            name,
+            *(s.get("priors", {}).get(k, "config") for k in keys),
+            extra.get(name, {}).get("grade", "-"),
+            extra.get(name, {}).get("base_grade", "-"),
+        )
+        for name, s in sensors.items()
+    ]
+    drive = "".join(
+        f"<h3>{html.escape(name)}</h3>" + _what_to_drive(sensors[name]["status"], missing)
+        for name in sensors
+        if (missing := extra.get(name, {}).get("missing"))
+    )
+    return (
+        f"<h2>Summary</h2>{_table(SUMMARY, summary)}"
+        f"<h2>Pairs</h2>{_table(('pair', 'xyz (m)', 'rpy (deg)'), pairs)}"
+        f"<h2>Where each prior came from</h2>"
+        f"{_table(('sensor', *keys, 'grade', 'base grade'), provenance)}"
+        "<h2>What to drive next</h2>"
+        + (
+            drive
+            or "<p>Nothing: every axis of every sensor is within the config's stop: targets.</p>"
+        )
+    )
 
 
 def _what_to_drive(status: str, missing: list[str]) -> str:
@@ -674,6 +675,22 @@ def _extra(result: Calibration) -> dict[str, dict[str, Any]]:
     return out
 
 
+#: Each figure's caption on the page, in the page's order.
+CAPTIONS = {
+    "excitation.png": "The drive's excitation in each window (the base IMU's): what makes the "
+    "extrinsics observable. Speed is not shown: no IMU measures it.",
+    "biases.png": "Relative biases of every sensor at each knot of the joint fit.",
+    "windows.png": "Per-window rotation std against the threshold; selected windows shaded "
+    "(paper Figs. 9b-10b).",
+    "residuals.png": "Residual RMS of the fit in every window used, against the noise.",
+    "timeline.png": "Each epoch's estimate (the sensor alone in calibration.epoch_s of the log) "
+    "less the log's, with one std; where the mount moved, its time and std shaded.",
+    "std.png": "One standard deviation of every estimated axis.",
+    "vehicle.png": "Top and side view: base frame and lidars as estimated (solid) and as the "
+    "CAD prior places them (dashed); close-ups add each IMU and its prior.",
+}
+
+
 def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> list[Path]:
     """:func:`write_report`'s figures and page, drawn into ``out_dir``."""
     from imucal_cli.documents import write_text_atomic
@@ -686,52 +703,21 @@ def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> li
     stds = {
         n: (s["rotation_std_deg"], s["translation_std_m"]) for n, s in document["sensors"].items()
     }
-    poses = _poses(result)
-    drawings = [
-        (
-            lambda: excitation_figure(
-                plt, next(iter(estimates.values())).windows, offset, out_dir / "excitation.png"
-            ),
-            "The drive's excitation in each window (the base IMU's): what makes the extrinsics "
-            "observable. Speed is not shown: no IMU measures it.",
+    threshold = config.segments.max_rotation_std_deg
+    drawings = {
+        "excitation.png": lambda path: excitation_figure(
+            plt, next(iter(estimates.values())).windows, offset, path
         ),
-        (
-            lambda: bias_figure(plt, estimates, offset, out_dir / "biases.png"),
-            "Relative biases of every sensor at each knot of the joint fit.",
-        ),
-        (
-            lambda: windows_figure(
-                plt,
-                estimates,
-                offset,
-                config.segments.max_rotation_std_deg,
-                out_dir / "windows.png",
-            ),
-            "Per-window rotation std against the threshold; selected windows shaded (paper Figs. "
-            "9b-10b).",
-        ),
-        (
-            lambda: residual_figure(plt, estimates, offset, out_dir / "residuals.png"),
-            "Residual RMS of the fit in every window used, against the noise.",
-        ),
-        (
-            lambda: timeline_figure(plt, document["sensors"], out_dir / "timeline.png"),
-            "Each epoch's estimate (the sensor alone in calibration.epoch_s of the log) less the "
-            "log's, with one std; where the mount moved, its time and std shaded.",
-        ),
-        (
-            lambda: std_figure(plt, stds, out_dir / "std.png"),
-            "One standard deviation of every estimated axis.",
-        ),
-        (
-            lambda: vehicle_figure(plt, poses, out_dir / "vehicle.png"),
-            "Top and side view: base frame and lidars as estimated (solid) and as the CAD prior "
-            "places them (dashed); close-ups add each IMU and its prior.",
-        ),
-    ]
+        "biases.png": lambda path: bias_figure(plt, estimates, offset, path),
+        "windows.png": lambda path: windows_figure(plt, estimates, offset, threshold, path),
+        "residuals.png": lambda path: residual_figure(plt, estimates, offset, path),
+        "timeline.png": lambda path: timeline_figure(plt, document["sensors"], path),
+        "std.png": lambda path: std_figure(plt, stds, path),
+        "vehicle.png": lambda path: vehicle_figure(plt, _poses(result), path),
+    }
     figures = []
-    for k, (draw, caption) in enumerate(drawings, start=1):
-        figures.append((draw(), caption))
+    for k, (name, draw) in enumerate(drawings.items(), start=1):
+        figures.append((draw(out_dir / name), CAPTIONS[name]))
         if progress is not None:
             progress(k, len(drawings))
     page = out_dir / "report.html"

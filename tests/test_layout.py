@@ -166,3 +166,22 @@ def test_the_readme_s_table_lists_every_option_of_every_command():
                     name,
                     flags,
                 )
+
+
+def test_the_sample_readme_says_what_the_sample_configs_carry():
+    """sample_data/README.md said the sample configs carry ``consistency_alpha`` "written in by
+    hand"; they do not. The calibration keys it now says they leave out are real config keys
+    and absent from every sample config (each then at its default)."""
+    import re
+
+    from imucal_cli.config import CalibrationConfig
+    from imucal_cli.documents import load_document
+
+    root = PACKAGE.parent
+    text = (root / "sample_data" / "README.md").read_text()
+    said = text.split("calibration keys added since", 1)[1].split(")", 1)[0]
+    keys = re.findall(r"`(\w+)`", said)
+    assert keys and set(keys) <= set(CalibrationConfig.__dataclass_fields__)
+    for config in [*root.glob("sample_data/*.config.yaml"), *root.glob("configs/sample_*.yaml")]:
+        calibration = load_document(config).get("calibration", {})
+        assert not set(keys) & set(calibration), config
