@@ -17,7 +17,7 @@ A key given in the config wins. What is read is bounded (:data:`MAX_TF_MESSAGES`
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -340,18 +340,24 @@ def frame_tree(reader: Any, urdf: str | Path | None = None) -> FrameTree:
 
 
 def complete_from_log(
-    data: Any, log: str | Path, source: str, urdf: str | Path | None = None
+    data: Any,
+    log: str | Path,
+    source: str,
+    urdf: str | Path | None = None,
+    marked: Collection[tuple[str, str]] = (),
 ) -> tuple[Any, dict[str, dict[str, str]]]:
     """The config document with the transforms it leaves out taken from ``log``'s
     ``/tf_static`` and a URDF (:func:`frame_tree`), and where each transform came from, per
-    sensor (``config``: the config or its default; ``tf_static``, ``urdf`` or both). Raises
+    sensor (``config``: the config or its default; ``tf_static``, ``urdf`` or both). ``marked``:
+    keys (sensor, key; ``("", "T_base_imu")`` the base's) the config gives as ``imucal init``
+    took them from the tree: said to come from it where they still are the tree's. Raises
     :class:`ConfigError` naming the key and the frames where the tree cannot supply one."""
     if not isinstance(data, Mapping) or not isinstance(data.get("sensors"), Mapping):
         return data, {}
     missing, base_missing = _missing(data)
     names = [n for n, s in data["sensors"].items() if isinstance(s, Mapping)]
     sources = {name: config_sources() for name in names}
-    if not missing and not base_missing:
+    if not missing and not base_missing and not marked:
         return data, sources
     from imucal_cli.io.logs import open_log
 
@@ -361,7 +367,9 @@ def complete_from_log(
         if not tree.edges and not missing:  # (the base at the config's default)
             return data, sources
         wanted = [document["base"].get("topic")] + [
-            document["sensors"][n].get("imu_topic") for n, _ in missing
+            document["sensors"][n].get("imu_topic")
+            for n, _ in [*missing, *marked]
+            if n in document["sensors"]
         ]
         available = reader.topics()
         topics = [t for t in dict.fromkeys(wanted) if isinstance(t, str) and t in available]
@@ -384,7 +392,47 @@ def complete_from_log(
         if found is None:
             raise ConfigError(source, f"sensors.{name}.{key}", _why(log, tree, ends, imu, key))
         sensor[key], sources[name][key] = found[0].to_dict(), found[1]
+    for name, key in marked:  # (given as init took them: still the tree's?)
+        found = _chain_of(tree, frames, document, name, key)
+        if found is not None and _same(found[0], document, name, key):
+            for each in names if not name else [name]:
+                sources[each][key if name else f"base.{BASE_KEY}"] = found[1]
     return document, sources
+
+
+def _chain_of(
+    tree: FrameTree, frames: Mapping[str, str], document: Any, name: str, key: str
+) -> tuple[Transform, str] | None:
+    """What the tree gives for sensor ``name``'s ``key`` (``name`` empty: the base's pose)."""
+    base = document["base"]
+    base_frame = str(base.get("frame", "base_link"))
+    if not name:
+        imu = frames.get(str(base.get("topic")))
+        return tree.chain(base_frame, imu) if imu else None
+    sensor = document["sensors"].get(name)
+    if not isinstance(sensor, Mapping):
+        return None
+    imu = sensor.get("imu_frame") or frames.get(str(sensor.get("imu_topic")))
+    lidar = str(sensor.get("lidar_frame") or f"{name}_lidar")
+    return (
+        tree.chain(*((imu, lidar) if key == "T_imu_lidar" else (base_frame, imu))) if imu else None
+    )
+
+
+def _same(T: Transform, document: Any, name: str, key: str) -> bool:
+    """Whether the config's value of ``key`` is ``T`` to the digits init writes (1e-6 m,
+    1e-5 deg)."""
+    from imucal_cli.core.so3 import rotation_angle_deg
+
+    given = (document["sensors"][name] if name else document["base"]).get(key)
+    try:
+        G = Transform.from_dict(given)
+    except Exception:  # (a malformed value: parse_config says so, by its key)
+        return False
+    return bool(
+        np.all(np.abs(G.translation - T.translation) < 1e-6)
+        and rotation_angle_deg(G.rotation, T.rotation) < 1e-5
+    )
 
 
 def _why(log: str | Path, tree: FrameTree, ends: tuple[Any, Any], imu: str | None, key: str) -> str:

@@ -583,11 +583,16 @@ def recording_config(path: Path, log: Path, limit: float, urdf: Path | None) -> 
     ``limit``, monotonic s); an error in the URDF itself is said at once. A base pose left out
     is taken from the recording where it reads now, else the config's default (said)."""
     from imucal_cli.frames import MAX_URDF_BYTES, FrameTree, read_urdf
-    from imucal_cli.priors import config_alone, load_config_for
+    from imucal_cli.priors import config_alone, init_marks, load_config_for
 
     config, partial = config_alone(path)
-    if config is not None and not partial:
+    if config is not None and not partial and not init_marks(path):
         return config, ""
+    if config is not None and not partial:  # (what init took from the tree: still the tree's?)
+        try:
+            return load_config_for(path, log, urdf), ""
+        except ImucalError:
+            return config, ""
     if config is not None:  # the base IMU's pose alone left out: the recording's, where it reads
         try:
             return load_config_for(path, log, urdf), ""

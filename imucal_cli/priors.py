@@ -5,6 +5,7 @@ load_config`) opens no log."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,7 +33,7 @@ def load_config_for(path: str | Path, log: str | Path, urdf: str | Path | None =
     """The config at ``path`` with what it leaves out from ``log``
     (:func:`imucal_cli.frames.complete_from_log`); where each transform came from in
     :attr:`Config.priors`."""
-    data, priors = complete_from_log(read_config(path), log, str(path), urdf)
+    data, priors = complete_from_log(read_config(path), log, str(path), urdf, init_marks(path))
     try:
         return replace(parse_config(data, str(path)), priors=priors)
     except ConfigError as exc:  # a value the log supplied: said as the log's, not the file's
@@ -47,3 +48,30 @@ def load_config_for(path: str | Path, log: str | Path, urdf: str | Path | None =
             exc.key,
             f"{exc.problem} (the value {path} leaves out, taken from {origin} in {log})",
         ) from None
+
+
+#: A transform's line as ``imucal init`` writes it: the key, its value, where it came from.
+_MARKED = re.compile(
+    r"^( {2}| {4})(T_imu_lidar|prior_T_base_imu|T_base_imu): .*# from (tf_static|urdf)"
+)
+
+
+def init_marks(path: str | Path) -> set[tuple[str, str]]:
+    """The transforms a config gives as ``imucal init`` wrote them from a log's tree (its
+    ``# from tf_static`` lines): (sensor, key), ``("", "T_base_imu")`` for the base's. Whether
+    each is still the tree's is for the tree to say (:func:`complete_from_log`)."""
+    try:
+        text = Path(path).read_text(errors="replace")
+    except OSError:
+        return set()
+    marks, section, sensor = set(), "", ""
+    for line in text.splitlines():
+        if line and not line[0].isspace():
+            section = line.split(":")[0]
+        elif section == "sensors" and (head := re.match(r"^  (\w+):\s*$", line)):
+            sensor = head[1]
+        if found := _MARKED.match(line):
+            in_base = section == "base" and found[1] == "  " and found[2] == "T_base_imu"
+            if in_base or (section == "sensors" and sensor and found[1] == "    "):
+                marks.add(("" if in_base else sensor, found[2]))
+    return marks

@@ -209,3 +209,31 @@ def test_check_config_with_the_log_marks_each_key_the_log_supplied(tmp_path):
     assert f"sensors.{second}" not in result.stderr
     as_json = runner.invoke(app, [*args, "--json"])
     assert as_json.exit_code == 0 and f"sensors.{first}.T_imu_lidar: from" in as_json.stderr
+
+
+def test_a_config_init_wrote_says_its_priors_came_from_the_log_while_they_still_do(tmp_path):
+    """Transforms ``init`` took from /tf_static came back as ``priors: config`` (the config
+    gives them): they are said to come from tf_static while the config's value is still the
+    tree's, calibrated or followed alike, and ``config`` once a user has changed one."""
+    from conftest import SAMPLE_DATA
+    from typer.testing import CliRunner
+
+    from imucal_cli.api import load_config as load_for_log
+    from imucal_cli.cli import app
+    from imucal_cli.pipeline import recording_config
+
+    log, config = SAMPLE_DATA / "aggressive.mcap", tmp_path / "init.yaml"
+    assert CliRunner().invoke(app, ["init", str(log), "-o", str(config)]).exit_code == 0
+    for loaded in (load_for_log(config, log), recording_config(config, log, 0.0, None)[0]):
+        assert all(set(sources.values()) == {"tf_static"} for sources in loaded.priors.values()), (
+            loaded.priors
+        )
+    document = calibrate(log, load_for_log(config, log)).document()
+    assert {s["priors"]["T_imu_lidar"] for s in document["sensors"].values()} == {"tf_static"}
+    text = config.read_text().splitlines()
+    first = next(k for k, line in enumerate(text) if line.strip().startswith("T_imu_lidar:"))
+    text[first] = text[first].replace("0.028535", "0.038535")  # (a centimetre: the user's own)
+    config.write_text("\n".join(text) + "\n")
+    edited = load_for_log(config, log).priors
+    assert sorted(s["T_imu_lidar"] for s in edited.values()) == ["config", "tf_static"]
+    assert all(s["prior_T_base_imu"] == "tf_static" for s in edited.values())
