@@ -84,16 +84,20 @@ def _mm(values: Any) -> Any:
     return None if values is None else [1000 * v for v in values]
 
 
-def _waiting_table(log: Path, state: dict[str, Any]) -> Any:
-    """The table before the first estimate: per sensor, samples and what it waits for."""
-    from rich.table import Table
-
-    table = Table(title=f"following {log}: base {state['base_samples']:,} samples")
-    for column in ("sensor", "samples", "windows", "waiting for"):
-        table.add_column(column)
-    for name, s in state["sensors"].items():
-        table.add_row(name, f"{s['samples']:,}", str(s["windows"]), s["waiting_for"])
-    return table
+def _waiting_table(log: Path, state: dict[str, Any], width: int = 1 << 16) -> Any:
+    """The table before the first estimate: per sensor, samples and what it waits for (the
+    counts right-justified; stacked where ``width`` is too narrow)."""
+    rows = [
+        (name, f"{s['samples']:,}", str(s["windows"]), s["waiting_for"])
+        for name, s in state["sensors"].items()
+    ]
+    return render.fitted(
+        f"following {log}: base {state['base_samples']:,} samples",
+        ("sensor", "samples", "windows", "waiting for"),
+        rows,
+        width,
+        right=("samples", "windows"),
+    )
 
 
 class _View:
@@ -139,7 +143,8 @@ class _View:
         if self.as_json:
             typer.echo(json.dumps(to_plain({"windows": 0, **state})))
         elif self.live is not None:
-            self.live.update(_waiting_table(self.log, state), refresh=True)
+            width = self.live.console.width
+            self.live.update(_waiting_table(self.log, state, width), refresh=True)
         elif time.monotonic() - self.told >= 5.0:  # (a log file: every 5 s)
             self.told = time.monotonic()
             first: dict[str, Any] = next(iter(state["sensors"].values()), {})
