@@ -95,7 +95,9 @@ def floor(log: Path, fmt: str) -> tuple[float, float]:
         from imucal_cli.io.mcap_log import McapLog
 
         with McapLog(log) as reader, log.open("rb") as handle:
-            for index in reader._summary.chunk_indexes:
+            indexes = list(reader._chunks)  # (the summary's chunk indexes, as held)
+            assert indexes, f"{log}: no chunk index: the floor would read nothing"
+            for index in indexes:
                 handle.seek(index.chunk_start_offset)
                 chunk = next(iter(StreamReader(handle, skip_magic=True, emit_chunks=True).records))
                 assert isinstance(chunk, Chunk)
