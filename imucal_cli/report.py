@@ -270,7 +270,9 @@ def std_figure(plt: Any, stds: Mapping[str, tuple[Any, Any]], path: Path) -> Pat
     return _save(fig, path)
 
 
-def _draw_axes(ax: Any, T: Any, i: int, j: int, length: float, style: str, alpha: float) -> None:
+def _draw_axes(
+    ax: Any, T: Any, i: int, j: int, length: float, style: str, alpha: float, width: float = 1.4
+) -> None:
     origin = T.translation
     R = T.rotation.as_matrix()
     for k in range(3):
@@ -280,7 +282,7 @@ def _draw_axes(ax: Any, T: Any, i: int, j: int, length: float, style: str, alpha
             [origin[j], end[j]],
             color=COLOURS[k],
             ls=style,
-            lw=1.4,
+            lw=width,
             alpha=alpha,
         )
 
@@ -307,8 +309,8 @@ def vehicle_figure(plt: Any, poses: Mapping[str, Mapping[str, Any]], path: Path)
     for col, (name, p) in enumerate(poses.items()):
         _close_up(fig.add_subplot(grid[1, col]), name, p, close)
     legend = [
-        Line2D([], [], color="black", marker="o", ls="", label="IMU, estimated"),
-        Line2D([], [], color="black", marker="s", ls="", label="lidar, estimated"),
+        Line2D([], [], color="black", marker="o", lw=0.8, label="IMU, estimated (close-ups: thin)"),
+        Line2D([], [], color="black", marker="s", lw=2.0, label="lidar, estimated"),
         Line2D([], [], color="grey", marker="x", ls="--", label="CAD prior (dashed axes)"),
         Line2D([], [], color="tab:red", label="x axis"),
         Line2D([], [], color="tab:green", label="y axis"),
@@ -352,14 +354,15 @@ def _whole_vehicle(
 
 
 def _close_up(ax: Any, name: str, p: Mapping[str, Any], close: float) -> None:
-    """One sensor from above: its IMU and its lidar, each beside its prior."""
-    for key, style, alpha, marker, colour in (
-        ("prior_imu", "--", 0.6, "x", "grey"),
-        ("prior_lidar", "--", 0.6, "x", "grey"),
-        ("imu", "-", 1.0, "o", "black"),
-        ("lidar", "-", 1.0, "s", "black"),
+    """One sensor from above: its lidar (thick axes) and its IMU apart (thin, half as long),
+    each beside its prior (dashed)."""
+    for key, style, alpha, marker, colour, scale, width in (
+        ("prior_imu", "--", 0.6, "x", "grey", 0.5, 0.8),
+        ("prior_lidar", "--", 0.6, "x", "grey", 1.0, 2.0),
+        ("imu", "-", 1.0, "o", "black", 0.5, 0.8),
+        ("lidar", "-", 1.0, "s", "black", 1.0, 2.0),
     ):
-        _draw_axes(ax, p[key], 0, 1, close, style, alpha)
+        _draw_axes(ax, p[key], 0, 1, scale * close, style, alpha, width)
         ax.plot(p[key].translation[0], p[key].translation[1], marker, color=colour, ms=6)
     centre = p["lidar"].translation
     ax.set_xlim(centre[0] - 0.15, centre[0] + 0.15)
