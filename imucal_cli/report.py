@@ -556,7 +556,6 @@ def _sensor_notes(name: str, sensor: Mapping[str, Any]) -> str:
     )
 
 
-#: The figures :func:`write_report` draws into its folder, beside ``report.html``.
 def timeline_figure(plt: Any, sensors: Mapping[str, Mapping[str, Any]], path: Path) -> Path:
     """Per sensor (the calibrate document's): each epoch's lidar pose less the log's (the pose
     after the last move), rotation (deg, roll pitch yaw) and translation (mm), with one std,
@@ -609,14 +608,22 @@ def timeline_figure(plt: Any, sensors: Mapping[str, Mapping[str, Any]], path: Pa
     return _save(fig, path)
 
 
-FIGURES = (
-    "biases.png",
-    "windows.png",
-    "residuals.png",
-    "timeline.png",
-    "std.png",
-    "vehicle.png",
-)
+#: The figures :func:`write_report` draws into its folder beside ``report.html``, each with
+#: its caption on the page, in the page's order.
+CAPTIONS = {
+    "excitation.png": "The drive's excitation in each window (the base IMU's): what makes the "
+    "extrinsics observable. Speed is not shown: no IMU measures it.",
+    "biases.png": "Relative biases of every sensor at each knot of the joint fit.",
+    "windows.png": "Per-window rotation std against the threshold; selected windows shaded "
+    "(paper Figs. 9b-10b).",
+    "residuals.png": "Residual RMS of the fit in every window used, against the noise.",
+    "timeline.png": "Each epoch's estimate (the sensor alone in calibration.epoch_s of the log) "
+    "less the log's, with one std; where the mount moved, its time and std shaded.",
+    "std.png": "One standard deviation of every estimated axis.",
+    "vehicle.png": "Top and side view: base frame and lidars as estimated (solid) and as the "
+    "CAD prior places them (dashed); close-ups add each IMU and its prior.",
+}
+FIGURES = tuple(CAPTIONS)
 
 
 def write_report(out_dir: Path, calibration: Calibration, progress: Any = None) -> list[Path]:
@@ -676,22 +683,6 @@ def _extra(result: Calibration) -> dict[str, dict[str, Any]]:
             "offset_estimated": result.config.calibration.max_time_offset_s > 0,
         }
     return out
-
-
-#: Each figure's caption on the page, in the page's order.
-CAPTIONS = {
-    "excitation.png": "The drive's excitation in each window (the base IMU's): what makes the "
-    "extrinsics observable. Speed is not shown: no IMU measures it.",
-    "biases.png": "Relative biases of every sensor at each knot of the joint fit.",
-    "windows.png": "Per-window rotation std against the threshold; selected windows shaded "
-    "(paper Figs. 9b-10b).",
-    "residuals.png": "Residual RMS of the fit in every window used, against the noise.",
-    "timeline.png": "Each epoch's estimate (the sensor alone in calibration.epoch_s of the log) "
-    "less the log's, with one std; where the mount moved, its time and std shaded.",
-    "std.png": "One standard deviation of every estimated axis.",
-    "vehicle.png": "Top and side view: base frame and lidars as estimated (solid) and as the "
-    "CAD prior places them (dashed); close-ups add each IMU and its prior.",
-}
 
 
 def _draw_report(out_dir: Path, result: Calibration, progress: Any = None) -> list[Path]:

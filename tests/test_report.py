@@ -85,6 +85,24 @@ def test_report_folder_parent_missing_exits_2(tmp_path):
     assert result.exit_code == 2 and "no/r" in result.stderr
 
 
+def test_no_figure_the_report_writes_may_replace_an_input(tmp_path):
+    """``--report`` refuses a folder where any of its files is an input, before any work: the
+    list it guards is the list it draws (excitation.png was drawn and not guarded)."""
+    import shutil
+
+    from imucal_cli.report import CAPTIONS
+
+    for name in CAPTIONS:
+        folder = tmp_path / name.removesuffix(".png")
+        folder.mkdir()
+        config = folder / name  # (the config, where the report would write a figure)
+        shutil.copy(SAMPLE_DATA / "aggressive.config.yaml", config)
+        args = ["calibrate", str(SAMPLE_DATA / "aggressive.mcap"), "-c", str(config)]
+        result = CliRunner().invoke(app, [*args, "--report", str(folder)])
+        assert result.exit_code == 2 and name in result.stderr, (name, result.output)
+        assert config.read_bytes() == (SAMPLE_DATA / "aggressive.config.yaml").read_bytes()
+
+
 def test_no_legend_covers_a_plot(tmp_path, monkeypatch):
     """Every legend of every figure lies outside every axes' data area (the legends sat at
     the upper right, over the lines)."""
