@@ -374,49 +374,45 @@ def complete_from_log(
         available = reader.topics()
         topics = [t for t in dict.fromkeys(wanted) if isinstance(t, str) and t in available]
         frames = imu_frames(reader, topics) if topics else {}
-    base = document["base"]
-    base_frame = str(base.get("frame", "base_link"))
     if base_missing:
-        base_imu = frames.get(str(base.get("topic")))
-        found = tree.chain(base_frame, base_imu) if base_imu else None
-        if found is not None and base_imu != base_frame:
-            base[BASE_KEY] = found[0].to_dict()
+        ends, base_imu = _ends(document, frames, "", BASE_KEY)
+        found = tree.chain(*ends) if base_imu else None
+        if found is not None and base_imu != ends[0]:
+            document["base"][BASE_KEY] = found[0].to_dict()
             for name in names:
                 sources[name][f"base.{BASE_KEY}"] = found[1]
     for name, key in missing:
         sensor = document["sensors"][name] = dict(document["sensors"][name])
-        imu = sensor.get("imu_frame") or frames.get(str(sensor.get("imu_topic")))
-        lidar = str(sensor.get("lidar_frame") or f"{name}_lidar")
-        ends = (imu, lidar) if key == "T_imu_lidar" else (base_frame, imu)
+        ends, imu = _ends(document, frames, name, key)
         found = tree.chain(*ends) if imu else None
         if found is None:
             raise ConfigError(source, f"sensors.{name}.{key}", _why(log, tree, ends, imu, key))
         sensor[key], sources[name][key] = found[0].to_dict(), found[1]
     for name, key in marked:  # (given as init took them: still the tree's?)
-        found = _chain_of(tree, frames, document, name, key)
+        if name and not isinstance(document["sensors"].get(name), Mapping):
+            continue
+        ends, imu = _ends(document, frames, name, key)
+        found = tree.chain(*ends) if imu else None
         if found is not None and _same(found[0], document, name, key):
             for each in names if not name else [name]:
                 sources[each][key if name else f"base.{BASE_KEY}"] = found[1]
     return document, sources
 
 
-def _chain_of(
-    tree: FrameTree, frames: Mapping[str, str], document: Any, name: str, key: str
-) -> tuple[Transform, str] | None:
-    """What the tree gives for sensor ``name``'s ``key`` (``name`` empty: the base's pose)."""
+def _ends(
+    document: Any, frames: Mapping[str, str], name: str, key: str
+) -> tuple[tuple[Any, Any], Any]:
+    """The frames sensor ``name``'s ``key`` runs between in the tree (``name`` empty: the
+    base IMU's pose in the base frame), and the IMU's frame (None: not known)."""
     base = document["base"]
     base_frame = str(base.get("frame", "base_link"))
     if not name:
         imu = frames.get(str(base.get("topic")))
-        return tree.chain(base_frame, imu) if imu else None
-    sensor = document["sensors"].get(name)
-    if not isinstance(sensor, Mapping):
-        return None
+        return (base_frame, imu), imu
+    sensor = document["sensors"][name]
     imu = sensor.get("imu_frame") or frames.get(str(sensor.get("imu_topic")))
     lidar = str(sensor.get("lidar_frame") or f"{name}_lidar")
-    return (
-        tree.chain(*((imu, lidar) if key == "T_imu_lidar" else (base_frame, imu))) if imu else None
-    )
+    return ((imu, lidar) if key == "T_imu_lidar" else (base_frame, imu)), imu
 
 
 def _same(T: Transform, document: Any, name: str, key: str) -> bool:

@@ -63,6 +63,15 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
+def _save_over_time(fig: Any, bottom: Any, path: Path) -> Path:
+    """A figure over the log's time saved: its ``bottom`` axes labelled with the time, laid
+    out tight."""
+    for ax in bottom:
+        ax.set_xlabel("time since the log's first IMU stamp (s)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def bias_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: Path) -> Path:
     """Per sensor: the relative gyro (left) and accelerometer (right) bias at every knot."""
     fig, axes = plt.subplots(
@@ -94,10 +103,7 @@ def bias_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, path: P
         for ax in row:
             ax.grid(alpha=0.3)
             _legend(ax)
-    for ax in axes[-1]:
-        ax.set_xlabel("time since the log's first IMU stamp (s)")
-    fig.tight_layout()
-    return _save(fig, path)
+    return _save_over_time(fig, axes[-1], path)
 
 
 def excitation_figure(plt: Any, windows: Sequence[Any], offset_s: float, path: Path) -> Path:
@@ -126,9 +132,7 @@ def excitation_figure(plt: Any, windows: Sequence[Any], offset_s: float, path: P
     rate.set_title(
         "Excitation per window (base IMU): turning, and accelerating or braking", fontsize=10
     )
-    accel.set_xlabel("time since the log's first IMU stamp (s)")
-    fig.tight_layout()
-    return _save(fig, path)
+    return _save_over_time(fig, [accel], path)
 
 
 def windows_figure(
@@ -171,9 +175,7 @@ def windows_figure(
         )
         _legend(ax)
         ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel("time since the log's first IMU stamp (s)")
-    fig.tight_layout()
-    return _save(fig, path)
+    return _save_over_time(fig, axes[-1], path)
 
 
 def not_observable(ax: Any) -> None:
@@ -226,10 +228,7 @@ def residual_figure(plt: Any, estimates: Mapping[str, Any], offset_s: float, pat
             _legend(ax)
         row[0].set_title(f"{name}: gyro residual after calibration (eq. 10)", fontsize=10)
         row[1].set_title(f"{name}: specific-force residual after calibration (eq. 11)", fontsize=10)
-    for ax in axes[-1]:
-        ax.set_xlabel("time since the log's first IMU stamp (s)")
-    fig.tight_layout()
-    return _save(fig, path)
+    return _save_over_time(fig, axes[-1], path)
 
 
 def std_figure(plt: Any, stds: Mapping[str, tuple[Any, Any]], path: Path) -> Path:
@@ -602,10 +601,7 @@ def timeline_figure(plt: Any, sensors: Mapping[str, Mapping[str, Any]], path: Pa
             _legend(ax)
         row[0].set_title(f"{name}: rotation of each epoch less the log's", fontsize=10)
         row[1].set_title(f"{name}: translation of each epoch less the log's", fontsize=10)
-    for ax in axes[-1]:
-        ax.set_xlabel("time since the log's first IMU stamp (s)")
-    fig.tight_layout()
-    return _save(fig, path)
+    return _save_over_time(fig, axes[-1], path)
 
 
 #: The figures :func:`write_report` draws into its folder beside ``report.html``, each with
@@ -669,7 +665,6 @@ def _extra(result: Calibration) -> dict[str, dict[str, Any]]:
     CAD prior places (the angle between them, the shift in the base frame), the grades, and
     what to drive next (the axes whose statistical std is over the stop: targets)."""
     from imucal_cli.core.so3 import rotation_angle_deg
-    from imucal_cli.core.status import missing_axes
 
     out = {}
     for s in result.config.sensors:
@@ -679,7 +674,7 @@ def _extra(result: Calibration) -> dict[str, dict[str, Any]]:
             "prior_shift_m": estimate.translation - prior.translation,
             "grade": s.grade,
             "base_grade": result.config.base.grade,
-            "missing": missing_axes(result.estimates[s.name], result.config.stop),
+            "missing": result.missing(s.name),
             "offset_estimated": result.config.calibration.max_time_offset_s > 0,
         }
     return out

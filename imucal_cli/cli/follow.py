@@ -27,19 +27,19 @@ def follow_table(log: Path, windows: int, calibration: Any, width: int = 1 << 16
     and what it lacks; stacked where ``width`` is too narrow for a table."""
     stop = calibration.config.stop
     rows = []
-    for name, e in calibration.estimates.items():
-        T = calibration.T_base_lidar(name)
-        rotation, translation = e.statistical_rotation_std_deg, e.statistical_translation_std_m
+    for name in calibration.estimates:  # (what a JSON line says, as a row)
+        line = estimate_line(calibration, name)
+        T, std = line["T_base_lidar"], line["statistical_std"] or {}
         rows.append(
             (
                 name,
-                e.status,
-                render.fmt(T.translation, 4),
-                render.fmt(np.degrees(T.rpy_rad), 3),
-                render.fmt(rotation, 4),
-                render.fmt(None if translation is None else 1000 * translation, 2),
-                "{}/{}".format(*window_counts(e.windows)),
-                " ".join(_axis(m) for m in calibration.missing(name)) or "-",
+                line["status"],
+                render.fmt(T["translation"], 4),
+                render.fmt(T["rpy_deg"], 3),
+                render.fmt(std.get("rotation_deg"), 4),
+                render.fmt(_mm(std.get("translation_m")), 2),
+                line["windows"],
+                " ".join(_axis(m) for m in line["missing"]) or "-",
             )
         )
     columns = (
