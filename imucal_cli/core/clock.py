@@ -166,6 +166,7 @@ class ClockTrack:
     #: Windows measured but not in the line yet, ``(number, start s, t s, offset s,
     #: variance)``: the last block's last ones, off the line (a step may lie in them).
     pending: list[Row] = field(default_factory=list)
+    _reach: tuple[tuple[float, int, int, bool], float] | None = field(default=None, repr=False)
 
     def add(self, t: float, offset: float, variance: float) -> None:
         """A window's measured offset (s) at ``t`` (s), with its variance."""
@@ -314,6 +315,15 @@ class ClockTrack:
             self.followed = True
             return fit.at
         return constant(self.tau0)
+
+    def reach(self, t: float) -> float:
+        """How far (s) the offset a block is resampled at stands from 0 at ``t``: the
+        predictor's, kept until the track changes (the schedule asks at every batch)."""
+        key = (t, self.count, len(self.pieces), self.followed)
+        if self._reach is None or self._reach[0] != key:
+            at = np.array([t])
+            self._reach = (key, abs(float(self.predictor(at)(at)[0])))
+        return self._reach[1]
 
     def changes(self, fit: ClockFit, t: np.ndarray) -> bool:
         """Whether the clock's offset changes, beyond what the fit's one offset (the solver's

@@ -66,7 +66,8 @@ def window_terms(problem: Problem, fit: Fit) -> tuple[np.ndarray, np.ndarray]:
         where = [int(np.flatnonzero(wanted == globals_[i])[0]) for i in rows]
         D = equations.D[rows]  # (p, 3, dim)
         S = np.concatenate(chunks)  # (K, dim, dim)
-        H = np.einsum("pid,kde,qie->kpq", D, S, D)
+        DS = D[None] @ S[:, None]  # (K, p, 3, dim)
+        H = DS.reshape(K, len(rows), -1) @ D.reshape(len(rows), -1).T
         coupling = equations.coupling[:, rows, :]  # (K, p, 6)
         g_own = equations.gradient[:, rows]
         g_bias = equations.gradient[:, len(globals_) :]
@@ -83,12 +84,15 @@ def window_terms(problem: Problem, fit: Fit) -> tuple[np.ndarray, np.ndarray]:
     return information, gradient
 
 
-def _quadratic(info: np.ndarray, s: np.ndarray) -> tuple[float, int]:
-    """``s^T info^+ s`` and the rank of ``info`` (its determined directions)."""
+def _quadratic(info: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``s^T info^+ s`` and the rank of ``info`` (its determined directions), of each of a
+    stack of them (``info`` (..., n, n), ``s`` (..., n))."""
     values, vectors = np.linalg.eigh(info)
-    keep = values > RANK_TOLERANCE * max(float(values.max()), 0.0)
-    projected = vectors[:, keep].T @ s
-    return float(np.sum(projected**2 / values[keep])), int(np.count_nonzero(keep))
+    largest = np.maximum(values.max(axis=-1, keepdims=True), 0.0)
+    keep = values > RANK_TOLERANCE * largest
+    projected = np.einsum("...ij,...i->...j", vectors, s)
+    terms = np.divide(projected**2, values, out=np.zeros_like(values), where=keep)
+    return terms.sum(axis=-1), np.count_nonzero(keep, axis=-1)
 
 
 def best_split(information: np.ndarray, gradient: np.ndarray) -> tuple[int, float, int, np.ndarray]:
@@ -101,27 +105,29 @@ def best_split(information: np.ndarray, gradient: np.ndarray) -> tuple[int, floa
     I_cum, s_cum = np.cumsum(information, axis=0), np.cumsum(gradient, axis=0)
     ratios = np.full(K, -np.inf)
     dofs = np.zeros(K, dtype=int)
-    for j in range(MIN_SIDE_WINDOWS, K - MIN_SIDE_WINDOWS):
+    j = np.arange(MIN_SIDE_WINDOWS, K - MIN_SIDE_WINDOWS)
+    if len(j):
         I_before, s_before = I_cum[j - 1], s_cum[j - 1]
         I_after, s_after = I_cum[-1] - I_cum[j], s_cum[-1] - s_cum[j]
         before, rank_before = _quadratic(I_before, s_before)
         after, rank_after = _quadratic(I_after, s_after)
         one, rank_one = _quadratic(*_one_pose(I_before, s_before, I_after, s_after))
         ratios[j], dofs[j] = before + after - one, rank_before + rank_after - rank_one
-    j = int(np.argmax(ratios))
-    return j, float(ratios[j]), int(dofs[j]), ratios
+    k = int(np.argmax(ratios))
+    return k, float(ratios[k]), int(dofs[k]), ratios
 
 
 def _one_pose(
     I_before: np.ndarray, s_before: np.ndarray, I_after: np.ndarray, s_after: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The information and gradient of one pose for both sides and a clock offset each: the
-    unknowns ``[pose (6), offset before, offset after]``."""
-    info, s = np.zeros((8, 8)), np.zeros(8)
+    unknowns ``[pose (6), offset before, offset after]`` (stacks of them, the sides' last
+    axes 7)."""
+    info, s = np.zeros((*s_before.shape[:-1], 8, 8)), np.zeros((*s_before.shape[:-1], 8))
     for side, (I_side, s_side) in enumerate(((I_before, s_before), (I_after, s_after))):
-        at = [0, 1, 2, 3, 4, 5, 6 + side]
-        info[np.ix_(at, at)] += I_side
-        s[at] += s_side
+        at = np.array([0, 1, 2, 3, 4, 5, 6 + side])
+        info[..., at[:, None], at] += I_side
+        s[..., at] += s_side
     return info, s
 
 
@@ -145,9 +151,8 @@ def _misfit(information: np.ndarray, gradient: np.ndarray, within: int) -> tuple
         values, vectors = np.linalg.eigh(I_side.sum(axis=0))
         keep = values > RANK_TOLERANCE * max(float(values.max()), 0.0)
         mean = vectors[:, keep] @ ((vectors[:, keep].T @ s_side.sum(axis=0)) / values[keep])
-        for info, s in zip(I_side, s_side - I_side @ mean, strict=True):
-            q, rank = _quadratic(info, s)
-            chi2, dof = chi2 + q, dof + rank
+        q, rank = _quadratic(I_side, s_side - I_side @ mean)
+        chi2, dof = chi2 + float(q.sum()), dof + int(rank.sum())
         dof -= int(np.count_nonzero(keep))
     return chi2, dof
 

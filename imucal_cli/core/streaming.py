@@ -428,9 +428,7 @@ class StreamingCalibrator:
     def _reach(self, t: float) -> float:
         """How far (s) a sensor's samples may lie from the base's at ``t``: the offset
         searched, or a followed clock's offset where it drifted further."""
-        at = np.array([t])
-        offsets = [abs(float(c.predictor(at)(at)[0])) for c in self.clocks.values()]
-        return max([self.max_offset, *offsets])
+        return max([self.max_offset, *(c.reach(t) for c in self.clocks.values())])
 
     def _skip_empty(self) -> None:
         """Move the next window past a stretch where some IMU has no data at all (a long gap,
