@@ -19,7 +19,6 @@ import json
 import shlex
 from dataclasses import dataclass, replace
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
@@ -165,6 +164,14 @@ def autoware(ex: Extrinsics, parent: str) -> str:
         for key, value in zip(("x", "y", "z", "roll", "pitch", "yaw"), [*t, *r], strict=True):
             lines.append(f"    {key}: {value:.6f}")
     return "\n".join(lines) + "\n"
+
+
+def quoteattr(text: str) -> str:
+    """An XML attribute value, quoted and escaped (``xml.sax.saxutils``, imported when first
+    used: it brings ``urllib`` and ``email``, 30 ms that every command would pay)."""
+    from xml.sax.saxutils import quoteattr as quoted
+
+    return quoted(text)
 
 
 def urdf(ex: Extrinsics, parent: str) -> str:
