@@ -270,10 +270,6 @@ def _umask() -> int:
     return mask
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> None:
-    write_chunks_atomic(path, [data])
-
-
 def write_chunks_atomic(path: str | Path, chunks: Iterable[str | bytes]) -> None:
     """Write the text or bytes ``chunks`` make, one after the other, to ``path`` through a
     temporary file and a rename (the file appears whole or not at all)."""
