@@ -23,7 +23,7 @@ from imucal_cli.core.model import (
     GYRO_OWN,
     Layout,
 )
-from imucal_cli.core.resample import Spline
+from imucal_cli.core.resample import ALIAS_GAIN, Spline
 from imucal_cli.core.segments import WindowInfo
 from imucal_cli.core.signals import Lowpass, near, white_noise_density
 
@@ -184,17 +184,24 @@ def _base_columns(rows: np.ndarray, X: np.ndarray) -> None:
 def _window_moments(
     X: np.ndarray,
     spans: list[tuple[int, float, float]],
-    at: list[tuple[int, int]],
+    at: list[tuple[int, int, int]],
     names: list[str],
     covered: dict[str, np.ndarray],
+    step: int,
 ) -> dict[str, list[WindowMoments]]:
-    """Each window's moments, one Gram matrix of the block's columns per window: the base's
-    block shared, each sensor's own rows."""
+    """Each window's moments, one Gram matrix of the block's columns per window (rows
+    ``i0 .. i0 + n`` of ``X``, ``samples`` grid samples: each row stands for ``samples / n``
+    of them, ``step`` but at a window's ends): the base's block shared, each sensor's own
+    rows."""
     n_g, n_a = GYRO_BASE.size, ACCEL_BASE.size
     out: dict[str, list[WindowMoments]] = {name: [] for name in names}
-    for (number, start, end), (i0, n_win) in zip(spans, at, strict=True):
+    for (number, start, end), (i0, n_win, samples) in zip(spans, at, strict=True):
         Xw = X[i0 : i0 + n_win]
         G = Xw.T @ Xw
+        # each row stands for its share of the window's samples: the "one" column sums to
+        # their count, as the moments' means and scatters take it
+        if step > 1 and n_win:
+            G *= samples / n_win
         shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
         valid_base = bool(covered[""][i0 : i0 + n_win].all())
         for k, name in enumerate(names):
@@ -204,9 +211,50 @@ def _window_moments(
             rows_a = np.hstack([G[f_I, f_I], G[f_I, n_g : n_g + n_a]])  # f_I^T x_a
             valid = valid_base and bool(covered[name][i0 : i0 + n_win].all())
             out[name].append(
-                WindowMoments(number, start, end, valid, shared, rows_g, rows_a, n_win)
+                WindowMoments(number, start, end, valid, shared, rows_g, rows_a, samples)
             )
     return out
+
+
+def moment_step(lp: Lowpass) -> int:
+    """Every how many grid samples one enters the moments, each standing for that many: the
+    most that leaves the low-pass's response at the rate they are taken at below
+    :data:`~.resample.ALIAS_GAIN`. The windows' sums are then the grid's to that (what the
+    filter passes has nothing there to alias onto the sums), and every equation holds at
+    each row taken as it does at every grid sample (exact on noise-free data)."""
+    step = 1
+    while lp.gain(np.array([lp.rate_hz / (step + 1)]))[0] <= ALIAS_GAIN:
+        step += 1
+    return step
+
+
+def _window_rows(
+    spans: list[tuple[int, float, float]], rate: float, step: int, phase: int
+) -> list[tuple[int, int, int]]:
+    """Per window of a block: its first row among the block's grid samples ``phase``,
+    ``phase + step``, ..., how many rows it has, and how many grid samples it spans."""
+    at = []
+    block_start = spans[0][1]
+    for _, start, end in spans:
+        first, samples = round((start - block_start) * rate), round((end - start) * rate)
+        i0 = -(-(first - phase) // step)
+        at.append((i0, -(-(first + samples - phase) // step) - i0, samples))
+    return at
+
+
+def _time_columns(
+    X: np.ndarray,
+    spans: list[tuple[int, float, float]],
+    at: list[tuple[int, int, int]],
+    t_rows: np.ndarray,
+    window_s: float,
+) -> None:
+    """The time columns ``u`` of x_g and x_a: each row's time in its window, in windows."""
+    u_g, u_a = GYRO_BASE.index("u"), GYRO_BASE.size + ACCEL_BASE.index("u")
+    X[:, u_g] = 0.0
+    for (_, start, _), (i0, n_win, _) in zip(spans, at, strict=True):
+        X[i0 : i0 + n_win, u_g] = (t_rows[i0 : i0 + n_win] - start) / window_s
+    X[:, u_a] = X[:, u_g]
 
 
 def reduce_block(
@@ -232,25 +280,21 @@ def reduce_block(
     _, t_b, both_b, saturated_b = samples[base_name]
     base = Spline(t_b, both_b, rate)
     # one zero-phase low-pass for every term of every equation (linear filters commute);
-    # the symmetric 3x3 terms are filtered by their upper triangles
-    rows = lp(_base_terms(*base(grid, 2)))[n_pad : n_pad + n_block]
-    t_rows = grid[n_pad : n_pad + n_block]
+    # the symmetric 3x3 terms are filtered by their upper triangles; the moments take every
+    # step-th row (:func:`moment_step`)
+    step = moment_step(lp)
+    phase = -round(block_start * rate) % step  # (rows on the log's grid, however blocked)
+    rows = lp(_base_terms(*base(grid, 2)))[n_pad + phase : n_pad + n_block : step]
+    t_rows = grid[n_pad + phase : n_pad + n_block : step]
     # every data vector of the block side by side, so that each window's moments are one
     # Gram matrix: the base's part of x_g, of x_a, then each sensor's [w_I, f_I]; each
     # column written once into X
     names = [name for name in samples if name != base_name]
     n_base = GYRO_BASE.size + ACCEL_BASE.size
-    X = np.empty((n_block, n_base + GYRO_OWN * len(names)))
+    X = np.empty((len(t_rows), n_base + GYRO_OWN * len(names)))
     _base_columns(rows, X)
-    at = [
-        (round((start - block_start) * rate), round((end - start) * rate))
-        for _, start, end in spans
-    ]
-    u_g, u_a = GYRO_BASE.index("u"), GYRO_BASE.size + ACCEL_BASE.index("u")
-    X[:, u_g] = 0.0
-    for (_, start, _), (i0, n_win) in zip(spans, at, strict=True):
-        X[i0 : i0 + n_win, u_g] = (t_rows[i0 : i0 + n_win] - start) / window_s
-    X[:, u_a] = X[:, u_g]
+    at = _window_rows(spans, rate, step, phase)
+    _time_columns(X, spans, at, t_rows, window_s)
     # where each stream has data (no gap) and reads the motion (no saturated reading)
     covered = {"": base.covered(t_rows) & ~near(t_rows, saturated_b, reach)}
     for k, name in enumerate(names):
@@ -265,9 +309,10 @@ def reduce_block(
             B_g = GYRO_BASE
             valid = covered[name] & covered[""]
             w_B, dw_B = X[:, B_g["w_B"]], X[:, B_g["dw_B"]]
-            gain = lp.white_noise_gain()
-            measured[name] = window_offsets(w_B, dw_B, X[:, own : own + 3], valid, at, gain)
-    return _window_moments(X, spans, at, names, covered)
+            gain = lp.white_noise_gain() * step  # (the rows are step grid samples apart)
+            rows_at = [(i0, n) for i0, n, _ in at]
+            measured[name] = window_offsets(w_B, dw_B, X[:, own : own + 3], valid, rows_at, gain)
+    return _window_moments(X, spans, at, names, covered, step)
 
 
 #: Fewest samples of an IMU in a block for its windows there to be reduced.

@@ -218,3 +218,56 @@ def test_a_cad_prior_10_deg_off_stays_ok(urban_minute):
         check = estimate.checks["prior_rotation"]
         assert check["pass"] is True and 5.0 < check["angle_deg"] < 15.0, name
         assert estimate.status == "ok", (name, estimate.warnings)
+
+
+def test_moments_of_every_other_grid_row_are_the_whole_grid_s(monkeypatch):
+    """The windows' moments take every second row of the 100 Hz grid, each standing for two
+    (:func:`~imucal_cli.core.moments.moment_step`): the same noise realisation through every
+    row gives the same std, window information and clock offset std (a row weighed once, not
+    twice, would make every std 1.41 times as large), and the same estimate within what the
+    two weigh differently, the windows' ends (of 500 rows a window, about one at each end
+    weighs twice or not at all: the estimates differ by about sqrt(2 / 500) = 0.063 of their
+    std per axis, here bounded at three times that)."""
+    import imucal_cli.core.moments as moments
+    from imucal_cli.core.signals import Lowpass
+
+    assert moments.moment_step(Lowpass(5.0, 100.0)) == 2
+    drive = simulate_drive(DriveOptions(scenario="aggressive", duration_s=60.0, seed=21))
+    taken = calibrate(drive)
+    monkeypatch.setattr(moments, "moment_step", lambda lp: 1)
+    every = calibrate(drive)
+    for mount in drive.mounts:
+        a, b = taken.estimates[mount.name], every.estimates[mount.name]
+        std_a, std_b = np.sqrt(np.diag(a.covariance)), np.sqrt(np.diag(b.covariance))
+        assert np.allclose(std_a, std_b, rtol=0.02), std_a / std_b
+        angle = np.radians(rotation_angle_deg(a.T_base_imu.rotation, b.T_base_imu.rotation))
+        assert angle < 0.19 * np.linalg.norm(std_b[:3])
+        shift = np.abs(a.T_base_imu.translation - b.T_base_imu.translation)
+        assert np.all(shift < 0.19 * std_b[3:]), shift / std_b[3:]
+        assert a.time_offset_std_s == pytest.approx(b.time_offset_std_s, rel=0.02)
+        # a window's information differs by what its two ends weigh: a row where the grid has
+        # two, a few tenths of a per cent of a 10 s window's sum, more where the motion at its
+        # ends is stronger than within (1.3% the most here)
+        infos_a = [w.min_singular_value for w in a.windows]
+        infos_b = [w.min_singular_value for w in b.windows]
+        assert np.allclose(infos_a, infos_b, rtol=0.03)
+
+
+def test_a_drifting_clock_is_followed_alike_from_every_other_grid_row(monkeypatch):
+    """The windows' clock measurements (:func:`~imucal_cli.core.clock.window_offsets`) from
+    every second grid row: their variance is of rows twice as far apart (the low-pass's
+    white-noise gain doubled), so the drift and its std are those of every row (the std within
+    3%: without the doubling it is 1.41 times as large; the drift within what the windows'
+    ends weigh differently, as above)."""
+    import imucal_cli.core.moments as moments
+
+    drive = simulate_drive(
+        DriveOptions(scenario="aggressive", duration_s=300.0, seed=21, clock_drifts_ppm=(50.0,))
+    )
+    taken = calibrate(drive)
+    monkeypatch.setattr(moments, "moment_step", lambda lp: 1)
+    every = calibrate(drive)
+    for mount in drive.mounts:
+        a, b = taken.estimates[mount.name], every.estimates[mount.name]
+        assert a.clock_drift_std == pytest.approx(b.clock_drift_std, rel=0.03)
+        assert abs(a.clock_drift - b.clock_drift) < 0.19 * b.clock_drift_std
