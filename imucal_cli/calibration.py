@@ -97,6 +97,12 @@ class Calibration:
             document["converged"] = self.converged
         return document
 
+    def follow_line(self, windows: int) -> dict[str, Any]:
+        """What ``calibrate --follow --json`` prints after ``windows`` windows."""
+        from imucal_cli.outputs import follow_line
+
+        return follow_line(self, windows)
+
     def segments_document(self, streamed: bool = False) -> dict[str, Any]:
         """The SPEC's segments document (what ``imucal segments -o`` writes); ``streamed``: each
         sensor's windows made as :func:`~imucal_cli.documents.write_document` writes them, a

@@ -47,6 +47,7 @@ class Calibration(Protocol):
     def noise_density(self) -> Mapping[str, tuple[float, float]]: ...
 
     def T_base_lidar(self, name: str) -> Transform: ...
+    def missing(self, name: str) -> list[str]: ...
 
 
 def inspect_document(summary: LogSummary) -> dict[str, Any]:
@@ -343,6 +344,31 @@ def calibration_document(
 
 
 MOVE_KEYS = ("at_s", "at_std_s", "rotation_deg", "translation_m")
+
+
+def follow_line(result: Calibration, windows: int) -> dict[str, Any]:
+    """A line of ``calibrate --follow --json`` after ``windows`` windows: per sensor its
+    status, ``T_base_lidar``, the statistical std ``stop:`` tests, the total std, the windows
+    used and the axes still missing."""
+    sensors = {}
+    for name, e in result.estimates.items():
+        T = result.T_base_lidar(name)
+        statistical = None
+        if e.statistical_covariance is not None:
+            statistical = {
+                "rotation_deg": e.statistical_rotation_std_deg,
+                "translation_m": e.statistical_translation_std_m,
+            }
+        sensors[name] = {
+            "status": e.status,
+            "T_base_lidar": {"translation": T.translation, "rpy_deg": np.degrees(T.rpy_rad)},
+            "statistical_std": statistical,
+            "rotation_std_deg": e.rotation_std_deg,
+            "translation_std_m": e.translation_std_m,
+            "windows": "{}/{}".format(*window_counts(e.windows)),
+            "missing": result.missing(name),
+        }
+    return {"windows": windows, "sensors": sensors}
 
 
 def _moved(result: Calibration, sensor: Any) -> list[dict[str, Any]]:

@@ -10,12 +10,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import typer
 
 from imucal_cli.cli import render
 from imucal_cli.cli.app import EXIT_CHECK_FAILED, err, interrupted
-from imucal_cli.core.segments import window_counts
 
 #: After how long without news of the recording the wait is said (s of wall time).
 FOLLOW_STALL_S = 30.0
@@ -27,8 +25,7 @@ def follow_table(log: Path, windows: int, calibration: Any, width: int = 1 << 16
     and what it lacks; stacked where ``width`` is too narrow for a table."""
     stop = calibration.config.stop
     rows = []
-    for name in calibration.estimates:  # (what a JSON line says, as a row)
-        line = estimate_line(calibration, name)
+    for name, line in calibration.follow_line(windows)["sensors"].items():  # (as a row)
         T, std = line["T_base_lidar"], line["statistical_std"] or {}
         rows.append(
             (
@@ -53,25 +50,6 @@ def follow_table(log: Path, windows: int, calibration: Any, width: int = 1 << 16
         "missing axes",
     )
     return render.fitted(f"following {log}: {windows} windows", columns, rows, width)
-
-
-def estimate_line(calibration: Any, name: str) -> dict[str, Any]:
-    """What a JSON line of the follow view says of sensor ``name``."""
-    e, T = calibration.estimates[name], calibration.T_base_lidar(name)
-    return {
-        "status": e.status,
-        "T_base_lidar": {"translation": T.translation, "rpy_deg": np.degrees(T.rpy_rad)},
-        "statistical_std": None
-        if e.statistical_covariance is None
-        else {
-            "rotation_deg": e.statistical_rotation_std_deg,
-            "translation_m": e.statistical_translation_std_m,
-        },
-        "rotation_std_deg": e.rotation_std_deg,
-        "translation_std_m": e.translation_std_m,
-        "windows": "{}/{}".format(*window_counts(e.windows)),
-        "missing": calibration.missing(name),
-    }
 
 
 def _axis(missing: str) -> str:
@@ -119,14 +97,12 @@ class _View:
 
         self.heard = time.monotonic()
         if self.as_json:
-            sensors = {name: estimate_line(calibration, name) for name in calibration.estimates}
-            typer.echo(json.dumps(to_plain({"windows": windows, "sensors": sensors})))
+            typer.echo(json.dumps(to_plain(calibration.follow_line(windows))))
         elif self.live is not None:
             width = self.live.console.width
             self.live.update(follow_table(self.log, windows, calibration, width), refresh=True)
         else:
-            for name in calibration.estimates:
-                line = estimate_line(calibration, name)
+            for name, line in calibration.follow_line(windows)["sensors"].items():
                 T, std = line["T_base_lidar"], line["statistical_std"] or {}
                 missing = " ".join(_axis(m) for m in line["missing"]) or "none"
                 err(
