@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.errors import ConfigError, InputError
-from imucal_cli.names import name_problem
+from imucal_cli.names import name_problem, quoteattr
 from imucal_cli.types import Transform
 
 
@@ -164,14 +164,6 @@ def autoware(ex: Extrinsics, parent: str) -> str:
         for key, value in zip(("x", "y", "z", "roll", "pitch", "yaw"), [*t, *r], strict=True):
             lines.append(f"    {key}: {value:.6f}")
     return "\n".join(lines) + "\n"
-
-
-def quoteattr(text: str) -> str:
-    """An XML attribute value, quoted and escaped (``xml.sax.saxutils``, imported when first
-    used: it brings ``urllib`` and ``email``, 30 ms that every command would pay)."""
-    from xml.sax.saxutils import quoteattr as quoted
-
-    return quoted(text)
 
 
 def urdf(ex: Extrinsics, parent: str) -> str:

@@ -21,14 +21,13 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
-from xml.sax import saxutils
 
 import numpy as np
 
 from imucal_cli.config import Config
 from imucal_cli.errors import ImucalError, InputError, Terminated
 from imucal_cli.io.formats import LOG_SUFFIXES
-from imucal_cli.names import printable
+from imucal_cli.names import quoteattr, xml_text
 from imucal_cli.paths import log_folder
 from imucal_cli.types import Transform
 
@@ -710,17 +709,6 @@ def summary_json(rows: Iterable[Row], settings: dict[str, Any]) -> str:
     )
 
 
-def quoteattr(text: str) -> str:
-    """An XML attribute value: quoted, escaped, and without the control characters XML 1.0
-    cannot hold at all (written as escapes: :func:`~imucal_cli.names.printable`)."""
-    return saxutils.quoteattr(printable(text))
-
-
-def escape(text: str) -> str:
-    """XML character data, as :func:`quoteattr`."""
-    return saxutils.escape(printable(text))
-
-
 def junit_xml(rows: Sequence[Row]) -> str:
     """JUnit XML: a test case per log and sensor (a log that failed to run is one error); every
     case carries its figures and warnings in ``system-out``."""
@@ -741,7 +729,7 @@ def junit_xml(rows: Sequence[Row]) -> str:
             if v is not None
         )
         said = figures + (("; " + r.warnings) if r.warnings else "")
-        out = f"<system-out>{escape(said)}</system-out>"
+        out = f"<system-out>{xml_text(said)}</system-out>"
         if r.status == "failed":
             cases.append(f"{head}<error message={quoteattr(r.error)}/>{out}</testcase>")
         elif not r.passed:
@@ -794,7 +782,7 @@ def evaluate_junit(document: dict[str, Any], estimate: str, truth: str) -> str:
             body = f"<failure message={quoteattr('; '.join(over))}/>" if over else ""
             cases.append(
                 f"  <testcase classname={quoteattr(group)} "
-                f"name={quoteattr(name)}>{body}<system-out>{escape(values)}</system-out></testcase>"
+                f"name={quoteattr(name)}>{body}<system-out>{xml_text(values)}</system-out></testcase>"
             )
     for side, names in document["missing"].items():
         for name in names:
@@ -803,7 +791,7 @@ def evaluate_junit(document: dict[str, Any], estimate: str, truth: str) -> str:
             body = "" if allowed else f"<failure message={quoteattr(f'sensor {name} is {where}')}/>"
             cases.append(
                 '  <testcase classname="missing" '
-                f"name={quoteattr(name)}>{body}<system-out>{escape(where)}</system-out></testcase>"
+                f"name={quoteattr(name)}>{body}<system-out>{xml_text(where)}</system-out></testcase>"
             )
     return (
         '<?xml version="1.0" encoding="UTF-8"?>\n'

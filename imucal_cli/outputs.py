@@ -353,18 +353,12 @@ def follow_line(result: Calibration, windows: int) -> dict[str, Any]:
     sensors = {}
     for name, e in result.estimates.items():
         T = result.T_base_lidar(name)
-        statistical = None
-        if e.statistical_covariance is not None:
-            statistical = {
-                "rotation_deg": e.statistical_rotation_std_deg,
-                "translation_m": e.statistical_translation_std_m,
-            }
         sensors[name] = {
             "status": e.status,
             "T_base_lidar": {"translation": T.translation, "rpy_deg": np.degrees(T.rpy_rad)},
-            "statistical_std": statistical,
-            "rotation_std_deg": e.rotation_std_deg,
-            "translation_std_m": e.translation_std_m,
+            "statistical_std": _statistical_std(e),
+            "rotation_std_deg": _std_list(e.rotation_std_deg),
+            "translation_std_m": _std_list(e.translation_std_m),
             "windows": "{}/{}".format(*window_counts(e.windows)),
             "missing": result.missing(name),
         }
@@ -448,12 +442,7 @@ def _sensor_document(
         "T_base_lidar": result.T_base_lidar(sensor.name).to_dict(),
         "rotation_std_deg": _std_list(est.rotation_std_deg),
         "translation_std_m": _std_list(est.translation_std_m),
-        "statistical_std": None
-        if est.statistical_covariance is None
-        else {
-            "rotation_deg": _std_list(est.statistical_rotation_std_deg),
-            "translation_m": _std_list(est.statistical_translation_std_m),
-        },
+        "statistical_std": _statistical_std(est),
         "covariance": _covariance(est.covariance),
         "translation_observable": [bool(v) for v in est.translation_observable],
         # at t0 (the grid's origin is t_ref): the drift carries the offset there
@@ -472,6 +461,16 @@ def _sensor_document(
         "accel_bias_mps2": est.accel_bias,
         "segments": dict(zip(("selected", "total"), window_counts(est.windows), strict=True)),
         "residual_rms": {"gyro_radps": est.residual_rms_gyro, "accel_mps2": est.residual_rms_accel},
+    }
+
+
+def _statistical_std(est: Any) -> dict[str, list[float] | None] | None:
+    """The std of what more driving shrinks (``stop:`` tests it), or None without a fit."""
+    if est.statistical_covariance is None:
+        return None
+    return {
+        "rotation_deg": _std_list(est.statistical_rotation_std_deg),
+        "translation_m": _std_list(est.statistical_translation_std_m),
     }
 
 

@@ -117,14 +117,7 @@ def excitation_figure(plt: Any, windows: Sequence[Any], offset_s: float, path: P
     rate.set_ylabel("rate RMS (deg/s)")
     accel.set_ylabel("specific force std (m/s^2)")
     for ax in (rate, accel):
-        for i, w in enumerate(w for w in windows if w.selected):
-            ax.axvspan(
-                w.start_s + offset_s,
-                w.end_s + offset_s,
-                color="tab:green",
-                alpha=0.12,
-                label=None if i else "selected window",
-            )
+        _shade_selected(ax, windows, offset_s, alpha=0.12)
         ax.set_ylim(bottom=0.0)
         ax.grid(alpha=0.3)
     if any(w.selected for w in windows):
@@ -133,6 +126,18 @@ def excitation_figure(plt: Any, windows: Sequence[Any], offset_s: float, path: P
         "Excitation per window (base IMU): turning, and accelerating or braking", fontsize=10
     )
     return _save_over_time(fig, [accel], path)
+
+
+def _shade_selected(ax: Any, windows: Sequence[Any], offset_s: float, alpha: float) -> None:
+    """The selected windows shaded green on ``ax`` (one legend entry for them all)."""
+    for i, w in enumerate(w for w in windows if w.selected):
+        ax.axvspan(
+            w.start_s + offset_s,
+            w.end_s + offset_s,
+            color="tab:green",
+            alpha=alpha,
+            label=None if i else "selected window",
+        )
 
 
 def windows_figure(
@@ -144,14 +149,7 @@ def windows_figure(
     )
     for ax, (name, est) in zip(axes[:, 0], estimates.items(), strict=True):
         infos = est.windows
-        for i, w in enumerate(w for w in infos if w.selected):
-            ax.axvspan(
-                w.start_s + offset_s,
-                w.end_s + offset_s,
-                color="tab:green",
-                alpha=0.15,
-                label=None if i else "selected window",
-            )
+        _shade_selected(ax, infos, offset_s, alpha=0.15)
         for valid, colour, label in (
             (True, "tab:blue", "window std"),
             (False, "tab:orange", "window with a gap (not used)"),

@@ -187,12 +187,10 @@ def _window_moments(
     at: list[tuple[int, int, int]],
     names: list[str],
     covered: dict[str, np.ndarray],
-    step: int,
 ) -> dict[str, list[WindowMoments]]:
     """Each window's moments, one Gram matrix of the block's columns per window (rows
     ``i0 .. i0 + n`` of ``X``, ``samples`` grid samples: each row stands for ``samples / n``
-    of them, ``step`` but at a window's ends): the base's block shared, each sensor's own
-    rows."""
+    of them): the base's block shared, each sensor's own rows."""
     n_g, n_a = GYRO_BASE.size, ACCEL_BASE.size
     out: dict[str, list[WindowMoments]] = {name: [] for name in names}
     for (number, start, end), (i0, n_win, samples) in zip(spans, at, strict=True):
@@ -200,7 +198,7 @@ def _window_moments(
         G = Xw.T @ Xw
         # each row stands for its share of the window's samples: the "one" column sums to
         # their count, as the moments' means and scatters take it
-        if step > 1 and n_win:
+        if n_win and samples != n_win:
             G *= samples / n_win
         shared = base_moments(G[:n_g, :n_g], G[n_g : n_g + n_a, n_g : n_g + n_a])
         valid_base = bool(covered[""][i0 : i0 + n_win].all())
@@ -312,7 +310,7 @@ def reduce_block(
             gain = lp.white_noise_gain() * step  # (the rows are step grid samples apart)
             rows_at = [(i0, n) for i0, n, _ in at]
             measured[name] = window_offsets(w_B, dw_B, X[:, own : own + 3], valid, rows_at, gain)
-    return _window_moments(X, spans, at, names, covered, step)
+    return _window_moments(X, spans, at, names, covered)
 
 
 #: Fewest samples of an IMU in a block for its windows there to be reduced.

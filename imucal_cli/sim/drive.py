@@ -240,7 +240,7 @@ class SimulatedDrive:
 
     def urdf(self) -> str:
         """The tree of :meth:`static_transforms` as a URDF (fixed joints, ROS RPY)."""
-        from xml.sax.saxutils import quoteattr
+        from imucal_cli.names import quoteattr
 
         transforms = self.static_transforms()
         links = dict.fromkeys(f for parent, child, _ in transforms for f in (parent, child))
