@@ -144,10 +144,9 @@ def segments_document(calibration: Calibration, streamed: bool = False) -> dict[
         used, total = window_counts(windows)
 
         def chunks(windows: Sequence[WindowInfo] = windows) -> Iterator[list[dict[str, Any]]]:
-            for a in range(0, len(windows), 1000):
-                yield [
-                    _window_row(offset, windows[k]) for k in range(a, min(a + 1000, len(windows)))
-                ]
+            for a in range(0, len(windows), ROWS_CHUNK):
+                end = min(a + ROWS_CHUNK, len(windows))
+                yield [_window_row(offset, windows[k]) for k in range(a, end)]
 
         sensors[sensor.name] = {
             "total": total,

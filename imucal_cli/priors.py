@@ -75,3 +75,25 @@ def init_marks(path: str | Path) -> set[tuple[str, str]]:
             if in_base or (section == "sensors" and sensor and found[1] == "    "):
                 marks.add(("" if in_base else sensor, found[2]))
     return marks
+
+
+def config_text(config: Config, as_json: bool) -> tuple[str, dict[str, str]]:
+    """The config as YAML (each key a log supplied marked on its line with where it came from)
+    or JSON, and those keys with their sources (``sensors.NAME.KEY`` or ``base.KEY``)."""
+    from imucal_cli.documents import dumps
+
+    text = dumps(config.to_dict(), as_json=as_json)
+    taken = {  # (the config's own keys are left as they are)
+        (key if key.startswith("base.") else f"sensors.{name}.{key}"): source
+        for name, sources in config.priors.items()
+        for key, source in sources.items()
+        if source != "config"
+    }
+    for key, source in [] if as_json else taken.items():
+        *where, leaf = key.split(".")
+        head = "base:\n" if where == ["base"] else f"\n  {where[-1]}:\n"
+        line = f"\n{'  ' * len(where)}{leaf}:\n"
+        found = text.find(line, max(text.find(head), 0))
+        if found >= 0:
+            text = text[:found] + f"{line[:-1]}  # from {source}\n" + text[found + len(line) :]
+    return text, taken

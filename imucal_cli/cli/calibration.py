@@ -189,17 +189,15 @@ Report = Annotated[
 ]
 Follow = Annotated[
     bool,
-    typer.Option(
+    options.flag(
         "--follow",
-        metavar="",
         help="Read a log still being written; update the estimate as each window completes.",
     ),
 ]
 UntilConverged = Annotated[
     bool,
-    typer.Option(
+    options.flag(
         "--until-converged",
-        metavar="",
         help="With --follow: exit 0 once every sensor meets the config's stop: targets.",
     ),
 ]
@@ -213,17 +211,13 @@ Timeout = Annotated[
 ]
 RequireObservable = Annotated[
     bool,
-    typer.Option(
+    options.flag(
         "--require-observable",
-        metavar="",
         help="Exit 1 unless every sensor is ok (partial, inconsistent and unobservable fail).",
     ),
 ]
 Quiet = Annotated[
-    bool,
-    typer.Option(
-        "--quiet", "-q", metavar="", help="With -o or --json: print no status lines on stderr."
-    ),
+    bool, options.flag("--quiet", "-q", help="With -o or --json: print no status lines on stderr.")
 ]
 
 
@@ -337,10 +331,7 @@ def evaluate(
         ),
     ] = None,
     allow_missing: Annotated[
-        bool,
-        typer.Option(
-            "--allow-missing", metavar="", help="Pass although a sensor is in one file only."
-        ),
+        bool, options.flag("--allow-missing", help="Pass although a sensor is in one file only.")
     ] = False,
     junit: options.Junit = None,
 ) -> None:

@@ -48,9 +48,8 @@ ParentTransform = Annotated[
 ]
 AllowNotOk = Annotated[
     bool,
-    typer.Option(
+    options.flag(
         "--allow-not-ok",
-        metavar="",
         help="Export sensors whose status is not ok (their prior may go out as if calibrated).",
     ),
 ]

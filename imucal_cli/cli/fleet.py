@@ -71,10 +71,7 @@ MaxLost = Annotated[
 ]
 Junit = Annotated[Path | None, typer.Option("--junit", help="Write JUnit XML here (for CI).")]
 Force = Annotated[
-    bool,
-    typer.Option(
-        "--force", metavar="", help="Replace the outputs an earlier batch left in --out-dir."
-    ),
+    bool, options.flag("--force", help="Replace the outputs an earlier batch left in --out-dir.")
 ]
 
 

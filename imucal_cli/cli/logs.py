@@ -42,9 +42,7 @@ def _render_inspect(document: dict[str, Any]) -> None:
 def inspect(
     log: options.Log,
     out: options.Out = None,
-    as_json: Annotated[
-        bool, typer.Option("--json", metavar="", help="Print JSON instead of a table.")
-    ] = False,
+    as_json: Annotated[bool, options.flag("--json", help="Print JSON instead of a table.")] = False,
 ) -> None:
     """Topics, message types, counts, rates, duration, gaps and time jumps of a log."""
     from imucal_cli.inspection import summarize_log
@@ -77,7 +75,7 @@ def init(
     frame: Annotated[str, typer.Option("--frame", help="The base frame B.")] = "base_link",
     urdf: options.Urdf = None,
     force: Annotated[
-        bool, typer.Option("--force", metavar="", help="Replace the config OUT if it exists.")
+        bool, options.flag("--force", help="Replace the config OUT if it exists.")
     ] = False,
 ) -> None:
     """Write a starting config from a log: its IMU topics, the base, the transforms in its
@@ -114,9 +112,7 @@ def check_config(
     config: Annotated[
         Path, typer.Argument(help="Calibration config (YAML).", exists=True, dir_okay=False)
     ],
-    as_json: Annotated[
-        bool, typer.Option("--json", metavar="", help="Print JSON instead of YAML.")
-    ] = False,
+    as_json: Annotated[bool, options.flag("--json", help="Print JSON instead of YAML.")] = False,
     log: Annotated[
         Path | None,
         typer.Option(
@@ -127,32 +123,10 @@ def check_config(
 ) -> None:
     """Validate a config and print it with every default filled in."""
     from imucal_cli.api import load_config
-    from imucal_cli.documents import dumps
+    from imucal_cli.priors import config_text
 
     options.needs("--urdf", urdf, "--log (the IMUs' frames are in the log)", log)
-    loaded = load_config(config, log, urdf)
-    text = dumps(loaded.to_dict(), as_json=as_json)
-    taken = {  # (the keys the log supplied: marked, the config's own left as they are)
-        (key if key.startswith("base.") else f"sensors.{name}.{key}"): source
-        for name, sources in loaded.priors.items()
-        for key, source in sources.items()
-        if source != "config"
-    }
+    text, taken = config_text(load_config(config, log, urdf), as_json)
     for key, source in sorted(taken.items()):
         err(f"imucal: note: {key}: from {log}'s {source} (the config leaves it out)")
-    if not as_json:  # (YAML: each such key's line says so)
-        for key, source in taken.items():
-            *where, leaf = key.split(".")
-            text = _mark(text, where, leaf, source)
     typer.echo(text, nl=False)
-
-
-def _mark(text: str, where: list[str], key: str, source: str) -> str:
-    """``text`` (a config's YAML) with the line of ``key`` under ``where`` (``["base"]`` or
-    ``["sensors", NAME]``) saying where its value came from."""
-    head = "base:\n" if where == ["base"] else f"\n  {where[-1]}:\n"
-    line = f"\n{'  ' * len(where)}{key}:\n"
-    found = text.find(line, max(text.find(head), 0))
-    if found < 0:
-        return text
-    return text[:found] + f"{line[:-1]}  # from {source}\n" + text[found + len(line) :]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -38,6 +38,11 @@ def guard(outputs: dict[str, Path | None], inputs: list[Path | None]) -> None:
     check_outputs(outputs, inputs)
 
 
+def flag(*names: str, help: str) -> Any:
+    """A yes/no option, shown as the flag it is (no ``<bool>`` after it)."""
+    return typer.Option(*names, metavar="", help=help)
+
+
 def needs(option: str, value: object, other: str, given: object) -> None:
     """``option`` goes with ``other``: an error naming both when only ``option`` is given."""
     if value not in (None, False) and given in (None, False):
@@ -62,12 +67,11 @@ Out = Annotated[
     Path | None,
     typer.Option("-o", "--out", help="Write YAML (.yaml) or JSON (.json).", callback=document_path),
 ]
-Json = Annotated[bool, typer.Option("--json", metavar="", help="Print JSON instead of a summary.")]
+Json = Annotated[bool, flag("--json", help="Print JSON instead of a summary.")]
 Junit = Annotated[
     Path | None,
     typer.Option("--junit", help="Also write JUnit XML here (for CI).", callback=output_path),
 ]
-Force = Annotated[bool, typer.Option("--force", metavar="", help="Replace what OUT names.")]
 MaxRotation = Annotated[
     float | None,
     typer.Option("--max-rotation-deg", min=0.0, help="Pass threshold on the rotation error (deg)."),

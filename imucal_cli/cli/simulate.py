@@ -75,18 +75,16 @@ BaseGrade = Annotated[
 ]
 TfStatic = Annotated[
     bool,
-    typer.Option(
+    options.flag(
         "--tf-static",
-        metavar="",
         help="Write /tf_static: per lidar <name>/os_sensor at the CAD prior with the IMU's and "
         "the lidar's frames under it, and the base IMU's frame gnss_imu in base_link.",
     ),
 ]
 Force = Annotated[
     bool,
-    typer.Option(
+    options.flag(
         "--force",
-        metavar="",
         help="Replace an existing OUT if it is a log (and the truth and config beside it).",
     ),
 ]
