@@ -617,3 +617,51 @@ def test_kalibr_export_of_an_unobservable_sensor_says_no_window_measured_its_wal
     assert result.exit_code == 2
     assert "random_walk: missing (no window of the drive was used" in result.stderr
     assert "imucal version" not in result.stderr
+
+
+def _guide_snippets() -> list[tuple[str, str]]:
+    """docs/usage.md's export examples: each ``--format F`` paragraph's fenced block."""
+    import re
+
+    from conftest import SAMPLE_DATA
+
+    guide = (SAMPLE_DATA.parent / "docs" / "usage.md").read_text()
+    section = guide[guide.index("## Exports") : guide.index("## Report")]
+    return re.findall(r"`--format (\S+?)[` ][^`]*?`?.*?```\w+\n(.*?)```", section, re.S)
+
+
+def _same_line(shown: str, printed: str) -> bool:
+    """The same text, and the same numbers to 1e-7 (relative): what another machine's floating
+    point may change in an estimate's last digits, far below what a change of the estimator
+    moves (the guide's numbers of an older build differed in the 4th digit)."""
+    import re
+
+    number = r"-?\d+\.\d+(?:e-?\d+)?"
+    if re.split(number, shown) != re.split(number, printed):
+        return False
+    a, b = (np.array(re.findall(number, line), dtype=float) for line in (shown, printed))
+    return len(a) == len(b) and np.allclose(a, b, rtol=1e-7, atol=1e-12)
+
+
+def test_the_usage_guide_shows_the_first_lines_the_sample_s_exports_print(calibrated):
+    """The guide's examples are the sample's calibration exported (a run of consecutive lines
+    of each format's output), not numbers of an older build."""
+    from imucal_cli.api import export
+    from imucal_cli.documents import load_document
+
+    snippets = _guide_snippets()
+    assert [fmt for fmt, _ in snippets] == [
+        "autoware",
+        "urdf",
+        "tf-static-ros2",
+        "tf-static-ros1",
+        "kalibr",
+    ]
+    document = load_document(calibrated)
+    for fmt, snippet in snippets:
+        lines = export(document, fmt)["main"].splitlines()
+        shown = snippet.splitlines()
+        assert any(
+            all(_same_line(a, b) for a, b in zip(shown, lines[i : i + len(shown)], strict=True))
+            for i in range(len(lines) - len(shown) + 1)
+        ), fmt
