@@ -47,6 +47,9 @@ COMMENTS = {
     "stop.max_translation_std_m": "this statistical std on every axis",
 }
 
+#: The most lines ``init`` says of each kind (names left out, placeholders) before a count.
+NOTE_LINES = 20
+
 
 @dataclass
 class Found:
@@ -64,6 +67,21 @@ class Found:
     #: What of the log could not go into a config (a topic or frame outside ROS's naming
     #: rules), one line each, made printable.
     skipped: list[str] = field(default_factory=list)
+
+    def notes(self) -> list[str]:
+        """What to tell of it: the names left out, then the placeholders to fill, at most
+        :data:`NOTE_LINES` of each and then a count (a log of 60,000 IMU channels)."""
+        missing = [
+            f"{name}: {key} is not in the log ({self.looked.get((name, key), '')}): fill its "
+            "placeholder"
+            for name, key in self.missing
+        ]
+        notes = []
+        for lines, what in ((self.skipped, "names left out"), (missing, "placeholders")):
+            notes += lines[:NOTE_LINES]
+            if len(lines) > NOTE_LINES:
+                notes.append(f"... and {len(lines) - NOTE_LINES:,} more {what}")
+        return notes
 
 
 def sensor_name(topic: str, taken: set[str]) -> str:

@@ -50,6 +50,18 @@ def pyplot() -> Any:
     return plt
 
 
+def check_outputs(
+    folder: Path, others: Mapping[str, Path | None], inputs: Sequence[Path | None]
+) -> None:
+    """Before the work: the report's files in ``folder`` are none of ``others`` and replace no
+    input (:func:`~imucal_cli.paths.check_outputs`), and matplotlib is there to draw them."""
+    from imucal_cli.paths import check_outputs as check
+
+    files = {f"--report ({name})": folder / name for name in ("report.html", *FIGURES)}
+    check({**others, **files}, inputs)
+    pyplot()
+
+
 def _legend(ax: Any, **kwargs: Any) -> None:
     """The axes' legend beside them, on the right, where it covers no data."""
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8, **kwargs)

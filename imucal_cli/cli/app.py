@@ -14,6 +14,7 @@ from typing import Annotated, Any, ParamSpec, TypeVar
 
 import typer
 
+from imucal_cli.cli.options import flag
 from imucal_cli.errors import ImucalError, Terminated
 from imucal_cli.names import printable
 from imucal_cli.version import version
@@ -82,10 +83,7 @@ def _version(value: bool) -> None:
 @app.callback()
 def _root(
     version: Annotated[
-        bool,
-        typer.Option(
-            "--version", metavar="", callback=_version, is_eager=True, help="Print the version."
-        ),
+        bool, flag("--version", help="Print the version.", callback=_version, is_eager=True)
     ] = False,
 ) -> None:
     """Calibrate the extrinsics of every lidar on a vehicle from raw IMU signals alone."""

@@ -12,13 +12,6 @@ from imucal_cli.cli import options
 from imucal_cli.cli.app import EXIT_CHECK_FAILED, PANEL_FLEET, command, err, interrupted
 from imucal_cli.errors import InputError
 
-
-def _out_dir(path: Path) -> Path:
-    if not path.parent.is_dir():
-        raise typer.BadParameter(f"{path}: output folder's parent {path.parent} does not exist")
-    return path
-
-
 Logs = Annotated[list[Path] | None, typer.Argument(help="Logs to calibrate (or --manifest).")]
 BatchConfig = Annotated[
     Path | None,
@@ -32,7 +25,9 @@ BatchConfig = Annotated[
 OutDir = Annotated[
     Path,
     typer.Option(
-        "--out-dir", callback=_out_dir, help="Folder for each log's calibration and the summary."
+        "--out-dir",
+        callback=options.folder_path,
+        help="Folder for each log's calibration and the summary.",
     ),
 ]
 Manifest = Annotated[

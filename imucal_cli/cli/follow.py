@@ -7,75 +7,19 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import typer
 
+from imucal_cli import tables
 from imucal_cli.cli import render
 from imucal_cli.cli.app import EXIT_CHECK_FAILED, err, interrupted
 
 #: After how long without news of the recording the wait is said (s of wall time).
 FOLLOW_STALL_S = 30.0
-
-
-def follow_table(log: Path, windows: int, calibration: Any, width: int = 1 << 16) -> Any:
-    """The live view: per sensor its status, the estimate (``T_base_lidar``), its statistical
-    std (what ``stop:`` tests: what more driving shrinks) against the targets, the windows used
-    and what it lacks; stacked where ``width`` is too narrow for a table."""
-    stop = calibration.config.stop
-    rows = []
-    for name, line in calibration.follow_line(windows)["sensors"].items():  # (as a row)
-        T, std = line["T_base_lidar"], line["statistical_std"] or {}
-        rows.append(
-            (
-                name,
-                line["status"],
-                render.fmt(T["translation"], 4),
-                render.fmt(T["rpy_deg"], 3),
-                render.fmt(std.get("rotation_deg"), 4),
-                render.fmt(_mm(std.get("translation_m")), 2),
-                line["windows"],
-                " ".join(_axis(m) for m in line["missing"]) or "-",
-            )
-        )
-    columns = (
-        "sensor",
-        "status",
-        "xyz m",
-        "rpy deg",
-        f"std rpy deg (stop {stop.max_rotation_std_deg:g})",
-        f"std xyz mm (stop {1000 * stop.max_translation_std_m:g})",
-        "windows used",
-        "missing axes",
-    )
-    return render.fitted(f"following {log}: {windows} windows", columns, rows, width)
-
-
-def _axis(missing: str) -> str:
-    """A missing axis in short: ``roll``, ``pitch``, ``yaw``, ``tx``, ``ty``, ``tz``."""
-    name = missing.split(":")[0]
-    return name[name.find("(") + 1 : -1] if "(" in name else "t" + name.split()[-1]
-
-
-def _mm(values: Any) -> Any:
-    return None if values is None else [1000 * v for v in values]
-
-
-def _waiting_table(log: Path, state: dict[str, Any], width: int = 1 << 16) -> Any:
-    """The table before the first estimate: per sensor, samples and what it waits for (the
-    counts right-justified; stacked where ``width`` is too narrow)."""
-    rows = [
-        (name, f"{s['samples']:,}", str(s["windows"]), s["waiting_for"])
-        for name, s in state["sensors"].items()
-    ]
-    return render.fitted(
-        f"following {log}: base {state['base_samples']:,} samples",
-        ("sensor", "samples", "windows", "waiting for"),
-        rows,
-        width,
-        right=("samples", "windows"),
-    )
 
 
 class _View:
@@ -92,43 +36,32 @@ class _View:
             self.live = Live(console=Console(stderr=True), auto_refresh=False)
         self.heard, self.stalled, self.told = time.monotonic(), -1e9, -1e9
 
-    def window(self, calibration: Any, windows: int) -> None:
+    def _show(self, line: dict[str, Any], table: Any, lines: Callable[[], list[str]]) -> None:
+        """A JSON line, the live table (``table(width)``) or ``lines()`` on stderr."""
         from imucal_cli.documents import to_plain
 
         self.heard = time.monotonic()
         if self.as_json:
-            typer.echo(json.dumps(to_plain(calibration.follow_line(windows))))
+            typer.echo(json.dumps(to_plain(line)))
         elif self.live is not None:
-            width = self.live.console.width
-            self.live.update(follow_table(self.log, windows, calibration, width), refresh=True)
+            self.live.update(table(self.live.console.width), refresh=True)
         else:
-            for name, line in calibration.follow_line(windows)["sensors"].items():
-                T, std = line["T_base_lidar"], line["statistical_std"] or {}
-                missing = " ".join(_axis(m) for m in line["missing"]) or "none"
-                err(
-                    f"imucal: {windows} windows: {name} {line['status']} xyz "
-                    f"{render.fmt(T['translation'], 4)} m rpy {render.fmt(T['rpy_deg'], 3)} deg, "
-                    f"statistical std {render.fmt(std.get('rotation_deg'), 4)} deg "
-                    f"{render.fmt(_mm(std.get('translation_m')), 2)} mm; missing: {missing}"
-                )
+            for text in lines():
+                err(f"imucal: {text}")
+
+    def window(self, calibration: Any, windows: int) -> None:
+        table = partial(tables.follow, self.log, windows, calibration)
+        lines = partial(tables.follow_lines, windows, calibration)
+        self._show(calibration.follow_line(windows), table, lines)
 
     def waiting(self, state: dict[str, Any]) -> None:  # before the first estimate
-        from imucal_cli.documents import to_plain
-
-        self.heard = time.monotonic()
-        if self.as_json:
-            typer.echo(json.dumps(to_plain({"windows": 0, **state})))
-        elif self.live is not None:
-            width = self.live.console.width
-            self.live.update(_waiting_table(self.log, state, width), refresh=True)
-        elif time.monotonic() - self.told >= 5.0:  # (a log file: every 5 s)
+        def lines() -> list[str]:  # (in a log file: every 5 s)
+            if time.monotonic() - self.told < 5.0:
+                return []
             self.told = time.monotonic()
-            first: dict[str, Any] = next(iter(state["sensors"].values()), {})
-            samples = (f"{n} {v['samples']:,} samples" for n, v in state["sensors"].items())
-            err(
-                f"imucal: following {self.log}: {', '.join(samples)}; waiting for "
-                f"{first.get('waiting_for', 'data')}"
-            )
+            return [tables.waiting_line(self.log, state)]
+
+        self._show({"windows": 0, **state}, partial(tables.waiting, self.log, state), lines)
 
     def timed_out(self) -> bool:  # (asked at every poll of the recording)
         now = time.monotonic()

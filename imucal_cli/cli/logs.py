@@ -3,39 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
+from imucal_cli import tables
 from imucal_cli.cli import options, render
 from imucal_cli.cli.app import PANEL_CONFIG, PANEL_LOGS, command, err
 from imucal_cli.errors import InputError
-
-#: The most lines ``init`` says of each kind (names left out, placeholders) before a count.
-INIT_LINES = 20
-
-
-def _gaps(info: dict[str, Any]) -> str:
-    if len(info["gaps"]) > 3:
-        return str(len(info["gaps"]))
-    return ", ".join(f"{a:.2f}-{b:.2f}" for a, b in info["gaps"]) or "0"
-
-
-def _render_inspect(document: dict[str, Any]) -> None:
-    columns = ("topic", "type", "count", "rate Hz", "duration s", "gaps", "backwards")
-    render.table(
-        f"{document['log']} ({document['format']}), t0_ns = {document['t0_ns']}",
-        (*columns, "duplicates"),
-        (
-            (
-                *(topic, i["type"], f"{i['count']:,}", f"{i['rate_hz']:.2f}"),
-                *(f"{i['duration_s']:.2f}", _gaps(i), str(i["backwards"]), str(i["duplicates"])),
-            )
-            for topic, i in document["topics"].items()
-        ),
-        right=(*columns[2:], "duplicates"),
-        no_wrap=columns[:2],
-    )
 
 
 @command(PANEL_LOGS)
@@ -52,7 +27,7 @@ def inspect(
     with render.progress(f"reading {log.name}") as progress:
         summary = summarize_log(log, progress)
     render.note_losses(log, summary.losses)
-    render.emit(inspect_document(summary), out, as_json, _render_inspect)
+    render.emit(inspect_document(summary), out, as_json, tables.inspection)
 
 
 def _yaml_path(path: Path | None) -> Path | None:
@@ -95,16 +70,8 @@ def init(
     else:
         write_text_atomic(out, text)
         err(f"imucal: config: {out} (base {found.base_topic}, {len(found.sensors)} sensors)")
-    missing = [
-        f"{name}: {key} is not in the log ({found.looked.get((name, key), '')}): fill its "
-        "placeholder"
-        for name, key in found.missing
-    ]
-    for lines, what in ((found.skipped, "names left out"), (missing, "placeholders")):
-        for line in lines[:INIT_LINES]:  # (a log of 60,000 IMU channels: a bounded say)
-            err(f"imucal: {line}")
-        if len(lines) > INIT_LINES:
-            err(f"imucal: ... and {len(lines) - INIT_LINES:,} more {what}")
+    for line in found.notes():
+        err(f"imucal: {line}")
 
 
 @command(PANEL_CONFIG, "check-config")

@@ -30,6 +30,15 @@ def document_path(path: Path | None) -> Path | None:
     return output_path(path)
 
 
+def folder_path(path: Path | None) -> Path | None:
+    """The callback of an output folder: it is one, or its parent is, to make it in."""
+    if path is not None and not path.parent.is_dir():
+        raise typer.BadParameter(f"{path}: the folder's parent {path.parent} does not exist")
+    if path is not None and path.exists() and not path.is_dir():
+        raise typer.BadParameter(f"{path}: exists and is not a folder")
+    return path
+
+
 def guard(outputs: dict[str, Path | None], inputs: list[Path | None]) -> None:
     """No output replaces an input, a log, or goes into a rosbag2 folder
     (:func:`~imucal_cli.paths.check_outputs`)."""
@@ -38,9 +47,9 @@ def guard(outputs: dict[str, Path | None], inputs: list[Path | None]) -> None:
     check_outputs(outputs, inputs)
 
 
-def flag(*names: str, help: str) -> Any:
+def flag(*names: str, help: str, **more: Any) -> Any:
     """A yes/no option, shown as the flag it is (no ``<bool>`` after it)."""
-    return typer.Option(*names, metavar="", help=help)
+    return typer.Option(*names, metavar="", help=help, **more)
 
 
 def needs(option: str, value: object, other: str, given: object) -> None:

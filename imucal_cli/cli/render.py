@@ -4,7 +4,7 @@ written or printed."""
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -74,64 +74,10 @@ def count_text(done: float, total: float | None, left: float | None, unit: str) 
     return f"{int(done):,} of {int(total):,} {unit}{time_left}"
 
 
-def table(
-    title: str,
-    columns: Sequence[str],
-    rows: Iterable[Sequence[Any]],
-    right: Iterable[str] = (),
-    no_wrap: Iterable[str] = (),
-) -> Any:
-    """A rich table on stdout, the ``right`` columns right-justified (numbers); returns the
-    console (for what follows the table). Where the terminal is too narrow for it
-    (:func:`fitted`), each row is stacked instead: no value is ever cut."""
-    shown = console()
-    shown.print(fitted(title, columns, rows, shown.width, right, no_wrap))
-    return shown
-
-
-def fitted(
-    title: str,
-    columns: Sequence[str],
-    rows: Iterable[Sequence[Any]],
-    width: int,
-    right: Iterable[str] = (),
-    no_wrap: Iterable[str] = (),
-) -> Any:
-    """A table of ``rows`` that fits ``width`` columns, its cells wrapped between words; where
-    even that does not fit (rich would then cut numbers short, ``[4.348…``), each row stacked
-    as lines of ``column  value`` under its first cell."""
-    from rich.console import Console, Group
-    from rich.measure import Measurement
-    from rich.table import Table
-    from rich.text import Text
-
-    out = Table(title=printable(title))
-    right, no_wrap = set(right), set(no_wrap)
-    for column in columns:
-        out.add_column(
-            column,
-            justify="right" if column in right else "left",
-            no_wrap=column in no_wrap,
-            overflow="fold",  # (never an ellipsis in place of digits)
-        )
-    kept = [[printable(cell) if isinstance(cell, str) else cell for cell in row] for row in rows]
-    for row in kept:
-        out.add_row(*row)
-    wide = Console(width=1 << 16)
-    if Measurement.get(wide, wide.options, out).minimum <= width:
-        return out
-    label = max(len(column) for column in columns[1:]) if len(columns) > 1 else 0
-    lines = [Text(printable(title), style="bold")]
-    for row in kept:
-        lines.append(Text.assemble(row[0] if isinstance(row[0], Text) else str(row[0])))
-        for column, cell in zip(columns[1:], row[1:], strict=True):
-            value = cell if isinstance(cell, Text) else Text(str(cell))
-            lines.append(Text.assemble(f"  {column:<{label}}  ", value))
-    return Group(*lines)
-
-
-def emit(document: dict[str, Any], out: Path | None, as_json: bool, render: Any) -> None:
-    """Write ``document`` to ``out`` (YAML/JSON by suffix), or print JSON, or render it."""
+def emit(document: dict[str, Any], out: Path | None, as_json: bool, table: Any, *args: Any) -> None:
+    """Write ``document`` to ``out`` (YAML/JSON by suffix), or print JSON, or print
+    ``table(*args, document, width)`` (:mod:`imucal_cli.tables`, fitted to stdout's width; one
+    that yields several tables prints each as it is made)."""
     from imucal_cli.documents import dump_chunks, write_document
 
     if out is not None:
@@ -140,13 +86,10 @@ def emit(document: dict[str, Any], out: Path | None, as_json: bool, render: Any)
         for text in dump_chunks(document, as_json=True):
             typer.echo(text, nl=False)
     else:
-        render(document)
-
-
-def fmt(values: Any, digits: int) -> str:
-    if values is None:
-        return "-"
-    return "[" + ", ".join(f"{v:.{digits}f}" for v in values) + "]"
+        shown = console()
+        made = table(*args, document, shown.width)
+        for each in made if isinstance(made, Iterator) else [made]:
+            shown.print(each)
 
 
 def note_read(log: Path, counts: dict[str, dict[str, int]]) -> None:
@@ -168,21 +111,6 @@ def note_losses(log: Path, losses: list[Any]) -> None:
             err(f"imucal: {'warning' if loss.lost else 'note'}: {log}: {loss.describe()}")
     if len(losses) > 5:
         err(f"imucal: warning: {log}: {len(losses) - 5} more damaged parts not read")
-
-
-def status_lines(document: dict[str, Any]) -> None:
-    """Where the readable summary is not printed (``-o``, ``--json``): each sensor's status
-    with its worst std, then each of its warnings, one line each on stderr, so that a terminal
-    or a job's log shows what is wrong without opening the output."""
-    for name, sensor in document["sensors"].items():
-        line = f"imucal: {name}: {sensor['status']}"
-        if sensor["rotation_std_deg"] is not None:
-            line += f", std {max(sensor['rotation_std_deg']):.3g} deg"
-        if sensor["translation_std_m"] is not None:
-            line += f" and {1000 * max(sensor['translation_std_m']):.3g} mm (worst axis)"
-        err(f"{line}, {sensor['segments']['selected']}/{sensor['segments']['total']} windows")
-        for warning in sensor["warnings"]:
-            err(f"imucal: {name}: {warning}")
 
 
 def report(out: Path, calibration: Any) -> None:

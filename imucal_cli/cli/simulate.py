@@ -12,15 +12,8 @@ from imucal_cli.cli import options, render
 from imucal_cli.cli.app import PANEL_SIM, command
 from imucal_cli.io.formats import FORMATS
 
-
-class Scenario(StrEnum):
-    aggressive = "aggressive"
-    urban = "urban"
-    highway = "highway"
-    parking = "parking"
-    stationary = "stationary"
-
-
+SCENARIOS = ("aggressive", "urban", "highway", "parking", "stationary")  # (not sim's: scipy)
+Scenario = StrEnum("Scenario", {name: name for name in SCENARIOS})  # type: ignore[misc]
 LogFormat = StrEnum("LogFormat", {name: name for name in FORMATS})  # type: ignore[misc]
 
 Out = Annotated[
@@ -93,7 +86,7 @@ Force = Annotated[
 @command(PANEL_SIM)
 def simulate(
     out: Out,
-    scenario: Annotated[Scenario, typer.Option(help="Kind of drive.")] = Scenario.urban,
+    scenario: Annotated[Scenario, typer.Option(help="Kind of drive.")] = Scenario["urban"],
     duration: Duration = None,
     seed: Annotated[int, typer.Option(help="Random seed: the same seed gives the same log.")] = 0,
     log_format: Format = None,

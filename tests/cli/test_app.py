@@ -314,6 +314,7 @@ def test_tables_never_cut_a_digit_at_80_columns(monkeypatch):
     does not fit, and left a table where it does."""
     from rich.console import Console
 
+    from imucal_cli import tables
     from imucal_cli.cli import render
 
     monkeypatch.setattr(render, "console", lambda: Console(width=80, highlight=False, markup=False))
@@ -330,8 +331,8 @@ def test_tables_never_cut_a_digit_at_80_columns(monkeypatch):
             (sensor["T_base_lidar"]["translation"], 4),
             (sensor["T_base_lidar"]["rpy_deg"], 3),
         ):
-            assert render.fmt(values, digits) in result.stdout
-    narrow = render.fitted("t", ("a", "b"), [("1.5", "2.5")], 80)
+            assert tables.fmt(values, digits) in result.stdout
+    narrow = tables.fitted("t", ("a", "b"), [("1.5", "2.5")], 80)
     assert type(narrow).__name__ == "Table"  # (a table that fits stays one)
 
 

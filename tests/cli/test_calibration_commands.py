@@ -250,9 +250,9 @@ def test_segments_report(tmp_path):
 def test_segments_table_shows_a_long_log_in_blocks(monkeypatch):
     """The terminal's table of windows is drawn a block at a time (a day's log has thousands):
     every window once, in order, each block under a title that says which windows it holds."""
-    from imucal_cli.cli import calibration
+    from imucal_cli import tables
 
-    monkeypatch.setattr(calibration, "TABLE_ROWS", 3)
+    monkeypatch.setattr(tables, "TABLE_ROWS", 3)
     result = runner.invoke(app, ["segments", str(LOG), "-c", str(CONFIG)])
     assert result.exit_code == 0, result.output
     doc = json.loads(runner.invoke(app, ["segments", str(LOG), "-c", str(CONFIG), "--json"]).stdout)

@@ -254,8 +254,7 @@ def test_the_live_table_shows_status_std_windows_and_what_is_missing():
     from conftest import SAMPLE_DATA
     from rich.console import Console
 
-    from imucal_cli.cli import render
-    from imucal_cli.cli.follow import follow_table
+    from imucal_cli import tables
 
     run = calibrate(SAMPLE_DATA / "aggressive.mcap", SAMPLE_DATA / "aggressive.config.yaml")
     stop = run.config.stop.__class__(
@@ -264,13 +263,13 @@ def test_the_live_table_shows_status_std_windows_and_what_is_missing():
     run = replace(run, config=replace(run.config, stop=stop))
     for width in (200, 80):  # (a table where it fits, each sensor stacked where it does not)
         console = Console(width=width, record=True)
-        console.print(follow_table(Path("live.mcap"), 7, run, width))
+        console.print(tables.follow(Path("live.mcap"), 7, run, width))
         text = console.export_text()
         assert "following live.mcap: 7 windows" in text and "…" not in text
         for name, estimate in run.estimates.items():
             T = run.T_base_lidar(name)
-            assert name in text and render.fmt(T.translation, 4) in text
-            assert render.fmt(estimate.statistical_rotation_std_deg, 4) in text
+            assert name in text and tables.fmt(T.translation, 4) in text
+            assert tables.fmt(estimate.statistical_rotation_std_deg, 4) in text
             assert f"{sum(w.selected for w in estimate.windows)}/{len(estimate.windows)}" in text
         assert "roll pitch yaw tx ty tz" in text and "std rpy deg (stop 0.001)" in text
 
