@@ -1,7 +1,8 @@
 """What a person reads of each document: rich tables (with the lines that go under them) of
 ``inspect``, ``biases``, ``segments``, ``calibrate`` and ``evaluate`` documents and of the follow
 view, each fitted to a width. The CLI prints them; a notebook may too
-(``rich.print(tables.calibration(log, run.document()))``). rich is imported when a table is made.
+(``console.print(tables.calibration(log, run.document(), console.width))``, ``console`` a
+``rich.console.Console``). rich is imported when a table is made.
 """
 
 from __future__ import annotations
