@@ -18,7 +18,7 @@ import json
 import os
 import traceback
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -37,30 +37,6 @@ MOVED_STD = 3.0
 MOVED_FALLBACK_DEG, MOVED_FALLBACK_M = 0.1, 0.02
 #: How long a batch waits for a Dask worker to join its scheduler (s).
 DASK_WORKERS_S = 30.0
-
-#: Log file suffixes a batch output's name drops (``2024.01.05.mcap`` -> ``2024.01.05.yaml``).
-
-SUMMARY_COLUMNS = (
-    "log",
-    "sensor",
-    "status",
-    "x_m",
-    "y_m",
-    "z_m",
-    "roll_deg",
-    "pitch_deg",
-    "yaw_deg",
-    "rotation_std_deg",
-    "translation_std_m",
-    "rotation_error_deg",
-    "translation_error_m",
-    "moved",
-    "lost_s",
-    "dropped",
-    "warnings",
-    "pass",
-    "error",
-)
 
 
 @dataclass(frozen=True)
@@ -686,7 +662,9 @@ def read_manifest(path: Path) -> list[dict[str, str]]:
 
 def summary_csv(rows: Iterable[Row]) -> str:
     out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=list(SUMMARY_COLUMNS), lineterminator="\n")
+    columns = [f.name for f in fields(Row) if f.compare]  # (as Row.to_dict names them)
+    columns[columns.index("passed")] = "pass"
+    writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
     writer.writeheader()
     for row in rows:
         writer.writerow({k: ("" if v is None else v) for k, v in row.to_dict().items()})
