@@ -6,8 +6,9 @@ every sensor solved and told) is fed in this process from memory, faster than re
 simulated hour of town driving (a base IMU and ``--sensors`` lidar IMUs at 100 Hz), its stamps
 moved on by an hour each time, in 10 s batches, with the caught-up step every ``--update-s`` of
 data. The table: the process's resident memory (VmRSS, now, not the peak)
-after each of the hours listed, the windows it keeps per sensor, and the CPU seconds per hour
-fed since the previous row.
+after each of the hours listed, the windows it keeps per sensor, the CPU seconds per hour
+fed since the previous row, and each sensor's status then (the same noise every hour: what
+a real week would not repeat becomes significant as the hours add up).
 
 Run: ``python benchmarks/follow_week.py [--hours 168] [--update-s 1800]``.
 """
@@ -53,8 +54,11 @@ def main() -> None:
         f"an update every {args.update_s:g} s of data)\n\nBefore feeding (the simulated hour "
         f"held in memory, modules loaded): {rss_mb():.0f} MB.\n"
     )
-    print("| hours fed | RSS MB | windows reduced | units kept per sensor | CPU s per hour |")
-    print("|---|---|---|---|---|")
+    print(
+        "| hours fed | RSS MB | windows reduced | units kept per sensor | CPU s per hour "
+        "| statuses |"
+    )
+    print("|---|---|---|---|---|---|")
     cpu, last_hour = time.process_time(), 0
     for hour in range(args.hours):
         shifted = {name: s.t_ns + hour * HOUR_NS for name, s in streams.items()}
@@ -69,9 +73,11 @@ def main() -> None:
         if hour + 1 in shown:
             now = time.process_time()
             units = max(len(w) for w in state.calibrator.windows.values())
+            latest = state.latest
+            statuses = ", ".join(e.status for e in latest.estimates.values()) if latest else "-"
             print(
                 f"| {hour + 1} | {rss_mb():.0f} | {state.calibrator.reduced} | {units} "
-                f"| {(now - cpu) / (hour + 1 - last_hour):.1f} |",
+                f"| {(now - cpu) / (hour + 1 - last_hour):.1f} | {statuses} |",
                 flush=True,
             )
             cpu, last_hour = now, hour + 1
