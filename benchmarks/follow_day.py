@@ -8,10 +8,11 @@ follow mode's state (``pipeline._Follower``) in 10 s batches, with the caught-up
 deg, translation mm) and its error against the simulator's truth in std on each of its six
 axes (rotation about the base axes, then translation), the largest of them in bold where the
 status is ``ok`` and it is beyond 4. ``--clean`` takes the lidar IMUs' timestamp jitter,
-dropped samples and quantisation and the base's float32 output out of the simulation.
+dropped samples and quantisation and the base's float32 output out of the simulation;
+``--no-walk`` every IMU's bias random walk (each keeps its turn-on bias).
 
-Run: ``python benchmarks/follow_day.py [--hours 24] [--seed 7] [--clean]``: about 6 GB of
-memory and 5 minutes for a day.
+Run: ``python benchmarks/follow_day.py [--hours 24] [--seed 7] [--clean] [--no-walk]``: about
+6 GB of memory and 5 minutes for a day.
 """
 
 from __future__ import annotations
@@ -29,8 +30,12 @@ HOUR_NS = 3_600_000_000_000
 SHOWN = (1, 2, 4, 8, 12, 16, 20, 24, 36, 48)
 
 
-def options(hours: int, seed: int, clean: bool) -> DriveOptions:
+def options(hours: int, seed: int, clean: bool, no_walk: bool) -> DriveOptions:
     drive = DriveOptions(scenario="urban", duration_s=hours * 3600.0, seed=seed, sensors=2)
+    if no_walk:
+        still = {"gyro_bias_random_walk": 0.0, "accel_bias_random_walk": 0.0}
+        lidar, base = replace(drive.lidar_model, **still), replace(drive.base_model, **still)
+        drive = replace(drive, lidar_model=lidar, base_model=base)
     if not clean:
         return drive
     lidar = replace(drive.lidar_model, jitter_s=0.0, drop_fraction=0.0, gyro_lsb=0.0, accel_lsb=0.0)
@@ -72,13 +77,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--update-s", type=float, default=1800.0)
     parser.add_argument("--clean", action="store_true")
+    parser.add_argument("--no-walk", action="store_true")
     args = parser.parse_args()
-    drive = simulate_drive(options(args.hours, args.seed, args.clean))
+    drive = simulate_drive(options(args.hours, args.seed, args.clean, args.no_walk))
     streams = {"base": drive.streams().base, **drive.streams().sensors}
     state = _Follower(drive.config(), None, None, lambda: False, False)
     start = min(int(s.t_ns[0]) for s in streams.values())
     block, update = 10_000_000_000, int(args.update_s * 1e9)
     clean = ", no jitter, drops or quantisation" if args.clean else ""
+    clean += ", biases that do not wander" if args.no_walk else ""
     print(
         f"## A day of following: {args.hours} h of town driving, seed {args.seed}{clean}\n\n"
         "| hours fed | sensor | status | largest std deg / mm | error / std (rx, ry, rz, tx, "
