@@ -9,10 +9,12 @@ deg, translation mm) and its error against the simulator's truth in std on each 
 axes (rotation about the base axes, then translation), the largest of them in bold where the
 status is ``ok`` and it is beyond 4. ``--clean`` takes the lidar IMUs' timestamp jitter,
 dropped samples and quantisation and the base's float32 output out of the simulation;
-``--no-walk`` every IMU's bias random walk (each keeps its turn-on bias).
+``--no-walk`` every IMU's bias random walk (each keeps its turn-on bias); ``--keep-windows``
+keeps every window its own unit of the fit, where the follow merges the older ones into
+stretches past 400 (docs/method.md, step 3): slower, and memory that grows.
 
-Run: ``python benchmarks/follow_day.py [--hours 24] [--seed 7] [--clean] [--no-walk]``: about
-6 GB of memory and 5 minutes for a day.
+Run: ``python benchmarks/follow_day.py [--hours 24] [--seed 7] [--clean] [--no-walk]
+[--keep-windows]``: about 6 GB of memory and 5 minutes for a day.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from imucal_cli.core import streaming
 from imucal_cli.pipeline import _Follower
 from imucal_cli.sim import DriveOptions, simulate_drive
 
@@ -78,7 +81,10 @@ def main() -> None:
     parser.add_argument("--update-s", type=float, default=1800.0)
     parser.add_argument("--clean", action="store_true")
     parser.add_argument("--no-walk", action="store_true")
+    parser.add_argument("--keep-windows", action="store_true")
     args = parser.parse_args()
+    if args.keep_windows:  # every window its own unit: nothing merged into stretches
+        streaming.MAX_UNITS = streaming.FULL_WINDOWS = 1 << 30
     drive = simulate_drive(options(args.hours, args.seed, args.clean, args.no_walk))
     streams = {"base": drive.streams().base, **drive.streams().sensors}
     state = _Follower(drive.config(), None, None, lambda: False, False)
@@ -86,6 +92,7 @@ def main() -> None:
     block, update = 10_000_000_000, int(args.update_s * 1e9)
     clean = ", no jitter, drops or quantisation" if args.clean else ""
     clean += ", biases that do not wander" if args.no_walk else ""
+    clean += ", every window kept" if args.keep_windows else ""
     print(
         f"## A day of following: {args.hours} h of town driving, seed {args.seed}{clean}\n\n"
         "| hours fed | sensor | status | largest std deg / mm | error / std (rx, ry, rz, tx, "
