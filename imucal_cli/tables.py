@@ -225,6 +225,7 @@ def evaluation(estimate: Any, truth: Any, document: dict[str, Any], width: int =
     from rich.text import Text
 
     rows = {**document["sensors"], **document["pairs"]}
+    overs = {name: over(r, document["thresholds"]) for name, r in rows.items()}
     numbers = ("rotation error deg", "translation error m", "eq. 20 m", "time offset error ms")
     table = fitted(
         f"{estimate} vs {truth}",
@@ -237,14 +238,14 @@ def evaluation(estimate: Any, truth: Any, document: dict[str, Any], width: int =
                 "-"
                 if r.get("time_offset_error_s") is None
                 else f"{r['time_offset_error_s'] * 1e3:.3f}",
-                ", ".join(over(r, document["thresholds"])) or "-",
+                ", ".join(overs[name]) or "-",
             )
             for name, r in rows.items()
         ),
         width,
         right=numbers,
     )
-    failed = [name for name, r in rows.items() if over(r, document["thresholds"])]
+    failed = [name for name in rows if overs[name]]
     missing = [name for names in document["missing"].values() for name in names]
     why = [f"{len(failed)} over a threshold ({', '.join(failed)})"] * bool(failed) + [
         f"in one file only: {', '.join(missing)}"
@@ -263,13 +264,13 @@ def mm(values: Any) -> Any:
     return None if values is None else [1000 * v for v in values]
 
 
-def follow(log: Any, windows: int, calibration: Any, width: int = WIDE) -> Any:
-    """The follow view: per sensor its status, the estimate (``T_base_lidar``), its statistical
-    std (what ``stop:`` tests: what more driving shrinks) against the targets, the windows used
-    and what it lacks."""
-    stop = calibration.config.stop
+def follow(log: Any, followed: dict[str, Any], stop: Any, width: int = WIDE) -> Any:
+    """The follow view of a follow line (``Calibration.follow_line``): per sensor its status,
+    the estimate (``T_base_lidar``), its statistical std (what ``stop:`` tests: what more
+    driving shrinks) against the config's ``stop`` targets, the windows used and what it
+    lacks."""
     rows = []
-    for name, line in calibration.follow_line(windows)["sensors"].items():  # (as a row)
+    for name, line in followed["sensors"].items():  # (as a row)
         T, std = line["T_base_lidar"], line["statistical_std"] or {}
         rows.append(
             (
@@ -293,7 +294,7 @@ def follow(log: Any, windows: int, calibration: Any, width: int = WIDE) -> Any:
         "windows used",
         "missing axes",
     )
-    return fitted(f"following {log}: {windows} windows", columns, rows, width)
+    return fitted(f"following {log}: {followed['windows']} windows", columns, rows, width)
 
 
 def waiting(log: Any, state: dict[str, Any], width: int = WIDE) -> Any:
@@ -311,10 +312,10 @@ def waiting(log: Any, state: dict[str, Any], width: int = WIDE) -> Any:
     )
 
 
-def follow_lines(windows: int, calibration: Any) -> list[str]:
-    """The follow view as a line per sensor (for a log file, not a terminal)."""
-    lines = []
-    for name, line in calibration.follow_line(windows)["sensors"].items():
+def follow_lines(followed: dict[str, Any]) -> list[str]:
+    """The follow view of a follow line as a line per sensor (for a log file, not a terminal)."""
+    lines, windows = [], followed["windows"]
+    for name, line in followed["sensors"].items():
         T, std = line["T_base_lidar"], line["statistical_std"] or {}
         missing = " ".join(axis(m) for m in line["missing"]) or "none"
         lines.append(

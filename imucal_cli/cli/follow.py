@@ -50,9 +50,9 @@ class _View:
                 err(f"imucal: {text}")
 
     def window(self, calibration: Any, windows: int) -> None:
-        table = partial(tables.follow, self.log, windows, calibration)
-        lines = partial(tables.follow_lines, windows, calibration)
-        self._show(calibration.follow_line(windows), table, lines)
+        followed = calibration.follow_line(windows)  # (once: the JSON, the table or the lines)
+        table = partial(tables.follow, self.log, followed, calibration.config.stop)
+        self._show(followed, table, partial(tables.follow_lines, followed))
 
     def waiting(self, state: dict[str, Any]) -> None:  # before the first estimate
         def lines() -> list[str]:  # (in a log file: every 5 s)

@@ -263,7 +263,7 @@ def test_the_live_table_shows_status_std_windows_and_what_is_missing():
     run = replace(run, config=replace(run.config, stop=stop))
     for width in (200, 80):  # (a table where it fits, each sensor stacked where it does not)
         console = Console(width=width, record=True)
-        console.print(tables.follow(Path("live.mcap"), 7, run, width))
+        console.print(tables.follow(Path("live.mcap"), run.follow_line(7), run.config.stop, width))
         text = console.export_text()
         assert "following live.mcap: 7 windows" in text and "…" not in text
         for name, estimate in run.estimates.items():
