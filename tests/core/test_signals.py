@@ -124,3 +124,24 @@ def test_a_rate_held_at_its_top_is_no_saturation():
     clipped = FullScale()
     clipped.add(np.arange(2000), np.hstack([np.minimum(mems, 23.001), np.zeros((2000, 2))]))
     assert clipped.saturated(1.0, MIN_FULL_SCALE[0])
+
+
+def test_lowpass_results_are_their_own_whatever_filters_after_them():
+    """The low-pass works in buffers of its thread's, kept from call to call: a result is not
+    one of them (a longer signal filtered after it leaves it as it was), and threads filtering
+    at once each get what filtering alone gives."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from imucal_cli.core.signals import Lowpass
+
+    rng = np.random.default_rng(11)
+    lowpass = Lowpass(5.0, 200.0, 4, 40.0)
+    signals = [rng.normal(size=(n, 6)) for n in (3000, 9000, 2000, 9000, 5000, 3000)]
+    alone = [lowpass(x, 2).copy() for x in signals]
+    first = lowpass(signals[0], 2)
+    lowpass(signals[1])  # a longer one, undecimated: every buffer used again, grown
+    assert np.array_equal(first, alone[0])
+    with ThreadPoolExecutor(3) as pool:
+        for _ in range(3):
+            together = list(pool.map(lambda x: lowpass(x, 2), signals))
+            assert all(np.array_equal(a, b) for a, b in zip(together, alone, strict=True))
