@@ -119,8 +119,8 @@ class Lowpass:
         )
         extended[:, m:] = 0.0
         # numpy's pocketfft, the same results as scipy.fft's to the bit, without its import;
-        # into this thread's buffers (fresh ones of megabytes every block cost the kernel a
-        # page fault every 4 kB: a third of an hour's system time)
+        # into this thread's buffers (fresh arrays of megabytes every call are pages the
+        # kernel zeroes anew: half the page faults of an hour's calibration)
         spectrum = _scratch("spectrum", (len(columns), size // 2 + 1), np.complex128)
         np.fft.rfft(extended, axis=1, out=spectrum)
         spectrum = spectrum[:, : kept // 2 + 1]  # what the decimated inverse transforms
