@@ -83,9 +83,9 @@ def filled(t: np.ndarray, both: np.ndarray, period: float) -> tuple[np.ndarray, 
             if i != j:
                 weights[:, i] *= (new_t - nodes[:, j]) / (nodes[:, i] - nodes[:, j])
     values = np.einsum("qk,qkc->qc", weights, both[first[:, None] + np.arange(4)])
-    all_t = np.concatenate([t, new_t])
-    order = np.argsort(all_t, kind="stable")
-    return all_t[order], np.concatenate([both, values])[order]
+    # each before the sample that ends its step, in order (np.insert keeps the given order
+    # where several go before one sample): no sort of the block
+    return np.insert(t, left + 1, new_t), np.insert(both, left + 1, values, axis=0)
 
 
 #: The largest response the low-pass may have above a decimated rate's Nyquist frequency.
