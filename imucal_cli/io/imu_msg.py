@@ -63,7 +63,7 @@ class DecodedBatch:
 
 
 def pack_blobs(
-    topic: str, encoding: str, blobs: Sequence[bytes], log_time_ns: Sequence[int]
+    topic: str, encoding: str, blobs: Sequence[bytes | memoryview], log_time_ns: Sequence[int]
 ) -> RawBatch:
     """Serialized messages, one ``bytes`` each, as one batch."""
     lengths = np.fromiter(map(len, blobs), dtype=np.int64, count=len(blobs))

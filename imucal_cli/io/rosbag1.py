@@ -12,7 +12,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from imucal_cli.io.base import Batcher, LogReader, Loss, TopicInfo, decompress, interleaved
+from imucal_cli.io.base import LogReader, Loss, TopicInfo, decompress, in_blocks, interleaved
 from imucal_cli.io.formats import ROSBAG1_MAGIC
 from imucal_cli.io.imu_msg import RawBatch, gather
 
@@ -301,9 +301,6 @@ class Ros1Log(LogReader):
 
     def _walk(self, wanted: set[int]) -> Iterator[RawBatch]:
         losses = list(self.losses)
-        batcher = Batcher()
-        for conn, time_ns, data in self._walk_records():
-            if conn in wanted:
-                yield from batcher.add(self.connections[conn][0], "ros1", time_ns, data)
-        yield from batcher.rest()
+        topic_of = {c: (self.connections[c][0], "ros1") for c in wanted}
+        yield from in_blocks((row for row in self._walk_records() if row[0] in wanted), topic_of)
         self.losses = losses  # the walk for the counts noted them already
