@@ -197,9 +197,9 @@ class Rosbag2Log(LogReader):
             raise self.error(f"cannot read its messages: {exc}; {RECOVER}") from None
 
 
-def _connect(path: Path) -> closing[sqlite3.Connection]:
+def _connect(path: Path, timeout: float = 5.0) -> closing[sqlite3.Connection]:
     """``path`` opened read-only (its name percent-encoded in the URI), closed after use."""
-    return closing(sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True))
+    return closing(sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True, timeout=timeout))
 
 
 def _sqlite_topics(path: Path) -> dict[int, tuple[str, str, str]]:
@@ -234,7 +234,6 @@ class SqliteRecording(LogReader):
     def follow(
         self, topics: Iterable[str], stop: Callable[[], bool], poll_s: float = 0.05
     ) -> Iterator[RawBatch]:
-        import sqlite3
         import time
 
         wanted, ids, last = set(topics), {}, 0  # type: ignore[var-annotated]
@@ -242,7 +241,7 @@ class SqliteRecording(LogReader):
             finished = (self.path / "metadata.yaml").is_file()  # before the read: no row is missed
             rows: list[tuple[int, int, int, bytes]] = []
             try:  # the wanted topics' rows only, a block at a time (10 M rows of another: 1.7 GB)
-                with sqlite3.connect(f"file:{self.db}?mode=ro", uri=True, timeout=1.0) as db:
+                with _connect(self.db, timeout=1.0) as db:
                     query = "SELECT id, name, serialization_format FROM topics"
                     ids = {t: (n, f) for t, n, f in db.execute(query) if n in wanted}
                     query = "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? AND "

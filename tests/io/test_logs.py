@@ -232,6 +232,26 @@ def test_a_file_compressed_bag_reads_and_a_bomb_is_refused_before_it_is_inflated
         read_imu(bomb, ["/imu"])
 
 
+def test_a_sqlite3_bag_in_a_folder_named_with_uri_characters_reads_whole(tmp_path):
+    """sqlite3 storage is opened through a URI (read-only): a folder named with ``#``, ``?``
+    and a space could not be opened at all ("unable to open database file")."""
+    streams = {
+        f"/imu{k}": random_stream(np.random.default_rng(k), 3000, 5_000_000, f"imu{k}")
+        for k in range(2)
+    }
+    bag = write_imu_log(
+        tmp_path / "bag", "rosbag2-sqlite3", {t: TopicData(s) for t, s in streams.items()}
+    )
+    named = bag.rename(tmp_path / "run #3? day 2")
+    read = read_imu(named, list(streams))
+    for topic, stream in streams.items():
+        np.testing.assert_array_equal(read[topic].stream.t_ns, stream.t_ns)
+        np.testing.assert_array_equal(read[topic].stream.gyro, stream.gyro)
+        np.testing.assert_array_equal(read[topic].stream.accel, stream.accel)
+    with open_log(named) as log:  # (the counts metadata.yaml gives)
+        assert {t: info.count for t, info in log.topics().items()} == dict.fromkeys(streams, 3000)
+
+
 def test_a_rosbag2_whose_storage_is_a_fifo_is_refused_not_waited_for(tmp_path):
     """A rosbag2 folder whose .db3 is a FIFO nobody writes hung forever, silently."""
     import os
