@@ -2,11 +2,11 @@
 (docs/performance.md).
 
 On the 1 h five-IMU MCAP of :mod:`throughput` (built there and cached), each step's CPU seconds
-(``time.process_time``; the interpreter and imports as user + system of a fresh process):
+(``time.process_time``; the interpreter's start as user + system of a fresh process):
 
-- the interpreter's start (``python -c pass``), then the libraries' imports beyond it (numpy,
-  scipy's linear algebra, special functions and rotations, typer, rich, PyYAML, mcap, zstandard:
-  what ``calibrate`` imports), then imucal's own modules beyond those;
+- the interpreter's start (``python -c pass``), then in a fresh process the libraries' imports
+  (numpy, scipy's linear algebra, special functions and rotations, typer, rich, PyYAML, mcap,
+  zstandard: what ``calibrate`` imports), then imucal's own modules beyond those;
 - in one process, ``imucal_cli.calibrate`` with the functions of each step timed where the
   pipeline calls them (wrapped for the measurement, not changed): the config; decompressing the
   chunks (the floor's own work); decoding the messages; the windows (splines, low-pass, clock

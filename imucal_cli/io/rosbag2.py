@@ -135,9 +135,9 @@ class Rosbag2Log(LogReader):
             log.close()
 
     def topics(self) -> dict[str, TopicInfo]:
-        out: dict[str, TopicInfo] = {}
         if self._sqlite:
             return self._sqlite_info()
+        out: dict[str, TopicInfo] = {}
         if self._reader is None:
             for log in self._storage:
                 for topic, info in log.topics().items():
@@ -162,9 +162,7 @@ class Rosbag2Log(LogReader):
         """The wanted topics' messages, file by file in time order (as ``rosbags`` reads them),
         a block of rows at a time."""
         for path, found in self._sqlite:
-            ids = {
-                i: (name, encoding) for i, (name, _, encoding) in found.items() if name in wanted
-            }
+            ids = _wanted(found, wanted)
             if not ids:
                 continue
             with _connect(path) as db:
@@ -202,11 +200,20 @@ def _connect(path: Path, timeout: float = 5.0) -> closing[sqlite3.Connection]:
     return closing(sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True, timeout=timeout))
 
 
-def _sqlite_topics(path: Path) -> dict[int, tuple[str, str, str]]:
+def _topics_table(db: sqlite3.Connection) -> dict[int, tuple[str, str, str]]:
     """A storage file's topics table: id -> (name, type, serialization format)."""
-    with _connect(path) as db:
-        rows = db.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
+    rows = db.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
     return {int(i): (str(name), str(msgtype), str(fmt)) for i, name, msgtype, fmt in rows}
+
+
+def _sqlite_topics(path: Path) -> dict[int, tuple[str, str, str]]:
+    with _connect(path) as db:
+        return _topics_table(db)
+
+
+def _wanted(found: dict[int, tuple[str, str, str]], wanted: set[str]) -> dict[int, tuple[str, str]]:
+    """The ids of the ``wanted`` topics of a topics table, each with its name and format."""
+    return {i: (name, fmt) for i, (name, _, fmt) in found.items() if name in wanted}
 
 
 def _metadata_counts(info: dict[str, Any]) -> dict[str, int]:
@@ -236,14 +243,14 @@ class SqliteRecording(LogReader):
     ) -> Iterator[RawBatch]:
         import time
 
-        wanted, ids, last = set(topics), {}, 0  # type: ignore[var-annotated]
+        wanted, last = set(topics), 0
+        ids: dict[int, tuple[str, str]] = {}
         while True:
             finished = (self.path / "metadata.yaml").is_file()  # before the read: no row is missed
             rows: list[tuple[int, int, int, bytes]] = []
             try:  # the wanted topics' rows only, a block at a time (10 M rows of another: 1.7 GB)
                 with _connect(self.db, timeout=1.0) as db:
-                    query = "SELECT id, name, serialization_format FROM topics"
-                    ids = {t: (n, f) for t, n, f in db.execute(query) if n in wanted}
+                    ids = _wanted(_topics_table(db), wanted)
                     query = "SELECT id, topic_id, timestamp, data FROM messages WHERE id > ? AND "
                     query += f"topic_id IN ({','.join('?' * len(ids))}) ORDER BY id LIMIT ?"
                     rows = db.execute(query, (last, *ids, FOLLOW_ROWS)).fetchall() if ids else []
