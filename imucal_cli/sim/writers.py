@@ -29,6 +29,8 @@ from imucal_cli.types import ImuStream, Transform
 
 #: ``--format`` names (:data:`imucal_cli.io.formats.FORMATS`).
 FORMATS = tuple(LOG_FORMATS)
+#: What an SQLite URI reads as its own: a query, a fragment, an escape.
+_URI_CHARACTERS = frozenset("#?%")
 
 
 def format_for(out: Path, fmt: str | None) -> str:
@@ -268,8 +270,24 @@ def _write_rosbag2(
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    writer = Writer(path, version=9, storage_plugin=plugin)
-    _fill_rosbags_writer(writer, topics, False, progress, statics, pieces)
+    # rosbags opens sqlite3 storage through an SQLite URI it does not escape (``file:{path}``):
+    # a ``#``, ``?`` or ``%`` in the path sends the database elsewhere (cut at the ``#``: a
+    # file beside the output's folder, named by its start) and leaves the bag without it. Such
+    # a bag is written where the path is plain, and moved.
+    plain = None
+    if plugin == StoragePlugin.SQLITE3 and _URI_CHARACTERS & set(str(path.resolve())):
+        plain = Path(tempfile.mkdtemp(prefix="imucal-"))
+        target = plain / "".join("_" if c in _URI_CHARACTERS else c for c in path.name)
+        if _URI_CHARACTERS & set(str(target)):
+            raise InputError(f"{path}: the temporary folder {plain} holds #, ? or %")
+    try:
+        writer = Writer(target if plain else path, version=9, storage_plugin=plugin)
+        _fill_rosbags_writer(writer, topics, False, progress, statics, pieces)
+        if plain:
+            shutil.move(target, path)
+    finally:
+        if plain:
+            shutil.rmtree(plain, ignore_errors=True)
 
 
 def _write_rosbag1(

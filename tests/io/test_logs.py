@@ -252,6 +252,24 @@ def test_a_sqlite3_bag_in_a_folder_named_with_uri_characters_reads_whole(tmp_pat
         assert {t: info.count for t, info in log.topics().items()} == dict.fromkeys(streams, 3000)
 
 
+def test_a_sqlite3_bag_written_under_uri_characters_holds_its_storage_and_nothing_strays(
+    tmp_path,
+):
+    """rosbags writes sqlite3 storage through an unescaped URI: a bag named with ``#`` got a
+    metadata.yaml and no database, which went to a file beside its folder (``.run ``)."""
+    stream = random_stream(np.random.default_rng(3), 500, 5_000_000, "imu")
+    parent = tmp_path / "drives #1"
+    parent.mkdir()
+    for name in ("run #3? day", "100%25 fine"):
+        bag = write_imu_log(parent / name, "rosbag2-sqlite3", {"/imu": TopicData(stream)})
+        assert len(list(bag.glob("*.db3"))) == 1
+        read = read_imu(bag, ["/imu"])
+        np.testing.assert_array_equal(read["/imu"].stream.t_ns, stream.t_ns)
+        np.testing.assert_array_equal(read["/imu"].stream.gyro, stream.gyro)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["drives #1"]
+    assert sorted(p.name for p in parent.iterdir()) == ["100%25 fine", "run #3? day"]
+
+
 def test_a_rosbag2_whose_storage_is_a_fifo_is_refused_not_waited_for(tmp_path):
     """A rosbag2 folder whose .db3 is a FIFO nobody writes hung forever, silently."""
     import os
