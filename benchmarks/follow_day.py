@@ -9,12 +9,13 @@ deg, translation mm) and its error against the simulator's truth in std on each 
 axes (rotation about the base axes, then translation), the largest of them in bold where the
 status is ``ok`` and it is beyond 4. ``--clean`` takes the lidar IMUs' timestamp jitter,
 dropped samples and quantisation and the base's float32 output out of the simulation;
-``--no-walk`` every IMU's bias random walk (each keeps its turn-on bias); ``--keep-windows``
+``--no-walk`` every IMU's bias random walk (each keeps its turn-on bias), ``--still-base`` the
+base IMU's alone; ``--keep-windows``
 keeps every window its own unit of the fit, where the follow merges the older ones into
 stretches past 400 (docs/method.md, step 3): slower, and memory that grows.
 
 Run: ``python benchmarks/follow_day.py [--hours 24] [--seed 7] [--clean] [--no-walk]
-[--keep-windows]``: about 6 GB of memory and 5 minutes for a day.
+[--still-base] [--keep-windows]``: about 6 GB of memory and 5 minutes for a day.
 """
 
 from __future__ import annotations
@@ -33,12 +34,15 @@ HOUR_NS = 3_600_000_000_000
 SHOWN = (1, 2, 4, 8, 12, 16, 20, 24, 36, 48)
 
 
-def options(hours: int, seed: int, clean: bool, no_walk: bool) -> DriveOptions:
+def options(
+    hours: int, seed: int, clean: bool, no_walk: bool, still_base: bool = False
+) -> DriveOptions:
     drive = DriveOptions(scenario="urban", duration_s=hours * 3600.0, seed=seed, sensors=2)
+    still = {"gyro_bias_random_walk": 0.0, "accel_bias_random_walk": 0.0}
+    if no_walk or still_base:
+        drive = replace(drive, base_model=replace(drive.base_model, **still))
     if no_walk:
-        still = {"gyro_bias_random_walk": 0.0, "accel_bias_random_walk": 0.0}
-        lidar, base = replace(drive.lidar_model, **still), replace(drive.base_model, **still)
-        drive = replace(drive, lidar_model=lidar, base_model=base)
+        drive = replace(drive, lidar_model=replace(drive.lidar_model, **still))
     if not clean:
         return drive
     lidar = replace(drive.lidar_model, jitter_s=0.0, drop_fraction=0.0, gyro_lsb=0.0, accel_lsb=0.0)
@@ -81,17 +85,21 @@ def main() -> None:
     parser.add_argument("--update-s", type=float, default=1800.0)
     parser.add_argument("--clean", action="store_true")
     parser.add_argument("--no-walk", action="store_true")
+    parser.add_argument("--still-base", action="store_true")
     parser.add_argument("--keep-windows", action="store_true")
     args = parser.parse_args()
     if args.keep_windows:  # every window its own unit: nothing merged into stretches
         streaming.MAX_UNITS = streaming.FULL_WINDOWS = 1 << 30
-    drive = simulate_drive(options(args.hours, args.seed, args.clean, args.no_walk))
+    drive = simulate_drive(
+        options(args.hours, args.seed, args.clean, args.no_walk, args.still_base)
+    )
     streams = {"base": drive.streams().base, **drive.streams().sensors}
     state = _Follower(drive.config(), None, None, lambda: False, False)
     start = min(int(s.t_ns[0]) for s in streams.values())
     block, update = 10_000_000_000, int(args.update_s * 1e9)
     clean = ", no jitter, drops or quantisation" if args.clean else ""
     clean += ", biases that do not wander" if args.no_walk else ""
+    clean += ", a base whose biases do not wander" if args.still_base and not args.no_walk else ""
     clean += ", every window kept" if args.keep_windows else ""
     print(
         f"## A day of following: {args.hours} h of town driving, seed {args.seed}{clean}\n\n"

@@ -23,20 +23,22 @@ import numpy as np
 
 from imucal_cli.core import checks, status
 from imucal_cli.core.grades import GRADES, error_prior_std
-from imucal_cli.core.model import ACCEL_ROTATION, KNOT, ROTATION, TIME_OFFSET, TRANSLATION
+from imucal_cli.core.model import (
+    ACCEL_BIAS_PRIOR_STD,
+    ACCEL_BIAS_WALK,
+    ACCEL_ROTATION,
+    KNOT,
+    ROTATION,
+    TIME_OFFSET,
+    TRANSLATION,
+    BiasModel,
+)
 from imucal_cli.core.moments import WindowMoments
 from imucal_cli.core.moves import MIN_SIDE_WINDOWS, find_moves
 from imucal_cli.core.segments import OBSERVABLE_FRACTION_OF_BOUND, WindowInfo
 from imucal_cli.core.signals import LOWPASS_HZ, Lowpass
 from imucal_cli.core.so3 import skew
-from imucal_cli.core.solver import (
-    ACCEL_BIAS_PRIOR_STD,
-    ACCEL_BIAS_WALK,
-    BiasModel,
-    Fit,
-    Problem,
-    Settings,
-)
+from imucal_cli.core.solver import Fit, Problem, Settings
 from imucal_cli.core.timeline import Epoch
 from imucal_cli.core.timing import TIME_OFFSET_MAX_STD_S
 from imucal_cli.core.uncertainty import uncertainty
@@ -253,6 +255,15 @@ class ClockEvidence:
     reason: str = ""  # why not
 
 
+def bias_model(options: CalibrationOptions) -> BiasModel:
+    """How the sensor's relative biases may drift and how large they may be (its options)."""
+    return BiasModel(
+        options.window_s,
+        (options.gyro_bias_walk, ACCEL_BIAS_WALK),
+        (options.gyro_bias_prior_std, ACCEL_BIAS_PRIOR_STD),
+    )
+
+
 def make_problem(
     windows: list[WindowMoments],
     prior: Transform,
@@ -261,13 +272,8 @@ def make_problem(
     lowpass: Lowpass,
     dw_noise_var: float,
 ) -> Problem:
-    biases = BiasModel(
-        options.window_s,
-        (options.gyro_bias_walk, ACCEL_BIAS_WALK),
-        (options.gyro_bias_prior_std, ACCEL_BIAS_PRIOR_STD),
-    )
     settings = Settings(
-        prior.translation, options.translation_bound_m, biases, options.max_iterations
+        prior.translation, options.translation_bound_m, bias_model(options), options.max_iterations
     )
     return Problem(windows, settings, sigma, lowpass, dw_noise_var)
 

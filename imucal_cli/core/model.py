@@ -165,6 +165,23 @@ ACCEL_OWN = ACCEL_DATA.size - ACCEL_BASE.size
 #: Bias unknowns per knot.
 KNOT = Layout(("gyro_bias", 3), ("accel_bias", 3))
 
+#: Random walk of the accelerometer bias allowed between knots (m/s^2/sqrt(s)): loose, a few
+#: times what MEMS parts drift, so the data decide.
+ACCEL_BIAS_WALK = 0.01
+#: Prior standard deviation of the accelerometer bias (m/s^2): keeps knots without data defined.
+ACCEL_BIAS_PRIOR_STD = 1.0
+
+
+@dataclass(frozen=True)
+class BiasModel:
+    """How the relative biases (sensor minus base) may drift between knots (a random walk per
+    component) and how large they may be (an absolute prior per knot)."""
+
+    spacing_s: float  # seconds between neighbouring knots: a window
+    walks: tuple[float, float]  # gyro (rad/s/sqrt(s)), accelerometer (m/s^2/sqrt(s))
+    prior_stds: tuple[float, float]  # gyro (rad/s), accelerometer (m/s^2)
+
+
 #: A triad's six axis errors (a block of :data:`PARAMETERS`), in :data:`SYMMETRIC`'s order.
 AXIS_ERRORS = Layout(("scale", 3), ("nonorthogonality", 3))
 SYMMETRIC = np.zeros((6, 3, 3))

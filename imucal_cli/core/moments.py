@@ -8,6 +8,7 @@ as the base's block (upper triangles, once per window) and each sensor's own row
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -21,6 +22,7 @@ from imucal_cli.core.model import (
     GYRO_BASE,
     GYRO_DATA,
     GYRO_OWN,
+    BiasModel,
     Layout,
 )
 from imucal_cli.core.resample import ALIAS_GAIN, Spline
@@ -317,18 +319,16 @@ def reduce_block(
 MIN_SPAN_SAMPLES = 8
 
 
-def _moved_data(layout: Layout, shift_s: float, alpha: float, beta: float) -> np.ndarray:
+def _moved_data(layout: Layout, shift_s: float) -> np.ndarray:
     """``M`` with ``x' = M x`` the data vector of a window resampled ``shift_s`` later on the
     base's clock (``C(dtau + s) x = C(dtau) M x``: the base's terms less ``s`` times their
-    derivatives) and its time column ``u' = alpha u + beta`` (a longer stretch's)."""
+    derivatives)."""
     M = np.eye(layout.size)
     pairs = (("w_B", "dw_B"),) if "w_B" in layout.slices else (("f_B", "df_B"), ("vec_A", "vec_dA"))
     for term, derivative in pairs:
         M[layout[term], layout[derivative]] = -shift_s * np.eye(
             layout[term].stop - layout[term].start
         )
-    u, one = layout.index("u"), layout.index("one")
-    M[u, u], M[u, one] = alpha, beta
     return M
 
 
@@ -342,23 +342,29 @@ def used(window: WindowMoments) -> bool:
 
 
 def merged(
-    windows: Sequence[WindowMoments], shifts_s: np.ndarray, offset_s: float
+    windows: Sequence[WindowMoments],
+    shifts_s: np.ndarray,
+    offset_s: float,
+    biases: BiasModel,
+    sigma: tuple[float, float],
 ) -> WindowMoments:
-    """Consecutive windows as one: the sum of their moments, each moved to the clock offset the
-    track gives it (``shifts_s`` beyond the one it was resampled at) and its time column to the
-    whole stretch's, so that the stretch has one linear bias between two knots. Exact: the cost
-    of the merged moments is the sum of the windows' with the biases so constrained. Windows not
-    used (``valid`` False or not selected) are counted and add nothing."""
+    """Consecutive windows as one stretch between their first and last bias knots: each moved
+    to the clock offset the track gives it (``shifts_s`` beyond the one it was resampled at),
+    and the knots between them eliminated under the biases' random walk and prior
+    (:func:`stretch_moments`), so that the fit of the stretch is the fit of its windows, at the
+    residual std ``sigma`` (gyro, accelerometer) the fit starts from. Windows not used
+    (``valid`` False or not selected) are counted and add no data; their knots still walk."""
     first, last = windows[0], windows[-1]
-    span = last.number + last.span - first.number
+    units = [(w.number, w.span) for w in windows]
     totals = []
-    for which, layout, own in (("gyro", GYRO_DATA, GYRO_OWN), ("accel", ACCEL_DATA, ACCEL_OWN)):
-        total = np.zeros((layout.size, layout.size))
-        for w, shift in zip(windows, shifts_s, strict=True):
-            if used(w):
-                M = _moved_data(layout, shift, w.span / span, (w.number - first.number) / span)
-                total += M @ assemble_moments([w], which)[0] @ M.T
-        totals.append((total, own))
+    for k, (which, layout, own) in enumerate(
+        (("gyro", GYRO_DATA, GYRO_OWN), ("accel", ACCEL_DATA, ACCEL_OWN))
+    ):
+        moved = [
+            _moved(w, shift, which, layout) for w, shift in zip(windows, shifts_s, strict=True)
+        ]
+        walk = (biases.walks[k], biases.prior_stds[k], biases.spacing_s)
+        totals.append((stretch_moments(moved, units, layout, sigma[k], *walk), own))
     (S_g, own_g), (S_a, own_a) = totals
     kept = [w for w in windows if used(w)]
     whole = all(w.valid for w in windows)  # (no gap in any: what was not used lacked motion)
@@ -390,10 +396,90 @@ def merged(
         info,
         offset_s,
         0.0,
-        span,
+        last.number + last.span - first.number,
         count,
         left_out,
     )
+
+
+def _moved(window: WindowMoments, shift_s: float, which: str, layout: Layout) -> np.ndarray:
+    """A window's moments (``which``) moved ``shift_s`` on the base's clock; none where it is
+    not used."""
+    if not used(window):
+        return np.zeros((layout.size, layout.size))
+    M = _moved_data(layout, shift_s)
+    return M @ assemble_moments([window], which)[0] @ M.T
+
+
+def stretch_moments(
+    S: Sequence[np.ndarray],
+    units: Sequence[tuple[int, int]],
+    layout: Layout,
+    sigma: float,
+    walk: float,
+    prior_std: float,
+    spacing_s: float,
+) -> np.ndarray:
+    """The moments of consecutive units (``S``; ``units`` their first window's number and how
+    many they span, between their two bias knots) as one unit between the first and the last
+    knot: exact for the fit.
+
+    A unit's residual on each axis is ``c . x - b_j (1 - u) - b_k u``: linear in its knots,
+    which enter through the ``one`` and ``u`` columns. Over ``y = [c, knots]`` (the units' ends
+    and every window's knot where the units leave a gap) the cost is ``y^T Q y``: the units'
+    moments and, in the moments' units (the fit weighs them by ``1 / sigma^2``), the random
+    walk between neighbouring knots and the absolute prior of the inner ones. The inner knots
+    are eliminated (Schur complement), and what is left less the walk between the two ends
+    (the fit's prior holds that one: they are its knots) is written back over the data
+    vector's columns. For any ``c`` and end knots the stretch's cost is then the least of the
+    units' over the inner knots, as the fit of the units themselves finds it: the biases keep
+    their walk inside the stretch (one line over minutes is not what a wandering bias does,
+    and the std would not know its error). Every axis takes the same moments: their knots walk
+    alike."""
+    one, u = layout.index("one"), layout.index("u")
+    rest = [i for i in range(layout.size) if i not in (one, u)]
+    r = len(rest)
+    first, last = units[0][0], units[-1][0] + units[-1][1]
+    numbers = sorted(set(range(first, last + 1)) - _inside(units))  # (the knots: ends, gaps)
+    at = {number: r + i for i, number in enumerate(numbers)}
+    Q = np.zeros((r + len(numbers), r + len(numbers)))
+    for S_k, (number, span) in zip(S, units, strict=True):
+        # the unit's data-vector coefficients from y: c as it is, one -> -b_j, u -> b_j - b_k
+        to_unit = np.zeros((layout.size, len(Q)))
+        to_unit[rest, np.arange(r)] = 1.0
+        j, k = at[number], at[number + span]
+        to_unit[one, j], to_unit[u, j], to_unit[u, k] = -1.0, 1.0, -1.0
+        Q += to_unit.T @ S_k @ to_unit
+    var = sigma**2
+    for a, b in itertools.pairwise(numbers):
+        _add_walk(Q, at[a], at[b], var / (walk**2 * (b - a) * spacing_s))
+    inner, keep = np.arange(r + 1, len(Q) - 1), np.r_[np.arange(r), r, len(Q) - 1]
+    Q[inner, inner] += var / prior_std**2
+    # (pinv: without noise, an inner knot no data reach has no information at all)
+    eliminated = Q[np.ix_(keep, inner)] @ np.linalg.pinv(Q[np.ix_(inner, inner)], hermitian=True)
+    marginal = Q[np.ix_(keep, keep)] - eliminated @ Q[np.ix_(inner, keep)]
+    _add_walk(marginal, r, r + 1, -var / (walk**2 * (last - first) * spacing_s))
+    # back over [c, one, u]: the stretch's one is -b_0 and its u -(b_m - b_0), so that
+    # b_0 = -one and b_m = -one - u
+    from_columns = np.eye(r + 2)
+    from_columns[r, r] = from_columns[r + 1, r] = from_columns[r + 1, r + 1] = -1.0
+    out = np.zeros((layout.size, layout.size))
+    order = np.r_[rest, one, u]
+    out[np.ix_(order, order)] = from_columns.T @ marginal @ from_columns
+    return 0.5 * (out + out.T)
+
+
+def _inside(units: Sequence[tuple[int, int]]) -> set[int]:
+    """The window numbers strictly inside units: merged earlier, they have no knot."""
+    return {n for number, span in units for n in range(number + 1, number + span)}
+
+
+def _add_walk(Q: np.ndarray, a: int, b: int, info: float) -> None:
+    """``info (y_a - y_b)^2`` added to the quadratic form ``Q``."""
+    Q[a, a] += info
+    Q[b, b] += info
+    Q[a, b] -= info
+    Q[b, a] -= info
 
 
 def unused_window(number: int, start: float, end: float) -> WindowMoments:

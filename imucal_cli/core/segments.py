@@ -144,10 +144,12 @@ def _std_from_information(info: np.ndarray) -> np.ndarray:
     return out
 
 
-def _centred(S: np.ndarray, n: np.ndarray, P: np.ndarray | slice, one: int) -> np.ndarray:
-    """Each window's scatter of ``P x`` about its mean, from its moments ``S`` and sample count
-    ``n`` (K, 1, 1); ``P`` a matrix, or a slice where it only picks entries of ``x`` (then no
+def _centred(S: np.ndarray, P: np.ndarray | slice, one: int) -> np.ndarray:
+    """Each window's scatter of ``P x`` about its mean, from its moments ``S`` (their ``one``
+    column's own moment is the count: a window's samples, a merged stretch's weight of its
+    constant); ``P`` a matrix, or a slice where it only picks entries of ``x`` (then no
     arithmetic: the same numbers, far fewer steps)."""
+    n = S[:, one, one][:, None, None]
     if isinstance(P, slice):
         mean = S[:, P, one][:, :, None] / n
         return S[:, P, P] - n * mean @ mean.transpose(0, 2, 1)
@@ -181,12 +183,12 @@ def window_infos_from_moments(
     P_v = np.zeros((3, ACCEL_DATA.size))  # v = f_B + A t at the prior's lever arm
     P_v[:, ACCEL_DATA["f_B"]] = np.eye(3)
     P_v[:, ACCEL_DATA["vec_A"]] = kron_t(lever_arm)
-    info = _rotation_information(_centred(S_gyro, n, GYRO_DATA["w_B"], one_g), gyro_noise_std)
-    info += _rotation_information(_centred(S_accel, n, P_v, one_a), accel_noise_std)
+    info = _rotation_information(_centred(S_gyro, GYRO_DATA["w_B"], one_g), gyro_noise_std)
+    info += _rotation_information(_centred(S_accel, P_v, one_a), accel_noise_std)
     sigma_min = np.clip(np.linalg.eigvalsh(info)[:, 0], 0.0, None)
     with np.errstate(divide="ignore"):
         std_deg = np.where(sigma_min > 0, np.degrees(1.0 / np.sqrt(sigma_min)), np.inf)
-    C_A = _centred(S_accel, n, ACCEL_DATA["vec_A"], one_a).reshape(
+    C_A = _centred(S_accel, ACCEL_DATA["vec_A"], one_a).reshape(
         -1, 3, 3, 3, 3
     )  # blocks (j, k) of vec A
     # sum A^T A, less what the angular acceleration's noise adds (E [n]x^T [n]x = 2 s^2 I):

@@ -25,6 +25,7 @@ from imucal_cli.core.model import (
     ROTATION,
     START_FREE,
     TRANSLATION,
+    BiasModel,
     Point,
     accel_coefficients,
     accel_derivatives,
@@ -77,20 +78,6 @@ SOLVE_CHUNK = 128
 SOLVE_CACHE_BYTES = 32 << 20
 #: Relative resolution of a residual computed from second moments (double precision squares).
 RESOLUTION = 1e-7
-#: Random walk of the accelerometer bias allowed between knots (m/s^2/sqrt(s)): loose, a few
-#: times what MEMS parts drift, so the data decide.
-ACCEL_BIAS_WALK = 0.01
-#: Prior standard deviation of the accelerometer bias (m/s^2): keeps knots without data defined.
-ACCEL_BIAS_PRIOR_STD = 1.0
-
-
-@dataclass(frozen=True)
-class BiasModel:
-    """How the relative biases may drift between knots and how large they may be."""
-
-    spacing_s: float
-    walks: tuple[float, float]  # gyro (rad/s/sqrt(s)), accelerometer (m/s^2/sqrt(s))
-    prior_stds: tuple[float, float]  # gyro (rad/s), accelerometer (m/s^2)
 
 
 def bias_prior(gaps_s: np.ndarray, biases: BiasModel) -> np.ndarray:
@@ -207,15 +194,15 @@ def bounded_step(
     return bounded.x, free
 
 
-def kabsch_rotation(S_gyro: np.ndarray, samples: np.ndarray) -> Rotation:
+def kabsch_rotation(S_gyro: np.ndarray) -> Rotation:
     """``R_base_imu`` minimising ``sum |R^T w_B - w_I|^2`` over windows, each centred (eq. 10).
 
     From the gyro moments (K, 14, 14): centring per window removes a constant relative gyro
     bias. Kabsch/Horn: with the centred cross covariance ``sum w_I w_B^T = U diag(s) V^T``,
     ``R_imu_base = U diag(1, 1, det) V^T``.
     """
-    n = samples[:, None, None]
     one, w_I, w_B = GYRO_DATA.index("one"), GYRO_DATA["w_I"], GYRO_DATA["w_B"]
+    n = S_gyro[:, one, one][:, None, None]  # (a window's samples: its constant's moment)
     mean_I, mean_B = S_gyro[:, w_I, one][:, :, None] / n, S_gyro[:, w_B, one][:, :, None] / n
     cross = np.sum(S_gyro[:, w_I, w_B] - n * mean_I @ mean_B.transpose(0, 2, 1), axis=0)
     U, _, Vt = np.linalg.svd(cross)
@@ -391,12 +378,14 @@ class Problem:
         )
         self.floor_a = (RESOLUTION**2) * trace_f / (3 * self.samples)
 
-        def spread(rows: np.ndarray, own: slice, n: int, one: int) -> float:  # sum |x - mean|^2
+        def spread(rows: np.ndarray, own: slice, n: float, one: int) -> float:  # |x - mean|^2
             return float(np.trace(rows[:, own]) - rows[:, one] @ rows[:, one] / n)
 
         one_g, one_a = GYRO_DATA.index("one"), ACCEL_DATA.index("one")
-        gyro = sum(spread(w.rows_gyro[w_I], w_I, w.samples, one_g) for w in used)
-        accel = sum(spread(w.rows_accel, f_I, w.samples, one_a) for w in used)
+        n_g = self.S_g[:, one_g, one_g]  # (each window's constant's moment: its samples)
+        n_a = np.concatenate([np.zeros(0), *(S[:, one_a, one_a] for S in self.accel_moments())])
+        gyro = sum(spread(w.rows_gyro[w_I], w_I, n, one_g) for w, n in zip(used, n_g, strict=True))
+        accel = sum(spread(w.rows_accel, f_I, n, one_a) for w, n in zip(used, n_a, strict=True))
         self.signal_rms = (
             float(np.sqrt(gyro / (3 * self.samples))),
             float(np.sqrt(accel / (3 * self.samples))),
@@ -496,7 +485,7 @@ class Problem:
     def start(self) -> Fit:
         """The starting point: Kabsch/Horn over the windows (eq. 10), the prior's translation,
         the extrinsics and the clock free."""
-        R = kabsch_rotation(self.S_g, self.samples_per_window)
+        R = kabsch_rotation(self.S_g)
         scale_g, scale_a = (s * np.sqrt(self.gain) for s in self.sigma)
         free = START_FREE.copy()
         point = Point(R, self.settings.translation_prior.copy(), 0.0)

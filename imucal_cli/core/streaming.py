@@ -19,9 +19,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from imucal_cli.core.boot import Rig, SensorUnits, boot
-from imucal_cli.core.calibrate import (
-    CalibrationOptions,
-)
+from imucal_cli.core.calibrate import CalibrationOptions, bias_model
 from imucal_cli.core.checks import Check
 from imucal_cli.core.clock import GROUP_WINDOWS, ClockTrack, Offset, constant
 from imucal_cli.core.moments import (
@@ -508,6 +506,7 @@ class StreamingCalibrator:
         track = self.clocks.get(name)
         line = track.fit() if track is not None and track.followed else None
         epoch_s = self.sensors[name].options.epoch_s
+        biases = bias_model(self.sensors[name].options)
         while len(windows) > MAX_UNITS:
             old = windows[: len(windows) - FULL_WINDOWS]
             kept = np.array([used(w) for w in old])
@@ -530,7 +529,7 @@ class StreamingCalibrator:
             else:
                 shifts = line.at(middles) - np.array([w.offset_s for w in pair])
                 offset = float(line.at(middle)[0])
-            windows[i : i + 2] = [merged(pair, shifts, offset)]
+            windows[i : i + 2] = [merged(pair, shifts, offset, biases, self.sigma[name])]
 
     def _not_used(self, name: str) -> None:
         """The windows of sensor ``name`` a step of its clock may lie in made unusable (they

@@ -2,20 +2,25 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from imucal_cli.core.calibrate import bias_model, make_problem
 from imucal_cli.core.model import (
     ACCEL_DATA,
     GYRO_DATA,
     KNOT,
     SENSOR_ERRORS,
+    BiasModel,
     Point,
     accel_coefficients,
     gyro_coefficients,
 )
 from imucal_cli.core.moments import WindowMoments, assemble_moments, base_moments, merged
 from imucal_cli.core.segments import WindowInfo
+from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.types import rotation_type
 
 
@@ -47,6 +52,80 @@ def _window(rng, number: int, span: int = 1, samples: int = 500) -> WindowMoment
     )
 
 
+def _short_windows(document):
+    document.setdefault("segments", {})["window_s"] = 2.0
+
+
+def _reduced(drive):
+    """The calibrator of a drive fed whole, in 2 s windows none of which is merged."""
+    from imucal_cli.pipeline import feed, make_calibrator
+
+    calibrator = make_calibrator(drive.config(_short_windows))
+    feed(calibrator, drive.streams())
+    calibrator.finish()
+    return calibrator
+
+
+@pytest.mark.parametrize("group", [2, 3])
+def test_a_stretch_is_fitted_as_the_windows_it_holds(short_drive, group):
+    """Merging is exact for the fit: a sensor's windows merged into stretches of ``group`` (the
+    bias knots between their ends eliminated under the biases' walk and prior) give the fit of
+    the windows themselves -- the extrinsics, the clock, their covariance and the stretches'
+    end knots -- at the residual std the fit starts from, to round-off."""
+    calibrator = _reduced(short_drive)
+    name = next(iter(calibrator.sensors))
+    setup, sigma = calibrator.sensors[name], calibrator.sigma[name]
+    windows = list(calibrator.moments(name))
+    assert len(windows) >= 8 and all(w.count == 1 for w in windows)
+    biases = bias_model(setup.options)
+    calibrator.windows[name] = [
+        merged(part, np.zeros(len(part)), part[0].offset_s, biases, sigma)
+        for part in (windows[i : i + group] for i in range(0, len(windows), group))
+    ]
+    stretches = calibrator.moments(name)  # (their observability)
+    args = (setup.prior_T_base_imu, setup.options, sigma, calibrator.lowpass)
+    whole, merged_ = (make_problem(w, *args, calibrator.dw_noise_var) for w in (windows, stretches))
+    assert merged_.n_knots < whole.n_knots
+    start = whole.start()
+    free = start.free.copy()
+    fits = [
+        problem.fit(
+            replace(start, knots=np.zeros((problem.n_knots, KNOT.size))), free, estimate_scale=False
+        )
+        for problem in (whole, merged_)
+    ]
+    a, b = fits
+    assert rotation_angle_deg(a.point.R, b.point.R) < 1e-9
+    np.testing.assert_allclose(b.point.t, a.point.t, rtol=0, atol=1e-9)
+    assert abs(b.point.dtau - a.point.dtau) < 1e-12
+    np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-7, atol=1e-20)
+    ends = np.isin(whole.knot_numbers, merged_.knot_numbers)
+    np.testing.assert_allclose(b.knots, a.knots[ends], rtol=0, atol=1e-9)
+
+
+def test_a_window_moved_by_its_clock_shift_costs_what_it_costs_at_that_shift():
+    """A window merged with the clock shift its track gives it costs, at any point and knots,
+    what it costs with that shift in the model (its ``dtau`` columns are the base's terms'
+    derivatives: the shift is a linear map of the data vector), to round-off."""
+    rng = np.random.default_rng(5)
+    window = _window(rng, 3)
+    shift = 2.5e-3
+    moved = merged(
+        [window], np.array([shift]), 0.0, BiasModel(10.0, (1e-3, 1e-2), (1e-2, 1.0)), (0.1, 0.2)
+    )
+    point = Point(
+        rotation_type().from_rotvec(rng.normal(size=3)),
+        rng.normal(size=3),
+        3e-3,
+        rng.normal(size=2) * 1e-3,
+        rng.normal(size=SENSOR_ERRORS.stop - SENSOR_ERRORS.start) * 1e-2,
+    )
+    knots = rng.normal(size=(5, KNOT.size))
+    np.testing.assert_allclose(
+        _cost(moved, point, knots, 0.0), _cost(window, point, knots, shift), rtol=1e-10
+    )
+
+
 def _cost(window: WindowMoments, point: Point, knots: np.ndarray, shift: float) -> float:
     """The window's gyro and accelerometer cost ``tr(C S C^T)`` with its biases at the knots
     of its ends (window numbers) and its clock ``shift`` beyond the point's."""
@@ -59,46 +138,20 @@ def _cost(window: WindowMoments, point: Point, knots: np.ndarray, shift: float) 
     return float(np.trace(Cg[0] @ S_g[0] @ Cg[0].T) + np.trace(Ca[0] @ S_a[0] @ Ca[0].T))
 
 
-@pytest.mark.parametrize("spans", [(1, 1), (1, 1, 1, 1), (2, 1, 3)])
-def test_merged_windows_cost_what_the_windows_cost_with_one_bias_line_and_their_shifts(spans):
-    """Merging is exact: where the biases are one line over the stretch (its knots between the
-    stretch's ends on that line), the merged moments' cost at any point equals the sum of the
-    windows' costs, each with the clock shift it was moved by (the model's ``dtau`` columns
-    are the base's terms' derivatives) -- to round-off."""
-    rng = np.random.default_rng(sum(spans))
-    numbers = np.cumsum((0, *spans[:-1])) + 3
-    windows = [_window(rng, int(n), s) for n, s in zip(numbers, spans, strict=True)]
-    shifts = rng.normal(scale=2e-3, size=len(windows))
-    whole = merged(windows, shifts, offset_s=0.01)
-    assert (whole.number, whole.span, whole.count) == (3, sum(spans), sum(spans))
-    assert whole.samples == sum(w.samples for w in windows)
-    point = Point(
-        rotation_type().from_rotvec(rng.normal(size=3)),
-        rng.normal(size=3),
-        3e-3,
-        rng.normal(size=2) * 1e-3,
-        rng.normal(size=SENSOR_ERRORS.stop - SENSOR_ERRORS.start) * 1e-2,
-    )
-    first, last = rng.normal(size=KNOT.size), rng.normal(size=KNOT.size)
-    n_knots = 3 + sum(spans) + 1
-    fraction = (np.arange(n_knots) - 3) / sum(spans)
-    knots = first + fraction[:, None] * (last - first)  # one line from the stretch's start
-    parts = sum(_cost(w, point, knots, s) for w, s in zip(windows, shifts, strict=True))
-    np.testing.assert_allclose(_cost(whole, point, knots, 0.0), parts, rtol=1e-10)
-
-
-def test_windows_not_used_add_nothing_and_are_counted():
-    """A window left out (not selected) is counted in the merged stretch and adds no moments."""
+def test_a_window_not_used_is_counted_and_walks_as_a_gap_does():
+    """A window left out (not selected) is counted in the merged stretch and adds no data: the
+    stretch is what its neighbours give across a gap of one window (its knots walk, free)."""
     rng = np.random.default_rng(2)
     a, b, c = (_window(rng, n) for n in (0, 1, 2))
     b.info = WindowInfo(10.0, 20.0, 0.0, 9.0, False, np.ones(3), np.ones(3, bool), True)
-    whole = merged([a, b, c], np.zeros(3), 0.0)
-    without = merged([a, c], np.zeros(2), 0.0)
+    biases, sigma = BiasModel(10.0, (1e-3, 1e-2), (1e-2, 1.0)), (0.1, 0.2)
+    whole = merged([a, b, c], np.zeros(3), 0.0, biases, sigma)
+    across = merged([a, c], np.zeros(2), 0.0, biases, sigma)
     assert whole.count == 3 and whole.samples == a.samples + c.samples
-    assert (whole.span, without.span) == (3, 3)  # the stretch of numbers 0-2 either way
+    assert whole.span == across.span == 3  # (the stretch of numbers 0-2 either way)
     for which in ("gyro", "accel"):
-        np.testing.assert_array_equal(
-            assemble_moments([whole], which), assemble_moments([without], which)
+        np.testing.assert_allclose(
+            assemble_moments([whole], which), assemble_moments([across], which), rtol=1e-12
         )
 
 
@@ -171,8 +224,9 @@ def test_windows_merged_for_want_of_motion_are_not_called_gaps():
     gap = _window(rng, 4)
     gap.valid = False
     gap.info = WindowInfo(40.0, 50.0, 0.0, 9.0, False, np.ones(3), np.ones(3, bool), False)
-    stretch = merged(still, np.zeros(4), 0.0)
+    biases = BiasModel(10.0, (1e-3, 1e-2), (1e-2, 1.0))
+    stretch = merged(still, np.zeros(4), 0.0, biases, (0.1, 0.2))
     assert stretch.valid and stretch.info is not None and stretch.info.count == 4
     sentence = unobservable_reason([stretch.info, gap.info])
     assert sentence.startswith("no window carried enough motion (1 of 5 have a gap")
-    assert not merged([*still, gap], np.zeros(5), 0.0).valid
+    assert not merged([*still, gap], np.zeros(5), 0.0, biases, (0.1, 0.2)).valid
