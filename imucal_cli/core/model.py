@@ -296,34 +296,23 @@ def _bias_columns(C: np.ndarray, layout: Layout, bj: np.ndarray, bk: np.ndarray)
     C[:, :, layout.index("u")] = -(bk - bj)
 
 
-def _clock(point: Point, shifts: np.ndarray | None, K: int) -> np.ndarray:
-    """Each window's clock offset beyond the one it was resampled at, (K, 1, 1): the point's,
-    plus the window's own shift where its clock was followed (``shifts``)."""
-    dtau = np.full(K, point.dtau) if shifts is None else point.dtau + shifts
-    return dtau[:, None, None]
-
-
-def gyro_coefficients(
-    point: Point, bj: np.ndarray, bk: np.ndarray, shifts: np.ndarray | None = None
-) -> np.ndarray:
+def gyro_coefficients(point: Point, bj: np.ndarray, bk: np.ndarray) -> np.ndarray:
     """``C`` of ``r_g = C x_g`` per window, (K, 3, 14), the gyro biases at the window's knots
-    (and each window's clock ``shifts`` beyond the point's, s)."""
+    (a window's clock beyond the point's is in its moments: :func:`~.moments.shifted`)."""
     D = GYRO_DATA
     Rt = triad_axes(point.own(GYRO_AXES)) @ point.R.inv().as_matrix() * _gyro_gain(point)
     C = np.zeros((len(bj), 3, D.size))
     C[:, :, D["w_I"]] = np.eye(3)
     C[:, :, D["f_I"]] = -point.own(G_SENSITIVITY).reshape(3, 3)
     C[:, :, D["w_B"]] = -Rt
-    C[:, :, D["dw_B"]] = _clock(point, shifts, len(bj)) * Rt
+    C[:, :, D["dw_B"]] = point.dtau * Rt
     _bias_columns(C, D, bj, bk)
     return C
 
 
-def accel_coefficients(
-    point: Point, aj: np.ndarray, ak: np.ndarray, shifts: np.ndarray | None = None
-) -> np.ndarray:
-    """``C`` of ``r_a = C x_a`` per window, (K, 3, 33), the accelerometer biases at the knots
-    (and each window's clock ``shifts`` beyond the point's, s)."""
+def accel_coefficients(point: Point, aj: np.ndarray, ak: np.ndarray) -> np.ndarray:
+    """``C`` of ``r_a = C x_a`` per window, (K, 3, 33), the accelerometer biases at the
+    knots."""
     D = ACCEL_DATA
     Rt = _accel_axes(point)[1] @ point.R.inv().as_matrix()
     T = kron_t(point.t) @ _vec_gain(_gyro_gain(point))
@@ -331,10 +320,9 @@ def accel_coefficients(
     C = np.zeros((len(aj), 3, D.size))
     C[:, :, D["f_I"]] = np.eye(3)
     C[:, :, D["f_B"]] = -F
-    dtau = _clock(point, shifts, len(aj))
-    C[:, :, D["df_B"]] = dtau * F
+    C[:, :, D["df_B"]] = point.dtau * F
     C[:, :, D["vec_A"]] = -Rt @ T
-    C[:, :, D["vec_dA"]] = dtau * (Rt @ T)
+    C[:, :, D["vec_dA"]] = point.dtau * (Rt @ T)
     C[:, :, D["tilt_terms"]] = tilt_columns(Rt, point.tilt)
     _bias_columns(C, D, aj, ak)
     return C

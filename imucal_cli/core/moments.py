@@ -319,17 +319,19 @@ def reduce_block(
 MIN_SPAN_SAMPLES = 8
 
 
-def _moved_data(layout: Layout, shift_s: float) -> np.ndarray:
-    """``M`` with ``x' = M x`` the data vector of a window resampled ``shift_s`` later on the
-    base's clock (``C(dtau + s) x = C(dtau) M x``: the base's terms less ``s`` times their
-    derivatives)."""
-    M = np.eye(layout.size)
+def shifted(S: np.ndarray, shifts_s: np.ndarray, layout: Layout) -> np.ndarray:
+    """Windows' moments ``S`` (K, dim, dim) as if each had been resampled ``shifts_s`` later
+    on the base's clock (the clock's track there beyond the offset it was resampled at):
+    ``M S M^T`` with ``x' = M x = x + s E x`` the base's terms less ``s`` times their
+    derivatives, since the model's ``dtau`` columns are those derivatives
+    (``C(dtau + s) x = C(dtau) M x``, exact: the coefficients are linear in ``dtau``)."""
+    E = np.zeros((layout.size, layout.size))
     pairs = (("w_B", "dw_B"),) if "w_B" in layout.slices else (("f_B", "df_B"), ("vec_A", "vec_dA"))
     for term, derivative in pairs:
-        M[layout[term], layout[derivative]] = -shift_s * np.eye(
-            layout[term].stop - layout[term].start
-        )
-    return M
+        E[layout[term], layout[derivative]] = -np.eye(layout[term].stop - layout[term].start)
+    s = np.asarray(shifts_s, dtype=float)[:, None, None]
+    ES = E @ S
+    return S + s * (ES + ES.transpose(0, 2, 1)) + s**2 * (ES @ E.T)
 
 
 def used(window: WindowMoments) -> bool:
@@ -403,12 +405,11 @@ def merged(
 
 
 def _moved(window: WindowMoments, shift_s: float, which: str, layout: Layout) -> np.ndarray:
-    """A window's moments (``which``) moved ``shift_s`` on the base's clock; none where it is
-    not used."""
+    """A window's moments (``which``) moved ``shift_s`` on the base's clock
+    (:func:`shifted`); none where it is not used."""
     if not used(window):
         return np.zeros((layout.size, layout.size))
-    M = _moved_data(layout, shift_s)
-    return M @ assemble_moments([window], which)[0] @ M.T
+    return shifted(assemble_moments([window], which), np.array([shift_s]), layout)[0]
 
 
 def stretch_moments(

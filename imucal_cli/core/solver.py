@@ -26,6 +26,7 @@ from imucal_cli.core.model import (
     START_FREE,
     TRANSLATION,
     BiasModel,
+    Layout,
     Point,
     accel_coefficients,
     accel_derivatives,
@@ -33,7 +34,7 @@ from imucal_cli.core.model import (
     gyro_coefficients,
     gyro_derivatives,
 )
-from imucal_cli.core.moments import WindowMoments, assemble_moments
+from imucal_cli.core.moments import WindowMoments, assemble_moments, shifted
 from imucal_cli.types import rotation_type
 
 if TYPE_CHECKING:
@@ -348,11 +349,12 @@ class Problem:
         self.knot_numbers = knot_numbers(windows)
         self.numbers = np.searchsorted(self.knot_numbers, [w.number for w in used])
         #: Each window's clock offset beyond the one it was resampled at, where its clock was
-        #: followed (:mod:`.clock`); None: none.
+        #: followed (:mod:`.clock`): its moments are moved by it (:func:`~.moments.shifted`),
+        #: so the fit and its derivatives see each window at the track's offset.
         shifts = np.array([w.shift_s for w in used])
         self.shifts = shifts if np.any(shifts) else None
         self.n_knots = len(self.knot_numbers)
-        self.S_g = assemble_moments(used, "gyro")  # (K, 14, 14): small
+        self.S_g = self._moved(assemble_moments(used, "gyro"), 0, GYRO_DATA)  # (K, 14, 14)
         self.starts = range(0, len(used), SOLVE_CHUNK)
         # the accelerometer's moments, stacked once where they are small, else a chunk at a time
         small = len(used) * ACCEL_DATA.size**2 * 8 <= SOLVE_CACHE_BYTES
@@ -424,7 +426,13 @@ class Problem:
         samples = np.array([w.samples for w in windows], dtype=float)
         vec_A = ACCEL_DATA["vec_A"]
         S[:, vec_A, vec_A] -= angular_acceleration_noise(samples, self.dw_noise_var)
-        return S
+        return self._moved(S, a, ACCEL_DATA)
+
+    def _moved(self, S: np.ndarray, a: int, layout: Layout) -> np.ndarray:
+        """Moments of the windows from ``a`` on, each moved by its clock shift (where any)."""
+        if self.shifts is None:
+            return S
+        return shifted(S, self.shifts[a : a + len(S)], layout)
 
     def accel_moments(self) -> list[np.ndarray]:
         """The accelerometer's moments, a chunk of windows at a time."""
@@ -441,8 +449,8 @@ class Problem:
             return self._last[1]
         bj, bk = knots[self.numbers], knots[self.numbers + 1]
         gyro, accel = KNOT["gyro_bias"], KNOT["accel_bias"]
-        Cg = gyro_coefficients(point, bj[:, gyro], bk[:, gyro], self.shifts)
-        Ca = accel_coefficients(point, bj[:, accel], bk[:, accel], self.shifts)
+        Cg = gyro_coefficients(point, bj[:, gyro], bk[:, gyro])
+        Ca = accel_coefficients(point, bj[:, accel], bk[:, accel])
         Dg, Da = gyro_derivatives(point), accel_derivatives(point)
         parts_a = [
             window_equations(Da, S_a, Ca[a : a + SOLVE_CHUNK])
