@@ -94,6 +94,17 @@ def assemble_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray
     return full
 
 
+def constant_moments(windows: Sequence[WindowMoments], which: str) -> np.ndarray:
+    """Each window's ``one`` column's own moment (``which`` "gyro" or "accel"): its samples, a
+    merged stretch's weight of its constant; read from the base's block, nothing assembled."""
+    layout, own = (GYRO_DATA, GYRO_OWN) if which == "gyro" else (ACCEL_DATA, ACCEL_OWN)
+    i = layout.index("one") - own
+    rows, columns = _UPPER[which]
+    at = int(np.flatnonzero((rows == i) & (columns == i))[0])
+    packed = [w.base.packed_gyro if which == "gyro" else w.base.packed_accel for w in windows]
+    return np.array([p[at] for p in packed], dtype=float)
+
+
 def noise_density(both: np.ndarray, rate: float) -> tuple[float, float]:
     """White-noise densities of the gyro and the accelerometer (columns 0-2 and 3-5)."""
     density = white_noise_density(both, rate, NOISE_BAND_HZ)

@@ -34,7 +34,7 @@ from imucal_cli.core.model import (
     gyro_coefficients,
     gyro_derivatives,
 )
-from imucal_cli.core.moments import WindowMoments, assemble_moments, shifted
+from imucal_cli.core.moments import WindowMoments, assemble_moments, constant_moments, shifted
 from imucal_cli.types import rotation_type
 
 if TYPE_CHECKING:
@@ -384,8 +384,7 @@ class Problem:
             return float(np.trace(rows[:, own]) - rows[:, one] @ rows[:, one] / n)
 
         one_g, one_a = GYRO_DATA.index("one"), ACCEL_DATA.index("one")
-        n_g = self.S_g[:, one_g, one_g]  # (each window's constant's moment: its samples)
-        n_a = np.concatenate([np.zeros(0), *(S[:, one_a, one_a] for S in self.accel_moments())])
+        n_g, n_a = constant_moments(used, "gyro"), constant_moments(used, "accel")
         gyro = sum(spread(w.rows_gyro[w_I], w_I, n, one_g) for w, n in zip(used, n_g, strict=True))
         accel = sum(spread(w.rows_accel, f_I, n, one_a) for w, n in zip(used, n_a, strict=True))
         self.signal_rms = (

@@ -18,7 +18,13 @@ from imucal_cli.core.model import (
     accel_coefficients,
     gyro_coefficients,
 )
-from imucal_cli.core.moments import WindowMoments, assemble_moments, base_moments, merged
+from imucal_cli.core.moments import (
+    WindowMoments,
+    assemble_moments,
+    base_moments,
+    constant_moments,
+    merged,
+)
 from imucal_cli.core.segments import WindowInfo
 from imucal_cli.core.so3 import rotation_angle_deg
 from imucal_cli.types import rotation_type
@@ -154,10 +160,13 @@ def test_a_window_not_used_is_counted_and_walks_as_a_gap_does():
     across = merged([a, c], np.zeros(2), 0.0, biases, sigma)
     assert whole.count == 3 and whole.samples == a.samples + c.samples
     assert whole.span == across.span == 3  # (the stretch of numbers 0-2 either way)
-    for which in ("gyro", "accel"):
+    for which, layout in (("gyro", GYRO_DATA), ("accel", ACCEL_DATA)):
         np.testing.assert_allclose(
             assemble_moments([whole], which), assemble_moments([across], which), rtol=1e-12
         )
+        one = layout.index("one")  # (the constant's own moment, read without assembling)
+        S = assemble_moments([a, whole], which)
+        np.testing.assert_array_equal(constant_moments([a, whole], which), S[:, one, one])
 
 
 def test_a_noise_free_drive_kept_in_few_units_is_the_drive_kept_whole(monkeypatch, ideal_drive):
