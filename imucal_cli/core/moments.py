@@ -420,7 +420,8 @@ def _moved(window: WindowMoments, shift_s: float, which: str, layout: Layout) ->
     (:func:`shifted`); none where it is not used."""
     if not used(window):
         return np.zeros((layout.size, layout.size))
-    return shifted(assemble_moments([window], which), np.array([shift_s]), layout)[0]
+    S = assemble_moments([window], which)
+    return (shifted(S, np.array([shift_s]), layout) if shift_s else S)[0]
 
 
 def stretch_moments(
@@ -465,14 +466,30 @@ def stretch_moments(
     var = sigma**2
     for a, b in itertools.pairwise(numbers):
         _add_walk(Q, at[a], at[b], var / (walk**2 * (b - a) * spacing_s))
-    inner, keep = np.arange(r + 1, len(Q) - 1), np.r_[np.arange(r), r, len(Q) - 1]
+    n = len(Q)
+    inner = np.arange(r + 1, n - 1)
     Q[inner, inner] += var / prior_std**2
+    # [c, b_0, b_m] first, the inner knots after them
+    ends_first = np.r_[0 : r + 1, n - 1, inner]
+    Q = Q[ends_first][:, ends_first]
+    kept = r + 2
     # (pinv: without noise, an inner knot no data reach has no information at all)
-    eliminated = Q[np.ix_(keep, inner)] @ np.linalg.pinv(Q[np.ix_(inner, inner)], hermitian=True)
-    marginal = Q[np.ix_(keep, keep)] - eliminated @ Q[np.ix_(inner, keep)]
+    eliminated = Q[:kept, kept:] @ _pinv(Q[kept:, kept:])
+    marginal = Q[:kept, :kept] - eliminated @ Q[kept:, :kept]
     _add_walk(marginal, r, r + 1, -var / (walk**2 * (last - first) * spacing_s))
-    # back over [c, one, u]: the stretch's one is -b_0 and its u -(b_m - b_0), so that
-    # b_0 = -one and b_m = -one - u
+    return _over_columns(marginal, layout, rest)
+
+
+def _inside(units: Sequence[tuple[int, int]]) -> set[int]:
+    """The window numbers strictly inside units: merged earlier, they have no knot."""
+    return {n for number, span in units for n in range(number + 1, number + span)}
+
+
+def _over_columns(marginal: np.ndarray, layout: Layout, rest: list[int]) -> np.ndarray:
+    """A stretch's quadratic form over ``[c, b_0, b_m]`` as moments over the data vector's
+    columns: its ``one`` is ``-b_0`` and its ``u`` is ``-(b_m - b_0)``, so that ``b_0 = -one``
+    and ``b_m = -one - u``."""
+    r, one, u = len(rest), layout.index("one"), layout.index("u")
     from_columns = np.eye(r + 2)
     from_columns[r, r] = from_columns[r + 1, r] = from_columns[r + 1, r + 1] = -1.0
     out = np.zeros((layout.size, layout.size))
@@ -481,9 +498,13 @@ def stretch_moments(
     return 0.5 * (out + out.T)
 
 
-def _inside(units: Sequence[tuple[int, int]]) -> set[int]:
-    """The window numbers strictly inside units: merged earlier, they have no knot."""
-    return {n for number, span in units for n in range(number + 1, number + span)}
+def _pinv(H: np.ndarray) -> np.ndarray:
+    """The pseudo-inverse of a symmetric positive semi-definite ``H``; the one knot between two
+    neighbours (the merges' rule) without a decomposition."""
+    if H.shape == (1, 1):
+        h = float(H[0, 0])
+        return np.array([[1.0 / h if h > 1e-300 else 0.0]])
+    return np.linalg.pinv(H, hermitian=True)
 
 
 def _add_walk(Q: np.ndarray, a: int, b: int, info: float) -> None:
