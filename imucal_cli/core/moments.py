@@ -373,9 +373,10 @@ def merged(
     for k, (which, layout, own) in enumerate(
         (("gyro", GYRO_DATA, GYRO_OWN), ("accel", ACCEL_DATA, ACCEL_OWN))
     ):
-        moved = [
-            _moved(w, shift, which, layout) for w, shift in zip(windows, shifts_s, strict=True)
-        ]
+        moved = assemble_moments(windows, which)
+        moved[[not used(w) for w in windows]] = 0.0  # (a window not used adds no data)
+        if np.any(shifts_s):
+            moved = shifted(moved, shifts_s, layout)
         walk = (biases.walks[k], biases.prior_stds[k], biases.spacing_s)
         totals.append((stretch_moments(moved, units, layout, sigma[k], *walk), own))
     (S_g, own_g), (S_a, own_a) = totals
@@ -415,17 +416,8 @@ def merged(
     )
 
 
-def _moved(window: WindowMoments, shift_s: float, which: str, layout: Layout) -> np.ndarray:
-    """A window's moments (``which``) moved ``shift_s`` on the base's clock
-    (:func:`shifted`); none where it is not used."""
-    if not used(window):
-        return np.zeros((layout.size, layout.size))
-    S = assemble_moments([window], which)
-    return (shifted(S, np.array([shift_s]), layout) if shift_s else S)[0]
-
-
 def stretch_moments(
-    S: Sequence[np.ndarray],
+    S: np.ndarray,
     units: Sequence[tuple[int, int]],
     layout: Layout,
     sigma: float,
@@ -433,9 +425,9 @@ def stretch_moments(
     prior_std: float,
     spacing_s: float,
 ) -> np.ndarray:
-    """The moments of consecutive units (``S``; ``units`` their first window's number and how
-    many they span, between their two bias knots) as one unit between the first and the last
-    knot: exact for the fit.
+    """The moments of consecutive units (``S``, (K, dim, dim); ``units`` their first window's
+    number and how many they span, between their two bias knots) as one unit between the first
+    and the last knot: exact for the fit.
 
     A unit's residual on each axis is ``c . x - b_j (1 - u) - b_k u``: linear in its knots,
     which enter through the ``one`` and ``u`` columns. Over ``y = [c, knots]`` (the units' ends
