@@ -226,23 +226,19 @@ def _base_source(config: Config) -> str:
 def imu_noise(result: Calibration, name: str) -> dict[str, float | None]:
     """An IMU's noise in Kalibr's terms: white-noise densities measured above the motion, and
     the gyro and accelerometer bias random walks measured from the knots of the relative biases
-    the fit estimated (sensor minus base, one knot a window: for each IMU an upper bound, and
-    the sensor's own); the base's walks are its grade's (:data:`GRADES`), or for ``ideal`` the
-    smallest of its sensors' (the tightest upper bound the log gives)."""
+    the fit estimated (sensor minus base, a knot a window or a merged stretch's ends, each step
+    over its own time: for each IMU an upper bound, and the sensor's own); the base's walks are
+    its grade's (:data:`GRADES`), or for ``ideal`` the smallest of its sensors' (the tightest
+    upper bound the log gives)."""
     gyro, accel = result.noise_density.get(name, (None, None))
     walks: dict[str, list[float]] = {"gyro": [], "accel": []}
     for sensor, est in result.estimates.items():
         if name != "base" and sensor != name:
             continue
+        gaps_s = np.diff(est.bias_knots_s)[:, None]
         for key, knots in (("gyro", est.gyro_bias_knots), ("accel", est.accel_bias_knots)):
             if len(knots) > 2:
-                walks[key].append(
-                    float(
-                        np.sqrt(
-                            np.mean(np.diff(knots, axis=0) ** 2) / result.config.segments.window_s
-                        )
-                    )
-                )
+                walks[key].append(float(np.sqrt(np.mean(np.diff(knots, axis=0) ** 2 / gaps_s))))
     walk_g, walk_a = (min(w) if w else None for w in (walks["gyro"], walks["accel"]))
     grade_walks = GRADES[result.config.base.grade].random_walks
     if name == "base" and grade_walks is not None:  # (the drive measures the sensors' alone)

@@ -665,3 +665,35 @@ def test_the_usage_guide_shows_the_first_lines_the_sample_s_exports_print(calibr
             all(_same_line(a, b) for a, b in zip(shown, lines[i : i + len(shown)], strict=True))
             for i in range(len(lines) - len(shown) + 1)
         ), fmt
+
+
+def test_bias_walks_are_measured_over_each_knot_s_own_gap():
+    """The relative biases' random walk from the fit's knots, each step over its own time: a
+    merged stretch's two knots lie its whole span apart. A walk of known density sampled at
+    knots 10 s and 100 s apart comes back within 4 of its estimate's std (one over the square
+    root of twice the steps); over one window's 10 s each, it came back 2.3 times too large."""
+    from types import SimpleNamespace
+
+    from imucal_cli.outputs import imu_noise
+
+    rng = np.random.default_rng(0)
+    walk_g, walk_a, steps = 2e-5, 3e-3, 4000
+    gaps = rng.choice([10.0, 100.0], size=steps)
+    knots_s = np.concatenate([[0.0], np.cumsum(gaps)])
+
+    def walked(density: float) -> np.ndarray:
+        moves = rng.normal(size=(steps, 3)) * density * np.sqrt(gaps)[:, None]
+        return np.concatenate([np.zeros((1, 3)), np.cumsum(moves, axis=0)])
+
+    estimate = SimpleNamespace(
+        bias_knots_s=knots_s, gyro_bias_knots=walked(walk_g), accel_bias_knots=walked(walk_a)
+    )
+    result = SimpleNamespace(
+        noise_density={"lidar": (1e-4, 2e-3)},
+        estimates={"lidar": estimate},
+        config=SimpleNamespace(base=SimpleNamespace(grade="ideal")),
+    )
+    noise = imu_noise(result, "lidar")
+    tolerance = 4 * 0.5 * np.sqrt(2.0 / (3 * steps))  # (relative std of a density from 3 x steps)
+    assert noise["gyroscope_random_walk"] == pytest.approx(walk_g, rel=tolerance)
+    assert noise["accelerometer_random_walk"] == pytest.approx(walk_a, rel=tolerance)
