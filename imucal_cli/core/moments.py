@@ -416,6 +416,12 @@ def merged(
     )
 
 
+#: A unit's ``one`` and ``u`` columns' coefficients from its two knots ``(b_j, b_k)``: ``-b_j``
+#: and ``b_j - b_k`` (its bias is ``b_j (1 - u) + b_k u``), and back.
+_TO_KNOTS = np.array([[-1.0, 0.0], [1.0, -1.0]])
+_FROM_KNOTS = np.linalg.inv(_TO_KNOTS)
+
+
 def stretch_moments(
     S: np.ndarray,
     units: Sequence[tuple[int, int]],
@@ -441,23 +447,21 @@ def stretch_moments(
     their walk inside the stretch (one line over minutes is not what a wandering bias does,
     and the std would not know its error). Every axis takes the same moments: their knots walk
     alike."""
-    one, u = layout.index("one"), layout.index("u")
-    rest = [i for i in range(layout.size) if i not in (one, u)]
-    r = len(rest)
+    r = layout.size - 2
+    assert (layout.index("one"), layout.index("u")) == (r, r + 1)  # (the last two columns)
     first, last = units[0][0], units[-1][0] + units[-1][1]
     numbers = sorted(set(range(first, last + 1)) - _inside(units))  # (the knots: ends, gaps)
-    at = {number: r + i for i, number in enumerate(numbers)}
-    Q = np.zeros((r + len(numbers), r + len(numbers)))
+    at = {number: i for i, number in enumerate(numbers)}
+    Q = np.zeros((r + len(numbers), r + len(numbers)))  # over y = [c, knots]
+    Q[:r, :r] = S[:, :r, :r].sum(axis=0)
     for S_k, (number, span) in zip(S, units, strict=True):
-        # the unit's data-vector coefficients from y: c as it is, one -> -b_j, u -> b_j - b_k
-        to_unit = np.zeros((layout.size, len(Q)))
-        to_unit[rest, np.arange(r)] = 1.0
-        j, k = at[number], at[number + span]
-        to_unit[one, j], to_unit[u, j], to_unit[u, k] = -1.0, 1.0, -1.0
-        Q += to_unit.T @ S_k @ to_unit
+        knots = r + np.array([at[number], at[number + span]])
+        Q[:r, knots] += S_k[:r, r:] @ _TO_KNOTS
+        Q[knots[:, None], knots] += _TO_KNOTS.T @ S_k[r:, r:] @ _TO_KNOTS
+    Q[r:, :r] = Q[:r, r:].T
     var = sigma**2
     for a, b in itertools.pairwise(numbers):
-        _add_walk(Q, at[a], at[b], var / (walk**2 * (b - a) * spacing_s))
+        _add_walk(Q, r + at[a], r + at[b], var / (walk**2 * (b - a) * spacing_s))
     n = len(Q)
     inner = np.arange(r + 1, n - 1)
     Q[inner, inner] += var / prior_std**2
@@ -469,25 +473,16 @@ def stretch_moments(
     eliminated = Q[:kept, kept:] @ _pinv(Q[kept:, kept:])
     marginal = Q[:kept, :kept] - eliminated @ Q[kept:, :kept]
     _add_walk(marginal, r, r + 1, -var / (walk**2 * (last - first) * spacing_s))
-    return _over_columns(marginal, layout, rest)
+    # back over the data vector's columns: b_0 = -one and b_m = -one - u
+    from_columns = np.eye(r + 2)
+    from_columns[r:, r:] = _FROM_KNOTS
+    out = from_columns.T @ marginal @ from_columns
+    return 0.5 * (out + out.T)
 
 
 def _inside(units: Sequence[tuple[int, int]]) -> set[int]:
     """The window numbers strictly inside units: merged earlier, they have no knot."""
     return {n for number, span in units for n in range(number + 1, number + span)}
-
-
-def _over_columns(marginal: np.ndarray, layout: Layout, rest: list[int]) -> np.ndarray:
-    """A stretch's quadratic form over ``[c, b_0, b_m]`` as moments over the data vector's
-    columns: its ``one`` is ``-b_0`` and its ``u`` is ``-(b_m - b_0)``, so that ``b_0 = -one``
-    and ``b_m = -one - u``."""
-    r, one, u = len(rest), layout.index("one"), layout.index("u")
-    from_columns = np.eye(r + 2)
-    from_columns[r, r] = from_columns[r + 1, r] = from_columns[r + 1, r + 1] = -1.0
-    out = np.zeros((layout.size, layout.size))
-    order = np.r_[rest, one, u]
-    out[np.ix_(order, order)] = from_columns.T @ marginal @ from_columns
-    return 0.5 * (out + out.T)
 
 
 def _pinv(H: np.ndarray) -> np.ndarray:
