@@ -274,20 +274,16 @@ def _write_rosbag2(
     # a ``#``, ``?`` or ``%`` in the path sends the database elsewhere (cut at the ``#``: a
     # file beside the output's folder, named by its start) and leaves the bag without it. Such
     # a bag is written where the path is plain, and moved.
-    plain = None
     if plugin == StoragePlugin.SQLITE3 and _URI_CHARACTERS & set(str(path.resolve())):
-        plain = Path(tempfile.mkdtemp(prefix="imucal-"))
-        target = plain / "".join("_" if c in _URI_CHARACTERS else c for c in path.name)
-        if _URI_CHARACTERS & set(str(target)):
-            raise InputError(f"{path}: the temporary folder {plain} holds #, ? or %")
-    try:
-        writer = Writer(target if plain else path, version=9, storage_plugin=plugin)
-        _fill_rosbags_writer(writer, topics, False, progress, statics, pieces)
-        if plain:
+        with tempfile.TemporaryDirectory(prefix="imucal-") as plain:
+            target = Path(plain) / "".join("_" if c in _URI_CHARACTERS else c for c in path.name)
+            if _URI_CHARACTERS & set(str(target.resolve())):
+                raise InputError(f"{path}: the temporary folder {plain} holds #, ? or %")
+            _write_rosbag2(target, topics, storage, progress, statics, pieces)
             shutil.move(target, path)
-    finally:
-        if plain:
-            shutil.rmtree(plain, ignore_errors=True)
+        return
+    writer = Writer(path, version=9, storage_plugin=plugin)
+    _fill_rosbags_writer(writer, topics, False, progress, statics, pieces)
 
 
 def _write_rosbag1(
