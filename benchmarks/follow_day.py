@@ -10,9 +10,9 @@ axes (rotation about the base axes, then translation), the largest of them in bo
 status is ``ok`` and it is beyond 4. ``--clean`` takes the lidar IMUs' timestamp jitter,
 dropped samples and quantisation and the base's float32 output out of the simulation;
 ``--no-walk`` every IMU's bias random walk (each keeps its turn-on bias), ``--still-base`` the
-base IMU's alone; ``--keep-windows``
-keeps every window its own unit of the fit, where the follow merges the older ones into
-stretches past 400 (docs/method.md, step 3): slower, and memory that grows.
+base IMU's alone; ``--keep-windows`` keeps every window its own unit of the fit, where the
+follow merges the older ones into stretches past 400 (docs/method.md, step 3): slower, and
+memory that grows.
 
 Run: ``python benchmarks/follow_day.py [--hours 24] [--seed 7] [--clean] [--no-walk]
 [--still-base] [--keep-windows]``: about 6 GB of memory and 5 minutes for a day.
