@@ -296,6 +296,11 @@ class Settings:
 DIAGONAL_LOADS = (0.0, 1e-12, 1e-9, 1e-6)
 
 
+#: A fit has converged once its next step is below these: the rotation's (rad), the other
+#: globals' (m, s and the IMUs' own errors).
+CONVERGED = np.array([1e-10, 1e-8])
+
+
 def spd_cholesky(S: np.ndarray) -> np.ndarray:
     """The lower Cholesky factor of symmetric positive semi-definite information ``S``, with
     the least diagonal load of :data:`DIAGONAL_LOADS` that makes it factor (``L L^T = S +
@@ -519,7 +524,7 @@ class Problem:
         weights = np.ones(len(self.used)) if window_weights is None else window_weights
         free_idx = np.flatnonzero(free)
         unconstrained, reduced, S_inv, iterations = point.t.copy(), None, None, 0
-        lin = None
+        lin, last = None, None
         for iterations in range(1, (max_iterations or self.settings.max_iterations) + 1):
             lin = self.linearised(point, knots)
             if estimate_scale and iterations > 1:
@@ -531,11 +536,11 @@ class Problem:
             )
             point, knots = point.moved(step), knots + step_bias.reshape(self.n_knots, KNOT.size)
             S_inv = _spd_inverse(reduced.S)
-            small = (
-                np.max(np.abs(step[ROTATION])) < 1e-10
-                and np.max(np.abs(step[ROTATION.stop :])) < 1e-8
-            )
-            if small and (iterations > 2 or not estimate_scale):
+            # the step taken, and the next one where the last two shrink at a steady rate
+            size = np.array([np.max(np.abs(step[ROTATION])), np.max(np.abs(step[ROTATION.stop :]))])
+            upcoming = size if last is None else size * np.minimum(size / last, 1.0)
+            last = np.maximum(size, 1e-300)
+            if np.all(upcoming < CONVERGED) and (iterations > 2 or not estimate_scale):
                 break
         assert reduced is not None and S_inv is not None and lin is not None
         covariance = np.zeros((N_PARAMETERS, N_PARAMETERS))

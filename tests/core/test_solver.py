@@ -168,3 +168,30 @@ def test_kabsch_recovers_a_rotation_with_per_window_bias():
         moments.append(x.T @ x)
     estimate = kabsch_rotation(np.stack(moments))
     assert rotation_angle_deg(estimate, R) < 1e-9
+
+
+def test_a_fit_stops_where_its_next_step_would_be_below_convergence(short_drive):
+    """The fit stops once the step it would take next, from how its last two steps shrank, is
+    below :data:`~imucal_cli.core.solver.CONVERGED` (one linearisation less than waiting to
+    take that step): from where it stopped, one more Gauss-Newton step moves the rotation by
+    less than 1e-10 rad and the other globals by less than 1e-8."""
+    from dataclasses import replace
+
+    from imucal_cli.core.calibrate import make_problem
+    from imucal_cli.core.solver import CONVERGED
+    from imucal_cli.pipeline import feed, make_calibrator
+
+    calibrator = make_calibrator(short_drive.config())
+    feed(calibrator, short_drive.streams())
+    calibrator.finish()
+    name = next(iter(calibrator.sensors))
+    setup = calibrator.sensors[name]
+    args = (setup.prior_T_base_imu, setup.options, calibrator.sigma[name], calibrator.lowpass)
+    problem = make_problem(list(calibrator.moments(name)), *args, calibrator.dw_noise_var)
+    start = problem.start()
+    fit = problem.fit(start, start.free, estimate_scale=False)
+    assert 1 < fit.iterations < problem.settings.max_iterations
+    again = problem.fit(replace(fit, knots=fit.knots.copy()), fit.free, max_iterations=1)
+    assert rotation_angle_deg(again.point.R, fit.point.R) < np.degrees(CONVERGED[0])
+    np.testing.assert_allclose(again.point.t, fit.point.t, rtol=0, atol=CONVERGED[1])
+    assert abs(again.point.dtau - fit.point.dtau) < CONVERGED[1]
