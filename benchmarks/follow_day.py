@@ -10,12 +10,12 @@ axes (rotation about the base axes, then translation), the largest of them in bo
 status is ``ok`` and it is beyond 4. ``--clean`` takes the lidar IMUs' timestamp jitter,
 dropped samples and quantisation and the base's float32 output out of the simulation;
 ``--no-walk`` every IMU's bias random walk (each keeps its turn-on bias), ``--still-base`` the
-base IMU's alone; ``--keep-windows`` keeps every window its own unit of the fit, where the
-follow merges the older ones into stretches past 400 (docs/method.md, step 3): slower, and
-memory that grows.
+base IMU's alone (``--still-base gyro`` or ``accel``: that triad's alone); ``--keep-windows``
+keeps every window its own unit of the fit, where the follow merges the older ones into
+stretches past 400 (docs/method.md, step 3): slower, and memory that grows.
 
 Run: ``python benchmarks/follow_day.py [--hours 24] [--seed 7] [--clean] [--no-walk]
-[--still-base] [--keep-windows]``: about 6 GB of memory and 5 minutes for a day.
+[--still-base [gyro|accel]] [--keep-windows]``: about 6 GB of memory and 5 minutes for a day.
 """
 
 from __future__ import annotations
@@ -35,12 +35,17 @@ SHOWN = (1, 2, 4, 8, 12, 16, 20, 24, 36, 48)
 
 
 def options(
-    hours: int, seed: int, clean: bool, no_walk: bool, still_base: bool = False
+    hours: int, seed: int, clean: bool, no_walk: bool, still_base: str | None = None
 ) -> DriveOptions:
     drive = DriveOptions(scenario="urban", duration_s=hours * 3600.0, seed=seed, sensors=2)
     still = {"gyro_bias_random_walk": 0.0, "accel_bias_random_walk": 0.0}
     if no_walk or still_base:
-        drive = replace(drive, base_model=replace(drive.base_model, **still))
+        kept = {
+            k: v
+            for k, v in still.items()
+            if no_walk or still_base == "both" or k.startswith(str(still_base))
+        }
+        drive = replace(drive, base_model=replace(drive.base_model, **kept))
     if no_walk:
         drive = replace(drive, lidar_model=replace(drive.lidar_model, **still))
     if not clean:
@@ -85,7 +90,7 @@ def main() -> None:
     parser.add_argument("--update-s", type=float, default=1800.0)
     parser.add_argument("--clean", action="store_true")
     parser.add_argument("--no-walk", action="store_true")
-    parser.add_argument("--still-base", action="store_true")
+    parser.add_argument("--still-base", nargs="?", const="both", choices=["both", "gyro", "accel"])
     parser.add_argument("--keep-windows", action="store_true")
     args = parser.parse_args()
     if args.keep_windows:  # every window its own unit: nothing merged into stretches
@@ -99,7 +104,9 @@ def main() -> None:
     block, update = 10_000_000_000, int(args.update_s * 1e9)
     clean = ", no jitter, drops or quantisation" if args.clean else ""
     clean += ", biases that do not wander" if args.no_walk else ""
-    clean += ", a base whose biases do not wander" if args.still_base and not args.no_walk else ""
+    if args.still_base and not args.no_walk:
+        which = {"both": "biases", "gyro": "gyro's bias", "accel": "accelerometer's bias"}
+        clean += f", a base whose {which[args.still_base]} does not wander"
     clean += ", every window kept" if args.keep_windows else ""
     print(
         f"## A day of following: {args.hours} h of town driving, seed {args.seed}{clean}\n\n"
