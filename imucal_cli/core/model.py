@@ -181,6 +181,15 @@ class BiasModel:
     walks: tuple[float, float]  # gyro (rad/s/sqrt(s)), accelerometer (m/s^2/sqrt(s))
     prior_stds: tuple[float, float]  # gyro (rad/s), accelerometer (m/s^2)
 
+    def walk_information(self, kind: int, gaps_s: np.ndarray | float) -> np.ndarray:
+        """The information of the walk of a bias component (``kind`` 0: gyro, 1: accelerometer)
+        between knots ``gaps_s`` apart: the inverse of its variance there."""
+        return 1.0 / (self.walks[kind] ** 2 * np.asarray(gaps_s, dtype=float))
+
+    def prior_information(self, kind: int) -> float:
+        """The information of a bias component's absolute prior at each knot."""
+        return 1.0 / self.prior_stds[kind] ** 2
+
 
 #: A triad's six axis errors (a block of :data:`PARAMETERS`), in :data:`SYMMETRIC`'s order.
 AXIS_ERRORS = Layout(("scale", 3), ("nonorthogonality", 3))

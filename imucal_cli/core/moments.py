@@ -377,8 +377,7 @@ def merged(
         moved[[not used(w) for w in windows]] = 0.0  # (a window not used adds no data)
         if np.any(shifts_s):
             moved = shifted(moved, shifts_s, layout)
-        walk = (biases.walks[k], biases.prior_stds[k], biases.spacing_s)
-        totals.append((stretch_moments(moved, units, layout, sigma[k], *walk), own))
+        totals.append((stretch_moments(moved, units, layout, sigma[k], biases, k), own))
     (S_g, own_g), (S_a, own_a) = totals
     kept = [w for w in windows if used(w)]
     whole = all(w.valid for w in windows)  # (no gap in any: what was not used lacked motion)
@@ -427,9 +426,8 @@ def stretch_moments(
     units: Sequence[tuple[int, int]],
     layout: Layout,
     sigma: float,
-    walk: float,
-    prior_std: float,
-    spacing_s: float,
+    biases: BiasModel,
+    kind: int,
 ) -> np.ndarray:
     """The moments of consecutive units (``S``, (K, dim, dim); ``units`` their first window's
     number and how many they span, between their two bias knots) as one unit between the first
@@ -439,7 +437,8 @@ def stretch_moments(
     which enter through the ``one`` and ``u`` columns. Over ``y = [c, knots]`` (the units' ends
     and every window's knot where the units leave a gap) the cost is ``y^T Q y``: the units'
     moments and, in the moments' units (the fit weighs them by ``1 / sigma^2``), the random
-    walk between neighbouring knots and the absolute prior of the inner ones. The inner knots
+    walk between neighbouring knots and the absolute prior of the inner ones (``biases``', of
+    its ``kind``: 0 the gyro's, 1 the accelerometer's). The inner knots
     are eliminated (Schur complement), and what is left less the walk between the two ends
     (the fit's prior holds that one: they are its knots) is written back over the data
     vector's columns. For any ``c`` and end knots the stretch's cost is then the least of the
@@ -449,8 +448,7 @@ def stretch_moments(
     alike."""
     r = layout.size - 2
     assert (layout.index("one"), layout.index("u")) == (r, r + 1)  # (the last two columns)
-    first, last = units[0][0], units[-1][0] + units[-1][1]
-    numbers = sorted(set(range(first, last + 1)) - _inside(units))  # (the knots: ends, gaps)
+    numbers = knot_numbers(units).tolist()  # (the ends, and every knot where units leave a gap)
     at = {number: i for i, number in enumerate(numbers)}
     Q = np.zeros((r + len(numbers), r + len(numbers)))  # over y = [c, knots]
     Q[:r, :r] = S[:, :r, :r].sum(axis=0)
@@ -461,10 +459,11 @@ def stretch_moments(
     Q[r:, :r] = Q[:r, r:].T
     var = sigma**2
     for a, b in itertools.pairwise(numbers):
-        _add_walk(Q, r + at[a], r + at[b], var / (walk**2 * (b - a) * spacing_s))
+        info = float(biases.walk_information(kind, (b - a) * biases.spacing_s))
+        _add_walk(Q, r + at[a], r + at[b], var * info)
     n = len(Q)
     inner = np.arange(r + 1, n - 1)
-    Q[inner, inner] += var / prior_std**2
+    Q[inner, inner] += var * biases.prior_information(kind)
     # [c, b_0, b_m] first, the inner knots after them
     ends_first = np.r_[0 : r + 1, n - 1, inner]
     Q = Q[ends_first][:, ends_first]
@@ -472,7 +471,8 @@ def stretch_moments(
     # (pinv: without noise, an inner knot no data reach has no information at all)
     eliminated = Q[:kept, kept:] @ _pinv(Q[kept:, kept:])
     marginal = Q[:kept, :kept] - eliminated @ Q[kept:, :kept]
-    _add_walk(marginal, r, r + 1, -var / (walk**2 * (last - first) * spacing_s))
+    ends = float(biases.walk_information(kind, (numbers[-1] - numbers[0]) * biases.spacing_s))
+    _add_walk(marginal, r, r + 1, -var * ends)
     # back over the data vector's columns: b_0 = -one and b_m = -one - u
     from_columns = np.eye(r + 2)
     from_columns[r:, r:] = _FROM_KNOTS
@@ -480,9 +480,14 @@ def stretch_moments(
     return 0.5 * (out + out.T)
 
 
-def _inside(units: Sequence[tuple[int, int]]) -> set[int]:
-    """The window numbers strictly inside units: merged earlier, they have no knot."""
-    return {n for number, span in units for n in range(number + 1, number + span)}
+def knot_numbers(units: Sequence[tuple[int, int]]) -> np.ndarray:
+    """The window numbers where the biases have knots, for units given by their first window's
+    number and how many windows they span: every window's start and end from the first unit's
+    on (none before it: a stretch after a move is as cheap as a log of its own), but none
+    inside a merged stretch (:func:`merged`: its inner knots eliminated)."""
+    every = np.arange(min(n for n, _ in units), max(n + span for n, span in units) + 1)
+    inside = [np.arange(n + 1, n + span) for n, span in units if span > 1]
+    return np.setdiff1d(every, np.concatenate(inside)) if inside else every
 
 
 def _pinv(H: np.ndarray) -> np.ndarray:

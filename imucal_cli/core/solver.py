@@ -34,7 +34,13 @@ from imucal_cli.core.model import (
     gyro_coefficients,
     gyro_derivatives,
 )
-from imucal_cli.core.moments import WindowMoments, assemble_moments, constant_moments, shifted
+from imucal_cli.core.moments import (
+    WindowMoments,
+    assemble_moments,
+    constant_moments,
+    knot_numbers,
+    shifted,
+)
 from imucal_cli.types import rotation_type
 
 if TYPE_CHECKING:
@@ -88,24 +94,13 @@ def bias_prior(gaps_s: np.ndarray, biases: BiasModel) -> np.ndarray:
     width, n_knots = KNOT.size, len(gaps_s) + 1
     band = np.zeros((BAND + 1, width * n_knots))
     for c in range(width):
-        walk, prior_std = biases.walks[c // 3], biases.prior_stds[c // 3]
-        info = 1.0 / (walk**2 * np.asarray(gaps_s, dtype=float))
+        info = biases.walk_information(c // 3, gaps_s)
         diagonal = np.zeros(n_knots)  # sum of d^T d: 1 at the ends, 2 inside (equal gaps)
         diagonal[:-1] += info
         diagonal[1:] += info
-        band[BAND, c::width] = diagonal + 1.0 / prior_std**2
+        band[BAND, c::width] = diagonal + biases.prior_information(c // 3)
         band[BAND - width, width + c :: width] = -info  # between neighbouring knots
     return band
-
-
-def knot_numbers(windows: list[WindowMoments]) -> np.ndarray:
-    """The window numbers where the biases have knots: every window's start and end from the
-    first window's on (none before it: a stretch after a move is as cheap as a log of its own),
-    but within a stretch of merged windows (:func:`~.moments.merged`: one line between its
-    ends)."""
-    every = np.arange(min(w.number for w in windows), max(w.number + w.span for w in windows) + 1)
-    inside = [np.arange(w.number + 1, w.number + w.span) for w in windows if w.span > 1]
-    return np.setdiff1d(every, np.concatenate(inside)) if inside else every
 
 
 def _weighted_sum(w: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -351,7 +346,7 @@ class Problem:
             dw_noise_var,
         )
         #: Where each window's biases are: its knot, then the next.
-        self.knot_numbers = knot_numbers(windows)
+        self.knot_numbers = knot_numbers([(w.number, w.span) for w in windows])
         self.numbers = np.searchsorted(self.knot_numbers, [w.number for w in used])
         #: Each window's clock offset beyond the one it was resampled at, where its clock was
         #: followed (:mod:`.clock`): its moments are moved by it (:func:`~.moments.shifted`),
