@@ -27,6 +27,7 @@ from imucal_cli.core.model import (
     ACCEL_BIAS_PRIOR_STD,
     ACCEL_BIAS_WALK,
     ACCEL_ROTATION,
+    BASE_GYRO_AXES,
     KNOT,
     ROTATION,
     TIME_OFFSET,
@@ -310,13 +311,21 @@ def _weak_at_prior(
 def _own_errors(
     problem: Problem, fit: Fit, options: CalibrationOptions, prior_std: np.ndarray
 ) -> tuple[Fit, dict[str, dict[str, Any]]]:
-    """The IMUs' own errors the drive shows (:func:`.checks.own_errors`), unless taking them in
-    leaves a lever-arm axis the fit determined undetermined (a short drive: the errors and the
-    lever arm then share what little the drive shows); the errors are then carried instead."""
-    with_errors, own = checks.own_errors(problem, fit, options.consistency_alpha, prior_std)
-    if _keeps_lever_arm(fit, with_errors, options):
+    """The IMUs' own errors the drive shows (:func:`.checks.own_errors`, then the base gyro's
+    axes where the base's grade declares them: :func:`.checks.base_gyro_axes`), each unless
+    taking it in leaves a lever-arm axis the fit before determined undetermined (a short
+    drive, or a base gyro's yaw scale that a flat drive cannot tell from the lever arm's
+    length: the two then share what the drive shows); what is not taken in is carried."""
+    alpha = options.consistency_alpha
+    with_errors, own = checks.own_errors(problem, fit, alpha, prior_std)
+    if not _keeps_lever_arm(fit, with_errors, options):
+        with_errors, own = fit, {n: group | {"estimated": False} for n, group in own.items()}
+    if not prior_std[BASE_GYRO_AXES].any():
         return with_errors, own
-    return fit, {name: group | {"estimated": False} for name, group in own.items()}
+    with_axes, axes = checks.base_gyro_axes(problem, with_errors, alpha)
+    if axes["estimated"] and not _keeps_lever_arm(with_errors, with_axes, options):
+        with_axes, axes = with_errors, axes | {"estimated": False}
+    return with_axes, own | {checks.BASE_AXES[0]: axes}
 
 
 def _keeps_lever_arm(before: Fit, after: Fit, options: CalibrationOptions) -> bool:

@@ -18,6 +18,7 @@ from imucal_cli.core.model import (
     ACCEL_AXES,
     ACCEL_ROTATION,
     AXIS_ERRORS,
+    BASE_GYRO_AXES,
     BASE_GYRO_SCALE,
     G_SENSITIVITY,
     GYRO_AXES,
@@ -65,6 +66,11 @@ MISALIGNMENT = ("misalignment", ACCEL_ROTATION, INTRINSICS_MAX_STD)
 #: the test finds it, it scales every lever arm by as much: it is taken in wherever the drive
 #: determines it to 5% (a rear lidar 1 m from the base IMU determines it to 1-1.5%).
 BASE_SCALE = ("base gyro scale", BASE_GYRO_SCALE, 0.05)
+#: The base gyro's axis errors (its axes' scales and non-orthogonality, beyond the common
+#: scale), tested last where the base's grade declares them (an ``ideal`` base has none: a
+#: tilting mount's terms are not taken for them): each is taken in wherever the drive
+#: determines it to 5% and a chi-square test finds them.
+BASE_AXES = ("base gyro", BASE_GYRO_AXES, 0.05)
 #: The largest scale error a gyro has (relative): uncalibrated MEMS parts read up to 10-15%
 #: off. A fit that asks for more is not finding a scale but a model that fails (aliased
 #: motion, saturation, a mount that moves): the lever arm's terms do not scale as one.
@@ -144,6 +150,41 @@ def own_errors(
         found[name] |= {"estimated": False, "implausible": True, "joint": joint}
         return fit, found
     return (joint if present else fit), found
+
+
+def base_gyro_axes(problem: Problem, fit: Fit, alpha: float) -> tuple[Fit, dict[str, Any]]:
+    """The base gyro's axis errors (:data:`BASE_AXES`), after the sensor's and the common
+    scale: the components the drive determines to the block's std, kept where a chi-square
+    test at ``alpha`` finds them and no scale beyond :data:`BASE_SCALE_PLAUSIBLE` is asked
+    for. Returns the fit (with them where kept) and what :func:`sensor_errors` says of a
+    group."""
+    _, which, max_std = BASE_AXES
+    found: dict[str, Any] = {"estimated": False}
+    free = fit.free.copy()
+    free[which] = True
+    try:  # (a loose prior keeps what the drive does not determine defined: sensor_errors')
+        probe = problem.fit(fit, free, prior_std=np.where(free & ~fit.free, PROBE_PRIOR_STD, 0))
+    except np.linalg.LinAlgError:
+        return fit, found
+    free[which] = shown = probe.std()[which] <= max_std
+    if not shown.any():
+        return fit, found
+    try:
+        joint = problem.fit(fit, free)
+    except np.linalg.LinAlgError:  # the drive does not tell them from the sensor gyro's
+        return fit, found
+    value = joint.point.own(which)
+    chi2 = _chi2(value[shown], joint.covariance[which, which][np.ix_(shown, shown)])
+    present = chi2 > chi2_limit(int(shown.sum()), alpha)
+    plausible = np.abs(value[SCALE]).max() <= BASE_SCALE_PLAUSIBLE
+    found = {
+        "estimated": bool(present and plausible),
+        "chi2": chi2,
+        "dof": int(shown.sum()),
+        "value": value,
+        "std": np.where(shown, joint.std()[which], np.nan),
+    }
+    return (joint if found["estimated"] else fit), found
 
 
 def base_scale(found: dict[str, Any], fit: Fit) -> Check | None:
@@ -257,7 +298,13 @@ def rotation_agreement(
     )
     # the free globals the accelerometer holds, but the clock and its own rotation
     accel_only = fit.free & PARAMETERS.mask(
-        "rotation", "translation", "tilt", "accel_axes", "base_gyro_scale", "base_accel_axes"
+        "rotation",
+        "translation",
+        "tilt",
+        "accel_axes",
+        "base_gyro_scale",
+        "base_gyro_axes",
+        "base_accel_axes",
     )
     by_accel = problem.fit(
         fit, accel_only, use=(False, True), max_iterations=1, prior_std=ROTATION_PRIOR

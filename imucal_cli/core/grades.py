@@ -18,7 +18,7 @@ from imucal_cli.core.model import (
     ACCEL_ROTATION,
     AXIS_ERRORS,
     BASE_ACCEL_AXES,
-    BASE_GYRO_SCALE,
+    BASE_GYRO_AXES,
     G_SENSITIVITY,
     GYRO_AXES,
     N_PARAMETERS,
@@ -78,13 +78,15 @@ def error_prior_std(sensor: Grade, base: Grade) -> np.ndarray:
     """The prior std of every global (0 where none: the extrinsics, the clock, the tilt) from
     the two IMUs' grades. The model's sensor errors are relative to the base's: where both
     IMUs' errors enter alike the two priors add (the gyro's axes, its g-sensitivity, the
-    triads' misalignment); the base's own terms (its gyro's scale in the lever arm's terms, its
-    accelerometer's axes) take the base's, and the sensor accelerometer's axes the sensor's."""
+    triads' misalignment); the base's own terms (its gyro's axes in the lever arm's terms, its
+    accelerometer's axes) take the base's, and the sensor accelerometer's axes the sensor's. The
+    base gyro's common scale beyond its axes' (a gyro that reads low) has none: the axes carry
+    the grade's scale."""
     out = np.zeros(N_PARAMETERS)
     out[ACCEL_AXES] = _axes(sensor)
     out[GYRO_AXES] = np.hypot(_axes(sensor), _axes(base))
     out[G_SENSITIVITY] = np.hypot(sensor.g_sensitivity, base.g_sensitivity)
     out[ACCEL_ROTATION] = np.hypot(sensor.misalignment_rad, base.misalignment_rad)
-    out[BASE_GYRO_SCALE] = base.scale
+    out[BASE_GYRO_AXES] = _axes(base)
     out[BASE_ACCEL_AXES] = _axes(base)
     return out

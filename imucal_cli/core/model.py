@@ -6,17 +6,16 @@ both triads resampled onto the base's grid at ``t + tau0`` and low-passed alike:
 
 - gyro (eq. 10)::
 
-      w_I = (I + E_g) R^T (w_B - dtau dw_B) / (1 + s_B) + G f_I + b_g(t)
+      w_I = (I + E_g) R^T N_B^-1 (w_B - dtau dw_B) + G f_I + b_g(t)
 
 - accelerometer (eqs. 11-12)::
 
       f_I = (I + E_a) (I - [phi]x) R^T ((I + D_B)^-1 (f_B - dtau df_B)
             + (A - dtau dA) t + f_B x theta) + b_a(t)
 
-  with ``A = [w_B]x^2 + [dw_B]x`` (centripetal and Euler terms) and ``dA`` its derivative, both
-  from the base gyro's readings corrected for its scale: the symmetric parts (``[w]x^2``,
-  ``[dw]x[w]x + [w]x[dw]x``) divided by ``(1 + s_B)^2``, the skew parts (``[dw]x``,
-  ``[ddw]x``) by ``1 + s_B``.
+  with ``A = [w]x^2 + [dw]x`` (centripetal and Euler terms) and ``dA`` its derivative, both
+  of the base's rates ``w = N_B^-1 w_B``: linear maps of the readings' ``vec A`` and
+  ``vec dA`` (:func:`vec_gain`).
 
 The sensor's own errors: ``E_a``, ``E_g`` each triad's axis errors (symmetric: scale factors
 on the diagonal, non-orthogonality off it, :data:`SYMMETRIC`), ``G`` the gyro's g-sensitivity
@@ -24,8 +23,10 @@ on the diagonal, non-orthogonality off it, :data:`SYMMETRIC`), ``G`` the gyro's 
 triad's misalignment to the gyro triad (``R`` is the gyro triad's), ``theta = (k_roll f_y,
 k_pitch f_x, 0)`` a mount that tilts with the vehicle's specific force (base axes), ``b_g``,
 ``b_a`` the relative biases, piecewise linear in time with a knot every window. The base IMU's
-own errors that the sensor's relative ones cannot absorb: ``s_B`` its gyro's common scale error
-(it scales the centripetal and Euler terms unlike the sensor's specific force) and ``D_B`` its
+own errors that the sensor's relative ones cannot absorb: its gyro's axes ``N_B = (1 + s_B) I
++ E_B``, a common scale error ``s_B`` (a gyro that reads low, beyond any grade) and the axis
+errors ``E_B`` its grade declares (in the gyro's equation the sensor gyro's ``E_g`` takes both;
+in the lever arm's terms they act unlike the sensor's specific force), and ``D_B`` its
 accelerometer's axis errors (they scale ``f_B`` and not the lever arm's term). The estimator
 estimates the errors a drive determines and carries the rest, with each IMU grade's prior
 (:mod:`imucal_cli.core.grades`), into the reported std.
@@ -104,7 +105,8 @@ class Layout:
 #: (IMU axes); ``tilt``: roll per lateral and pitch per longitudinal specific force (rad per
 #: m/s^2); ``accel_axes`` and ``gyro_axes``: each triad's ``E`` by :data:`SYMMETRIC`;
 #: ``g_sensitivity``: ``G`` row-major (the IMU's axes); ``accel_rotation``: ``phi``;
-#: ``base_gyro_scale``: ``s_B``; ``base_accel_axes``: ``D_B`` by :data:`SYMMETRIC`.
+#: ``base_gyro_scale``: ``s_B``; ``base_gyro_axes``: ``E_B`` and ``base_accel_axes``: ``D_B``,
+#: each by :data:`SYMMETRIC`.
 PARAMETERS = Layout(
     ("rotation", 3),
     ("translation", 3),
@@ -115,6 +117,7 @@ PARAMETERS = Layout(
     ("g_sensitivity", 9),
     ("accel_rotation", 3),
     ("base_gyro_scale", 1),
+    ("base_gyro_axes", 6),
     ("base_accel_axes", 6),
 )
 N_PARAMETERS = PARAMETERS.size
@@ -123,6 +126,7 @@ TIME_OFFSET = PARAMETERS.index("time_offset")
 ACCEL_AXES, GYRO_AXES = PARAMETERS["accel_axes"], PARAMETERS["gyro_axes"]
 G_SENSITIVITY = PARAMETERS["g_sensitivity"]
 ACCEL_ROTATION, BASE_GYRO_SCALE = PARAMETERS["accel_rotation"], PARAMETERS["base_gyro_scale"]
+BASE_GYRO_AXES = PARAMETERS["base_gyro_axes"]
 BASE_ACCEL_AXES = PARAMETERS["base_accel_axes"]
 #: Both IMUs' own errors, as :attr:`Point.errors` holds them.
 SENSOR_ERRORS = slice(ACCEL_AXES.start, BASE_ACCEL_AXES.stop)
@@ -132,7 +136,7 @@ START_FREE = PARAMETERS.mask("rotation", "translation", "time_offset")
 EXTRINSICS = slice(ROTATION.start, TIME_OFFSET + 1)
 #: The globals each equation holds, in the order of its derivatives' columns.
 GYRO_GLOBALS = PARAMETERS.indices(
-    "rotation", "time_offset", "gyro_axes", "g_sensitivity", "base_gyro_scale"
+    "rotation", "time_offset", "gyro_axes", "g_sensitivity", "base_gyro_scale", "base_gyro_axes"
 )
 ACCEL_GLOBALS = PARAMETERS.indices(
     "rotation",
@@ -142,6 +146,7 @@ ACCEL_GLOBALS = PARAMETERS.indices(
     "accel_axes",
     "accel_rotation",
     "base_gyro_scale",
+    "base_gyro_axes",
     "base_accel_axes",
 )
 
@@ -261,20 +266,60 @@ def _accel_axes(point: Point) -> tuple[np.ndarray, np.ndarray]:
     return axes, axes @ (np.eye(3) - skew(point.own(ACCEL_ROTATION)))
 
 
-def _gyro_gain(point: Point) -> float:
-    """``1 / (1 + s_B)``: the base gyro's readings to rates."""
-    return 1.0 / (1.0 + float(point.own(BASE_GYRO_SCALE)[0]))
+def _base_gyro_axes(point: Point) -> np.ndarray:
+    """``N_B = (1 + s_B) I + E_B``: the base gyro's rates to its readings."""
+    return triad_axes(point.own(BASE_GYRO_AXES)) + point.own(BASE_GYRO_SCALE)[0] * np.eye(3)
 
 
-def _vec_gain(g: float) -> np.ndarray:
-    """``vec A``'s correction for the base gyro's scale (9x9): symmetric part ``g^2``, skew
-    ``g``."""
-    return g * g * VEC_SYMMETRIC + g * VEC_SKEW_PART
+def _base_gyro_inverse(point: Point) -> np.ndarray:
+    """``N_B^-1``: the base gyro's readings to rates."""
+    return np.linalg.inv(_base_gyro_axes(point))
 
 
-def _vec_gain_derivative(g: float) -> np.ndarray:
-    """``d (vec gain) / d s_B`` with ``g = 1 / (1 + s_B)`` (``dg/ds_B = -g^2``)."""
-    return -2.0 * g**3 * VEC_SYMMETRIC - g * g * VEC_SKEW_PART
+#: The base gyro's own errors (``s_B``, then ``E_B``'s six) and the steps of ``N_B`` each makes.
+BASE_GYRO = PARAMETERS.indices("base_gyro_scale", "base_gyro_axes")
+_BASE_GYRO_STEPS = np.concatenate([np.eye(3)[None], SYMMETRIC])
+
+
+#: The column-major vecs of the nine unit 3x3 matrices, (9, 3, 3): ``_UNITS[k]`` is 1 at
+#: ``vec`` entry ``k``.
+_UNITS = np.eye(9).reshape(9, 3, 3).transpose(0, 2, 1)
+
+
+def _gain_of(N: np.ndarray, along: np.ndarray | None = None) -> np.ndarray:
+    """The map (9x9 on column-major vecs) from ``X = [w]x^2 + [dw]x`` of the readings to the same
+    of the rates ``M w``, ``M = N^-1`` (``N`` symmetric), or its derivative along ``N``'s step
+    ``along``.
+
+    Symmetric part ``S = [w]x^2 = w w^T - |w|^2 I``: ``w w^T = S - tr(S) / 2 I``, so the rates'
+    is ``Q - tr(Q) I`` with ``Q = M (S - tr(S) / 2 I) M``. Skew part ``K = [dw]x``: ``[M dw]x =
+    det(M) M^-T K M^-1 = N K N / det(N)``. Both linear in ``X``, and alike for ``dA`` (its
+    symmetric part is the derivative of ``[w]x^2``, its skew part ``[ddw]x``)."""
+    M = np.linalg.inv(N)
+    S = (_UNITS + _UNITS.transpose(0, 2, 1)) / 2
+    K = _UNITS - S
+    P = S - np.trace(S, axis1=1, axis2=2)[:, None, None] / 2 * np.eye(3)
+    det = np.linalg.det(N)
+    if along is None:
+        Q = M @ P @ M
+        skew_part = N @ K @ N / det
+    else:
+        step = -M @ along @ M  # d M
+        Q = step @ P @ M + M @ P @ step
+        skew_part = (along @ K @ N + N @ K @ along) / det - N @ K @ N / det * np.trace(M @ along)
+    out = Q - np.trace(Q, axis1=1, axis2=2)[:, None, None] * np.eye(3) + skew_part
+    return out.transpose(0, 2, 1).reshape(9, 9).T  # column k: the image of unit k
+
+
+def vec_gain(point: Point) -> np.ndarray:
+    """``vec A`` of the rates from ``vec A`` of the readings (9x9, :func:`_gain_of`)."""
+    return _gain_of(_base_gyro_axes(point))
+
+
+def _vec_gain_derivatives(point: Point) -> np.ndarray:
+    """``d vec_gain`` along ``s_B`` and each of ``E_B``'s six errors, (7, 9, 9)."""
+    N = _base_gyro_axes(point)
+    return np.stack([_gain_of(N, step) for step in _BASE_GYRO_STEPS])
 
 
 def _base_accel_inverse(point: Point) -> np.ndarray:
@@ -309,7 +354,7 @@ def gyro_coefficients(point: Point, bj: np.ndarray, bk: np.ndarray) -> np.ndarra
     """``C`` of ``r_g = C x_g`` per window, (K, 3, 14), the gyro biases at the window's knots
     (a window's clock beyond the point's is in its moments: :func:`~.moments.shifted`)."""
     D = GYRO_DATA
-    Rt = triad_axes(point.own(GYRO_AXES)) @ point.R.inv().as_matrix() * _gyro_gain(point)
+    Rt = triad_axes(point.own(GYRO_AXES)) @ point.R.inv().as_matrix() @ _base_gyro_inverse(point)
     C = np.zeros((len(bj), 3, D.size))
     C[:, :, D["w_I"]] = np.eye(3)
     C[:, :, D["f_I"]] = -point.own(G_SENSITIVITY).reshape(3, 3)
@@ -324,7 +369,7 @@ def accel_coefficients(point: Point, aj: np.ndarray, ak: np.ndarray) -> np.ndarr
     knots."""
     D = ACCEL_DATA
     Rt = _accel_axes(point)[1] @ point.R.inv().as_matrix()
-    T = kron_t(point.t) @ _vec_gain(_gyro_gain(point))
+    T = kron_t(point.t) @ vec_gain(point)
     F = Rt @ _base_accel_inverse(point)
     C = np.zeros((len(aj), 3, D.size))
     C[:, :, D["f_I"]] = np.eye(3)
@@ -365,7 +410,7 @@ def _axis_derivatives(
 
 
 def gyro_derivatives(point: Point) -> np.ndarray:
-    """``dC_g / dp`` for the globals in :data:`GYRO_GLOBALS`: (19, 3, 14), the same for every
+    """``dC_g / dp`` for the globals in :data:`GYRO_GLOBALS`: (26, 3, 14), the same for every
     window (the biases enter only the ``1`` and ``u`` columns, which no global moves; their
     own derivatives are constant, the solver's)."""
     D, P = GYRO_DATA, list(GYRO_GLOBALS)
@@ -376,10 +421,13 @@ def gyro_derivatives(point: Point) -> np.ndarray:
     rotating = _rotating(C, D, ("w_I", "f_I", "one", "u"))
     axis_columns = [P.index(p) for p in (*range(3), *range(GYRO_AXES.start, GYRO_AXES.stop))]
     _axis_derivatives(out, axis_columns, rotating, axes)
-    out[P.index(TIME_OFFSET), :, D["dw_B"]] = Rt * _gyro_gain(point)
-    # 1 / (1 + s_B) on the base's columns: its derivative is -1 / (1 + s_B) of them
-    base = np.r_[D["w_B"], D["dw_B"]]
-    out[P.index(BASE_GYRO_SCALE.start)][:, base] = -_gyro_gain(point) * C[:, base]
+    inverse_B = _base_gyro_inverse(point)
+    out[P.index(TIME_OFFSET), :, D["dw_B"]] = Rt @ inverse_B
+    # N_B^-1 right of the base's columns: d N_B^-1 = -N_B^-1 dN_B N_B^-1
+    for parameter, step in zip(BASE_GYRO, _BASE_GYRO_STEPS, strict=True):
+        column = P.index(parameter)
+        for name in ("w_B", "dw_B"):
+            out[column, :, D[name]] = -C[:, D[name]] @ step @ inverse_B
     f_I = D["f_I"].start
     for i in range(3):
         for j in range(3):  # G_ij: row i of f_I's block takes -1 in column j
@@ -388,12 +436,12 @@ def gyro_derivatives(point: Point) -> np.ndarray:
 
 
 def accel_derivatives(point: Point) -> np.ndarray:
-    """``dC_a / dp`` for the globals in :data:`ACCEL_GLOBALS`: (15, 3, 33), the same for every
+    """``dC_a / dp`` for the globals in :data:`ACCEL_GLOBALS`: (31, 3, 33), the same for every
     window (as :func:`gyro_derivatives`)."""
     D, P = ACCEL_DATA, list(ACCEL_GLOBALS)
     axes, left = _accel_axes(point)
     Rt = left @ point.R.inv().as_matrix()
-    g, inverse_B = _gyro_gain(point), _base_accel_inverse(point)
+    gain, inverse_B = vec_gain(point), _base_accel_inverse(point)
     C = accel_coefficients(point, np.zeros((1, 3)), np.zeros((1, 3)))[0]
     out = np.zeros((len(P), 3, D.size))
     rotating = _rotating(C, D, ("f_I", "one", "u"))
@@ -404,17 +452,18 @@ def accel_derivatives(point: Point) -> np.ndarray:
         out[P.index(ACCEL_ROTATION.start + m)] = (
             -(axes @ skew(np.eye(3)[m]) @ to_rotating) @ rotating
         )
-        E = kron_t(np.eye(3)[m]) @ _vec_gain(g)
+        E = kron_t(np.eye(3)[m]) @ gain
         out[P.index(TRANSLATION.start + m), :, D["vec_A"]] = -Rt @ E
         out[P.index(TRANSLATION.start + m), :, D["vec_dA"]] = point.dtau * Rt @ E
     tau = P.index(TIME_OFFSET)
     out[tau, :, D["df_B"]] = Rt @ inverse_B
-    out[tau, :, D["vec_dA"]] = Rt @ kron_t(point.t) @ _vec_gain(g)
+    out[tau, :, D["vec_dA"]] = Rt @ kron_t(point.t) @ gain
     for k, unit in enumerate(np.eye(2)):
         out[P.index(TILT.start + k), :, D["tilt_terms"]] = tilt_columns(Rt, unit)
-    gain_step = Rt @ kron_t(point.t) @ _vec_gain_derivative(g)
-    scale = P.index(BASE_GYRO_SCALE.start)
-    out[scale, :, D["vec_A"]], out[scale, :, D["vec_dA"]] = -gain_step, point.dtau * gain_step
+    steps = Rt @ kron_t(point.t) @ _vec_gain_derivatives(point)
+    for parameter, gain_step in zip(BASE_GYRO, steps, strict=True):
+        column = P.index(parameter)
+        out[column, :, D["vec_A"]], out[column, :, D["vec_dA"]] = -gain_step, point.dtau * gain_step
     for b in range(6):  # d (I + D_B)^-1 = -(I + D_B)^-1 S_b (I + D_B)^-1
         step_B = Rt @ inverse_B @ SYMMETRIC[b] @ inverse_B
         column = P.index(BASE_ACCEL_AXES.start + b)

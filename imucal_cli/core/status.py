@@ -63,14 +63,18 @@ def own_error_sentences(found: dict[str, dict[str, Any]]) -> list[str]:
         elif name == "base gyro scale":
             what = "the base gyro's scale error"
             detail = f"{100 * value[0]:+.2f}% (it scales the lever arm's terms)"
-        else:
+        else:  # the components the drive determined ("-": held)
             what = f"{name} axis errors"
-            detail = (
-                "scale "
-                + ", ".join(f"{100 * v:+.2f}%" for v in value[SCALE])
-                + "; non-orthogonality "
-                + ", ".join(f"{v:+.3f}" for v in np.degrees(value[SKEW]))
-                + " deg"
+            shown = ~np.isnan(group["std"])
+            scale = [f"{100 * v:+.2f}%" if s else "-" for v, s in zip(value, shown, strict=True)]
+            angle = [
+                f"{v:+.3f}" if s else "-" for v, s in zip(np.degrees(value), shown, strict=True)
+            ]
+            parts = [("scale ", scale[SCALE], ""), ("non-orthogonality ", angle[SKEW], " deg")]
+            detail = "; ".join(
+                f"{label}{', '.join(values)}{unit}"
+                for label, values, unit in parts
+                if values != ["-"] * 3
             )
         out.append(
             f"{what} estimated with the extrinsics: {detail} "

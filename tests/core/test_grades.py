@@ -12,6 +12,7 @@ from imucal_cli.core.model import (
     ACCEL_AXES,
     ACCEL_ROTATION,
     BASE_ACCEL_AXES,
+    BASE_GYRO_AXES,
     BASE_GYRO_SCALE,
     EXTRINSICS,
     GYRO_AXES,
@@ -47,7 +48,7 @@ def test_a_held_error_moves_the_estimate_as_the_carried_covariance_says():
     free[EXTRINSICS] = True
     prior = np.zeros(N_PARAMETERS)
     prior[ACCEL_AXES] = 0.01
-    prior[BASE_GYRO_SCALE] = 0.002
+    prior[BASE_GYRO_AXES] = 0.002
     R = Rotation.from_rotvec(rng.normal(size=3))
     fit = Fit(Point(R, np.zeros(3), 0.0), np.zeros((2, 6)), free, 1.0, 1.0)
     held = prior > 0
@@ -69,7 +70,9 @@ def test_the_priors_follow_the_grades_and_ideal_carries_nothing():
     # the gyro's axes are relative: both grades add; the base's own terms take the base's
     assert prior[GYRO_AXES][0] == np.hypot(consumer.scale, tactical.scale)
     assert prior[ACCEL_AXES][0] == consumer.scale
-    assert prior[BASE_GYRO_SCALE][0] == tactical.scale
+    assert prior[BASE_GYRO_AXES][0] == tactical.scale
+    assert prior[BASE_GYRO_SCALE][0] == 0.0  # (the axes carry the grade's scale)
+    assert prior[BASE_GYRO_AXES][3] == tactical.nonorthogonality_rad
     assert prior[BASE_ACCEL_AXES][0] == tactical.scale
     assert prior[ACCEL_ROTATION][0] == np.hypot(
         consumer.misalignment_rad, tactical.misalignment_rad

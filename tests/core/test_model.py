@@ -189,11 +189,16 @@ def test_the_residual_of_noise_free_signals_at_the_truth_is_zero():
     )
     k_roll, k_pitch = point.tilt
     theta = np.column_stack([k_roll * f_B[:, 1], k_pitch * f_B[:, 0], np.zeros(n)])
-    # the base's readings corrected for its own errors: the gyro's scale (A's symmetric parts
-    # go with the rate squared, its skew parts with the rate), the accelerometer's axes
-    g = 1.0 / (1.0 + point.own(model.BASE_GYRO_SCALE)[0])
-    symmetric = lambda M: (M + M.transpose(0, 2, 1)) / 2  # noqa: E731
-    a_true, da_true = (g * g * symmetric(M) + g * (M - symmetric(M)) for M in (A, dA))
+    # the base's readings corrected for its own errors: the rates are N_B^-1 of the gyro's
+    # readings (the lever arm's terms formed of them), the specific force (I + D_B)^-1 of the
+    # accelerometer's
+    scale = point.own(model.BASE_GYRO_SCALE)[0]
+    to_rate = np.linalg.inv(model.triad_axes(point.own(model.BASE_GYRO_AXES)) + scale * np.eye(3))
+    w, d, dd = (v @ to_rate.T for v in (w_B, dw_B, ddw_B))
+    a_true = np.array([skew(a) @ skew(a) + skew(b) for a, b in zip(w, d, strict=True)])
+    da_true = np.array(
+        [skew(b) @ skew(a) + skew(a) @ skew(b) + skew(c) for a, b, c in zip(w, d, dd, strict=True)]
+    )
     to_force = np.linalg.inv(model.triad_axes(point.own(model.BASE_ACCEL_AXES)))
     specific = (
         (f_B - point.dtau * df_B) @ to_force.T
@@ -202,7 +207,7 @@ def test_the_residual_of_noise_free_signals_at_the_truth_is_zero():
     )
     accel_rotation = np.eye(3) - skew(point.own(model.ACCEL_ROTATION))
     f_I = specific @ (axes_a @ accel_rotation @ Rt).T + b_a
-    w_I = g * (w_B - point.dtau * dw_B) @ (axes_g @ Rt).T + f_I @ G.T + b_g
+    w_I = (w_B - point.dtau * dw_B) @ (axes_g @ Rt @ to_rate).T + f_I @ G.T + b_g
     vec = lambda M: M.transpose(0, 2, 1).reshape(n, 9)  # noqa: E731 (column-major vec)
     q = np.column_stack(
         [f_B[:, 1] * f_B[:, 2], f_B[:, 1] ** 2, f_B[:, 0] * f_B[:, 2], f_B[:, 0] ** 2]
