@@ -273,8 +273,13 @@ def make_problem(
     lowpass: Lowpass,
     dw_noise_var: float,
 ) -> Problem:
+    declared = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
     settings = Settings(
-        prior.translation, options.translation_bound_m, bias_model(options), options.max_iterations
+        prior.translation,
+        options.translation_bound_m,
+        bias_model(options),
+        options.max_iterations,
+        () if declared[BASE_GYRO_AXES].any() else ("base_gyro_axes",),  # (_own_errors)
     )
     return Problem(windows, settings, sigma, lowpass, dw_noise_var)
 

@@ -282,44 +282,58 @@ _BASE_GYRO_STEPS = np.concatenate([np.eye(3)[None], SYMMETRIC])
 
 
 #: The column-major vecs of the nine unit 3x3 matrices, (9, 3, 3): ``_UNITS[k]`` is 1 at
-#: ``vec`` entry ``k``.
+#: ``vec`` entry ``k``; their symmetric and skew parts, and ``w w^T`` of each symmetric part
+#: read as ``[w]x^2`` (:func:`_gain_of`).
 _UNITS = np.eye(9).reshape(9, 3, 3).transpose(0, 2, 1)
+_SYMMETRIC_UNITS = (_UNITS + _UNITS.transpose(0, 2, 1)) / 2
+_SKEW_UNITS = _UNITS - _SYMMETRIC_UNITS
+_OUTER_UNITS = _SYMMETRIC_UNITS - np.trace(_SYMMETRIC_UNITS, axis1=1, axis2=2)[
+    :, None, None
+] / 2 * np.eye(3)
 
 
 def _gain_of(N: np.ndarray, along: np.ndarray | None = None) -> np.ndarray:
     """The map (9x9 on column-major vecs) from ``X = [w]x^2 + [dw]x`` of the readings to the same
-    of the rates ``M w``, ``M = N^-1`` (``N`` symmetric), or its derivative along ``N``'s step
-    ``along``.
+    of the rates ``M w``, ``M = N^-1`` (``N`` symmetric), or its derivatives along ``N``'s steps
+    ``along`` (n, 3, 3): (n, 9, 9).
 
     Symmetric part ``S = [w]x^2 = w w^T - |w|^2 I``: ``w w^T = S - tr(S) / 2 I``, so the rates'
     is ``Q - tr(Q) I`` with ``Q = M (S - tr(S) / 2 I) M``. Skew part ``K = [dw]x``: ``[M dw]x =
     det(M) M^-T K M^-1 = N K N / det(N)``. Both linear in ``X``, and alike for ``dA`` (its
     symmetric part is the derivative of ``[w]x^2``, its skew part ``[ddw]x``)."""
-    M = np.linalg.inv(N)
-    S = (_UNITS + _UNITS.transpose(0, 2, 1)) / 2
-    K = _UNITS - S
-    P = S - np.trace(S, axis1=1, axis2=2)[:, None, None] / 2 * np.eye(3)
-    det = np.linalg.det(N)
+    M, det = np.linalg.inv(N), np.linalg.det(N)
+    P, K = _OUTER_UNITS, _SKEW_UNITS
     if along is None:
         Q = M @ P @ M
         skew_part = N @ K @ N / det
     else:
-        step = -M @ along @ M  # d M
-        Q = step @ P @ M + M @ P @ step
-        skew_part = (along @ K @ N + N @ K @ along) / det - N @ K @ N / det * np.trace(M @ along)
-    out = Q - np.trace(Q, axis1=1, axis2=2)[:, None, None] * np.eye(3) + skew_part
-    return out.transpose(0, 2, 1).reshape(9, 9).T  # column k: the image of unit k
+        steps = (-M @ along @ M)[:, None]  # d M, (n, 1, 3, 3) against the units' (9, 3, 3)
+        Q = steps @ P @ M + M @ P @ steps
+        turned = N @ K @ N / det
+        along = along[:, None]
+        skew_part = (along @ K @ N + N @ K @ along) / det
+        skew_part -= turned * np.trace(M @ along, axis1=-2, axis2=-1)[..., None, None]
+    out = Q - np.trace(Q, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) + skew_part
+    # column k: the image of unit k, as its column-major vec
+    return np.swapaxes(np.swapaxes(out, -1, -2).reshape(*out.shape[:-3], 9, 9), -1, -2)
+
+
+#: :func:`_gain_of` where the base gyro reads its rates exactly (its errors held at zero: every
+#: fit but those that estimate them), and its derivatives there along :data:`_BASE_GYRO_STEPS`.
+_GAIN_AT_IDENTITY = np.eye(9)
+_GAIN_STEPS_AT_IDENTITY = _gain_of(np.eye(3), _BASE_GYRO_STEPS)
+
+
+def _gains(N: np.ndarray, present: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_gain_of` at ``N`` and along the steps ``present`` (of :data:`_BASE_GYRO_STEPS`)."""
+    if np.array_equal(N, np.eye(3)):
+        return _GAIN_AT_IDENTITY, _GAIN_STEPS_AT_IDENTITY[present]
+    return _gain_of(N), _gain_of(N, _BASE_GYRO_STEPS[present])
 
 
 def vec_gain(point: Point) -> np.ndarray:
     """``vec A`` of the rates from ``vec A`` of the readings (9x9, :func:`_gain_of`)."""
-    return _gain_of(_base_gyro_axes(point))
-
-
-def _vec_gain_derivatives(point: Point) -> np.ndarray:
-    """``d vec_gain`` along ``s_B`` and each of ``E_B``'s six errors, (7, 9, 9)."""
-    N = _base_gyro_axes(point)
-    return np.stack([_gain_of(N, step) for step in _BASE_GYRO_STEPS])
+    return _gains(_base_gyro_axes(point), [])[0]
 
 
 def _base_accel_inverse(point: Point) -> np.ndarray:
@@ -409,11 +423,19 @@ def _axis_derivatives(
         D[columns[3 + b]] = (SYMMETRIC[b] @ inverse) @ rotating
 
 
-def gyro_derivatives(point: Point) -> np.ndarray:
-    """``dC_g / dp`` for the globals in :data:`GYRO_GLOBALS`: (26, 3, 14), the same for every
+def _base_gyro_steps(P: list[int]) -> tuple[list[int], list[int]]:
+    """Where the base gyro's own errors among the globals ``P`` stand in ``P``, and which of
+    :data:`_BASE_GYRO_STEPS` they are."""
+    present = [k for k, p in enumerate(BASE_GYRO) if p in P]
+    return [P.index(BASE_GYRO[k]) for k in present], present
+
+
+def gyro_derivatives(point: Point, globals_: np.ndarray = GYRO_GLOBALS) -> np.ndarray:
+    """``dC_g / dp`` for the globals ``globals_`` (:data:`GYRO_GLOBALS`, or those of them a
+    problem frees, the base gyro's axes left out): (26, 3, 14) for all, the same for every
     window (the biases enter only the ``1`` and ``u`` columns, which no global moves; their
     own derivatives are constant, the solver's)."""
-    D, P = GYRO_DATA, list(GYRO_GLOBALS)
+    D, P = GYRO_DATA, list(globals_)
     axes = triad_axes(point.own(GYRO_AXES))
     Rt = axes @ point.R.inv().as_matrix()
     C = gyro_coefficients(point, np.zeros((1, 3)), np.zeros((1, 3)))[0]
@@ -424,8 +446,8 @@ def gyro_derivatives(point: Point) -> np.ndarray:
     inverse_B = _base_gyro_inverse(point)
     out[P.index(TIME_OFFSET), :, D["dw_B"]] = Rt @ inverse_B
     # N_B^-1 right of the base's columns: d N_B^-1 = -N_B^-1 dN_B N_B^-1
-    for parameter, step in zip(BASE_GYRO, _BASE_GYRO_STEPS, strict=True):
-        column = P.index(parameter)
+    columns, present = _base_gyro_steps(P)
+    for column, step in zip(columns, _BASE_GYRO_STEPS[present], strict=True):
         for name in ("w_B", "dw_B"):
             out[column, :, D[name]] = -C[:, D[name]] @ step @ inverse_B
     f_I = D["f_I"].start
@@ -435,13 +457,17 @@ def gyro_derivatives(point: Point) -> np.ndarray:
     return out
 
 
-def accel_derivatives(point: Point) -> np.ndarray:
-    """``dC_a / dp`` for the globals in :data:`ACCEL_GLOBALS`: (31, 3, 33), the same for every
-    window (as :func:`gyro_derivatives`)."""
-    D, P = ACCEL_DATA, list(ACCEL_GLOBALS)
+def accel_derivatives(point: Point, globals_: np.ndarray = ACCEL_GLOBALS) -> np.ndarray:
+    """``dC_a / dp`` for the globals ``globals_`` (:data:`ACCEL_GLOBALS`: (31, 3, 33)), the same
+    for every window (as :func:`gyro_derivatives`)."""
+    D, P = ACCEL_DATA, list(globals_)
     axes, left = _accel_axes(point)
     Rt = left @ point.R.inv().as_matrix()
-    gain, inverse_B = vec_gain(point), _base_accel_inverse(point)
+    columns, present = _base_gyro_steps(P)
+    (gain, gain_steps), inverse_B = (
+        _gains(_base_gyro_axes(point), present),
+        _base_accel_inverse(point),
+    )
     C = accel_coefficients(point, np.zeros((1, 3)), np.zeros((1, 3)))[0]
     out = np.zeros((len(P), 3, D.size))
     rotating = _rotating(C, D, ("f_I", "one", "u"))
@@ -460,9 +486,7 @@ def accel_derivatives(point: Point) -> np.ndarray:
     out[tau, :, D["vec_dA"]] = Rt @ kron_t(point.t) @ gain
     for k, unit in enumerate(np.eye(2)):
         out[P.index(TILT.start + k), :, D["tilt_terms"]] = tilt_columns(Rt, unit)
-    steps = Rt @ kron_t(point.t) @ _vec_gain_derivatives(point)
-    for parameter, gain_step in zip(BASE_GYRO, steps, strict=True):
-        column = P.index(parameter)
+    for column, gain_step in zip(columns, Rt @ kron_t(point.t) @ gain_steps, strict=True):
         out[column, :, D["vec_A"]], out[column, :, D["vec_dA"]] = -gain_step, point.dtau * gain_step
     for b in range(6):  # d (I + D_B)^-1 = -(I + D_B)^-1 S_b (I + D_B)^-1
         step_B = Rt @ inverse_B @ SYMMETRIC[b] @ inverse_B

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imucal_cli.core.model import ACCEL_GLOBALS, GYRO_GLOBALS, ROTATION, TIME_OFFSET, TRANSLATION
+from imucal_cli.core.model import ROTATION, TIME_OFFSET, TRANSLATION
 from imucal_cli.core.solver import Fit, Problem
 
 #: Fewest windows on either side of a move (each side's pose is fitted from them).
@@ -59,8 +59,8 @@ def window_terms(problem: Problem, fit: Fit) -> tuple[np.ndarray, np.ndarray]:
         np.arange(TRANSLATION.start, TRANSLATION.stop),
         [TIME_OFFSET],
     ]
-    parts = [(lin.gyro, GYRO_GLOBALS, weight_g, [problem.S_g])]
-    parts.append((lin.accel, ACCEL_GLOBALS, weight_a, problem.accel_moments()))
+    parts = [(lin.gyro, problem.globals_g, weight_g, [problem.S_g])]
+    parts.append((lin.accel, problem.globals_a, weight_a, problem.accel_moments()))
     for equations, globals_, weight, chunks in parts:
         rows = [i for i, p in enumerate(globals_) if p in wanted]
         where = [int(np.flatnonzero(wanted == globals_[i])[0]) for i in rows]

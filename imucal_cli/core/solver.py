@@ -22,6 +22,7 @@ from imucal_cli.core.model import (
     GYRO_GLOBALS,
     KNOT,
     N_PARAMETERS,
+    PARAMETERS,
     ROTATION,
     START_FREE,
     TRANSLATION,
@@ -280,6 +281,9 @@ class Settings:
     translation_bound_m: float
     biases: BiasModel
     max_iterations: int
+    #: Blocks of :data:`PARAMETERS` no fit of the problem frees (the base gyro's axes of a base
+    #: that declares none): left out of its linearisations, not worked out for every window.
+    never_free: tuple[str, ...] = ()
 
 
 #: Diagonal loads tried, in turn, on information whose Cholesky fails, each relative to its
@@ -365,6 +369,10 @@ class Problem:
         self._floors_and_signal()
         gaps = np.diff(self.knot_numbers) * settings.biases.spacing_s
         self.prior_band = bias_prior(gaps, settings.biases)
+        #: The globals each equation holds here (:data:`GYRO_GLOBALS`, :data:`ACCEL_GLOBALS`
+        #: less what is never free).
+        kept = ~PARAMETERS.mask(*settings.never_free)
+        self.globals_g, self.globals_a = (p[kept[p]] for p in (GYRO_GLOBALS, ACCEL_GLOBALS))
         self._layout_biases()
         self._last: tuple[bytes, Linearisation] | None = None
 
@@ -413,8 +421,8 @@ class Problem:
             return ((BAND + i - j) * n_bias + j).ravel()
 
         self.band_g, self.band_a = band_at(self.biases_g), band_at(self.biases_a)
-        self.cross_g = (GYRO_GLOBALS[None, :, None] * n_bias + self.biases_g[:, None, :]).ravel()
-        self.cross_a = (ACCEL_GLOBALS[None, :, None] * n_bias + self.biases_a[:, None, :]).ravel()
+        self.cross_g = (self.globals_g[None, :, None] * n_bias + self.biases_g[:, None, :]).ravel()
+        self.cross_a = (self.globals_a[None, :, None] * n_bias + self.biases_a[:, None, :]).ravel()
 
     def _S_a(self, a: int) -> np.ndarray:
         """The accelerometer's moments of a chunk of windows, less what the angular
@@ -450,7 +458,7 @@ class Problem:
         gyro, accel = KNOT["gyro_bias"], KNOT["accel_bias"]
         Cg = gyro_coefficients(point, bj[:, gyro], bk[:, gyro])
         Ca = accel_coefficients(point, bj[:, accel], bk[:, accel])
-        Dg, Da = gyro_derivatives(point), accel_derivatives(point)
+        Dg, Da = gyro_derivatives(point, self.globals_g), accel_derivatives(point, self.globals_a)
         parts_a = [
             window_equations(Da, S_a, Ca[a : a + SOLVE_CHUNK])
             for a, S_a in zip(self.starts, self.accel_moments(), strict=True)
@@ -604,12 +612,13 @@ class Problem:
         """The normal equations with each window weighted (``wg``, ``wa``): the globals' block,
         their coupling to the biases, the biases' banded block (with the prior), and the
         gradient's two parts."""
-        n_bias, P_g, P_a = self.n_bias, len(GYRO_GLOBALS), len(ACCEL_GLOBALS)
+        n_bias, gyro_globals, accel_globals = self.n_bias, self.globals_g, self.globals_a
+        P_g, P_a = len(gyro_globals), len(accel_globals)
         g, a = lin.gyro, lin.accel
         S_g, S_a = self.weighted_moments(wg, wa)
         H_gg = np.zeros((N_PARAMETERS, N_PARAMETERS))
-        H_gg[np.ix_(GYRO_GLOBALS, GYRO_GLOBALS)] += globals_block(g.D, S_g)
-        H_gg[np.ix_(ACCEL_GLOBALS, ACCEL_GLOBALS)] += globals_block(a.D, S_a)
+        H_gg[np.ix_(gyro_globals, gyro_globals)] += globals_block(g.D, S_g)
+        H_gg[np.ix_(accel_globals, accel_globals)] += globals_block(a.D, S_a)
         H_gb = (
             np.bincount(
                 self.cross_g, (wg[:, None, None] * g.coupling).ravel(), N_PARAMETERS * n_bias
@@ -626,8 +635,8 @@ class Problem:
         H_bb += self.prior_band
         gg, ga = wg[:, None] * g.gradient, wa[:, None] * a.gradient
         grad_g = np.zeros(N_PARAMETERS)
-        grad_g[ACCEL_GLOBALS] -= ga[:, :P_a].sum(axis=0)
-        grad_g[GYRO_GLOBALS] -= gg[:, :P_g].sum(axis=0)
+        grad_g[accel_globals] -= ga[:, :P_a].sum(axis=0)
+        grad_g[gyro_globals] -= gg[:, :P_g].sum(axis=0)
         grad_b = -(
             np.bincount(self.biases_g.ravel(), gg[:, P_g:].ravel(), n_bias)
             + np.bincount(self.biases_a.ravel(), ga[:, P_a:].ravel(), n_bias)
