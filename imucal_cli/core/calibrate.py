@@ -380,7 +380,7 @@ def solve(
     alpha = options.consistency_alpha
     prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
     scale = checks.base_scale(own[checks.BASE_SCALE[0]], fit)
-    rigid, tilted = checks.rigid_mount(problem, fit, alpha)
+    rigid, tilted = checks.rigid_mount(problem, fit, alpha, bool(prior_std[BASE_GYRO_AXES].any()))
     if not rigid.passed and _keeps_lever_arm(fit, tilted, options):
         fit = tilted  # (else the tilt and the lever arm share what the drive shows: kept out)
     fit, clock_placed, clock_notes = _clock(problem, fit, options, clock)

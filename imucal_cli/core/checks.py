@@ -265,15 +265,27 @@ def sensor_errors(
     return problem.fit(_without_errors(joint, kept[SENSOR_ERRORS]), kept), found
 
 
-def rigid_mount(problem: Problem, fit: Fit, alpha: float) -> tuple[Check, Fit]:
+def rigid_mount(
+    problem: Problem, fit: Fit, alpha: float, base_axes: bool = False
+) -> tuple[Check, Fit]:
     """The mount's tilt with the vehicle's specific force, with the sensor's errors found in
-    the model (an accelerometer's scale factors look like a tilt where they are not). Returns
-    the check and the fit with the tilt estimated (the estimate where the check fails: the
-    tilting mount's, at rest)."""
+    the model (an accelerometer's scale factors look like a tilt where they are not). Where
+    ``base_axes`` (the base declares axis errors) and the fit holds them, the tilt is tested
+    with them free as well: a base gyro's yaw scale the own errors' test did not take in
+    scales the centripetal term as a tilt with the lateral force would. Returns the check and
+    the fit with the tilt estimated (the estimate where the check fails: the tilting mount's,
+    at rest)."""
     with_tilt = fit.free.copy()
     with_tilt[TILT] = True
-    tilted = problem.fit(fit, with_tilt)
-    k, cov_k = tilted.point.tilt, tilted.covariance[TILT, TILT]
+    tilted = tested = problem.fit(fit, with_tilt)
+    if base_axes and not fit.free[BASE_GYRO_AXES].any():
+        with_tilt[BASE_GYRO_AXES] = True  # (a loose prior keeps what the drive leaves defined)
+        prior = np.where(with_tilt & ~fit.free & ~PARAMETERS.mask("tilt"), PROBE_PRIOR_STD, 0.0)
+        try:
+            tested = problem.fit(fit, with_tilt, prior_std=prior)
+        except np.linalg.LinAlgError:  # a drive too poor for them: the tilt tested alone
+            pass
+    k, cov_k = tested.point.tilt, tested.covariance[TILT, TILT]
     chi2 = _chi2(k, cov_k)
     figures = {
         "tilt_deg_per_mps2": np.degrees(k).tolist(),

@@ -48,28 +48,26 @@ def unobservable_reason(windows: Sequence[WindowInfo]) -> str:
 
 
 def own_error_sentences(found: dict[str, dict[str, Any]]) -> list[str]:
-    """The sensor's own errors the model took in."""
+    """The sensor's own errors the model took in: of each group, the components the drive
+    determined (``-``: held)."""
     out = []
     for name, group in found.items():
         if not group["estimated"]:
             continue
-        value = group["value"]
+        value, shown = group["value"], ~np.isnan(group["std"])
+        angle = [f"{v:+.3f}" if s else "-" for v, s in zip(np.degrees(value), shown, strict=True)]
         if name == "g-sensitivity":
             what = "gyro g-sensitivity"
             detail = f"largest {np.degrees(np.max(np.abs(value))) * GRAVITY_MPS2:.3f} deg/s per g"
         elif name == "misalignment":
             what = "the accelerometer triad's misalignment to the gyro's"
-            detail = ", ".join(f"{v:+.3f}" for v in np.degrees(value)) + " deg"
+            detail = ", ".join(angle) + " deg"
         elif name == "base gyro scale":
             what = "the base gyro's scale error"
             detail = f"{100 * value[0]:+.2f}% (it scales the lever arm's terms)"
-        else:  # the components the drive determined ("-": held)
+        else:
             what = f"{name} axis errors"
-            shown = ~np.isnan(group["std"])
             scale = [f"{100 * v:+.2f}%" if s else "-" for v, s in zip(value, shown, strict=True)]
-            angle = [
-                f"{v:+.3f}" if s else "-" for v, s in zip(np.degrees(value), shown, strict=True)
-            ]
             parts = [("scale ", scale[SCALE], ""), ("non-orthogonality ", angle[SKEW], " deg")]
             detail = "; ".join(
                 f"{label}{', '.join(values)}{unit}"
