@@ -81,6 +81,8 @@ ROTATION_PRIOR[ROTATION] = 1.0
 #: The prior std on each own error while the drive is asked which it determines: a hundred
 #: times the std they are estimated to, it moves a determined one by a ten-thousandth.
 PROBE_PRIOR_STD = 1.0
+#: The probe's prior on the base gyro's axis errors alone.
+BASE_AXES_PROBE = np.where(PARAMETERS.mask("base_gyro_axes"), PROBE_PRIOR_STD, 0.0)
 BASE_SCALE_FREE = np.zeros(N_PARAMETERS, dtype=bool)
 BASE_SCALE_FREE[BASE_GYRO_SCALE] = True
 
@@ -163,7 +165,7 @@ def base_gyro_axes(problem: Problem, fit: Fit, alpha: float) -> tuple[Fit, dict[
     free = fit.free.copy()
     free[which] = True
     try:  # (a loose prior keeps what the drive does not determine defined: sensor_errors')
-        probe = problem.fit(fit, free, prior_std=np.where(free & ~fit.free, PROBE_PRIOR_STD, 0))
+        probe = problem.fit(fit, free, prior_std=BASE_AXES_PROBE)
     except np.linalg.LinAlgError:
         return fit, found
     free[which] = shown = probe.std()[which] <= max_std
@@ -280,9 +282,8 @@ def rigid_mount(
     tilted = tested = problem.fit(fit, with_tilt)
     if base_axes and not fit.free[BASE_GYRO_AXES].any():
         with_tilt[BASE_GYRO_AXES] = True  # (a loose prior keeps what the drive leaves defined)
-        prior = np.where(with_tilt & ~fit.free & ~PARAMETERS.mask("tilt"), PROBE_PRIOR_STD, 0.0)
         try:
-            tested = problem.fit(fit, with_tilt, prior_std=prior)
+            tested = problem.fit(fit, with_tilt, prior_std=BASE_AXES_PROBE)
         except np.linalg.LinAlgError:  # a drive too poor for them: the tilt tested alone
             pass
     k, cov_k = tested.point.tilt, tested.covariance[TILT, TILT]

@@ -214,12 +214,6 @@ for _column, _row, _component, _sign in (
     (2, 1, 0, -1),
 ):
     VEC_SKEW[3 * _column + _row, _component] = _sign
-#: The symmetric and skew parts of a 3x3 matrix on its column-major vec (9x9 each).
-_TRANSPOSE = np.zeros((9, 9))
-for _i in range(3):
-    for _j in range(3):
-        _TRANSPOSE[3 * _j + _i, 3 * _i + _j] = 1.0
-VEC_SYMMETRIC, VEC_SKEW_PART = (np.eye(9) + _TRANSPOSE) / 2, (np.eye(9) - _TRANSPOSE) / 2
 
 
 @dataclass
@@ -287,9 +281,8 @@ _BASE_GYRO_STEPS = np.concatenate([np.eye(3)[None], SYMMETRIC])
 _UNITS = np.eye(9).reshape(9, 3, 3).transpose(0, 2, 1)
 _SYMMETRIC_UNITS = (_UNITS + _UNITS.transpose(0, 2, 1)) / 2
 _SKEW_UNITS = _UNITS - _SYMMETRIC_UNITS
-_OUTER_UNITS = _SYMMETRIC_UNITS - np.trace(_SYMMETRIC_UNITS, axis1=1, axis2=2)[
-    :, None, None
-] / 2 * np.eye(3)
+_HALF_TRACES = np.trace(_SYMMETRIC_UNITS, axis1=1, axis2=2)[:, None, None] / 2
+_OUTER_UNITS = _SYMMETRIC_UNITS - _HALF_TRACES * np.eye(3)
 
 
 def _gain_of(N: np.ndarray, along: np.ndarray | None = None) -> np.ndarray:
