@@ -279,7 +279,7 @@ def make_problem(
         options.translation_bound_m,
         bias_model(options),
         options.max_iterations,
-        () if declared[BASE_GYRO_AXES].any() else ("base_gyro_axes",),  # (_own_errors)
+        () if declared[BASE_GYRO_AXES].any() else ("base_gyro_axes",),
     )
     return Problem(windows, settings, sigma, lowpass, dw_noise_var)
 
@@ -325,8 +325,6 @@ def _own_errors(
     with_errors, own = checks.own_errors(problem, fit, alpha, prior_std)
     if not _keeps_lever_arm(fit, with_errors, options):
         with_errors, own = fit, {n: group | {"estimated": False} for n, group in own.items()}
-    if not prior_std[BASE_GYRO_AXES].any():
-        return with_errors, own
     with_axes, axes = checks.base_gyro_axes(problem, with_errors, alpha)
     if axes["estimated"] and not _keeps_lever_arm(with_errors, with_axes, options):
         with_axes, axes = with_errors, axes | {"estimated": False}
@@ -380,7 +378,7 @@ def solve(
     alpha = options.consistency_alpha
     prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
     scale = checks.base_scale(own[checks.BASE_SCALE[0]], fit)
-    rigid, tilted = checks.rigid_mount(problem, fit, alpha, bool(prior_std[BASE_GYRO_AXES].any()))
+    rigid, tilted = checks.rigid_mount(problem, fit, alpha)
     if not rigid.passed and _keeps_lever_arm(fit, tilted, options):
         fit = tilted  # (else the tilt and the lever arm share what the drive shows: kept out)
     fit, clock_placed, clock_notes = _clock(problem, fit, options, clock)

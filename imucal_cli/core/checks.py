@@ -159,9 +159,11 @@ def base_gyro_axes(problem: Problem, fit: Fit, alpha: float) -> tuple[Fit, dict[
     scale: the components the drive determines to the block's std, kept where a chi-square
     test at ``alpha`` finds them and no scale beyond :data:`BASE_SCALE_PLAUSIBLE` is asked
     for. Returns the fit (with them where kept) and what :func:`sensor_errors` says of a
-    group."""
+    group. None are where the problem never frees them (the base's grade declares none)."""
     _, which, max_std = BASE_AXES
     found: dict[str, Any] = {"estimated": False}
+    if not problem.may_free("base_gyro_axes"):
+        return fit, found
     free = fit.free.copy()
     free[which] = True
     try:  # (a loose prior keeps what the drive does not determine defined: sensor_errors')
@@ -267,12 +269,11 @@ def sensor_errors(
     return problem.fit(_without_errors(joint, kept[SENSOR_ERRORS]), kept), found
 
 
-def rigid_mount(
-    problem: Problem, fit: Fit, alpha: float, base_axes: bool = False
-) -> tuple[Check, Fit]:
+def rigid_mount(problem: Problem, fit: Fit, alpha: float) -> tuple[Check, Fit]:
     """The mount's tilt with the vehicle's specific force, with the sensor's errors found in
     the model (an accelerometer's scale factors look like a tilt where they are not). Where
-    ``base_axes`` (the base declares axis errors) and the fit holds them, the tilt is tested
+    the problem may free the base gyro's axes (its grade declares them) and the fit holds
+    them, the tilt is tested
     with them free as well: a base gyro's yaw scale the own errors' test did not take in
     scales the centripetal term as a tilt with the lateral force would. Returns the check and
     the fit with the tilt estimated (the estimate where the check fails: the tilting mount's,
@@ -280,7 +281,7 @@ def rigid_mount(
     with_tilt = fit.free.copy()
     with_tilt[TILT] = True
     tilted = tested = problem.fit(fit, with_tilt)
-    if base_axes and not fit.free[BASE_GYRO_AXES].any():
+    if problem.may_free("base_gyro_axes") and not fit.free[BASE_GYRO_AXES].any():
         with_tilt[BASE_GYRO_AXES] = True  # (a loose prior keeps what the drive leaves defined)
         try:
             tested = problem.fit(fit, with_tilt, prior_std=BASE_AXES_PROBE)

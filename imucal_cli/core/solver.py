@@ -441,6 +441,10 @@ class Problem:
             return S
         return shifted(S, self.shifts[a : a + len(S)], layout)
 
+    def may_free(self, block: str) -> bool:
+        """Whether a fit of this problem may free the block of :data:`PARAMETERS` named."""
+        return block not in self.settings.never_free
+
     def accel_moments(self) -> list[np.ndarray]:
         """The accelerometer's moments, a chunk of windows at a time."""
         if self.cached is not None:
