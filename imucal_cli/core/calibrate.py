@@ -67,6 +67,11 @@ class CalibrationOptions:
     base_grade: str = "ideal"  # IMUs' own errors carried into the std
 
 
+def _std(covariance: np.ndarray | None, block: slice, unit: float = 1.0) -> np.ndarray | None:
+    """The std of a block of a covariance (None where there is none), times ``unit``."""
+    return None if covariance is None else unit * np.sqrt(np.diag(covariance)[block])
+
+
 @dataclass(frozen=True)
 class SensorEstimate:
     """The estimate for one sensor IMU and how well the drive determines it."""
@@ -118,27 +123,19 @@ class SensorEstimate:
 
     @property
     def statistical_rotation_std_deg(self) -> np.ndarray | None:
-        if self.statistical_covariance is None:
-            return None
-        return np.degrees(np.sqrt(np.diag(self.statistical_covariance)[ROTATION]))
+        return _std(self.statistical_covariance, ROTATION, np.degrees(1.0))
 
     @property
     def statistical_translation_std_m(self) -> np.ndarray | None:
-        if self.statistical_covariance is None:
-            return None
-        return np.sqrt(np.diag(self.statistical_covariance)[TRANSLATION])
+        return _std(self.statistical_covariance, TRANSLATION)
 
     @property
     def rotation_std_deg(self) -> np.ndarray | None:
-        if self.covariance is None:
-            return None
-        return np.degrees(np.sqrt(np.diag(self.covariance)[ROTATION]))
+        return _std(self.covariance, ROTATION, np.degrees(1.0))
 
     @property
     def translation_std_m(self) -> np.ndarray | None:
-        if self.covariance is None:
-            return None
-        return np.sqrt(np.diag(self.covariance)[TRANSLATION])
+        return _std(self.covariance, TRANSLATION)
 
     def lidar_covariance(self, T_imu_lidar: Transform) -> np.ndarray | None:
         """6x6 covariance of ``T_base_lidar = T_base_imu T_imu_lidar`` (rotation about base
@@ -316,19 +313,20 @@ def _weak_at_prior(
 def _own_errors(
     problem: Problem, fit: Fit, options: CalibrationOptions, prior_std: np.ndarray
 ) -> tuple[Fit, dict[str, dict[str, Any]]]:
-    """The IMUs' own errors the drive shows (:func:`.checks.own_errors`, then the base gyro's
-    axes where the base's grade declares them: :func:`.checks.base_gyro_axes`), each unless
-    taking it in leaves a lever-arm axis the fit before determined undetermined (a short
-    drive, or a base gyro's yaw scale that a flat drive cannot tell from the lever arm's
-    length: the two then share what the drive shows); what is not taken in is carried."""
-    alpha = options.consistency_alpha
-    with_errors, own = checks.own_errors(problem, fit, alpha, prior_std)
-    if not _keeps_lever_arm(fit, with_errors, options):
-        with_errors, own = fit, {n: group | {"estimated": False} for n, group in own.items()}
-    with_axes, axes = checks.base_gyro_axes(problem, with_errors, alpha)
-    if axes["estimated"] and not _keeps_lever_arm(with_errors, with_axes, options):
-        with_axes, axes = with_errors, axes | {"estimated": False}
-    return with_axes, own | {checks.BASE_AXES[0]: axes}
+    """The IMUs' own errors the drive shows (:func:`.checks.own_errors`, a stage of
+    :func:`.checks.own_error_stages` at a time), each stage unless taking it in leaves a
+    lever-arm axis the fit before determined undetermined (a short drive, or a base gyro's yaw
+    scale that a flat drive cannot tell from the lever arm's length: the two then share what
+    the drive shows); what is not taken in is carried."""
+    found: dict[str, dict[str, Any]] = {}
+    for groups in checks.own_error_stages(prior_std):
+        after, tested = checks.own_errors(
+            problem, fit, options.consistency_alpha, groups, prior_std
+        )
+        if not _keeps_lever_arm(fit, after, options):
+            after, tested = fit, {n: group | {"estimated": False} for n, group in tested.items()}
+        fit, found = after, found | tested
+    return fit, found
 
 
 def _keeps_lever_arm(before: Fit, after: Fit, options: CalibrationOptions) -> bool:
@@ -377,7 +375,7 @@ def solve(
     problem, fit, own = start
     alpha = options.consistency_alpha
     prior_std = error_prior_std(GRADES[options.sensor_grade], GRADES[options.base_grade])
-    scale = checks.base_scale(own[checks.BASE_SCALE[0]], fit)
+    scale = checks.base_scale(own[checks.BASE_SCALE.name], fit)
     rigid, tilted = checks.rigid_mount(problem, fit, alpha)
     if not rigid.passed and _keeps_lever_arm(fit, tilted, options):
         fit = tilted  # (else the tilt and the lever arm share what the drive shows: kept out)

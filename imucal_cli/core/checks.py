@@ -15,13 +15,9 @@ from typing import Any
 import numpy as np
 
 from imucal_cli.core.model import (
-    ACCEL_AXES,
     ACCEL_ROTATION,
     AXIS_ERRORS,
     BASE_GYRO_AXES,
-    BASE_GYRO_SCALE,
-    G_SENSITIVITY,
-    GYRO_AXES,
     N_PARAMETERS,
     PARAMETERS,
     ROTATION,
@@ -52,25 +48,6 @@ G_SENSITIVITY_MAX_STD = np.radians(0.1) / GRAVITY_MPS2
 #: What the checks take as numerically zero (rad, and rad per m/s^2): on noise-free data the
 #: Fisher std is round-off, and so is any difference the checks see.
 NUMERICAL_ZERO = 1e-6
-#: The sensor's own errors, in groups each tested apart: (name, globals, std to be estimated).
-OWN_ERRORS = (
-    ("accelerometer", ACCEL_AXES, INTRINSICS_MAX_STD),
-    ("gyro", GYRO_AXES, INTRINSICS_MAX_STD),
-    ("g-sensitivity", G_SENSITIVITY, G_SENSITIVITY_MAX_STD),
-)
-#: The accelerometer triad's misalignment to the gyro's: estimated with the others where the
-#: grades declared allow one (with ``ideal`` IMUs a disagreement is the rotation check's).
-MISALIGNMENT = ("misalignment", ACCEL_ROTATION, INTRINSICS_MAX_STD)
-#: The base gyro's scale error, tested after the sensor's errors: in the gyro's equation it is
-#: the sensor gyro's common scale, only the lever arm's terms tell it apart. Left out where
-#: the test finds it, it scales every lever arm by as much: it is taken in wherever the drive
-#: determines it to 5% (a rear lidar 1 m from the base IMU determines it to 1-1.5%).
-BASE_SCALE = ("base gyro scale", BASE_GYRO_SCALE, 0.05)
-#: The base gyro's axis errors (its axes' scales and non-orthogonality, beyond the common
-#: scale), tested last where the base's grade declares them (an ``ideal`` base has none: a
-#: tilting mount's terms are not taken for them): each is taken in wherever the drive
-#: determines it to 5% and a chi-square test finds them.
-BASE_AXES = ("base gyro", BASE_GYRO_AXES, 0.05)
 #: The largest scale error a gyro has (relative): uncalibrated MEMS parts read up to 10-15%
 #: off. A fit that asks for more is not finding a scale but a model that fails (aliased
 #: motion, saturation, a mount that moves): the lever arm's terms do not scale as one.
@@ -83,8 +60,51 @@ ROTATION_PRIOR[ROTATION] = 1.0
 PROBE_PRIOR_STD = 1.0
 #: The probe's prior on the base gyro's axis errors alone.
 BASE_AXES_PROBE = np.where(PARAMETERS.mask("base_gyro_axes"), PROBE_PRIOR_STD, 0.0)
-BASE_SCALE_FREE = np.zeros(N_PARAMETERS, dtype=bool)
-BASE_SCALE_FREE[BASE_GYRO_SCALE] = True
+
+
+@dataclass(frozen=True)
+class Errors:
+    """A group of own errors tested together (:func:`own_errors`): its name in the notes, its
+    block of :data:`PARAMETERS`, the std a component must be determined to for it to be
+    estimated, whether the grades' prior alone keeps it, and the largest scale such a part
+    reads (None: no bound)."""
+
+    name: str
+    block: str
+    max_std: float
+    expected_by_prior: bool = True
+    plausible_scale: float | None = None
+
+    @property
+    def which(self) -> slice:
+        return PARAMETERS[self.block]
+
+    def plausible(self, value: np.ndarray) -> bool:
+        """Whether no scale among the group's values (its one value, or a triad's three) is
+        beyond :attr:`plausible_scale`."""
+        scales = value if len(value) == 1 else value[SCALE]
+        return self.plausible_scale is None or np.abs(scales).max() <= self.plausible_scale
+
+
+#: The sensor's own errors, in groups each tested apart.
+OWN_ERRORS = (
+    Errors("accelerometer", "accel_axes", INTRINSICS_MAX_STD),
+    Errors("gyro", "gyro_axes", INTRINSICS_MAX_STD),
+    Errors("g-sensitivity", "g_sensitivity", G_SENSITIVITY_MAX_STD),
+)
+#: The accelerometer triad's misalignment to the gyro's: estimated with the others where the
+#: grades declared allow one (with ``ideal`` IMUs a disagreement is the rotation check's).
+MISALIGNMENT = Errors("misalignment", "accel_rotation", INTRINSICS_MAX_STD)
+#: The base gyro's scale error, tested after the sensor's errors: in the gyro's equation it is
+#: the sensor gyro's common scale, only the lever arm's terms tell it apart. Left out where
+#: the test finds it, it scales every lever arm by as much: it is taken in wherever the drive
+#: determines it to 5% (a rear lidar 1 m from the base IMU determines it to 1-1.5%).
+BASE_SCALE = Errors("base gyro scale", "base_gyro_scale", 0.05, False, BASE_SCALE_PLAUSIBLE)
+#: The base gyro's axis errors (its axes' scales and non-orthogonality, beyond the common
+#: scale), tested last where the base's grade declares them (an ``ideal`` base has none: a
+#: tilting mount's terms are not taken for them): each is taken in wherever the drive
+#: determines it to 5% and a chi-square test finds them.
+BASE_AXES = Errors("base gyro", "base_gyro_axes", 0.05, False, BASE_SCALE_PLAUSIBLE)
 
 
 @dataclass(frozen=True)
@@ -120,75 +140,81 @@ def rotation_difference(a: Any, b: Any) -> np.ndarray:
     return (a * b.inv()).as_rotvec()
 
 
-def _without_errors(fit: Fit, keep: np.ndarray) -> Fit:
-    """The fit with the sensor's errors not in ``keep`` (over :data:`SENSOR_ERRORS`) zeroed."""
-    point = replace(fit.point, errors=np.where(keep, fit.point.errors, 0.0))
-    return replace(fit, point=point)
+def _zeroed(fit: Fit, which: np.ndarray) -> Fit:
+    """The fit with the own errors ``which`` (a mask over :data:`PARAMETERS`) at zero."""
+    errors = np.where(which[SENSOR_ERRORS], 0.0, fit.point.errors)
+    return replace(fit, point=replace(fit.point, errors=errors))
+
+
+def own_error_stages(prior_std: np.ndarray | None) -> tuple[tuple[Errors, ...], ...]:
+    """The IMUs' own errors in the order they are tested (:func:`own_errors`, a stage at a
+    time): the sensor's (the triads' misalignment too where the grades' prior allows one), then
+    the base gyro's common scale, then its axes."""
+    sensor: tuple[Errors, ...] = OWN_ERRORS
+    if prior_std is not None and prior_std[MISALIGNMENT.which].any():
+        sensor = (*OWN_ERRORS, MISALIGNMENT)
+    return sensor, (BASE_SCALE,), (BASE_AXES,)
 
 
 def own_errors(
-    problem: Problem, fit: Fit, alpha: float, prior_std: np.ndarray | None = None
+    problem: Problem,
+    fit: Fit,
+    alpha: float,
+    groups: tuple[Errors, ...],
+    prior_std: np.ndarray | None = None,
 ) -> tuple[Fit, dict[str, dict[str, Any]]]:
-    """The IMUs' own errors: the sensor's (:func:`sensor_errors`; the triads' misalignment
-    where ``prior_std``, the grades', allows one), then the base gyro's scale
-    (:data:`BASE_SCALE`) where the drive determines it and a chi-square test finds it."""
-    groups: tuple[tuple[str, slice, float], ...] = OWN_ERRORS
-    if prior_std is not None and prior_std[ACCEL_ROTATION].any():
-        groups = (*OWN_ERRORS, MISALIGNMENT)
-    fit, found = sensor_errors(problem, fit, alpha, groups, prior_std)
-    name, which, max_std = BASE_SCALE
-    found[name] = {"estimated": False}
-    try:
-        joint = problem.fit(fit, fit.free | BASE_SCALE_FREE)
-    except np.linalg.LinAlgError:  # the drive does not tell it from the sensor gyro's scale
-        return fit, found
-    std, value = joint.std()[which], joint.point.own(which)
-    if not std[0] <= max_std:
-        return fit, found
-    chi2 = _chi2(value, joint.covariance[which, which])
-    present = chi2 > chi2_limit(1, alpha)
-    found[name] = {"estimated": present, "chi2": chi2, "dof": 1, "value": value, "std": std}
-    if present and abs(value[0]) > BASE_SCALE_PLAUSIBLE:  # kept out, and a failed check
-        found[name] |= {"estimated": False, "implausible": True, "joint": joint}
-        return fit, found
-    return (joint if present else fit), found
-
-
-def base_gyro_axes(problem: Problem, fit: Fit, alpha: float) -> tuple[Fit, dict[str, Any]]:
-    """The base gyro's axis errors (:data:`BASE_AXES`), after the sensor's and the common
-    scale: the components the drive determines to the block's std, kept where a chi-square
-    test at ``alpha`` finds them and no scale beyond :data:`BASE_SCALE_PLAUSIBLE` is asked
-    for. Returns the fit (with them where kept) and what :func:`sensor_errors` says of a
-    group. None are where the problem never frees them (the base's grade declares none)."""
-    _, which, max_std = BASE_AXES
-    found: dict[str, Any] = {"estimated": False}
-    if not problem.may_free("base_gyro_axes"):
-        return fit, found
-    free = fit.free.copy()
-    free[which] = True
-    try:  # (a loose prior keeps what the drive does not determine defined: sensor_errors')
-        probe = problem.fit(fit, free, prior_std=BASE_AXES_PROBE)
-    except np.linalg.LinAlgError:
-        return fit, found
-    free[which] = shown = probe.std()[which] <= max_std
-    if not shown.any():
+    """Own errors (``groups``, those the problem may free) from one joint fit beside what
+    ``fit`` frees: the components the drive determines to their group's std (a probe under a
+    loose prior asks which), a group kept where a chi-square test at ``alpha`` finds it, or
+    the grades' prior (``prior_std``) expects it, and no scale beyond its plausible one is
+    asked for. Returns the fit (with the groups kept) and per group ``estimated`` and, where
+    any component was determined, ``chi2``, ``dof``, ``value`` and ``std`` (NaN: not
+    determined); ``implausible`` and the ``joint`` fit where a scale was beyond it."""
+    found: dict[str, dict[str, Any]] = {g.name: {"estimated": False} for g in groups}
+    groups = tuple(g for g in groups if problem.may_free(g.block))
+    estimable = PARAMETERS.mask(*(g.block for g in groups)) & ~fit.free
+    max_std = np.zeros(N_PARAMETERS)
+    for g in groups:
+        max_std[g.which] = g.max_std
+    if not estimable.any():
         return fit, found
     try:
-        joint = problem.fit(fit, free)
-    except np.linalg.LinAlgError:  # the drive does not tell them from the sensor gyro's
+        # (a loose prior: an error the drive does not determine, the y scale of a gyro that
+        # only ever turns about x, leaves the equations singular without one)
+        probe = problem.fit(
+            fit, fit.free | estimable, prior_std=np.where(estimable, PROBE_PRIOR_STD, 0.0)
+        )
+        shown = estimable & (probe.std() <= max_std)
+        if not shown.any():
+            return fit, found
+        joint = problem.fit(_zeroed(probe, estimable & ~shown), fit.free | shown)
+    except np.linalg.LinAlgError:  # the drive does not tell them from what is free
         return fit, found
-    value = joint.point.own(which)
-    chi2 = _chi2(value[shown], joint.covariance[which, which][np.ix_(shown, shown)])
-    present = chi2 > chi2_limit(int(shown.sum()), alpha)
-    plausible = np.abs(value[SCALE]).max() <= BASE_SCALE_PLAUSIBLE
-    found = {
-        "estimated": bool(present and plausible),
-        "chi2": chi2,
-        "dof": int(shown.sum()),
-        "value": value,
-        "std": np.where(shown, joint.std()[which], np.nan),
-    }
-    return (joint if found["estimated"] else fit), found
+    kept = fit.free.copy()
+    for g in groups:
+        group = shown[g.which]
+        if not group.any():
+            continue
+        value = joint.point.own(g.which)
+        chi2 = _chi2(value[group], joint.covariance[g.which, g.which][np.ix_(group, group)])
+        expected = g.expected_by_prior and prior_std is not None and bool(prior_std[g.which].any())
+        present = expected or chi2 > chi2_limit(int(group.sum()), alpha)
+        plausible = g.plausible(value)
+        found[g.name] = {
+            "estimated": bool(present and plausible),
+            "chi2": chi2,
+            "dof": int(group.sum()),
+            "value": value.copy(),
+            "std": np.where(group, joint.std()[g.which], np.nan),
+        }
+        if present and not plausible:  # kept out (a failed check where it is the base's scale)
+            found[g.name] |= {"implausible": True, "joint": joint}
+        kept[g.which] = group & present & plausible
+    if np.array_equal(kept, fit.free):
+        return fit, found
+    if np.array_equal(kept, fit.free | shown):
+        return joint, found
+    return problem.fit(_zeroed(joint, shown & ~kept), kept), found
 
 
 def base_scale(found: dict[str, Any], fit: Fit) -> Check | None:
@@ -211,62 +237,6 @@ def base_scale(found: dict[str, Any], fit: Fit) -> Check | None:
         "plausible": BASE_SCALE_PLAUSIBLE,
     }
     return Check("base_gyro_scale", False, figures, 1.0, cover)
-
-
-def sensor_errors(
-    problem: Problem,
-    fit: Fit,
-    alpha: float,
-    groups: tuple[tuple[str, slice, float], ...] = OWN_ERRORS,
-    prior_std: np.ndarray | None = None,
-) -> tuple[Fit, dict[str, dict[str, Any]]]:
-    """The sensor's own errors (``groups``, each (name, globals, std to be estimated)) from one
-    joint fit: the components the drive determines to their group's std, a group kept where a
-    chi-square test at ``alpha`` finds it or the grades' prior (``prior_std``) expects it.
-    Returns the fit (with the groups kept) and per group ``estimated`` and, where any
-    component was determined, ``chi2``, ``dof``, ``value`` and ``std`` (NaN: not
-    determined)."""
-    estimable = np.zeros(N_PARAMETERS, dtype=bool)
-    for _, which, _ in groups:
-        estimable[which] = True
-    free = fit.free | estimable
-    # (a loose prior: an error the drive does not determine, the y scale of a gyro that only
-    # ever turns about x, leaves the equations singular without one; it shows as not determined)
-    joint = problem.fit(fit, free, prior_std=np.where(estimable, PROBE_PRIOR_STD, 0.0))
-    std = joint.std()
-    shown = np.zeros(N_PARAMETERS, dtype=bool)
-    for _, which, max_std in groups:
-        shown[which] = std[which] <= max_std
-    if not shown.any():
-        return fit, {name: {"estimated": False} for name, _, _ in groups}
-    free[SENSOR_ERRORS] = shown[SENSOR_ERRORS]
-    joint = problem.fit(_without_errors(joint, shown[SENSOR_ERRORS]), free)
-    found: dict[str, dict[str, Any]] = {}
-    kept = fit.free.copy()
-    for name, which, _ in groups:
-        group = shown[which]
-        if not group.any():
-            found[name] = {"estimated": False}
-            continue
-        value = joint.point.own(which)
-        chi2 = _chi2(value[group], joint.covariance[which, which][np.ix_(group, group)])
-        # a group the grades expect (a prior) is kept wherever the drive determines it: held
-        # at zero it would be carried at its whole prior, though the data bound it tighter
-        expected = prior_std is not None and bool(prior_std[which].any())
-        present = expected or chi2 > chi2_limit(int(group.sum()), alpha)
-        found[name] = {
-            "estimated": bool(present),
-            "chi2": chi2,
-            "dof": int(group.sum()),
-            "value": value.copy(),
-            "std": np.where(group, joint.std()[which], np.nan),
-        }
-        kept[which] = group & present
-    if not kept[SENSOR_ERRORS].any():
-        return fit, found
-    if np.array_equal(kept, free):
-        return joint, found
-    return problem.fit(_without_errors(joint, kept[SENSOR_ERRORS]), kept), found
 
 
 def rigid_mount(problem: Problem, fit: Fit, alpha: float) -> tuple[Check, Fit]:
