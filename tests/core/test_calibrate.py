@@ -271,3 +271,38 @@ def test_a_drifting_clock_is_followed_alike_from_every_other_grid_row(monkeypatc
         a, b = taken.estimates[mount.name], every.estimates[mount.name]
         assert a.clock_drift_std == pytest.approx(b.clock_drift_std, rel=0.03)
         assert abs(a.clock_drift - b.clock_drift) < 0.19 * b.clock_drift_std
+
+
+def test_each_own_error_stage_is_kept_or_turned_down_alone(monkeypatch):
+    """A stage that would leave a lever-arm axis undetermined (the base scale on a flat drive)
+    is turned down alone: the sensor's errors the stage before took in are kept."""
+    from types import SimpleNamespace
+
+    from imucal_cli.core import calibrate as cal
+    from imucal_cli.core import checks
+    from imucal_cli.core.model import N_PARAMETERS, TRANSLATION
+
+    def fit(translation_std: float) -> SimpleNamespace:
+        std = np.full(N_PARAMETERS, 1e-3)
+        std[TRANSLATION] = translation_std
+        free = np.zeros(N_PARAMETERS, dtype=bool)
+        free[TRANSLATION] = True
+        return SimpleNamespace(free=free, std=lambda: std)
+
+    start, with_errors, with_scale = fit(0.01), fit(0.02), fit(5.0)  # (the box: 0.5 m)
+    answers = {
+        checks.OWN_ERRORS[0].name: (with_errors, {"accelerometer": {"estimated": True}}),
+        checks.BASE_SCALE.name: (with_scale, {"base gyro scale": {"estimated": True}}),
+        checks.BASE_AXES.name: (None, {"base gyro": {"estimated": False}}),
+    }
+
+    def own_errors(problem, before, alpha, groups, prior_std=None):
+        after, found = answers[groups[0].name]
+        return (before if after is None else after), found
+
+    monkeypatch.setattr(checks, "own_errors", own_errors)
+    options = cal.CalibrationOptions(translation_bound_m=0.5)
+    kept, found = cal._own_errors(None, start, options, np.zeros(N_PARAMETERS))
+    assert kept is with_errors
+    assert found["accelerometer"]["estimated"]
+    assert not found["base gyro scale"]["estimated"]
