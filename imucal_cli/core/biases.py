@@ -295,3 +295,42 @@ class BiasTracker:
             gyro_bias_track_std=np.sqrt(weights @ (v - mean) ** 2),
             gyro_bias_final_std=np.sqrt(P),
         )
+
+
+@dataclass
+class VerticalBias:
+    """A gyro's bias about the vertical as the last samples that held a rest showed it
+    (:func:`rest_yaw_rate`, with eq. 5's tolerances and shortest rest); None before any."""
+
+    accel_tolerance: float
+    gyro_tolerance: float
+    min_duration_s: float
+    value: np.ndarray | None = None
+
+    def update(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        tolerances = (self.accel_tolerance, self.gyro_tolerance, self.min_duration_s)
+        found = rest_yaw_rate(t_ns, gyro, accel, *tolerances)
+        if found is not None:
+            self.value = found
+
+
+def rest_yaw_rate(
+    t_ns: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    accel_tolerance: float,
+    gyro_tolerance: float,
+    min_duration_s: float,
+) -> np.ndarray | None:
+    """The gyro's mean rate about the vertical (the measured specific force's direction) over
+    the rests among these samples (eq. 5's test), each rest weighted by its samples; None where
+    they hold no rest. A vehicle that stops does not yaw, but it pitches and rolls as its
+    suspension settles: the rates about the level axes are not its bias."""
+    tracker = BiasTracker(accel_tolerance, gyro_tolerance, min_duration_s, 0.0, 1.0)
+    tracker.add(t_ns, gyro, accel)
+    rests = tracker.report().rest_periods
+    if not rests:
+        return None
+    counts = np.array([r.samples for r in rests], dtype=np.float64)
+    vertical = np.array([(r.gyro_mean @ r.accel_up) * r.accel_up for r in rests])
+    return counts @ vertical / counts.sum()

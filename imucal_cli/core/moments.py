@@ -157,13 +157,18 @@ def vec_of_sum(upper: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
 _TERMS = Layout(("w_f", 6), ("dw_df", 6), ("ddw", 3), ("ww", 6), ("dw_w", 6), ("q", 4))
 
 
-def _base_terms(values: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+def _base_terms(
+    values: np.ndarray, first: np.ndarray, second: np.ndarray, gyro_bias: np.ndarray | None
+) -> np.ndarray:
     """The terms of the base's side of the equations side by side (:data:`_TERMS`), each column
-    contiguous (as the low-pass takes them), from the base spline's values and derivatives."""
+    contiguous (as the low-pass takes them), from the base spline's values and derivatives; the
+    lever arm's terms from the rates less ``gyro_bias`` (the base gyro's, where known)."""
     T = _TERMS
     terms = np.empty((T.size, len(values))).T
     terms[:, T["w_f"]], terms[:, T["dw_df"]], terms[:, T["ddw"]] = values, first, second[:, 0:3]
     w_raw, dw_raw, f_raw = values[:, 0:3], first[:, 0:3], values[:, 3:6]
+    if gyro_bias is not None:
+        w_raw = w_raw - gyro_bias
     upper_symmetric_products(w_raw, w_raw, terms[:, T["ww"]])
     terms[:, T["ww"]] *= 0.5
     upper_symmetric_products(dw_raw, w_raw, terms[:, T["dw_w"]])
@@ -279,6 +284,7 @@ def reduce_block(
     base_name: str,
     samples: dict[str, tuple[Offset, np.ndarray, np.ndarray, np.ndarray]],
     measured: dict[str, list[tuple[float, float] | None]] | None = None,
+    base_gyro_bias: np.ndarray | None = None,
 ) -> dict[str, list[WindowMoments]]:
     """Condition a block of consecutive windows once (per IMU its clock offset as a function
     of the grid's times, stamps in s, ``[gyro, accel]`` and the stamps of saturated
@@ -295,7 +301,10 @@ def reduce_block(
     # step-th row (:func:`moment_step`)
     step = moment_step(lp)
     phase = -round(block_start * rate) % step  # (rows on the log's grid, however blocked)
-    rows = lp(_base_terms(*base(grid, 2)))[n_pad + phase : n_pad + n_block : step]
+    values, first, second = base(grid, 2)
+    rows = lp(_base_terms(values, first, second, base_gyro_bias))[
+        n_pad + phase : n_pad + n_block : step
+    ]
     t_rows = grid[n_pad + phase : n_pad + n_block : step]
     # every data vector of the block side by side, so that each window's moments are one
     # Gram matrix: the base's part of x_g, of x_a, then each sensor's [w_I, f_I]; each

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from imucal_cli.core.biases import VerticalBias
 from imucal_cli.core.boot import Rig, SensorUnits, boot
 from imucal_cli.core.calibrate import CalibrationOptions, bias_model
 from imucal_cli.core.checks import Check
@@ -164,6 +165,7 @@ class StreamingCalibrator:
         base_label: tuple[str, str] = ("", ""),
         base_pose: Transform | None = None,
         keep_rows: bool = False,
+        base_bias: VerticalBias | None = None,
     ) -> None:
         if not sensors:
             raise ValueError("no sensors")
@@ -187,7 +189,7 @@ class StreamingCalibrator:
         self.epochs = {name: EpochCache() for name in self.sensors}
         #: Per sensor, windows a step of its clock may lie in (made unusable once reduced).
         self._unused: dict[str, set[int]] = {}
-        self._final = False
+        self._final = self.finished = False
         #: Each sensor's clock offset as the boot's correlation placed it (None: not estimated).
         self.time_offsets: dict[str, TimeOffset | None] = {}
         #: Per IMU, the factors (gyro, accelerometer) that made its samples SI, from the boot on.
@@ -197,23 +199,22 @@ class StreamingCalibrator:
         self.labels = {base_name: base_label, **{s.name: (s.topic, s.key) for s in sensors}}
         units = {s.name: SensorUnits(s.options, s.gyro_units, s.accel_units) for s in sensors}
         self.rig = Rig(base_name, base_units, units, self.rate, self.lowpass, self.labels)
-        self.dw_noise_var = 0.0
-        self._boot_horizon_s = BOOT_S
+        self.dw_noise_var, self._boot_horizon_s = 0.0, BOOT_S
         self.noise: dict[str, tuple[float, float]] = {}
         self.sigma: dict[str, tuple[float, float]] = {}
         #: Median sample rate of every IMU (Hz), measured at boot.
         self.rates_hz: dict[str, float] = {}
-        self.finished = False
         #: Checks of the whole rig made at boot, counted in every sensor's status.
         self.given_checks: tuple[Check, ...] = ()
         self.block_windows = max(1, int(block_windows))
         #: How far out of order stamps may arrive (s): windows wait this long for them.
         self.reorder_s = reorder_s
-        #: Per IMU that stopped sending while the others went on: [from, to] seconds from the
-        #: origin of each silence (``to`` None while it lasts).
+        #: Per IMU that went silent while the others went on: [from, to] s (``to`` None: still).
         self.silences: dict[str, list[list[float | None]]] = {}
         #: Per IMU, where it read values that are not the motion (its readings as sent).
         self.saturation = {name: Saturation() for name in self.buffers}
+        #: The base gyro's bias about the vertical: the lever arm's terms are of the rates less it.
+        self.base_bias = base_bias
 
     def _place_base(
         self, sensors: Sequence[SensorSetup], base_pose: Transform | None
@@ -475,11 +476,12 @@ class StreamingCalibrator:
         args = (spans, self.rate, self.window_s, self.lowpass, n_pad, n_block, n_after)
         reduced: dict[str, list[WindowMoments]] = {}
         if self.base_name in samples:
+            bias = self._base_bias(samples[self.base_name])
             measured: dict[str, list[tuple[float, float] | None]] = {n: [] for n in self.clocks}
-            reduced = reduce_block(*args, self.base_name, samples, measured)
+            reduced = reduce_block(*args, self.base_name, samples, measured, bias)
             again = self._corrected(spans, samples, measured)
             if again:
-                redone = reduce_block(*args, self.base_name, {**samples, **again})
+                redone = reduce_block(*args, self.base_name, {**samples, **again}, None, bias)
                 reduced.update({name: redone[name] for name in again if name in redone})
             for name, windows in reduced.items():  # the offsets they were resampled at
                 tau = (again.get(name) or samples[name])[0]
@@ -493,6 +495,17 @@ class StreamingCalibrator:
             self._not_used(name)
             self._merge(name)
         self.reduced += len(spans)
+
+    def _base_bias(
+        self, samples: tuple[Offset, np.ndarray, np.ndarray, np.ndarray]
+    ) -> np.ndarray | None:
+        """The base gyro's bias about the vertical, from the rests among a block's base
+        samples where they hold one (:class:`~.biases.VerticalBias`), else as before."""
+        if self.base_bias is None:
+            return None
+        _, t_s, both, _ = samples
+        self.base_bias.update(np.round(t_s * 1e9).astype(np.int64), both[:, :3], both[:, 3:])
+        return self.base_bias.value
 
     def _merge(self, name: str) -> None:
         """Sensor ``name``'s oldest windows merged in pairs (:func:`~.moments.merged`) until it
