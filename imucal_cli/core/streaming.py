@@ -478,10 +478,12 @@ class StreamingCalibrator:
         if self.base_name in samples:
             bias = self._base_bias(samples[self.base_name])
             measured: dict[str, list[tuple[float, float] | None]] = {n: [] for n in self.clocks}
-            reduced = reduce_block(*args, self.base_name, samples, measured, bias)
+            reduced = reduce_block(*args, self.base_name, samples, measured, base_gyro_bias=bias)
             again = self._corrected(spans, samples, measured)
             if again:
-                redone = reduce_block(*args, self.base_name, {**samples, **again}, None, bias)
+                redone = reduce_block(
+                    *args, self.base_name, {**samples, **again}, base_gyro_bias=bias
+                )
                 reduced.update({name: redone[name] for name in again if name in redone})
             for name, windows in reduced.items():  # the offsets they were resampled at
                 tau = (again.get(name) or samples[name])[0]
