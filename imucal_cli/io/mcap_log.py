@@ -36,9 +36,8 @@ from imucal_cli.io.imu_msg import RawBatch, gather
 
 MAGIC = MCAP_MAGIC
 #: Decompressed bytes of chunks decoded together: fewer, larger batches for the calibrator,
-#: whose cost is per batch (the 1 h MCAP calibrated in 0.86 of the CPU time of one chunk at a
-#: time: benchmarks/kernels.py, docs/performance.md).
-GROUP_BYTES = 2 << 20
+#: whose cost is partly per batch (benchmarks/kernels.py, docs/performance.md).
+GROUP_BYTES = 8 << 20
 _RECORD = struct.Struct("<BQ")  # opcode, length
 _FOOTER_OP, _SCHEMA_OP, _CHANNEL_OP = 0x02, 0x03, 0x04
 _MESSAGE_OP, _CHUNK_OP, _DATA_END_OP = 0x05, 0x06, 0x0F
