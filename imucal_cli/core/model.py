@@ -182,7 +182,11 @@ ACCEL_BIAS_PRIOR_STD = 1.0
 @dataclass(frozen=True)
 class BiasModel:
     """How the relative biases (sensor minus base) may drift between knots (a random walk per
-    component) and how large they may be (an absolute prior per knot)."""
+    component) and how large they may be where the walk starts (an absolute prior at the first
+    knot: the Kalman filter's ``P0``, eqs. 7-9). One prior for the walk, not one a knot: a prior
+    at every knot would hold the biases' mean over the log ever tighter as knots add up, and
+    an error that reads as a constant bias (the gyro's g-sensitivity along gravity) would take
+    up the mean instead."""
 
     spacing_s: float  # seconds between neighbouring knots: a window
     walks: tuple[float, float]  # gyro (rad/s/sqrt(s)), accelerometer (m/s^2/sqrt(s))
@@ -194,7 +198,7 @@ class BiasModel:
         return 1.0 / (self.walks[kind] ** 2 * np.asarray(gaps_s, dtype=float))
 
     def prior_information(self, kind: int) -> float:
-        """The information of a bias component's absolute prior at each knot."""
+        """The information of a bias component's absolute prior at the walk's first knot."""
         return 1.0 / self.prior_stds[kind] ** 2
 
 

@@ -446,8 +446,8 @@ def stretch_moments(
     which enter through the ``one`` and ``u`` columns. Over ``y = [c, knots]`` (the units' ends
     and every window's knot where the units leave a gap) the cost is ``y^T Q y``: the units'
     moments and, in the moments' units (the fit weighs them by ``1 / sigma^2``), the random
-    walk between neighbouring knots and the absolute prior of the inner ones (``biases``', of
-    its ``kind``: 0 the gyro's, 1 the accelerometer's). The inner knots
+    walk between neighbouring knots (``biases``', of its ``kind``: 0 the gyro's, 1 the
+    accelerometer's; the walk's prior at its start is the fit's, at its first knot). The inner knots
     are eliminated (Schur complement), and what is left less the walk between the two ends
     (the fit's prior holds that one: they are its knots) is written back over the data
     vector's columns. For any ``c`` and end knots the stretch's cost is then the least of the
@@ -472,7 +472,6 @@ def stretch_moments(
         _add_walk(Q, r + at[a], r + at[b], var * info)
     n = len(Q)
     inner = np.arange(r + 1, n - 1)
-    Q[inner, inner] += var * biases.prior_information(kind)
     # [c, b_0, b_m] first, the inner knots after them
     ends_first = np.r_[0 : r + 1, n - 1, inner]
     Q = Q[ends_first][:, ends_first]

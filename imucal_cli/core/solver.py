@@ -90,7 +90,8 @@ RESOLUTION = 1e-7
 
 def bias_prior(gaps_s: np.ndarray, biases: BiasModel) -> np.ndarray:
     """Information of each bias component's random walk between knots (``gaps_s`` apart: one
-    fewer than the knots) plus a weak absolute prior, in LAPACK's upper banded storage
+    fewer than the knots) and its absolute prior at the first knot (where the walk starts: the
+    Kalman filter's ``P0``), in LAPACK's upper banded storage
     (``BAND + 1`` rows, ``KNOT.size n_knots`` columns, knots in the order of :data:`KNOT`)."""
     width, n_knots = KNOT.size, len(gaps_s) + 1
     band = np.zeros((BAND + 1, width * n_knots))
@@ -99,7 +100,8 @@ def bias_prior(gaps_s: np.ndarray, biases: BiasModel) -> np.ndarray:
         diagonal = np.zeros(n_knots)  # sum of d^T d: 1 at the ends, 2 inside (equal gaps)
         diagonal[:-1] += info
         diagonal[1:] += info
-        band[BAND, c::width] = diagonal + biases.prior_information(c // 3)
+        diagonal[0] += biases.prior_information(c // 3)
+        band[BAND, c::width] = diagonal
         band[BAND - width, width + c :: width] = -info  # between neighbouring knots
     return band
 

@@ -65,9 +65,10 @@ def test_thebounded_step_is_the_free_minimiser_inside_the_box_and_the_box_s_own_
 @pytest.mark.parametrize("gaps", [np.full(6, 10.0), np.array([10.0, 40.0, 10.0, 80.0, 20.0, 10.0])])
 def test_the_bias_prior_in_banded_storage_is_the_random_walk_information(gaps):
     """The biases' prior, held as LAPACK's upper banded storage, is per component the random
-    walk's information ``sum_i d_i^T d_i / (walk^2 dt_i)`` plus ``I / prior^2`` (knot order
-    [gyro, accel]), with knots evenly spaced or not (merged windows: one gap over several), and
-    the banded product is the dense one; the banded Cholesky solves it."""
+    walk's information ``sum_i d_i^T d_i / (walk^2 dt_i)`` plus ``1 / prior^2`` at the first
+    knot alone, where the walk starts (knot order [gyro, accel]), with knots evenly spaced or
+    not (merged windows: one gap over several), and the banded product is the dense one; the
+    banded Cholesky solves it."""
     from scipy.linalg import cho_solve_banded, cholesky_banded
 
     walks, priors = (0.002, 0.01), (0.005, 1.0)
@@ -78,9 +79,8 @@ def test_the_bias_prior_in_banded_storage_is_the_random_walk_information(gaps):
     for c in range(KNOT.size):
         walk, prior = walks[c // 3], priors[c // 3]
         idx = np.arange(c, KNOT.size * n_knots, KNOT.size)
-        dense[np.ix_(idx, idx)] = (
-            d.T @ np.diag(1.0 / (walk**2 * gaps)) @ d + np.eye(n_knots) / prior**2
-        )
+        dense[np.ix_(idx, idx)] = d.T @ np.diag(1.0 / (walk**2 * gaps)) @ d
+        dense[idx[0], idx[0]] += 1.0 / prior**2
     rebuilt = np.zeros_like(dense)
     for i in range(len(dense)):
         for j in range(i, min(len(dense), i + BAND + 1)):
