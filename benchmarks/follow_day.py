@@ -31,7 +31,7 @@ from imucal_cli.pipeline import _Follower
 from imucal_cli.sim import DriveOptions, simulate_drive
 
 HOUR_NS = 3_600_000_000_000
-SHOWN = (1, 2, 4, 8, 12, 16, 20, 24, 36, 48)
+SHOWN = (1, 2, 4, 8, 12, 16, 20, 24, 36, 48, 60, 72)
 
 
 def options(
