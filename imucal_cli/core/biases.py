@@ -242,11 +242,16 @@ class BiasTracker:
         self._blocks, self._sums = [blocks[keep]], [sums[keep]]
         self._judged_to = cut_block
 
-    def report(self) -> BiasReport:
+    def rests(self) -> list[RestPeriod]:
+        """Every rest among the samples fed, the last blocks judged too."""
         self._judge(final=True)
+        return list(self._rests)
+
+    def report(self) -> BiasReport:
+        rests = self.rests()
         spread = np.concatenate(self._spreads) if self._spreads else np.zeros((0, 3))
         span_s = (self._last_block + 1) * BLOCK_S if self._last_block >= 0 else 0.0
-        return self._track(list(self._rests), spread, span_s)
+        return self._track(rests, spread, span_s)
 
     def _rest(self, sums: np.ndarray, start_s: float, end_s: float) -> RestPeriod:
         count = float(sums[:, _N].sum())
@@ -328,7 +333,7 @@ def rest_yaw_rate(
     suspension settles: the rates about the level axes are not its bias."""
     tracker = BiasTracker(accel_tolerance, gyro_tolerance, min_duration_s, 0.0, 1.0)
     tracker.add(t_ns, gyro, accel)
-    rests = tracker.report().rest_periods
+    rests = tracker.rests()  # (not the report: its gyro-bias filter is not wanted here)
     if not rests:
         return None
     counts = np.array([r.samples for r in rests], dtype=np.float64)
