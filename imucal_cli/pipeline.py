@@ -17,7 +17,7 @@ import numpy as np
 
 from imucal_cli.calibration import Calibration, Reading
 from imucal_cli.config import Config, SensorConfig
-from imucal_cli.core.biases import BiasTracker, VerticalBias
+from imucal_cli.core.biases import BaseGyroBias, BiasTracker
 from imucal_cli.core.calibrate import CalibrationOptions
 from imucal_cli.core.estimates import estimates as solved_estimates
 from imucal_cli.core.grades import GRADES
@@ -83,7 +83,7 @@ def make_calibrator(
         base_label=(config.base.topic, "base"),
         base_pose=config.base.T_base_imu,
         keep_rows=keep_rows,
-        base_bias=VerticalBias(
+        base_bias=BaseGyroBias(
             config.rest.accel_tolerance_mps2,
             config.rest.gyro_tolerance_radps,
             config.rest.min_duration_s,

@@ -8,7 +8,8 @@
   and whose mean gyro magnitude is within ``gyro_tolerance``, held for ``min_duration_s``. An
   accelerometer bias of any size leaves the test unchanged (the paper's ``|R^T g - f|`` fails
   at rest for a bias past the tolerance).
-  Statistics use each rest without its first and last :data:`REST_EDGE_S` seconds.
+  Statistics use each rest without its first and last :data:`REST_EDGE_S` seconds
+  (:data:`BASE_REST_EDGE_S` for the base gyro's bias that ``calibrate`` takes off).
 - Accelerometer bias and noise at each rest (eq. 6). At one rest pose only the
   gravity-parallel component of the bias separates from tilt, so the bias given here is that
   component, ``(|mean f| - g)`` along ``mean f``; ``calibrate`` gives the full vector relative to
@@ -33,6 +34,10 @@ BLOCK_S = 0.1
 LOCAL_BLOCKS = 5
 #: Seconds dropped at each end of a rest before averaging (settling, creeping off).
 REST_EDGE_S = 1.0
+#: Seconds dropped at each end of a rest before the base gyro's bias is taken from it: the body
+#: still pitches and rolls on its suspension there (a simulated town drive's rests, about the
+#: level axes: 3.5e-4 rad/s rms of error with 1 s off each end, 3e-5 with 3 s).
+BASE_REST_EDGE_S = 3.0
 #: Blocks behind the newest that samples may still come for (reordering): judged later.
 SETTLE_BLOCKS = 100
 #: Blocks held before the tracker judges those it can (10 minutes; 13 numbers a block).
@@ -97,12 +102,14 @@ class BiasTracker:
         min_duration_s: float,
         process_noise: float,
         initial_std: float,
+        edge_s: float = REST_EDGE_S,
     ) -> None:
         self.accel_tolerance, self.gyro_tolerance, self.min_duration_s = (
             accel_tolerance,
             gyro_tolerance,
             min_duration_s,
         )
+        self.edge_s = edge_s
         self.process_noise, self.initial_std = process_noise, initial_std
         self.first_ns: int | None = None
         self.reference = np.zeros(6)  # the first sample: sums of squares about it keep their digits
@@ -221,7 +228,7 @@ class BiasTracker:
             cut = int(moving[-1])
         block_of = np.full(len(dense), -1, dtype=np.int64)
         block_of[rows] = blocks  # (a rest lies in blocks side by side: rows and blocks agree there)
-        edge = round(REST_EDGE_S / BLOCK_S)
+        edge = round(self.edge_s / BLOCK_S)
         for a, b in true_runs(still[:cut]):
             if block_of[a] < self._judged_to or (b - a) * BLOCK_S < self.min_duration_s:
                 continue  # (a run in the context kept from before was judged then)
@@ -303,39 +310,42 @@ class BiasTracker:
 
 
 @dataclass
-class VerticalBias:
-    """A gyro's bias about the vertical as the last samples that held a rest showed it
-    (:func:`rest_yaw_rate`, with eq. 5's tolerances and shortest rest); None before any."""
+class BaseGyroBias:
+    """A gyro's bias as the last samples that held a rest showed it (:func:`rest_rate`, with
+    eq. 5's tolerances); None before any. Only the middle of a rest counts: each end loses
+    ``edge_s``, and a rest must keep 2 s after that."""
 
     accel_tolerance: float
     gyro_tolerance: float
     min_duration_s: float
+    edge_s: float = BASE_REST_EDGE_S
     value: np.ndarray | None = None
 
     def update(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        tolerances = (self.accel_tolerance, self.gyro_tolerance, self.min_duration_s)
-        found = rest_yaw_rate(t_ns, gyro, accel, *tolerances)
+        shortest = max(self.min_duration_s, 2.0 * self.edge_s + 2.0)
+        tolerances = (self.accel_tolerance, self.gyro_tolerance, shortest, self.edge_s)
+        found = rest_rate(t_ns, gyro, accel, *tolerances)
         if found is not None:
             self.value = found
 
 
-def rest_yaw_rate(
+def rest_rate(
     t_ns: np.ndarray,
     gyro: np.ndarray,
     accel: np.ndarray,
     accel_tolerance: float,
     gyro_tolerance: float,
     min_duration_s: float,
+    edge_s: float = BASE_REST_EDGE_S,
 ) -> np.ndarray | None:
-    """The gyro's mean rate about the vertical (the measured specific force's direction) over
-    the rests among these samples (eq. 5's test), each rest weighted by its samples; None where
-    they hold no rest. A vehicle that stops does not yaw, but it pitches and rolls as its
-    suspension settles: the rates about the level axes are not its bias."""
-    tracker = BiasTracker(accel_tolerance, gyro_tolerance, min_duration_s, 0.0, 1.0)
+    """The gyro's mean rate over the rests among these samples (eq. 5's test), each rest
+    without ``edge_s`` at either end and weighted by its samples; None where they hold no
+    rest. A vehicle that stops does not turn, but its body pitches and rolls on the suspension
+    for a second or two after (and before it drives off): the ends are not its bias."""
+    tracker = BiasTracker(accel_tolerance, gyro_tolerance, min_duration_s, 0.0, 1.0, edge_s)
     tracker.add(t_ns, gyro, accel)
     rests = tracker.rests()  # (not the report: its gyro-bias filter is not wanted here)
     if not rests:
         return None
     counts = np.array([r.samples for r in rests], dtype=np.float64)
-    vertical = np.array([(r.gyro_mean @ r.accel_up) * r.accel_up for r in rests])
-    return counts @ vertical / counts.sum()
+    return counts @ np.array([r.gyro_mean for r in rests]) / counts.sum()

@@ -15,9 +15,9 @@ both triads resampled onto the base's grid at ``t + tau0`` and low-passed alike:
 
   with ``A = [w]x^2 + [dw]x`` (centripetal and Euler terms) and ``dA`` its derivative, both
   of the base's rates ``w = N_B^-1 w_B``: linear maps of the readings' ``vec A`` and
-  ``vec dA`` (:func:`vec_gain`). The readings there are the base gyro's less its bias about
-  the vertical where the vehicle's stops show it (:func:`.biases.rest_yaw_rate`); in the
-  gyro's equation the relative bias ``b_g`` takes the base's.
+  ``vec dA`` (:func:`vec_gain`). The readings there are the base gyro's less its bias where
+  the vehicle's stops show it (:func:`.biases.rest_rate`); in the gyro's equation the
+  relative bias ``b_g`` takes the base's.
 
 The sensor's own errors: ``E_a``, ``E_g`` each triad's axis errors (symmetric: scale factors
 on the diagonal, non-orthogonality off it, :data:`SYMMETRIC`), ``G`` the gyro's g-sensitivity

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from imucal_cli.core.biases import VerticalBias
+from imucal_cli.core.biases import BaseGyroBias
 from imucal_cli.core.boot import Rig, SensorUnits, boot
 from imucal_cli.core.calibrate import CalibrationOptions, bias_model
 from imucal_cli.core.checks import Check
@@ -165,7 +165,7 @@ class StreamingCalibrator:
         base_label: tuple[str, str] = ("", ""),
         base_pose: Transform | None = None,
         keep_rows: bool = False,
-        base_bias: VerticalBias | None = None,
+        base_bias: BaseGyroBias | None = None,
     ) -> None:
         if not sensors:
             raise ValueError("no sensors")
@@ -213,7 +213,7 @@ class StreamingCalibrator:
         self.silences: dict[str, list[list[float | None]]] = {}
         #: Per IMU, where it read values that are not the motion (its readings as sent).
         self.saturation = {name: Saturation() for name in self.buffers}
-        #: The base gyro's bias about the vertical: the lever arm's terms are of the rates less it.
+        #: The base gyro's bias where its rests show it: the lever arms' terms take rates less it.
         self.base_bias = base_bias
 
     def _place_base(
@@ -501,8 +501,8 @@ class StreamingCalibrator:
     def _base_bias(
         self, samples: tuple[Offset, np.ndarray, np.ndarray, np.ndarray]
     ) -> np.ndarray | None:
-        """The base gyro's bias about the vertical, from the rests among a block's base
-        samples where they hold one (:class:`~.biases.VerticalBias`), else as before."""
+        """The base gyro's bias, from the middles of the rests among a block's base
+        samples where they hold one (:class:`~.biases.BaseGyroBias`), else as before."""
         if self.base_bias is None:
             return None
         _, t_s, both, _ = samples

@@ -192,3 +192,25 @@ def test_fewer_blocks_than_the_rest_test_looks_at_do_not_break_it():
     t, gyro, accel = _drive(np.zeros(3), np.zeros(3))
     report = _tracker(t[:100], gyro[:100], accel[:100])
     assert not report.rest_periods and report.warnings
+
+
+def test_the_base_gyro_bias_comes_from_the_rests_middles_not_their_settling_ends():
+    """A noise-free town drive's base gyro reading (0.004, -0.006, 0.01) rad/s too much: the
+    middles of its stops give that bias on every axis to 1e-5 rad/s. With 1 s off each end
+    instead of 3, the body's pitching on its suspension as it stops and drives off is taken
+    for bias about a level axis (1e-4 rad/s and more, the simulated bus's)."""
+    from imucal_cli.core.biases import rest_rate
+    from imucal_cli.sim import DriveOptions, simulate_drive
+
+    drive = simulate_drive(
+        DriveOptions(scenario="urban", duration_s=120.0, seed=3, noise_scale=0.0, sensors=1)
+    )
+    base = drive.streams().base
+    true_bias = np.array([0.004, -0.006, 0.01])
+    tolerances = (0.1, 0.02, 8.0)
+    found = rest_rate(base.t_ns, base.gyro + true_bias, base.accel, *tolerances)
+    assert found is not None
+    assert np.abs(found - true_bias).max() < 1e-5
+    short = rest_rate(base.t_ns, base.gyro + true_bias, base.accel, *tolerances, edge_s=1.0)
+    assert short is not None
+    assert np.abs(short - true_bias)[:2].max() > 1e-4
