@@ -38,6 +38,12 @@ REST_EDGE_S = 1.0
 #: still pitches and rolls on its suspension there (a simulated town drive's rests, about the
 #: level axes: 3.5e-4 rad/s rms of error with 1 s off each end, 3e-5 with 3 s).
 BASE_REST_EDGE_S = 3.0
+#: A rest's specific force turned beyond the accelerometer's noise (chi-square of the turn
+#: about two level axes, 1 in 1,000).
+TURN_CHI2 = -2.0 * np.log(1e-3)
+#: A turn of a rest's specific force that no bias would be wrong by (rad): over the shortest
+#: rest's middle, 2 s, 5e-6 rad/s.
+TURN_FLOOR_RAD = 1e-5
 #: Blocks behind the newest that samples may still come for (reordering): judged later.
 SETTLE_BLOCKS = 100
 #: Blocks held before the tracker judges those it can (10 minutes; 13 numbers a block).
@@ -58,6 +64,10 @@ class RestPeriod:
     accel_up: np.ndarray = field(
         default_factory=lambda: np.array([0.0, 0.0, 1.0])
     )  # (3,) mean f / |mean f|
+    #: The specific force kept its direction from the rest's first second to its last, within
+    #: the accelerometer's noise (:data:`TURN_CHI2`): the body did not tilt (air suspension
+    #: levelling, a bus kneeling, a load) or creep, and the rates about the level axes are bias.
+    level: bool = True
 
     @property
     def accel_bias_along_gravity(self) -> float:
@@ -269,9 +279,9 @@ class BiasTracker:
         bias = (float(np.linalg.norm(f)) - GRAVITY_MPS2) * up
         mean_w = sums[:, _W].sum(axis=0) / count
         var_w = np.maximum(sums[:, _W2].sum(axis=0) / count - mean_w**2, 1e-12)
-        return RestPeriod(
-            start_s, end_s, bias, std_a, mean_w + self.reference[3:], var_w, int(count), up
-        )
+        gyro_mean = mean_w + self.reference[3:]
+        level = _level(sums, self.reference[:3])
+        return RestPeriod(start_s, end_s, bias, std_a, gyro_mean, var_w, int(count), up, level)
 
     def _track(self, rests: list[RestPeriod], block_spread: np.ndarray, end_s: float) -> BiasReport:
         """The gyro bias Kalman filter over the rests (eqs. 7-9), to ``end_s``; ``block_spread``
@@ -309,11 +319,33 @@ class BiasTracker:
         )
 
 
+def _level(sums: np.ndarray, reference: np.ndarray) -> bool:
+    """Whether a rest's specific force (its blocks' sums about ``reference``) kept its
+    direction from the first second to the last: a body that turns by ``theta`` about a level
+    axis turns it by ``-theta``, ``f_first x f_last = -|f|^2 theta``; the turn's chi-square
+    against the two seconds' means' noise within :data:`TURN_CHI2` (or the turn within
+    :data:`TURN_FLOOR_RAD`)."""
+    k = round(1.0 / BLOCK_S)
+    if len(sums) < 2 * k:
+        return True
+    ends = []
+    for part in (sums[:k], sums[-k:]):
+        n = part[:, _N].sum()
+        mean = part[:, _FA].sum(axis=0) / n
+        ends.append((mean + reference, (part[:, _FA2].sum(axis=0) / n - mean**2) / n))
+    (first, var_first), (last, var_last) = ends
+    g2 = float(np.linalg.norm(first) * np.linalg.norm(last))
+    theta = np.cross(first, last) / g2
+    var_theta = float(np.mean(var_first + var_last)) / g2  # (about each level axis)
+    return bool(theta @ theta <= TURN_CHI2 * var_theta + TURN_FLOOR_RAD**2)
+
+
 @dataclass
 class BaseGyroBias:
     """A gyro's bias as the last samples that held a rest showed it (:func:`rest_rate`, with
     eq. 5's tolerances); None before any. Only the middle of a rest counts: each end loses
-    ``edge_s``, and a rest must keep 2 s after that."""
+    ``edge_s``, and a rest must keep 2 s after that; about the level axes, only the rests
+    that did not tilt (where the last samples held none, as before)."""
 
     accel_tolerance: float
     gyro_tolerance: float
@@ -324,7 +356,7 @@ class BaseGyroBias:
     def update(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         shortest = max(self.min_duration_s, 2.0 * self.edge_s + 2.0)
         tolerances = (self.accel_tolerance, self.gyro_tolerance, shortest, self.edge_s)
-        found = rest_rate(t_ns, gyro, accel, *tolerances)
+        found = rest_rate(t_ns, gyro, accel, *tolerances, previous=self.value)
         if found is not None:
             self.value = found
 
@@ -337,15 +369,31 @@ def rest_rate(
     gyro_tolerance: float,
     min_duration_s: float,
     edge_s: float = BASE_REST_EDGE_S,
+    previous: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """The gyro's mean rate over the rests among these samples (eq. 5's test), each rest
     without ``edge_s`` at either end and weighted by its samples; None where they hold no
     rest. A vehicle that stops does not turn, but its body pitches and rolls on the suspension
-    for a second or two after (and before it drives off): the ends are not its bias."""
+    for a second or two after (and before it drives off): the ends are not its bias. About
+    the level axes, only the rests whose specific force kept its direction count
+    (:attr:`RestPeriod.level`): the bias that fits every rest's vertical rate and every such
+    rest's rates about the level axes, by least squares; where none did, ``previous`` about
+    the level axes (zero without)."""
     tracker = BiasTracker(accel_tolerance, gyro_tolerance, min_duration_s, 0.0, 1.0, edge_s)
     tracker.add(t_ns, gyro, accel)
     rests = tracker.rests()  # (not the report: its gyro-bias filter is not wanted here)
     if not rests:
         return None
     counts = np.array([r.samples for r in rests], dtype=np.float64)
-    return counts @ np.array([r.gyro_mean for r in rests]) / counts.sum()
+    up = np.array([r.accel_up for r in rests])
+    shows = np.where(  # what each rest shows of the bias: every axis, or the vertical
+        np.array([r.level for r in rests])[:, None, None], np.eye(3), up[:, :, None] * up[:, None]
+    )
+    found = np.einsum("n,nij,nj->i", counts, shows, np.array([r.gyro_mean for r in rests]))
+    information = np.einsum("n,nij->ij", counts, shows)
+    if any(r.level for r in rests):
+        return np.linalg.solve(information, found)
+    vertical = np.einsum("n,ni->i", counts, up)
+    vertical /= np.linalg.norm(vertical)
+    level = np.zeros(3) if previous is None else previous - (previous @ vertical) * vertical
+    return found / counts.sum() + level

@@ -196,10 +196,11 @@ def test_fewer_blocks_than_the_rest_test_looks_at_do_not_break_it():
 
 def test_the_base_gyro_bias_comes_from_the_rests_middles_not_their_settling_ends():
     """A noise-free town drive's base gyro reading (0.004, -0.006, 0.01) rad/s too much: the
-    middles of its stops give that bias on every axis to 1e-5 rad/s. With 1 s off each end
-    instead of 3, the body's pitching on its suspension as it stops and drives off is taken
-    for bias about a level axis (1e-4 rad/s and more, the simulated bus's)."""
-    from imucal_cli.core.biases import rest_rate
+    middles of its stops, 3 s off each end, give that bias on every axis to 1e-5 rad/s. With
+    1 s off each end, the body still pitches on its suspension as it stops and drives off (the
+    simulated bus's): its rates there are 1e-4 rad/s and more off the bias about a level axis,
+    and its specific force turns with it, which keeps those rests out of the level axes."""
+    from imucal_cli.core.biases import BiasTracker, rest_rate
     from imucal_cli.sim import DriveOptions, simulate_drive
 
     drive = simulate_drive(
@@ -207,10 +208,93 @@ def test_the_base_gyro_bias_comes_from_the_rests_middles_not_their_settling_ends
     )
     base = drive.streams().base
     true_bias = np.array([0.004, -0.006, 0.01])
+    gyro = base.gyro + true_bias
     tolerances = (0.1, 0.02, 8.0)
-    found = rest_rate(base.t_ns, base.gyro + true_bias, base.accel, *tolerances)
+    found = rest_rate(base.t_ns, gyro, base.accel, *tolerances)
     assert found is not None
     assert np.abs(found - true_bias).max() < 1e-5
-    short = rest_rate(base.t_ns, base.gyro + true_bias, base.accel, *tolerances, edge_s=1.0)
-    assert short is not None
-    assert np.abs(short - true_bias)[:2].max() > 1e-4
+    short = BiasTracker(*tolerances, 0.0, 1.0, edge_s=1.0)
+    short.add(base.t_ns, gyro, base.accel)
+    rests = short.rests()
+    assert rests
+    for rest in rests:
+        error = rest.gyro_mean - true_bias
+        assert np.linalg.norm(error - (error @ rest.accel_up) * rest.accel_up) > 1e-4
+        assert not rest.level
+
+
+def _standing(bias: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A body that stands 40 s and kneels (pitches 1 deg in 4 s from 15 s) and leans (rolls
+    0.5 deg in 3 s from 26 s) about a point 2 m behind and 1 m below its IMU, turns 1 rad
+    about the vertical in 10 s (not a rest), and stands 30 s still: 100 Hz, noise-free, the
+    gyro reading ``bias`` too much."""
+    from scipy.spatial.transform import Rotation
+
+    t = np.arange(0.0, 80.0, 0.01)
+
+    def step(start: float, length: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        u = np.clip((t - start) / length, 0.0, 1.0)
+        inside = (u > 0) & (u < 1)
+        s = 10 * u**3 - 15 * u**4 + 6 * u**5
+        ds = np.where(inside, (30 * u**2 - 60 * u**3 + 30 * u**4) / length, 0.0)
+        dds = np.where(inside, (60 * u - 180 * u**2 + 120 * u**3) / length**2, 0.0)
+        return s, ds, dds
+
+    angles = np.radians([0.5, 1.0]), 1.0  # (roll, pitch), yaw
+    steps = [step(26.0, 3.0), step(15.0, 4.0), step(42.0, 10.0)]
+    size = np.array([*angles[0], angles[1]])
+    # one axis turns at a time: rates and their derivatives in the body are those about it
+    w = np.column_stack([a * s[1] for a, s in zip(size, steps, strict=True)])
+    dw = np.column_stack([a * s[2] for a, s in zip(size, steps, strict=True)])
+    euler = np.column_stack([a * s[0] for a, s in zip(size, steps, strict=True)])
+    R_world_body = Rotation.from_euler("zyx", euler[:, ::-1])
+    lever = np.array([2.0, 0.0, 1.0])  # the IMU from the point the body turns about
+    f = R_world_body.inv().apply([0.0, 0.0, GRAVITY_MPS2])
+    f += np.cross(dw, lever) + np.cross(w, np.cross(w, lever))
+    return (t * 1e9).astype(np.int64), w + bias, f
+
+
+def test_a_body_that_tilts_while_it_stands_is_not_taken_for_the_base_gyro_bias():
+    """A stand in which the body kneels and leans (air suspension, a load), slowly enough to
+    stay a rest, then a stand that holds still: the base gyro's bias comes back on every axis,
+    about the level axes from the still one alone (the first's specific force shows its
+    tilt). Its mean rate would take the tilt, 1.0 deg over
+    34 s, for 5e-4 rad/s of bias."""
+    from imucal_cli.core.biases import BiasTracker, rest_rate
+
+    bias = np.array([3e-4, -2e-4, 1e-4])
+    t_ns, gyro, accel = _standing(bias)
+    tolerances = (0.1, 0.02, 8.0)
+    tracker = BiasTracker(*tolerances, 0.0, 1.0, edge_s=3.0)
+    tracker.add(t_ns, gyro, accel)
+    tilting, still = tracker.rests()
+    assert (tilting.level, still.level) == (False, True)
+    assert np.abs(tilting.gyro_mean - bias)[:2].max() > 4e-4
+    found = rest_rate(t_ns, gyro, accel, *tolerances)
+    assert found is not None
+    assert np.abs(found - bias)[:2].max() < 1e-7
+    # the first stand's vertical rate holds its turn rate (5e-4 rad/s) times the angle (1 deg)
+    # its mean vertical stands off the vertical at either end
+    assert abs(found[2] - bias[2]) < 5e-4 * np.radians(1.0)
+
+
+def test_a_block_whose_rests_all_tilt_keeps_the_level_axes_bias_it_had():
+    """The base's bias followed block by block: a block whose one stand holds still gives the
+    bias on every axis; a later block whose one stand kneels gives it about the vertical and
+    keeps the level axes' from before, not zero and not the kneel's rate."""
+    from imucal_cli.core.biases import BaseGyroBias
+
+    bias = np.array([3e-4, -2e-4, 1e-4])
+    t_ns, gyro, accel = _standing(bias)
+    tilting, still = t_ns < 42e9, t_ns > 52e9
+    follow = BaseGyroBias(0.1, 0.02, 8.0)
+    follow.update(t_ns[still], gyro[still], accel[still])
+    assert follow.value is not None
+    assert np.abs(follow.value - bias).max() < 1e-7
+    follow.update(t_ns[tilting], gyro[tilting], accel[tilting])
+    assert np.abs(follow.value - bias)[:2].max() < 1e-7
+    assert abs(follow.value[2] - bias[2]) < 5e-4 * np.radians(1.0)
+    alone = BaseGyroBias(0.1, 0.02, 8.0)
+    alone.update(t_ns[tilting], gyro[tilting], accel[tilting])
+    assert alone.value is not None
+    assert np.abs(alone.value[:2]).max() < 1e-5  # (zero about the level axes: no still stand)
