@@ -335,17 +335,17 @@ def _level(sums: np.ndarray, reference: np.ndarray) -> bool:
         ends.append((mean + reference, (part[:, _FA2].sum(axis=0) / n - mean**2) / n))
     (first, var_first), (last, var_last) = ends
     g2 = float(np.linalg.norm(first) * np.linalg.norm(last))
-    theta = np.cross(first, last) / g2
-    var_theta = float(np.mean(var_first + var_last)) / g2  # (about each level axis)
-    return bool(theta @ theta <= TURN_CHI2 * var_theta + TURN_FLOOR_RAD**2)
+    turn = np.cross(first, last) / g2  # (-theta)
+    var_turn = float(np.mean(var_first + var_last)) / g2  # (about each level axis)
+    return bool(turn @ turn <= TURN_CHI2 * var_turn + TURN_FLOOR_RAD**2)
 
 
 @dataclass
 class BaseGyroBias:
     """A gyro's bias as the last samples that held a rest showed it (:func:`rest_rate`, with
     eq. 5's tolerances); None before any. Only the middle of a rest counts: each end loses
-    ``edge_s``, and a rest must keep 2 s after that; about the level axes, only the rests
-    that did not tilt (where the last samples held none, as before)."""
+    ``edge_s``, and a rest must keep 2 s after that. About the level axes only the rests that
+    did not tilt count; where all of the last samples' rests tilted, the value it had there."""
 
     accel_tolerance: float
     gyro_tolerance: float
