@@ -386,14 +386,13 @@ def rest_rate(
         return None
     counts = np.array([r.samples for r in rests], dtype=np.float64)
     up = np.array([r.accel_up for r in rests])
-    shows = np.where(  # what each rest shows of the bias: every axis, or the vertical
-        np.array([r.level for r in rests])[:, None, None], np.eye(3), up[:, :, None] * up[:, None]
-    )
+    level = np.array([r.level for r in rests])
+    # what each rest shows of the bias: every axis, or the vertical
+    shows = np.where(level[:, None, None], np.eye(3), up[:, :, None] * up[:, None])
     found = np.einsum("n,nij,nj->i", counts, shows, np.array([r.gyro_mean for r in rests]))
-    information = np.einsum("n,nij->ij", counts, shows)
-    if any(r.level for r in rests):
-        return np.linalg.solve(information, found)
+    if level.any():
+        return np.linalg.solve(np.einsum("n,nij->ij", counts, shows), found)
     vertical = np.einsum("n,ni->i", counts, up)
     vertical /= np.linalg.norm(vertical)
-    level = np.zeros(3) if previous is None else previous - (previous @ vertical) * vertical
-    return found / counts.sum() + level
+    kept = np.zeros(3) if previous is None else previous - (previous @ vertical) * vertical
+    return found / counts.sum() + kept

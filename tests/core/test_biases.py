@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imucal_cli.core.biases import BiasTracker
+from imucal_cli.core.biases import BaseGyroBias, BiasTracker, rest_rate
 from imucal_cli.types import GRAVITY_MPS2
 
 RATE = 200.0
@@ -200,7 +200,6 @@ def test_the_base_gyro_bias_comes_from_the_rests_middles_not_their_settling_ends
     1 s off each end, the body still pitches on its suspension as it stops and drives off (the
     simulated bus's): its rates there are 1e-4 rad/s and more off the bias about a level axis,
     and its specific force turns with it, which keeps those rests out of the level axes."""
-    from imucal_cli.core.biases import BiasTracker, rest_rate
     from imucal_cli.sim import DriveOptions, simulate_drive
 
     drive = simulate_drive(
@@ -240,9 +239,8 @@ def _standing(bias: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         dds = np.where(inside, (60 * u - 180 * u**2 + 120 * u**3) / length**2, 0.0)
         return s, ds, dds
 
-    angles = np.radians([0.5, 1.0]), 1.0  # (roll, pitch), yaw
+    size = np.array([np.radians(0.5), np.radians(1.0), 1.0])  # roll, pitch, yaw: rad
     steps = [step(26.0, 3.0), step(15.0, 4.0), step(42.0, 10.0)]
-    size = np.array([*angles[0], angles[1]])
     # one axis turns at a time: rates and their derivatives in the body are those about it
     w = np.column_stack([a * s[1] for a, s in zip(size, steps, strict=True)])
     dw = np.column_stack([a * s[2] for a, s in zip(size, steps, strict=True)])
@@ -258,10 +256,7 @@ def test_a_body_that_tilts_while_it_stands_is_not_taken_for_the_base_gyro_bias()
     """A stand in which the body kneels and leans (air suspension, a load), slowly enough to
     stay a rest, then a stand that holds still: the base gyro's bias comes back on every axis,
     about the level axes from the still one alone (the first's specific force shows its
-    tilt). Its mean rate would take the tilt, 1.0 deg over
-    34 s, for 5e-4 rad/s of bias."""
-    from imucal_cli.core.biases import BiasTracker, rest_rate
-
+    tilt). Its mean rate would take the tilt, 1.0 deg over 34 s, for 5e-4 rad/s of bias."""
     bias = np.array([3e-4, -2e-4, 1e-4])
     t_ns, gyro, accel = _standing(bias)
     tolerances = (0.1, 0.02, 8.0)
@@ -274,7 +269,7 @@ def test_a_body_that_tilts_while_it_stands_is_not_taken_for_the_base_gyro_bias()
     assert found is not None
     assert np.abs(found - bias)[:2].max() < 1e-7
     # the first stand's vertical rate holds its turn rate (5e-4 rad/s) times the angle (1 deg)
-    # its mean vertical stands off the vertical at either end
+    # by which its mean vertical stands off the vertical at either end
     assert abs(found[2] - bias[2]) < 5e-4 * np.radians(1.0)
 
 
@@ -282,8 +277,6 @@ def test_a_block_whose_rests_all_tilt_keeps_the_level_axes_bias_it_had():
     """The base's bias followed block by block: a block whose one stand holds still gives the
     bias on every axis; a later block whose one stand kneels gives it about the vertical and
     keeps the level axes' from before, not zero and not the kneel's rate."""
-    from imucal_cli.core.biases import BaseGyroBias
-
     bias = np.array([3e-4, -2e-4, 1e-4])
     t_ns, gyro, accel = _standing(bias)
     tilting, still = t_ns < 42e9, t_ns > 52e9

@@ -314,8 +314,8 @@ def test_a_base_gyro_bias_is_taken_off_the_lever_arms_terms(from_rests):
     stops show it): the lever arms' terms take the rates less what the rests' middles show, and
     the estimate comes back as though the base read true (to the precision of a noise-free
     drive). Taken as read, the bias turns the lever arm's centripetal terms and the estimate
-    is cm off. A rest's ends, where the body still pitches and rolls on its suspension, would
-    give the level axes 1e-4 rad/s of error and more."""
+    is cm off. Only the rests' middles count: at their ends the body still pitches and rolls
+    on its suspension, 1e-4 rad/s and more about the level axes."""
     from dataclasses import replace
 
     from imucal_cli.pipeline import _solved, feed, make_calibrator
